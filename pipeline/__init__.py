@@ -1,0 +1,11 @@
+"""Photogrammetry-to-material pipeline: runner, cache, config and CLI."""
+
+import logging
+
+logger = logging.getLogger("pipeline")
+"""The one logger every stage and runner module writes to."""
+# Pass everything to handlers: each stage's log file wants debug detail, and the
+# console handler (or Python's last-resort handler) filters by its own level.
+logger.setLevel(logging.DEBUG)
+
+__version__ = "0.1.0"

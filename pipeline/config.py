@@ -1,0 +1,286 @@
+"""Typed, layered configuration.
+
+Every config section is a dataclass whose fields carry a docstring (a string
+literal right after the field, as in nerfstudio) and, where a number has limits,
+an ``Annotated[..., Range(lo, hi)]`` bound. The layers are, lowest first:
+
+1. the dataclass defaults,
+2. ``configs/<preset>.toml`` (``standard`` unless ``--preset`` says otherwise),
+3. ``CAPTURE/capture.toml``,
+4. ``-s section.key=value`` overrides from the command line.
+
+Everything is validated before any stage runs: unknown sections or keys, wrong
+types and out-of-range values raise :class:`ConfigError` naming the key, the
+value and what is allowed.
+"""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import functools
+import inspect
+import textwrap
+import tomllib
+import typing
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Annotated, Literal, Mapping
+
+from pipeline.errors import ConfigError
+
+PRESETS_DIR = Path(__file__).resolve().parent.parent / "configs"
+DEFAULT_PRESET = "standard"
+
+
+@dataclass(frozen=True)
+class Range:
+    """Inclusive numeric bounds for a config field; ``None`` leaves a side open.
+
+    ``exclusive_lo`` makes the lower bound strict (for quantities that must be
+    positive, such as an extinction coefficient).
+    """
+
+    lo: float | None = None
+    hi: float | None = None
+    exclusive_lo: bool = False
+
+    def check(self, value: float) -> bool:
+        if self.lo is not None and (value <= self.lo if self.exclusive_lo else value < self.lo):
+            return False
+        return self.hi is None or value <= self.hi
+
+    def describe(self) -> str:
+        lo = "-inf" if self.lo is None else f"{self.lo:g}"
+        hi = "inf" if self.hi is None else f"{self.hi:g}"
+        return f"{'(' if self.exclusive_lo or self.lo is None else '['}{lo}, {hi}]"
+
+
+@functools.cache
+def field_docs(cls: type) -> dict[str, str]:
+    """The docstring written under each field of a dataclass, by field name."""
+    tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
+    body = tree.body[0].body  # type: ignore[attr-defined]
+    docs: dict[str, str] = {}
+    for stmt, following in zip(body, body[1:]):
+        if (
+            isinstance(stmt, ast.AnnAssign)
+            and isinstance(stmt.target, ast.Name)
+            and isinstance(following, ast.Expr)
+            and isinstance(following.value, ast.Constant)
+            and isinstance(following.value.value, str)
+        ):
+            docs[stmt.target.id] = inspect.cleandoc(following.value.value)
+    return docs
+
+
+def _describe_type(hint: Any) -> str:
+    origin = typing.get_origin(hint)
+    if origin is Annotated:
+        base, *extra = typing.get_args(hint)
+        ranges = [e.describe() for e in extra if isinstance(e, Range)]
+        return _describe_type(base) + (f" in {ranges[0]}" if ranges else "")
+    if origin is Literal:
+        return "one of " + ", ".join(repr(a) for a in typing.get_args(hint))
+    if origin in (list, tuple):
+        args = [a for a in typing.get_args(hint) if a is not Ellipsis]
+        return f"list of {_describe_type(args[0])}" if args else "list"
+    return getattr(hint, "__name__", str(hint))
+
+
+def _coerce(key: str, value: Any, hint: Any) -> Any:
+    """Check ``value`` against the type ``hint``; return it in canonical form."""
+    origin = typing.get_origin(hint)
+    if origin is Annotated:
+        base, *extra = typing.get_args(hint)
+        value = _coerce(key, value, base)
+        for bound in extra:
+            if isinstance(bound, Range) and not bound.check(value):
+                raise ConfigError(
+                    f"{key} = {value!r} is out of range: allowed {bound.describe()}"
+                )
+        return value
+    if origin is Literal:
+        allowed = typing.get_args(hint)
+        if value not in allowed:
+            raise ConfigError(
+                f"{key} = {value!r} is not allowed: use one of "
+                + ", ".join(repr(a) for a in allowed)
+            )
+        return value
+    if origin in (list, tuple):
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{key} = {value!r} has the wrong type: expected {_describe_type(hint)}")
+        args = typing.get_args(hint)
+        if origin is tuple and args and args[-1] is not Ellipsis:
+            if len(value) != len(args):
+                raise ConfigError(f"{key} = {value!r} needs exactly {len(args)} items")
+            return tuple(_coerce(f"{key}[{i}]", v, a) for i, (v, a) in enumerate(zip(value, args)))
+        item = args[0] if args else Any
+        items = [_coerce(f"{key}[{i}]", v, item) for i, v in enumerate(value)]
+        return tuple(items) if origin is tuple else items
+    if hint is Any:
+        return value
+    if hint is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{key} = {value!r} has the wrong type: expected a number")
+        return float(value)
+    if hint is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{key} = {value!r} has the wrong type: expected an integer")
+        return value
+    if hint in (bool, str):
+        if not isinstance(value, hint):
+            raise ConfigError(
+                f"{key} = {value!r} has the wrong type: expected {'true/false' if hint is bool else 'a string'}"
+            )
+        return value
+    raise TypeError(f"config field {key} uses unsupported type {hint!r}")
+
+
+def build_section(name: str, cls: type, values: Mapping[str, Any]) -> Any:
+    """Instantiate dataclass ``cls`` from TOML ``values``, rejecting anything invalid."""
+    hints = typing.get_type_hints(cls, include_extras=True)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(values) - set(fields))
+    if unknown:
+        raise ConfigError(
+            f"unknown key {name}.{unknown[0]}: section [{name}] has "
+            + ", ".join(sorted(fields))
+        )
+    kwargs = {k: _coerce(f"{name}.{k}", v, hints[k]) for k, v in values.items()}
+    instance = cls(**kwargs)
+    # Defaults go through the same checks so a bad default cannot slip past.
+    for f in dataclasses.fields(cls):
+        if f.name not in kwargs:
+            _coerce(f"{name}.{f.name}", getattr(instance, f.name), hints[f.name])
+    validate = getattr(instance, "validate", None)
+    if validate is not None:
+        validate(name)
+    return instance
+
+
+def parse_override(text: str) -> tuple[str, str, Any]:
+    """Split ``section.key=value``; the value is read as TOML, else as a bare string."""
+    if "=" not in text or "." not in text.split("=", 1)[0]:
+        raise ConfigError(f"override {text!r} must look like section.key=value")
+    path, raw = text.split("=", 1)
+    section, key = path.strip().split(".", 1)
+    try:
+        value = tomllib.loads(f"v = {raw}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw  # lets users write `-s fit.loss=dual` without quotes
+    return section, key, value
+
+
+def _read_toml(path: Path) -> dict[str, Any]:
+    try:
+        with path.open("rb") as f:
+            return tomllib.load(f)
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{path}: invalid TOML: {e}") from e
+
+
+def preset_names(presets_dir: Path | None = None) -> list[str]:
+    return sorted(p.stem for p in (presets_dir or PRESETS_DIR).glob("*.toml"))
+
+
+@dataclass(frozen=True)
+class Config:
+    """The validated configuration: one dataclass instance per section."""
+
+    sections: Mapping[str, Any]
+    preset: str
+    sources: tuple[str, ...]
+    """Files and overrides that were layered, lowest first."""
+
+    def __getitem__(self, name: str) -> Any:
+        return self.sections[name]
+
+    def as_dict(self) -> dict[str, dict[str, Any]]:
+        return {name: section_dict(s) for name, s in self.sections.items()}
+
+
+def section_dict(section: Any) -> dict[str, Any]:
+    """A section as plain JSON/TOML-ready values (tuples become lists)."""
+    return {
+        f.name: (list(v) if isinstance(v := getattr(section, f.name), tuple) else v)
+        for f in dataclasses.fields(section)
+    }
+
+
+def load_config(
+    schema: Mapping[str, type],
+    capture_dir: Path | None = None,
+    preset: str = DEFAULT_PRESET,
+    overrides: tuple[str, ...] | list[str] = (),
+    presets_dir: Path | None = None,
+) -> Config:
+    """Layer preset, capture.toml and overrides over the defaults of ``schema``."""
+    presets_dir = presets_dir or PRESETS_DIR
+    preset_file = presets_dir / f"{preset}.toml"
+    if not preset_file.is_file():
+        raise ConfigError(
+            f"unknown preset {preset!r}: choose one of " + ", ".join(preset_names(presets_dir))
+        )
+    layers: list[tuple[str, dict[str, Any]]] = [(str(preset_file), _read_toml(preset_file))]
+    if capture_dir is not None and (capture_dir / "capture.toml").is_file():
+        capture_file = capture_dir / "capture.toml"
+        layers.append((str(capture_file), _read_toml(capture_file)))
+    override_layer: dict[str, dict[str, Any]] = {}
+    for text in overrides:
+        section, key, value = parse_override(text)
+        override_layer.setdefault(section, {})[key] = value
+    if override_layer:
+        layers.append(("-s " + " -s ".join(overrides), override_layer))
+
+    merged: dict[str, dict[str, Any]] = {name: {} for name in schema}
+    for source, layer in layers:
+        for section, values in layer.items():
+            if section not in schema:
+                raise ConfigError(
+                    f"{source}: unknown section [{section}]: known sections are "
+                    + ", ".join(sorted(schema))
+                )
+            if not isinstance(values, dict):
+                raise ConfigError(f"{source}: {section} must be a [section] table")
+            merged[section].update(values)
+
+    sections = {}
+    for name, cls in schema.items():
+        try:
+            sections[name] = build_section(name, cls, merged[name])
+        except ConfigError as e:
+            origin = [s for s, layer in layers if name in layer]
+            raise ConfigError(f"{e} (set in {', '.join(origin) or 'defaults'})") from None
+    return Config(sections=sections, preset=preset, sources=tuple(s for s, _ in layers))
+
+
+def describe_schema(schema: Mapping[str, type], config: Config | None = None) -> str:
+    """Human-readable listing of every section and key with type, value and doc."""
+    lines: list[str] = []
+    for name, cls in schema.items():
+        hints = typing.get_type_hints(cls, include_extras=True)
+        docs = field_docs(cls)
+        lines.append(f"[{name}]  {inspect.cleandoc(cls.__doc__ or '').splitlines()[0]}")
+        for f in dataclasses.fields(cls):
+            value = getattr(config[name] if config else cls(), f.name)
+            lines.append(f"  {f.name} = {value!r}    ({_describe_type(hints[f.name])})")
+            for doc_line in docs.get(f.name, "(undocumented)").splitlines():
+                lines.append(f"      {doc_line}")
+        lines.append("")
+    return "\n".join(lines)
+
+
+__all__ = [
+    "Config",
+    "ConfigError",
+    "Range",
+    "build_section",
+    "describe_schema",
+    "field_docs",
+    "load_config",
+    "parse_override",
+    "preset_names",
+    "section_dict",
+]

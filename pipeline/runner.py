@@ -1,0 +1,379 @@
+"""Plans and runs the stage DAG over one capture.
+
+Cache key of a stage = SHA-256 of (stage name, version, its config section, the
+shared sections it declared, the keys of its upstream stages, the content hashes
+of the capture files it reads): a Merkle chain, so a change anywhere reruns
+exactly the stages downstream of it, and reverting the change finds the old
+entries again.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import platform
+import shutil
+import time
+from dataclasses import dataclass, field
+from importlib import metadata
+from pathlib import Path
+from typing import Any, Literal, Sequence
+
+from pipeline import logger
+from pipeline.cache import LOG_FILE, Entry, StageCache
+from pipeline.config import Config, section_dict
+from pipeline.errors import ConfigError, PipelineError
+from pipeline.fsutil import atomic_write_text
+from pipeline.hashing import FileHasher, glob_capture_files
+from pipeline.stage import Stage, StageInputs
+
+Action = Literal["run", "cached", "disabled"]
+
+LIBRARIES = (
+    "mitsuba", "drjit", "pycolmap", "opencv-contrib-python-headless", "pymeshlab",
+    "xatlas", "trimesh", "OpenImageIO", "numpy",
+)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class Selection:
+    """Which stages a run covers, from the CLI's --from/--until/--only/--force."""
+
+    start: str | None = None
+    until: str | None = None
+    only: str | None = None
+    force: tuple[str, ...] = ()
+    """Stage names, or ``("all",)``."""
+
+
+@dataclass
+class PlannedStage:
+    stage: Stage
+    key: str
+    components: dict[str, Any]
+    action: Action
+    reason: str
+    entry: Entry | None = None
+    seconds: float | None = None
+    metrics: dict[str, Any] = field(default_factory=dict)
+
+
+def topological_order(stages: Sequence[Stage]) -> list[Stage]:
+    """Stages ordered so that each comes after its upstream; rejects bad graphs."""
+    by_name = {s.name: s for s in stages}
+    if len(by_name) != len(stages):
+        raise ValueError("two stages share a name")
+    for s in stages:
+        for up in s.upstream:
+            if up not in by_name:
+                raise ValueError(f"stage {s.name} names unknown upstream stage {up}")
+    ordered: list[Stage] = []
+    visiting: set[str] = set()
+
+    def visit(s: Stage) -> None:
+        if s in ordered:
+            return
+        if s.name in visiting:
+            raise ValueError(f"stage graph has a cycle through {s.name}")
+        visiting.add(s.name)
+        for up in s.upstream:
+            visit(by_name[up])
+        visiting.discard(s.name)
+        ordered.append(s)
+
+    for s in stages:
+        visit(s)
+    return ordered
+
+
+def descendants(stages: Sequence[Stage], name: str) -> set[str]:
+    found = {name}
+    for s in topological_order(stages):
+        if found.intersection(s.upstream):
+            found.add(s.name)
+    return found
+
+
+def ancestors(stages: Sequence[Stage], name: str) -> set[str]:
+    by_name = {s.name: s for s in stages}
+    found: set[str] = set()
+    todo = list(by_name[name].upstream)
+    while todo:
+        up = todo.pop()
+        if up not in found:
+            found.add(up)
+            todo.extend(by_name[up].upstream)
+    return found
+
+
+def _flatten(prefix: str, value: Any) -> dict[str, Any]:
+    if isinstance(value, dict):
+        out: dict[str, Any] = {}
+        for k, v in value.items():
+            out.update(_flatten(f"{prefix}.{k}" if prefix else k, v))
+        return out
+    return {prefix: value}
+
+
+def explain_change(old: dict[str, Any], new: dict[str, Any]) -> str:
+    """Why a key differs from the one of the previous entry, for --dry-run."""
+    reasons: list[str] = []
+    if old["version"] != new["version"]:
+        reasons.append(f"stage version {old['version']} -> {new['version']}")
+    for part in ("config", "shared"):
+        flat_old = _flatten(new["stage"] if part == "config" else "", old[part])
+        flat_new = _flatten(new["stage"] if part == "config" else "", new[part])
+        for key in sorted(set(flat_old) | set(flat_new)):
+            if flat_old.get(key) != flat_new.get(key):
+                reasons.append(f"setting {key}: {flat_old.get(key)!r} -> {flat_new.get(key)!r}")
+    files_old, files_new = old["files"], new["files"]
+    changed = [f for f in files_new if f in files_old and files_old[f] != files_new[f]]
+    added = [f for f in files_new if f not in files_old]
+    removed = [f for f in files_old if f not in files_new]
+    for verb, names in (("changed", changed), ("added", added), ("removed", removed)):
+        if names:
+            more = f" (+{len(names) - 3} more)" if len(names) > 3 else ""
+            reasons.append(f"input {verb}: {', '.join(names[:3])}{more}")
+    for up, key in new["upstream"].items():
+        if old["upstream"].get(up) != key:
+            reasons.append(f"upstream {up} changed")
+    return "; ".join(reasons) or "cache entry missing"
+
+
+def library_versions() -> dict[str, str]:
+    versions = {"python": platform.python_version()}
+    for name in LIBRARIES:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            continue  # not every environment installs every optional library
+    return versions
+
+
+class Runner:
+    """Plans and executes ``stages`` on one capture with one validated config."""
+
+    def __init__(self, capture_dir: Path, stages: Sequence[Stage], config: Config):
+        if not capture_dir.is_dir():
+            raise ConfigError(f"capture folder {capture_dir} does not exist")
+        self.capture_dir = capture_dir
+        self.stages = topological_order(stages)
+        self.by_name = {s.name: s for s in self.stages}
+        self.config = config
+        self.cache = StageCache(capture_dir)
+        self.hasher = FileHasher(self.cache.state_dir / "file_hashes.json")
+
+    # -- planning -----------------------------------------------------------
+
+    def _check_name(self, name: str, option: str) -> None:
+        if name != "all" or option != "--force":
+            if name not in self.by_name:
+                raise ConfigError(
+                    f"{option} {name}: no such stage; stages are " + ", ".join(self.by_name)
+                )
+
+    def _components(self, stage: Stage, upstream_keys: dict[str, str]) -> dict[str, Any]:
+        files = glob_capture_files(self.capture_dir, stage.reads)
+        return {
+            "stage": stage.name,
+            "version": stage.version,
+            "config": section_dict(self.config[stage.name]),
+            "shared": {name: section_dict(self.config[name]) for name in stage.shared},
+            "upstream": {up: upstream_keys[up] for up in stage.upstream},
+            "files": {
+                f.relative_to(self.capture_dir).as_posix(): self.hasher.hash(f) for f in files
+            },
+        }
+
+    def plan(self, selection: Selection = Selection()) -> list[PlannedStage]:
+        """Decide, for every stage the selection covers, whether it runs and why."""
+        for name, option in (
+            (selection.start, "--from"),
+            (selection.until, "--until"),
+            (selection.only, "--only"),
+            *((f, "--force") for f in selection.force),
+        ):
+            if name is not None:
+                self._check_name(name, option)
+
+        targets = set(self.by_name)
+        if selection.until:
+            targets = ancestors(self.stages, selection.until) | {selection.until}
+        forced: dict[str, str] = {}
+        must_be_cached: set[str] = set()
+        if selection.only:
+            targets = {selection.only}
+            forced[selection.only] = f"--only {selection.only}"
+            must_be_cached = ancestors(self.stages, selection.only)
+        if selection.start:
+            for name in descendants(self.stages, selection.start) & targets:
+                forced[name] = f"--from {selection.start}"
+            must_be_cached = ancestors(self.stages, selection.start)
+        for name in selection.force:
+            chosen = self.by_name if name == "all" else descendants(self.stages, name)
+            for forced_name in set(chosen) & targets:
+                forced.setdefault(forced_name, f"--force {name}")
+
+        keys: dict[str, str] = {}
+        planned: list[PlannedStage] = []
+        for stage in self.stages:
+            components = self._components(stage, keys)
+            key = hashlib.sha256(json.dumps(components, sort_keys=True).encode()).hexdigest()[:16]
+            keys[stage.name] = key
+            entry = self.cache.lookup(stage.name, key)
+            if stage.enabled is not None and not stage.enabled(self.config[stage.name]):
+                action, reason = "disabled", f"{stage.name}.enabled is off"
+            elif stage.name in forced:
+                action, reason = "run", f"forced ({forced[stage.name]})"
+            elif entry is not None:
+                action, reason = "cached", "inputs, settings and upstream unchanged"
+            elif stage.name in must_be_cached:
+                raise ConfigError(
+                    f"stage {stage.name} has no cached result for the current config, and "
+                    f"--from/--only do not compute upstream stages: run "
+                    f"`pipeline run {self.capture_dir} --until {stage.name}` first"
+                )
+            else:
+                previous = self.cache.entries(stage.name)
+                action = "run"
+                reason = (
+                    explain_change(previous[-1].status["components"], components)
+                    if previous
+                    else "never run"
+                )
+            if stage.name in targets or stage.name in must_be_cached:
+                planned.append(PlannedStage(stage, key, components, action, reason, entry))
+        self.hasher.save()
+        return planned
+
+    # -- execution ----------------------------------------------------------
+
+    def run(self, selection: Selection = Selection(), on_stage_done=None) -> list[PlannedStage]:
+        plan = self.plan(selection)
+        results: dict[str, Entry] = {}
+        for item in plan:
+            if item.action == "disabled":
+                continue
+            if item.action == "cached":
+                assert item.entry is not None
+                results[item.stage.name] = item.entry
+                item.seconds = item.entry.status["seconds"]
+                item.metrics = item.entry.status.get("metrics", {})
+            else:
+                item.entry = self._execute(item, results)
+                results[item.stage.name] = item.entry
+            if on_stage_done is not None:
+                on_stage_done(item)
+        self._export(plan)
+        self._record_run(plan)
+        return plan
+
+    def _execute(self, item: PlannedStage, results: dict[str, Entry]) -> Entry:
+        stage = item.stage
+        conf = self.config[stage.name]
+        inputs = StageInputs(
+            capture_dir=self.capture_dir,
+            files=tuple(self.capture_dir / f for f in item.components["files"]),
+            upstream={up: results[up].outputs for up in stage.upstream if up in results},
+            shared={name: self.config[name] for name in stage.shared},
+        )
+        tmp = self.cache.begin(stage.name, item.key)
+        handler = logging.FileHandler(tmp / LOG_FILE)
+        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
+        handler.setLevel(logging.DEBUG)
+        logger.addHandler(handler)
+        started = time.time()
+        committed = False
+        try:
+            logger.info("stage %s (key %s): %s", stage.name, item.key, item.reason)
+            result = stage.main(conf, inputs, tmp)
+            item.seconds = time.time() - started
+            item.metrics = result.metrics
+            outputs = {}
+            for name, path in result.outputs.items():
+                resolved = Path(path).resolve()
+                if not resolved.exists() or not resolved.is_relative_to(tmp.resolve()):
+                    raise RuntimeError(
+                        f"stage {stage.name} returned output {name}={path}, "
+                        f"which is not an existing path inside its output folder"
+                    )
+                outputs[name] = resolved.relative_to(tmp.resolve()).as_posix()
+            logger.info("stage %s done in %.1f s", stage.name, item.seconds)
+            handler.close()
+            status = {
+                "stage": stage.name,
+                "key": item.key,
+                "version": stage.version,
+                "components": item.components,
+                "effective_config": self.config.as_dict(),
+                "config_sources": list(self.config.sources),
+                "libraries": library_versions(),
+                "started": started,
+                "finished": time.time(),
+                "seconds": item.seconds,
+                "outputs": outputs,
+                "metrics": result.metrics,
+            }
+            entry = self.cache.commit(tmp, stage.name, item.key, status)
+            committed = True
+            return entry
+        finally:
+            logger.removeHandler(handler)
+            handler.close()
+            if not committed:
+                kept = self.cache.keep_failed(tmp, stage.name)
+                logger.error("stage %s failed; its log is in %s", stage.name, kept / LOG_FILE)
+
+    def _export(self, plan: list[PlannedStage]) -> None:
+        """Copy the exported outputs of this run's results to CAPTURE/output/."""
+        out_dir = self.capture_dir / "output"
+        manifest_file = out_dir / "manifest.json"
+        manifest = json.loads(manifest_file.read_text()) if manifest_file.is_file() else {}
+        for item in plan:
+            if item.entry is None or not item.stage.exports:
+                continue
+            for name in item.stage.exports:
+                source = item.entry.outputs[name]
+                target = out_dir / source.name
+                record = {"stage": item.stage.name, "key": item.key, "path": target.name}
+                if manifest.get(name) == record and target.exists():
+                    continue
+                out_dir.mkdir(exist_ok=True)
+                staging = out_dir / f".{target.name}.tmp"
+                if source.is_dir():
+                    shutil.rmtree(staging, ignore_errors=True)
+                    shutil.copytree(source, staging)
+                    if target.exists():
+                        shutil.rmtree(target)
+                else:
+                    shutil.copy2(source, staging)
+                staging.replace(target)
+                manifest[name] = record
+        if manifest:
+            atomic_write_text(manifest_file, json.dumps(manifest, indent=2, sort_keys=True))
+
+    def _record_run(self, plan: list[PlannedStage]) -> None:
+        runs = self.cache.state_dir / "runs"
+        runs.mkdir(parents=True, exist_ok=True)
+        record = {
+            "effective_config": self.config.as_dict(),
+            "config_sources": list(self.config.sources),
+            "stages": [summary(p) for p in plan],
+        }
+        name = time.strftime("%Y%m%d-%H%M%S") + f"-{time.time_ns() % 1_000_000:06d}.json"
+        atomic_write_text(runs / name, json.dumps(record, indent=2))
+
+
+def summary(item: PlannedStage) -> dict[str, Any]:
+    return {
+        "stage": item.stage.name,
+        "key": item.key,
+        "action": item.action,
+        "reason": item.reason,
+        "seconds": item.seconds,
+        "metrics": item.metrics,
+    }
+
+
+__all__ = ["PipelineError", "PlannedStage", "Runner", "Selection", "summary"]

@@ -1,0 +1,109 @@
+"""Config sections shared by several stages, mostly written by the user in capture.toml.
+
+A stage's own section is its ``Config`` dataclass; the sections here describe the
+capture (rig, board, light) and the machine (Mitsuba variant). A stage lists the
+ones it reads in ``Stage.shared`` so that they enter its cache key.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Annotated, Literal, Sequence
+
+from pipeline.config import Range
+from pipeline.stage import Stage
+
+Vec3 = tuple[float, float, float]
+ArucoDictionary = Literal["DICT_4X4_50", "DICT_4X4_100", "DICT_5X5_100", "DICT_6X6_250"]
+
+
+@dataclass(frozen=True)
+class CaptureSection:
+    """What was photographed and how."""
+
+    description: str = ""
+    """Free text: specimen, date, camera; kept with the results."""
+    rig: Literal["handheld", "turntable"] = "handheld"
+    """handheld: the camera moves around a still object. turntable: camera and light
+    stay fixed while the object turns; photos are ordered by file name."""
+    material: Literal["auto", "opaque", "principled", "volumetric"] = "auto"
+    """Material model hint. opaque: diffuse/principled without transmission;
+    principled: surface translucency (spec_trans, eta); volumetric: rough dielectric
+    with a homogeneous medium. auto lets the fitting stages decide."""
+
+
+@dataclass(frozen=True)
+class BoardSection:
+    """The printed ChArUco (or checkerboard) board used for calibration and scale."""
+
+    kind: Literal["charuco", "checkerboard", "none"] = "charuco"
+    """Pattern type; none when no board was photographed."""
+    squares_x: Annotated[int, Range(3, 40)] = 7
+    """Squares along the board's width."""
+    squares_y: Annotated[int, Range(3, 40)] = 5
+    """Squares along the board's height."""
+    square_mm: Annotated[float, Range(0.0, None, exclusive_lo=True)] = 30.0
+    """Printed side length of one square, in millimetres (measure the print)."""
+    marker_mm: Annotated[float, Range(0.0, None, exclusive_lo=True)] = 22.0
+    """Printed side length of one ArUco marker, in millimetres (ChArUco only)."""
+    dictionary: ArucoDictionary = "DICT_5X5_100"
+    """ArUco dictionary the markers come from (ChArUco only)."""
+
+    def validate(self, name: str) -> None:
+        from pipeline.errors import ConfigError
+
+        if self.kind == "charuco" and self.marker_mm >= self.square_mm:
+            raise ConfigError(
+                f"{name}.marker_mm = {self.marker_mm} must be smaller than "
+                f"{name}.square_mm = {self.square_mm}"
+            )
+
+
+@dataclass(frozen=True)
+class LightSection:
+    """The light rig: an environment plus at most one rectangular area light."""
+
+    environment_radiance: tuple[float, float, float] = (0.5, 0.5, 0.5)
+    """Constant environment radiance (linear RGB), used when environment_map is empty."""
+    environment_map: str = ""
+    """Path of an equirectangular EXR, relative to the capture folder; empty for none."""
+    area_light: bool = True
+    """Whether a rectangular area light (a softbox) is part of the rig."""
+    area_position: Vec3 = (0.6, 0.8, 0.6)
+    """Centre of the area light in metres, in the frame given by `frame`."""
+    area_target: Vec3 = (0.0, 0.0, 0.0)
+    """Point the area light faces, in the same frame."""
+    area_size: Annotated[float, Range(0.0, None, exclusive_lo=True)] = 0.4
+    """Side length of the square area light, in metres."""
+    area_radiance: tuple[float, float, float] = (6.0, 6.0, 6.0)
+    """Emitted radiance of the area light (linear RGB)."""
+    frame: Literal["world", "camera"] = "world"
+    """world: the light is fixed in the specimen's frame (handheld capture).
+    camera: it stays fixed relative to the camera (turntable capture)."""
+
+
+@dataclass(frozen=True)
+class MitsubaSection:
+    """How Mitsuba runs on this machine."""
+
+    variant: Literal["auto", "cuda_ad_rgb", "llvm_ad_rgb"] = "auto"
+    """auto: cuda_ad_rgb when a CUDA device works, else llvm_ad_rgb. The environment
+    variable PIPELINE_MITSUBA_VARIANT overrides this setting."""
+
+
+SHARED_SECTIONS: dict[str, type] = {
+    "capture": CaptureSection,
+    "board": BoardSection,
+    "light": LightSection,
+    "mitsuba": MitsubaSection,
+}
+
+
+def schema(stages: Sequence[Stage]) -> dict[str, type]:
+    """Every config section: the shared ones, then one per stage."""
+    sections = dict(SHARED_SECTIONS)
+    for stage in stages:
+        if stage.name in sections:
+            raise ValueError(f"stage {stage.name} clashes with a shared config section")
+        sections[stage.name] = stage.config
+    return sections

@@ -1,0 +1,60 @@
+"""What a stage is: the contract between a module in ``stages/`` and the runner.
+
+A stage module defines one ``Config`` dataclass (its config section, named after
+the stage), a ``main(conf, inputs, out_dir) -> StageResult`` function that reads
+paths and writes only inside ``out_dir``, and a module-level ``STAGE`` that ties
+them together. The runner owns everything else: where ``out_dir`` lives, when a
+result may be reused, and which upstream outputs the stage sees.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+
+@dataclass(frozen=True)
+class StageInputs:
+    """Everything a stage may read, resolved by the runner."""
+
+    capture_dir: Path
+    """The capture folder (read-only for stages)."""
+    files: tuple[Path, ...]
+    """Capture files matched by the stage's ``reads`` patterns, sorted."""
+    upstream: Mapping[str, Mapping[str, Path]]
+    """Outputs of each upstream stage: stage name -> output name -> path."""
+    shared: Mapping[str, Any]
+    """Shared config sections the stage declared in ``shared`` (e.g. ``capture``)."""
+
+
+@dataclass
+class StageResult:
+    """What a stage returns: named output paths inside its ``out_dir``, and metrics."""
+
+    outputs: dict[str, Path]
+    metrics: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Stage:
+    """A node of the DAG."""
+
+    name: str
+    """Unique name; also the name of the stage's config section."""
+    version: int
+    """Bump when the code changes its results: old cache entries stop matching."""
+    config: type
+    """Dataclass of the stage's own config section."""
+    main: Callable[[Any, StageInputs, Path], StageResult]
+    """``main(conf, inputs, out_dir)``: does the work, writes only into ``out_dir``."""
+    upstream: tuple[str, ...] = ()
+    """Names of stages whose outputs this stage reads."""
+    reads: tuple[str, ...] = ()
+    """Glob patterns, relative to the capture folder, of the capture files it reads."""
+    shared: tuple[str, ...] = ()
+    """Shared config sections (not its own) whose values change its results."""
+    exports: tuple[str, ...] = ()
+    """Output names copied to ``CAPTURE/output/`` after a successful run."""
+    enabled: Callable[[Any], bool] | None = None
+    """Optional predicate on the stage's config; a disabled stage is skipped."""

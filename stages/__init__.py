@@ -1,0 +1,9 @@
+"""The pipeline's stages, one module each, listed here in DAG order.
+
+A module joins the pipeline by defining ``STAGE`` (see pipeline.stage) and being
+added to ``STAGES``.
+"""
+
+from pipeline.stage import Stage
+
+STAGES: tuple[Stage, ...] = ()

@@ -1,0 +1,78 @@
+import dataclasses
+import re
+
+import pytest
+from toy_stages import make_stages
+
+from pipeline.config import field_docs, load_config, parse_override
+from pipeline.errors import ConfigError
+from pipeline.sections import SHARED_SECTIONS, schema
+from stages import STAGES
+
+SCHEMA = schema(make_stages())
+
+
+@pytest.mark.parametrize(
+    "overrides, message",
+    [
+        (["double.factr=3"], "unknown key double.factr: section [double] has factor"),
+        (["double.factor=2.5"], "double.factor = 2.5 has the wrong type: expected an integer"),
+        (["double.factor=0"], "double.factor = 0 is out of range: allowed [1, 100]"),
+        (["ingest.scale='big'"], "ingest.scale = 'big' has the wrong type: expected a number"),
+        (["ingest.fail=maybe"], "ingest.fail = 'maybe' is not allowed: use one of 'no', 'raise', 'user', 'sigkill'"),
+        (["mesh.voxels=3"], "unknown section [mesh]"),
+        (["board.marker_mm=40"], "board.marker_mm = 40.0 must be smaller than board.square_mm = 30.0"),
+        (["light.area_size=0"], "light.area_size = 0.0 is out of range: allowed (0, inf]"),
+        (["light.area_position=[1, 2]"], "light.area_position = [1, 2] needs exactly 3 items"),
+        (["nodot=3"], "override 'nodot=3' must look like section.key=value"),
+    ],
+)
+def test_bad_overrides_name_key_value_and_allowed(presets_dir, overrides, message):
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        load_config(SCHEMA, None, "standard", overrides, presets_dir)
+
+
+def test_error_names_the_file_that_set_the_value(tmp_path, presets_dir):
+    capture = tmp_path / "cap"
+    capture.mkdir()
+    (capture / "capture.toml").write_text("[double]\nfactor = 1000\n")
+    with pytest.raises(ConfigError, match=f"set in .*{capture / 'capture.toml'}"):
+        load_config(SCHEMA, capture, "standard", [], presets_dir)
+
+
+def test_invalid_toml_names_the_file(tmp_path, presets_dir):
+    capture = tmp_path / "cap"
+    capture.mkdir()
+    (capture / "capture.toml").write_text("[double\n")
+    with pytest.raises(ConfigError, match="capture.toml: invalid TOML"):
+        load_config(SCHEMA, capture, "standard", [], presets_dir)
+
+
+def test_unknown_preset_lists_the_known_ones(presets_dir):
+    with pytest.raises(ConfigError, match="unknown preset 'fast': choose one of draft, standard"):
+        load_config(SCHEMA, None, "fast", [], presets_dir)
+
+
+def test_override_values_are_toml_with_bare_string_fallback():
+    assert parse_override("a.b=3") == ("a", "b", 3)
+    assert parse_override("a.b=[1, 2.5]") == ("a", "b", [1, 2.5])
+    assert parse_override("a.b=dual") == ("a", "b", "dual")
+    assert parse_override("a.b='x=y'") == ("a", "b", "x=y")
+
+
+def test_int_is_accepted_where_a_float_is_expected(presets_dir):
+    config = load_config(SCHEMA, None, "standard", ["ingest.scale=2"], presets_dir)
+    assert config["ingest"].scale == 2.0 and isinstance(config["ingest"].scale, float)
+
+
+def test_real_presets_load_with_the_real_stages():
+    for preset in ("draft", "standard", "final"):
+        load_config(schema(STAGES), None, preset)
+
+
+@pytest.mark.parametrize("name, cls", sorted({**SHARED_SECTIONS, **schema(STAGES)}.items()))
+def test_every_field_of_every_real_section_is_documented(name, cls):
+    docs = field_docs(cls)
+    missing = [f.name for f in dataclasses.fields(cls) if f.name not in docs]
+    assert not missing, f"[{name}] fields without a docstring: {missing}"
+    assert cls.__doc__ and not cls.__doc__.startswith(cls.__name__ + "(")

@@ -1,0 +1,219 @@
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+import toy_stages
+from toy_stages import RUNS, make_capture, make_stages
+
+from pipeline.config import load_config
+from pipeline.errors import ConfigError
+from pipeline.runner import Runner, Selection
+from pipeline.sections import schema
+
+
+@pytest.fixture(autouse=True)
+def clear_runs():
+    RUNS.clear()
+
+
+def runner(capture: Path, presets_dir: Path, *overrides: str, version: int = 1, preset="standard"):
+    stages = make_stages(ingest_version=version)
+    config = load_config(schema(stages), capture, preset, list(overrides), presets_dir)
+    return Runner(capture, stages, config)
+
+
+def run(capture, presets_dir, *overrides, selection=Selection(), version=1):
+    RUNS.clear()
+    plan = runner(capture, presets_dir, *overrides, version=version).run(selection)
+    return {p.stage.name: p for p in plan}
+
+
+def test_first_run_computes_everything_and_exports(tmp_path, presets_dir):
+    capture = make_capture(tmp_path)
+    plan = run(capture, presets_dir)
+    assert RUNS == ["ingest", "double", "meta", "report"]
+    assert (capture / "output" / "report.txt").read_text() == "result 12.0\n"
+    manifest = json.loads((capture / "output" / "manifest.json").read_text())
+    assert manifest["report"]["key"] == plan["report"].key
+    assert plan["ingest"].metrics == {"files": 3}
+
+
+def test_second_run_is_fully_cached(tmp_path, presets_dir):
+    capture = make_capture(tmp_path)
+    run(capture, presets_dir)
+    plan = run(capture, presets_dir)
+    assert RUNS == []
+    assert {p.action for p in plan.values()} == {"cached"}
+
+
+def test_setting_change_reruns_stage_and_downstream_only(tmp_path, presets_dir):
+    capture = make_capture(tmp_path)
+    run(capture, presets_dir)
+    plan = run(capture, presets_dir, "double.factor=5")
+    assert RUNS == ["double", "report"]
+    assert plan["double"].reason == "setting double.factor: 2 -> 5"
+    assert plan["report"].reason == "upstream double changed"
+    assert (capture / "output" / "report.txt").read_text() == "result 30.0\n"
+
+
+def test_reverting_a_setting_hits_the_cache(tmp_path, presets_dir):
+    capture = make_capture(tmp_path)
+    run(capture, presets_dir)
+    run(capture, presets_dir, "double.factor=5")
+    run(capture, presets_dir)
+    assert RUNS == []
+    assert (capture / "output" / "report.txt").read_text() == "result 12.0\n"
+
+
+def test_input_content_change_reruns_readers(tmp_path, presets_dir):
+    capture = make_capture(tmp_path)
+    run(capture, presets_dir)
+    (capture / "images" / "001.txt").write_text("20")
+    plan = run(capture, presets_dir)
+    assert RUNS == ["ingest", "double", "meta", "report"]
+    assert plan["ingest"].reason == "input changed: images/001.txt"
+
+
+def test_added_input_is_named(tmp_path, presets_dir):
+    capture = make_capture(tmp_path)
+    run(capture, presets_dir)
+    (capture / "images" / "009.txt").write_text("1")
+    assert run(capture, presets_dir)["ingest"].reason == "input added: images/009.txt"
+
+
+def test_touch_without_content_change_recomputes_nothing(tmp_path, presets_dir):
+    capture = make_capture(tmp_path)
+    run(capture, presets_dir)
+    touched = capture / "images" / "000.txt"
+    os.utime(touched, ns=(touched.stat().st_atime_ns, touched.stat().st_mtime_ns + 10**9))
+    run(capture, presets_dir)
+    assert RUNS == []
+
+
+def test_unchanged_files_are_not_reread(tmp_path, presets_dir):
+    capture = make_capture(tmp_path)
+    run(capture, presets_dir)
+    second = runner(capture, presets_dir)
+    second.plan()
+    assert second.hasher.files_read == 0
+
+
+def test_version_bump_reruns_stage_and_downstream(tmp_path, presets_dir):
+    capture = make_capture(tmp_path)
+    run(capture, presets_dir)
+    plan = run(capture, presets_dir, version=2)
+    assert RUNS == ["ingest", "double", "meta", "report"]
+    assert plan["ingest"].reason == "stage version 1 -> 2"
+
+
+def test_capture_toml_layer_sits_between_preset_and_overrides(tmp_path, presets_dir):
+    capture = make_capture(tmp_path)
+    (capture / "capture.toml").write_text("[double]\nfactor = 4\n")
+    assert runner(capture, presets_dir).config["double"].factor == 4
+    assert runner(capture, presets_dir, "double.factor=7").config["double"].factor == 7
+    assert runner(capture, presets_dir, preset="draft").config["double"].factor == 4
+
+
+@pytest.mark.parametrize(
+    "selection, expected",
+    [
+        (Selection(until="double"), []),  # cached; see the fresh-capture test below
+        (Selection(only="double"), ["double"]),
+        (Selection(start="double"), ["double", "report"]),
+        (Selection(force=("ingest",)), ["ingest", "double", "meta", "report"]),
+        (Selection(force=("meta",)), ["meta"]),
+        (Selection(force=("all",), until="meta"), ["ingest", "meta"]),
+    ],
+)
+def test_selection_runs_the_right_stages(tmp_path, presets_dir, selection, expected):
+    capture = make_capture(tmp_path)
+    run(capture, presets_dir)
+    run(capture, presets_dir, selection=selection)
+    assert RUNS == expected
+
+
+def test_until_on_fresh_capture_computes_only_ancestors(tmp_path, presets_dir):
+    capture = make_capture(tmp_path)
+    plan = run(capture, presets_dir, selection=Selection(until="double"))
+    assert RUNS == ["ingest", "double"]
+    assert set(plan) == {"ingest", "double"}
+
+
+def test_only_requires_cached_upstream(tmp_path, presets_dir):
+    capture = make_capture(tmp_path)
+    with pytest.raises(ConfigError, match="stage ingest has no cached result.*--until ingest"):
+        run(capture, presets_dir, selection=Selection(only="double"))
+    assert RUNS == []
+
+
+def test_unknown_stage_in_selection_is_a_usage_error(tmp_path, presets_dir):
+    capture = make_capture(tmp_path)
+    with pytest.raises(ConfigError, match="--from mesh: no such stage; stages are ingest"):
+        run(capture, presets_dir, selection=Selection(start="mesh"))
+
+
+def committed_entries(capture: Path, stage: str) -> list[Path]:
+    stage_dir = capture / ".pipeline" / "cache" / stage
+    return [p for p in stage_dir.iterdir() if not p.name.startswith(".")] if stage_dir.exists() else []
+
+
+def test_failing_stage_commits_nothing_and_is_redone_next_time(tmp_path, presets_dir):
+    capture = make_capture(tmp_path)
+    run(capture, presets_dir, "double.factor=3")
+    with pytest.raises(RuntimeError, match="failed on purpose"):
+        run(capture, presets_dir, "ingest.fail='raise'")
+    assert RUNS == ["ingest"]
+    assert len(committed_entries(capture, "ingest")) == 1  # only the earlier, good one
+    failed_logs = list((capture / ".pipeline" / "failed" / "ingest").glob("*/log.txt"))
+    assert len(failed_logs) == 1 and "Traceback" not in failed_logs[0].read_text()
+    # the earlier results are intact and a later good run redoes exactly what is missing
+    run(capture, presets_dir, "double.factor=3")
+    assert RUNS == []
+    run(capture, presets_dir, "ingest.scale=2")
+    assert RUNS == ["ingest", "double", "meta", "report"]
+
+
+def test_sigkilled_stage_leaves_no_entry_and_is_redone(tmp_path, presets_dir):
+    capture = make_capture(tmp_path)
+    run(capture, presets_dir, selection=Selection(until="ingest"))
+    script = textwrap.dedent(
+        f"""
+        import sys
+        sys.path.insert(0, {str(Path(toy_stages.__file__).parent)!r})
+        from pathlib import Path
+        from toy_stages import make_stages
+        from pipeline.config import load_config
+        from pipeline.runner import Runner
+        from pipeline.sections import schema
+        stages = make_stages()
+        config = load_config(schema(stages), Path({str(capture)!r}), "standard",
+                             ["ingest.fail='sigkill'", "ingest.scale=3"], Path({str(presets_dir)!r}))
+        Runner(Path({str(capture)!r}), stages, config).run()
+        """
+    )
+    killed = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert killed.returncode == -9, killed.stderr
+    assert len(committed_entries(capture, "ingest")) == 1
+    assert list((capture / ".pipeline" / "cache" / "ingest").glob(".tmp-*"))  # the killed run
+    plan = run(capture, presets_dir, "ingest.scale=3")
+    assert RUNS == ["ingest", "double", "meta", "report"]
+    assert plan["ingest"].reason == "setting ingest.scale: 1.0 -> 3.0"
+    # and with the original settings nothing at all is recomputed
+    run(capture, presets_dir, selection=Selection(until="ingest"))
+    assert RUNS == []
+
+
+def test_status_json_records_inputs_config_and_versions(tmp_path, presets_dir):
+    capture = make_capture(tmp_path)
+    plan = run(capture, presets_dir)
+    status = plan["ingest"].entry.status
+    assert status["components"]["files"].keys() == {"images/000.txt", "images/001.txt", "images/002.txt"}
+    assert status["effective_config"]["double"] == {"factor": 2}
+    assert "python" in status["libraries"] and status["seconds"] >= 0
+    assert (plan["ingest"].entry.path / "log.txt").read_text().count("stage ingest") == 2
+    runs = list((capture / ".pipeline" / "runs").glob("*.json"))
+    assert len(runs) == 1

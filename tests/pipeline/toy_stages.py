@@ -1,0 +1,96 @@
+"""A tiny stage DAG defined only for the tests (never registered as real stages).
+
+    ingest (reads images/*.txt) ──> double ──> report (exported)
+                                └─> meta
+
+``RUNS`` records which stages actually executed, so tests can assert what a
+run recomputed. ``ingest`` can be told to fail or to SIGKILL its own process.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pipeline.config import Range
+from pipeline.errors import PipelineError
+from pipeline.stage import Stage, StageInputs, StageResult
+
+RUNS: list[str] = []
+
+
+@dataclass(frozen=True)
+class IngestConfig:
+    """Sum the numbers in the capture's text files."""
+
+    scale: Annotated[float, Range(0.0, 10.0)] = 1.0
+    """Factor applied to the sum."""
+    fail: Literal["no", "raise", "user", "sigkill"] = "no"
+    """Make the stage fail (a bug, a user error, a kill), to test crash safety."""
+
+
+@dataclass(frozen=True)
+class DoubleConfig:
+    """Multiply the total."""
+
+    factor: Annotated[int, Range(1, 100)] = 2
+    """Integer factor."""
+
+
+@dataclass(frozen=True)
+class EmptyConfig:
+    """No settings."""
+
+
+def ingest(conf: IngestConfig, inputs: StageInputs, out_dir: Path) -> StageResult:
+    RUNS.append("ingest")
+    total = sum(float(p.read_text()) for p in inputs.files) * conf.scale
+    (out_dir / "partial.txt").write_text("half-written")
+    if conf.fail == "raise":
+        raise RuntimeError("ingest failed on purpose")
+    if conf.fail == "user":
+        raise PipelineError(f"{inputs.files[0].name}: not a number; fix the file")
+    if conf.fail == "sigkill":
+        os.kill(os.getpid(), signal.SIGKILL)
+    (out_dir / "total.txt").write_text(str(total))
+    return StageResult({"total": out_dir / "total.txt"}, {"files": len(inputs.files)})
+
+
+def double(conf: DoubleConfig, inputs: StageInputs, out_dir: Path) -> StageResult:
+    RUNS.append("double")
+    total = float(inputs.upstream["ingest"]["total"].read_text())
+    (out_dir / "doubled.txt").write_text(str(total * conf.factor))
+    return StageResult({"doubled": out_dir / "doubled.txt"})
+
+
+def meta(conf: EmptyConfig, inputs: StageInputs, out_dir: Path) -> StageResult:
+    RUNS.append("meta")
+    (out_dir / "meta.txt").write_text(f"{len(inputs.upstream['ingest'])} outputs")
+    return StageResult({"meta": out_dir / "meta.txt"})
+
+
+def report(conf: EmptyConfig, inputs: StageInputs, out_dir: Path) -> StageResult:
+    RUNS.append("report")
+    doubled = inputs.upstream["double"]["doubled"].read_text()
+    (out_dir / "report.txt").write_text(f"result {doubled}\n")
+    return StageResult({"report": out_dir / "report.txt"})
+
+
+def make_stages(ingest_version: int = 1) -> tuple[Stage, ...]:
+    return (
+        Stage("ingest", ingest_version, IngestConfig, ingest, reads=("images/*.txt",)),
+        Stage("double", 1, DoubleConfig, double, upstream=("ingest",)),
+        Stage("meta", 1, EmptyConfig, meta, upstream=("ingest",)),
+        Stage("report", 1, EmptyConfig, report, upstream=("double",), exports=("report",)),
+    )
+
+
+def make_capture(root: Path, numbers=(1.0, 2.0, 3.0)) -> Path:
+    capture = root / "capture"
+    (capture / "images").mkdir(parents=True)
+    for i, n in enumerate(numbers):
+        (capture / "images" / f"{i:03d}.txt").write_text(str(n))
+    return capture
