@@ -16,6 +16,7 @@ value and what is allowed.
 
 from __future__ import annotations
 
+import argparse
 import ast
 import dataclasses
 import functools
@@ -272,8 +273,35 @@ def describe_schema(schema: Mapping[str, type], config: Config | None = None) ->
     return "\n".join(lines)
 
 
+
+
+def add_dataclass_arguments(parser: Any, cls: type) -> None:
+    """Add one ``--field-name`` option per field of ``cls``, documented by its docstring."""
+    hints = typing.get_type_hints(cls, include_extras=True)
+    docs = field_docs(cls)
+    defaults = cls()
+    for f in dataclasses.fields(cls):
+        hint, default = hints[f.name], getattr(defaults, f.name)
+        option = "--" + f.name.replace("_", "-")
+        help_text = f"{docs.get(f.name, '')} ({_describe_type(hint)}; default {default!r})"
+        if isinstance(default, tuple):
+            parser.add_argument(option, dest=f.name, nargs="+", type=float, metavar="X", help=help_text)
+        elif isinstance(default, bool):
+            parser.add_argument(option, dest=f.name, action=argparse.BooleanOptionalAction, help=help_text)
+        else:
+            parser.add_argument(option, dest=f.name, type=type(default), help=help_text)
+
+
+def dataclass_from_arguments(cls: type, args: Any) -> Any:
+    """Build ``cls`` from parsed options, validating them like config values."""
+    given = {f.name: getattr(args, f.name) for f in dataclasses.fields(cls) if getattr(args, f.name) is not None}
+    return build_section("--" + cls.__name__, cls, given)
+
+
 __all__ = [
     "Config",
+    "add_dataclass_arguments",
+    "dataclass_from_arguments",
     "ConfigError",
     "Range",
     "build_section",

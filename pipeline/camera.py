@@ -1,0 +1,160 @@
+"""Camera models and the conventions that tie OpenCV, COLMAP and Mitsuba together.
+
+Poses follow COLMAP: ``R, t`` map world to camera (``x_cam = R x_world + t``),
+camera axes x right, y down, z forward; ``qvec`` is COLMAP's (w, x, y, z).
+Intrinsics follow OpenCV: pixel (0, 0) is the *centre* of the top-left pixel and
+distortion is ``(k1, k2, p1, p2, k3)``. Mitsuba's camera looks down +z with +x to
+the left and +y up, and its pixel (0, 0) is the top-left *corner*; the helpers
+below convert.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+# Mitsuba camera axes expressed in COLMAP camera axes (x left = -x right, y up = -y down).
+_MITSUBA_FROM_COLMAP = np.diag([-1.0, -1.0, 1.0])
+
+
+@dataclass
+class Intrinsics:
+    """A pinhole camera with OpenCV radial-tangential distortion."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    dist: list[float] = field(default_factory=lambda: [0.0] * 5)
+    """(k1, k2, p1, p2, k3)"""
+
+    @property
+    def K(self) -> np.ndarray:
+        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_json(cls, data: dict) -> "Intrinsics":
+        return cls(**{k: data[k] for k in ("width", "height", "fx", "fy", "cx", "cy", "dist")})
+
+
+@dataclass
+class Pose:
+    """World-to-camera rigid transform, COLMAP convention."""
+
+    R: np.ndarray
+    t: np.ndarray
+
+    @property
+    def center(self) -> np.ndarray:
+        return -self.R.T @ self.t
+
+    @property
+    def qvec(self) -> np.ndarray:
+        x, y, z, w = Rotation.from_matrix(self.R).as_quat()
+        return np.array([w, x, y, z])
+
+    @classmethod
+    def look_at(cls, center, target, up=(0.0, 0.0, 1.0), roll_deg: float = 0.0) -> "Pose":
+        center, target, up = (np.asarray(v, dtype=float) for v in (center, target, up))
+        forward = target - center
+        forward /= np.linalg.norm(forward)
+        right = np.cross(forward, up)
+        right /= np.linalg.norm(right)
+        down = np.cross(forward, right)
+        R = np.stack([right, down, forward])
+        R = Rotation.from_euler("z", roll_deg, degrees=True).as_matrix() @ R
+        return cls(R, -R @ center)
+
+    def mitsuba_to_world(self) -> np.ndarray:
+        """4x4 ``to_world`` matrix for a Mitsuba sensor at this pose."""
+        M = np.eye(4)
+        M[:3, :3] = self.R.T @ _MITSUBA_FROM_COLMAP
+        M[:3, 3] = self.center
+        return M
+
+    def to_json(self) -> dict:
+        return {
+            "R": self.R.tolist(),
+            "t": self.t.tolist(),
+            "qvec": self.qvec.tolist(),
+            "center": self.center.tolist(),
+        }
+
+    @classmethod
+    def from_json(cls, data: dict) -> "Pose":
+        return cls(np.asarray(data["R"], dtype=float), np.asarray(data["t"], dtype=float))
+
+
+def write_cameras(path: Path, intrinsics: Intrinsics, poses: dict[str, Pose]) -> None:
+    """The plain JSON camera file shared by ground truth and the sfm stage."""
+    data = {
+        "convention": "COLMAP: x_cam = R x_world + t; camera x right, y down, z forward",
+        "intrinsics": intrinsics.to_json(),
+        "images": {name: pose.to_json() for name, pose in sorted(poses.items())},
+    }
+    path.write_text(json.dumps(data, indent=1))
+
+
+def read_cameras(path: Path) -> tuple[Intrinsics, dict[str, Pose]]:
+    data = json.loads(path.read_text())
+    poses = {name: Pose.from_json(p) for name, p in data["images"].items()}
+    return Intrinsics.from_json(data["intrinsics"]), poses
+
+
+def pinhole_render_size(intrinsics: Intrinsics, margin: int = 4) -> tuple[int, int]:
+    """Size of a centred pinhole image (focal fx) that covers the distorted frame."""
+    w, h = intrinsics.width, intrinsics.height
+    border = np.array(
+        [[x, y] for x in np.linspace(0, w - 1, 33) for y in (0, h - 1)]
+        + [[x, y] for y in np.linspace(0, h - 1, 33) for x in (0, w - 1)],
+        dtype=np.float64,
+    )
+    ideal = cv2.undistortPoints(border[:, None], intrinsics.K, np.asarray(intrinsics.dist))[:, 0]
+    half = np.abs(ideal).max(axis=0) * intrinsics.fx + margin
+    return int(2 * np.ceil(half[0])), int(2 * np.ceil(half[1]))
+
+
+def distortion_maps(intrinsics: Intrinsics, render_size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """cv2.remap maps that turn a centred pinhole render into the distorted photo.
+
+    For every photo pixel, undistort its coordinates to the ideal image plane and
+    look it up in the render (whose focal length is ``fx`` and whose optical axis
+    passes through its centre), the way a real lens bends rays.
+    """
+    if not np.isclose(intrinsics.fx, intrinsics.fy):
+        raise ValueError("the synthetic camera has square pixels (fx == fy)")
+    u, v = np.meshgrid(np.arange(intrinsics.width), np.arange(intrinsics.height))
+    pixels = np.stack([u.ravel(), v.ravel()], axis=-1).astype(np.float64)[:, None]
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10)
+    ideal = cv2.undistortPoints(
+        pixels, intrinsics.K, np.asarray(intrinsics.dist), criteria=criteria
+    )[:, 0]
+    render_w, render_h = render_size
+    # Render pixel index j has its centre at continuous coordinate j + 0.5.
+    map_x = ideal[:, 0] * intrinsics.fx + render_w / 2 - 0.5
+    map_y = ideal[:, 1] * intrinsics.fy + render_h / 2 - 0.5
+    shape = (intrinsics.height, intrinsics.width)
+    return map_x.reshape(shape).astype(np.float32), map_y.reshape(shape).astype(np.float32)
+
+
+def similarity_umeyama(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Scale s, rotation R, translation t minimising |s R source + t - target|^2."""
+    mu_s, mu_t = source.mean(0), target.mean(0)
+    xs, xt = source - mu_s, target - mu_t
+    U, D, Vt = np.linalg.svd(xt.T @ xs / len(source))
+    S = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2, 2] = -1
+    R = U @ S @ Vt
+    scale = np.trace(np.diag(D) @ S) / xs.var(0).sum()
+    return scale, R, mu_t - scale * R @ mu_s

@@ -1,0 +1,434 @@
+"""``pipeline synth``: render a capture whose every unknown is known.
+
+A procedural bird (pipeline.specimen) stands on a turntable plate printed with
+the capture's ChArUco board, under an environment plus one area light. Views sit
+on elevation rings around it. Each view is rendered as an ideal pinhole image
+with Mitsuba, then bent by OpenCV radial-tangential distortion, given shot and
+read noise, encoded to sRGB and written as an 8-bit JPEG with EXIF, as a camera
+would. Also written: ``calibration/`` (board shots with the same camera),
+``capture.toml`` (what a user would write) and ``ground_truth/`` (intrinsics,
+poses, mesh, material, light, board placement and true masks).
+
+Turntable captures (``--rig turntable``) keep camera and light fixed while the
+object turns: in the object's frame the camera circles one ring and the light
+travels with it. ``--turn-jitter`` makes the steps uneven like a hand-turned table.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import tomllib
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Annotated, Literal
+
+import cv2
+import numpy as np
+import OpenImageIO as oiio
+import trimesh
+
+from pipeline import logger, mitsuba_variant, progress
+from pipeline.camera import Intrinsics, Pose, distortion_maps, pinhole_render_size, write_cameras
+from pipeline.config import Range
+from pipeline.errors import PipelineError
+from pipeline.sections import BoardSection, LightSection
+from pipeline.specimen import bird_mesh, blotch_colours
+
+SENSOR_WIDTH_MM = 6.4
+"""Sensor width written to EXIF, so that focal length in mm is meaningful."""
+
+BIRD_CENTRE = np.array([0.0, 0.0, 0.045])
+
+
+@dataclass(frozen=True)
+class SynthOptions:
+    """Options of `pipeline synth`."""
+
+    views: Annotated[int, Range(2, 400)] = 30
+    """Number of photos of the specimen."""
+    rings: tuple[float, ...] = (18.0, 42.0)
+    """Camera elevations in degrees; views are spread over these rings (one ring for a turntable)."""
+    width: Annotated[int, Range(32, 4096)] = 560
+    """Photo width in pixels."""
+    height: Annotated[int, Range(32, 4096)] = 420
+    """Photo height in pixels."""
+    hfov: Annotated[float, Range(10.0, 120.0)] = 42.0
+    """Horizontal field of view of the lens in degrees (before distortion)."""
+    distance: Annotated[float, Range(0.05, 5.0)] = 0.36
+    """Camera distance from the bird's centre in metres."""
+    spp: Annotated[int, Range(1, 4096)] = 64
+    """Samples per pixel of the specimen renders."""
+    material: Literal["principled", "volumetric"] = "principled"
+    """principled: Disney BSDF with specular transmission; volumetric: rough dielectric
+    boundary around a homogeneous scattering medium."""
+    texture: Literal["blotches", "plain"] = "blotches"
+    """blotches: mottled albedo that gives feature points; plain: a low-texture specimen."""
+    rig: Literal["handheld", "turntable"] = "handheld"
+    """handheld: camera moves, light fixed in the world; turntable: the object turns."""
+    turn_jitter: Annotated[float, Range(0.0, 0.9)] = 0.0
+    """Turntable only: random unevenness of the steps, as a fraction of the mean step."""
+    calibration_shots: Annotated[int, Range(0, 100)] = 12
+    """Number of ChArUco board photos written to calibration/."""
+    noise: Annotated[float, Range(0.0, 10.0)] = 1.0
+    """Sensor noise level: 1 is a good camera at base ISO, 0 disables noise."""
+    jpeg_quality: Annotated[int, Range(50, 100)] = 92
+    """JPEG quality of the written photos."""
+    seed: int = 0
+    """Seed for the texture, camera jitter, turntable steps and noise."""
+
+
+# Ground-truth materials: translucent but distinguishable, inside the fitting bounds.
+PRINCIPLED_TRUTH = {
+    "model": "principled",
+    "base_color": [0.72, 0.46, 0.22],
+    "roughness": 0.35,
+    "spec_trans": 0.45,
+    "eta": 1.45,
+    # Mitsuba derives `specular` from eta (specular = F0 / 0.08) and rejects both
+    # at once; recorded for comparison with fits that use `specular`.
+    "specular": ((1.45 - 1) / (1.45 + 1)) ** 2 / 0.08,
+}
+VOLUMETRIC_TRUTH = {
+    "model": "volumetric",
+    "alpha": 0.12,
+    "eta": 1.40,
+    "albedo": [0.90, 0.72, 0.50],
+    "sigma_t": 180.0,
+}
+
+DISTORTION = [-0.09, 0.035, 0.0008, -0.0005, 0.0]
+"""(k1, k2, p1, p2, k3) of the synthetic lens: mild barrel, slight decentring."""
+
+
+def _intrinsics(options: SynthOptions) -> Intrinsics:
+    f = options.width / 2 / math.tan(math.radians(options.hfov) / 2)
+    # Principal point a little off centre, as in real cameras.
+    return Intrinsics(
+        width=options.width,
+        height=options.height,
+        fx=f,
+        fy=f,
+        cx=(options.width - 1) / 2 + 0.011 * options.width,
+        cy=(options.height - 1) / 2 - 0.008 * options.height,
+        dist=list(DISTORTION),
+    )
+
+
+def _specimen_poses(options: SynthOptions, rng: np.random.Generator) -> list[Pose]:
+    if options.rig == "turntable":
+        steps = 1.0 + options.turn_jitter * rng.uniform(-1, 1, options.views)
+        azimuths = np.concatenate([[0.0], np.cumsum(steps[:-1])]) * 2 * np.pi / steps.sum()
+        elevation = math.radians(options.rings[0])
+        return [
+            Pose.look_at(
+                BIRD_CENTRE
+                + options.distance
+                * np.array([math.cos(a) * math.cos(elevation), math.sin(a) * math.cos(elevation), math.sin(elevation)]),
+                BIRD_CENTRE,
+            )
+            for a in azimuths
+        ]
+    poses = []
+    rings = options.rings
+    for i in range(options.views):
+        ring = i % len(rings)
+        index_on_ring = i // len(rings)
+        count_on_ring = len(range(ring, options.views, len(rings)))
+        azimuth = 2 * np.pi * (index_on_ring + 0.5 * ring) / count_on_ring + rng.normal(0, 0.05)
+        elevation = math.radians(rings[ring] + rng.normal(0, 2.0))
+        distance = options.distance * rng.uniform(0.92, 1.08)
+        direction = np.array(
+            [math.cos(azimuth) * math.cos(elevation), math.sin(azimuth) * math.cos(elevation), math.sin(elevation)]
+        )
+        target = BIRD_CENTRE + rng.normal(0, 0.006, 3)
+        poses.append(Pose.look_at(BIRD_CENTRE + distance * direction, target, roll_deg=rng.normal(0, 3.0)))
+    return poses
+
+
+def _calibration_poses(count: int, board_size: tuple[float, float], rng) -> list[Pose]:
+    """Board shots from varied angles and distances, the board filling much of the frame."""
+    poses = []
+    for _ in range(count):
+        tilt = math.radians(rng.uniform(0, 40))
+        azimuth = rng.uniform(0, 2 * np.pi)
+        distance = rng.uniform(0.26, 0.40)
+        direction = np.array([math.sin(tilt) * math.cos(azimuth), math.sin(tilt) * math.sin(azimuth), math.cos(tilt)])
+        target = np.array([rng.uniform(-0.25, 0.25) * board_size[0], rng.uniform(-0.25, 0.25) * board_size[1], 0.0])
+        poses.append(
+            Pose.look_at(target + distance * direction, target, up=(0.0, 1.0, 0.0), roll_deg=rng.uniform(-30, 30))
+        )
+    return poses
+
+
+def board_image(board: BoardSection, pixels_per_square: int = 120) -> np.ndarray:
+    """The printed board as a grayscale uint8 image (OpenCV's own rendering)."""
+    charuco = make_charuco_board(board)
+    size = (board.squares_x * pixels_per_square, board.squares_y * pixels_per_square)
+    return charuco.generateImage(size, marginSize=0, borderBits=1)
+
+
+def make_charuco_board(board: BoardSection) -> "cv2.aruco.CharucoBoard":
+    dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, board.dictionary))
+    return cv2.aruco.CharucoBoard(
+        (board.squares_x, board.squares_y), board.square_mm / 1000, board.marker_mm / 1000, dictionary
+    )
+
+
+def board_to_world(board: BoardSection) -> np.ndarray:
+    """4x4 transform from OpenCV board coordinates to the synthetic world frame.
+
+    OpenCV's board frame has its origin at the top-left corner of the printed
+    image, x to the right, y down the image and z into the board. The world frame
+    has z up with the board centred on the origin, so the board's z points down.
+    """
+    width, height = board.squares_x * board.square_mm / 1000, board.squares_y * board.square_mm / 1000
+    M = np.diag([1.0, -1.0, -1.0, 1.0])
+    M[:3, 3] = [-width / 2, height / 2, 0.0]
+    return M
+
+
+def _srgb_encode(linear: np.ndarray) -> np.ndarray:
+    linear = np.clip(linear, 0.0, 1.0)
+    return np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * np.power(linear, 1 / 2.4) - 0.055)
+
+
+def material_plugins(material: dict, textured: bool) -> tuple[dict, dict | None, dict]:
+    """(bsdf, interior medium or None, integrator) for a ground-truth material.
+
+    Only what the model needs: no medium for the principled model, and the
+    vertex-colour texture only when the specimen has one.
+    """
+    if material["model"] == "principled":
+        colour = (
+            {"type": "mesh_attribute", "name": "vertex_color"}
+            if textured
+            else {"type": "rgb", "value": material["base_color"]}
+        )
+        bsdf = {"type": "principled", "id": "specimen_material", "base_color": colour,
+                "roughness": material["roughness"], "spec_trans": material["spec_trans"],
+                "eta": material["eta"]}  # fmt: skip
+        return bsdf, None, {"type": "path", "max_depth": 10}
+    bsdf = {"type": "roughdielectric", "id": "specimen_material", "alpha": material["alpha"],
+            "int_ior": material["eta"], "ext_ior": 1.0}  # fmt: skip
+    medium = {"type": "homogeneous", "id": "specimen_medium",
+              "albedo": {"type": "rgb", "value": material["albedo"]}, "sigma_t": material["sigma_t"]}  # fmt: skip
+    return bsdf, medium, {"type": "volpath", "max_depth": 32}
+
+
+class _Studio:
+    """The synthetic photo studio: scenes, the lens, and the sensor."""
+
+    def __init__(self, options: SynthOptions, board: BoardSection, light: LightSection):
+        import mitsuba as mi
+
+        self.mi = mi
+        self.options = options
+        self.light = light
+        self.intrinsics = _intrinsics(options)
+        self.render_size = pinhole_render_size(self.intrinsics)
+        self.maps = distortion_maps(self.intrinsics, self.render_size)
+        self.noise_rng = np.random.default_rng(options.seed + 1)
+        # Printed paper: ink reflects ~4 %, paper ~80 %.
+        reflectance = 0.04 + 0.76 * board_image(board).astype(np.float32) / 255.0
+        # Mitsuba's rectangle maps the bitmap's first row to local y = -1; the board's
+        # top edge must sit at +y (see board_to_world), so the rows are flipped.
+        reflectance = np.ascontiguousarray(reflectance[::-1])
+        self.board_texture = mi.Bitmap(np.repeat(reflectance[..., None], 3, axis=2))
+        self.board_half = (board.squares_x * board.square_mm / 2000, board.squares_y * board.square_mm / 2000)
+
+    def specimen_shape(self, mesh: trimesh.Trimesh, albedo: np.ndarray | None, bsdf: dict,
+                       medium: dict | None = None, emitter: dict | None = None):  # fmt: skip
+        """The specimen as a Mitsuba mesh; BSDF, medium and emitter bind at construction."""
+        mi = self.mi
+        props = mi.Properties()
+        props["bsdf"] = mi.load_dict(bsdf)
+        if medium is not None:
+            props["interior"] = mi.load_dict(medium)
+        if emitter is not None:
+            props["emitter"] = mi.load_dict(emitter)
+        shape = mi.Mesh("specimen", len(mesh.vertices), len(mesh.faces), props, has_vertex_normals=False)
+        params = mi.traverse(shape)
+        params["vertex_positions"] = mi.Float(mesh.vertices.astype(np.float32).ravel())
+        params["faces"] = mi.UInt32(mesh.faces.astype(np.uint32).ravel())
+        params.update()
+        if albedo is not None:
+            # Float attribute, not PLY colours: no 8-bit quantisation or colour-space guess.
+            shape.add_attribute("vertex_color", 3, mi.Float(albedo.astype(np.float32).ravel()))
+        return shape
+
+    def scene(self, pose: Pose, spp: int, integrator: dict, specimen=None, black_props: bool = False) -> dict:
+        """Board (+ turntable and specimen when given) under the rig, seen from ``pose``."""
+        mi = self.mi
+        render_w, render_h = self.render_size
+        black = {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.0}}
+        paper = {"type": "diffuse", "id": "board_paper",
+                 "reflectance": {"type": "bitmap", "bitmap": self.board_texture, "raw": True}}  # fmt: skip
+        scene = {
+            "type": "scene",
+            "integrator": integrator,
+            "camera": {
+                "type": "perspective",
+                "fov": math.degrees(2 * math.atan(render_w / 2 / self.intrinsics.fx)),
+                "fov_axis": "x",
+                "near_clip": 0.01,
+                "to_world": mi.ScalarTransform4f(pose.mitsuba_to_world().tolist()),
+                "sampler": {"type": "independent", "sample_count": spp},
+                "film": {"type": "hdrfilm", "width": render_w, "height": render_h, "pixel_format": "rgb"},
+            },
+            "board": {
+                "type": "rectangle",
+                "to_world": mi.ScalarTransform4f().scale([self.board_half[0], self.board_half[1], 1.0]),
+                "bsdf": black if black_props else paper,
+            },
+        }
+        if specimen is None:
+            return scene
+        scene["turntable"] = {
+            "type": "disk",
+            "to_world": mi.ScalarTransform4f().translate([0, 0, -0.001]).scale(0.2),
+            "bsdf": black if black_props else {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.25}},
+        }
+        scene["specimen"] = specimen
+        if not black_props:
+            scene.update(self.lights(pose))
+        return scene
+
+    def lights(self, pose: Pose) -> dict:
+        mi, light = self.mi, self.light
+        lights: dict = {"environment": {"type": "constant", "radiance": {"type": "rgb", "value": list(light.environment_radiance)}}}
+        if not light.area_light:
+            return lights
+        position, target = np.array(light.area_position), np.array(light.area_target)
+        up = np.array([0.0, 0.0, 1.0])
+        if light.frame == "camera":
+            position = pose.R.T @ (position - pose.t)
+            target = pose.R.T @ (target - pose.t)
+            up = -pose.R[1]
+        half = light.area_size / 2
+        lights["softbox"] = {
+            "type": "rectangle",
+            "to_world": mi.ScalarTransform4f().look_at(origin=position.tolist(), target=target.tolist(), up=up.tolist())
+            @ mi.ScalarTransform4f().scale([half, half, 1.0]),
+            "emitter": {"type": "area", "radiance": {"type": "rgb", "value": list(light.area_radiance)}},
+        }
+        return lights
+
+    def render(self, scene: dict) -> np.ndarray:
+        """Render a pinhole image and bend it through the lens: linear, distorted."""
+        image = np.asarray(self.mi.render(self.mi.load_dict(scene)), dtype=np.float32)
+        return cv2.remap(image, *self.maps, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+    def photo(self, linear: np.ndarray) -> np.ndarray:
+        """Shot and read noise in linear space, then 8-bit sRGB, as a camera writes it."""
+        if self.options.noise > 0:
+            electrons_at_white = 4000.0 / self.options.noise
+            variance = np.clip(linear, 0, None) / electrons_at_white + (0.0015 * self.options.noise) ** 2
+            linear = linear + self.noise_rng.normal(size=linear.shape) * np.sqrt(variance)
+        return np.round(_srgb_encode(linear) * 255).astype(np.uint8)
+
+    def write_jpeg(self, path: Path, pixels: np.ndarray) -> None:
+        focal_mm = self.intrinsics.fx * SENSOR_WIDTH_MM / self.intrinsics.width
+        spec = oiio.ImageSpec(pixels.shape[1], pixels.shape[0], pixels.shape[2], oiio.UINT8)
+        spec.attribute("Make", "pipeline-synth")
+        spec.attribute("Model", "SynthCam 1")
+        spec.attribute("Exif:FocalLength", float(focal_mm))
+        spec.attribute("Exif:FocalLengthIn35mmFilm", int(round(focal_mm * 36.0 / SENSOR_WIDTH_MM)))
+        spec.attribute("Exif:FocalPlaneXResolution", float(self.intrinsics.width / (SENSOR_WIDTH_MM / 10)))
+        spec.attribute("Exif:FocalPlaneYResolution", float(self.intrinsics.width / (SENSOR_WIDTH_MM / 10)))
+        spec.attribute("Exif:FocalPlaneResolutionUnit", 3)  # centimetres
+        spec.attribute("compression", f"jpeg:{self.options.jpeg_quality}")
+        out = oiio.ImageOutput.create(str(path))
+        if not out.open(str(path), spec) or not out.write_image(pixels) or not out.close():
+            raise OSError(f"could not write {path}: {oiio.geterror()}")
+
+
+def default_light(rig: str) -> LightSection:
+    """The rig's light: a softbox fixed in the world, or riding with a turntable's camera."""
+    if rig == "turntable":
+        # Camera frame: x right, y down, z forward; softbox up and to the right.
+        return LightSection(environment_radiance=(0.3, 0.3, 0.3), area_position=(0.25, -0.30, 0.05),
+                            area_target=(0.0, 0.0, 0.36), area_size=0.3, area_radiance=(10.0, 10.0, 10.0),
+                            frame="camera")  # fmt: skip
+    return LightSection(environment_radiance=(0.3, 0.3, 0.3), area_position=(0.30, 0.35, 0.50),
+                        area_target=(0.0, 0.0, 0.04), area_size=0.3, area_radiance=(10.0, 10.0, 10.0))  # fmt: skip
+
+
+def _capture_toml(options: SynthOptions, board: BoardSection, light: LightSection) -> str:
+    def value(v) -> str:
+        return json.dumps(list(v) if isinstance(v, tuple) else v)
+
+    lines = [
+        "# Written by `pipeline synth`: what a user would write for this capture.",
+        "[capture]",
+        f'description = "synthetic bird, {options.material} material, seed {options.seed}"',
+        f'rig = "{options.rig}"',
+        f'material = "{options.material}"',
+        "",
+        "[board]",
+        *(f"{k} = {value(v)}" for k, v in asdict(board).items()),
+        "",
+        "[light]",
+        *(f"{k} = {value(v)}" for k, v in asdict(light).items()),
+    ]
+    text = "\n".join(lines) + "\n"
+    tomllib.loads(text)  # what we write must parse
+    return text
+
+
+def synthesize(out_dir: Path, options: SynthOptions, board: BoardSection = BoardSection()) -> Path:
+    """Render a complete synthetic capture into ``out_dir``; returns ``out_dir``."""
+    if out_dir.exists() and any(out_dir.iterdir()):
+        raise PipelineError(f"{out_dir} is not empty: choose a new folder for the synthetic capture")
+    mitsuba_variant.activate()
+    light = default_light(options.rig)
+    rng = np.random.default_rng(options.seed)
+    mesh = bird_mesh()
+    material = dict(PRINCIPLED_TRUTH if options.material == "principled" else VOLUMETRIC_TRUTH)
+    textured = options.texture == "blotches" and options.material == "principled"
+    albedo = blotch_colours(mesh.vertices, np.array(material["base_color"]), options.seed) if textured else None
+    if albedo is not None:
+        material["base_color_mean"] = albedo.mean(axis=0).tolist()
+    poses = _specimen_poses(options, rng)
+    studio = _Studio(options, board, light)
+
+    images, calibration, truth = out_dir / "images", out_dir / "calibration", out_dir / "ground_truth"
+    for folder in (images, calibration, truth / "masks"):
+        folder.mkdir(parents=True)
+
+    bsdf, medium, integrator = material_plugins(material, textured)
+    specimen = studio.specimen_shape(mesh, albedo, bsdf, medium)
+    silhouette = studio.specimen_shape(
+        mesh, None, {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.0}},
+        emitter={"type": "area", "radiance": {"type": "rgb", "value": 1.0}},
+    )  # fmt: skip
+    names = [f"view_{i:03d}.jpg" for i in range(len(poses))]
+    for name, pose in progress.track(list(zip(names, poses)), "rendering views"):
+        studio.write_jpeg(images / name, studio.photo(studio.render(studio.scene(pose, options.spp, integrator, specimen))))
+        coverage = studio.render(studio.scene(pose, 16, {"type": "path", "max_depth": 1}, silhouette, black_props=True))
+        cv2.imwrite(str(truth / "masks" / name.replace(".jpg", ".png")), ((coverage[..., 0] > 0.5) * 255).astype(np.uint8))
+
+    board_size = (2 * studio.board_half[0], 2 * studio.board_half[1])
+    calibration_env = {"type": "direct", "emitter_samples": 1, "bsdf_samples": 1}
+    calibration_poses = _calibration_poses(options.calibration_shots, board_size, rng)
+    for i, pose in enumerate(progress.track(calibration_poses, "rendering calibration shots")):
+        scene = studio.scene(pose, 16, calibration_env)
+        scene["environment"] = {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}}
+        studio.write_jpeg(calibration / f"board_{i:02d}.jpg", studio.photo(studio.render(scene)))
+
+    write_cameras(truth / "cameras.json", studio.intrinsics, dict(zip(names, poses)))
+    exported = mesh.copy()
+    if albedo is not None:
+        srgb = np.round(_srgb_encode(albedo) * 255).astype(np.uint8)
+        exported.visual.vertex_colors = np.c_[srgb, np.full(len(srgb), 255, np.uint8)]
+    exported.export(truth / "mesh.ply")
+    (truth / "material.json").write_text(json.dumps(
+        {**material, "texture": "vertex colours of mesh.ply (sRGB)" if textured else None}, indent=1))  # fmt: skip
+    (truth / "light.json").write_text(json.dumps(asdict(light), indent=1))
+    (truth / "board.json").write_text(json.dumps(
+        {**asdict(board), "board_to_world": board_to_world(board).tolist()}, indent=1))  # fmt: skip
+    (truth / "synth.json").write_text(json.dumps(
+        {"options": asdict(options), "calibration_poses": [p.to_json() for p in calibration_poses]}, indent=1))  # fmt: skip
+    (out_dir / "capture.toml").write_text(_capture_toml(options, board, light))
+    logger.info("wrote %d views and %d calibration shots to %s", len(poses), len(calibration_poses), out_dir)
+    return out_dir
