@@ -19,12 +19,20 @@ from rich.table import Table
 
 from pipeline import logger, progress
 from pipeline.cache import StageCache
-from pipeline.config import DEFAULT_PRESET, describe_schema, load_config, preset_names
+from pipeline.config import (
+    DEFAULT_PRESET,
+    add_dataclass_arguments,
+    dataclass_from_arguments,
+    describe_schema,
+    load_config,
+    preset_names,
+)
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.hashing import tree_size
 from pipeline.runner import PlannedStage, Runner, Selection, summary
 from pipeline.sections import schema
 from pipeline.stage import Stage
+from pipeline.synth import SynthOptions
 
 COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {}
 
@@ -155,6 +163,35 @@ def cmd_config(args: argparse.Namespace) -> int:
     return 0
 
 
+@command
+def cmd_synth(args: argparse.Namespace) -> int:
+    from pipeline.synth import synthesize
+
+    options = dataclass_from_arguments(SynthOptions, args, "synth")
+    synthesize(Path(args.out_dir), options)
+    return 0
+
+
+@command
+def cmd_score(args: argparse.Namespace) -> int:
+    from pipeline.score import score_capture, summary_rows
+
+    capture = _capture_dir(args.capture)
+    report = score_capture(capture)
+    (capture / "output").mkdir(exist_ok=True)
+    (capture / "output" / "score.json").write_text(json.dumps(report, indent=2))
+    if args.json:
+        print(json.dumps(report, indent=2))
+        return 0
+    table = Table("part", "metric", "value")
+    for row in summary_rows(report):
+        table.add_row(*row)
+    progress.console.print(table)
+    for missing in report["missing"]:
+        progress.console.print(f"not scored: {missing}")
+    return 0
+
+
 def _add_config_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--preset",
@@ -198,6 +235,14 @@ def build_parser() -> argparse.ArgumentParser:
     clean.add_argument("capture")
     clean.add_argument("--keep-latest", action="store_true",
                        help="keep the newest result of each stage")
+
+    synth = sub.add_parser("synth", help="render a synthetic capture with ground truth")
+    synth.add_argument("out_dir", help="new folder for the capture")
+    add_dataclass_arguments(synth, SynthOptions)
+
+    score = sub.add_parser("score", help="compare a synthetic capture's outputs with its ground truth")
+    score.add_argument("capture")
+    score.add_argument("--json", action="store_true", help="print the full report")
 
     config = sub.add_parser("config", help="show every setting with its value and documentation")
     config.add_argument("capture", nargs="?", help="include this capture's capture.toml")

@@ -292,10 +292,14 @@ def add_dataclass_arguments(parser: Any, cls: type) -> None:
             parser.add_argument(option, dest=f.name, type=type(default), help=help_text)
 
 
-def dataclass_from_arguments(cls: type, args: Any) -> Any:
+def dataclass_from_arguments(cls: type, args: Any, name: str) -> Any:
     """Build ``cls`` from parsed options, validating them like config values."""
-    given = {f.name: getattr(args, f.name) for f in dataclasses.fields(cls) if getattr(args, f.name) is not None}
-    return build_section("--" + cls.__name__, cls, given)
+    given = {
+        f.name: getattr(args, f.name)
+        for f in dataclasses.fields(cls)
+        if getattr(args, f.name) is not None
+    }
+    return build_section(name, cls, given)
 
 
 __all__ = [

@@ -1,0 +1,225 @@
+"""``pipeline score``: compare a capture's latest outputs with its ground_truth/.
+
+Each metric is computed from the file a stage exports to ``CAPTURE/output/``;
+a missing file means that stage has not run, and the score says so instead of
+failing. The files and their producers:
+
+=========================  ===============  ==============================================
+file in output/            stage            scored as
+=========================  ===============  ==============================================
+intrinsics.json            calibrate        focal and principal point error, distortion
+cameras.json               sfm              registered fraction; rotation and centre error
+                                            after a similarity alignment to the truth
+mesh.ply                   mesh/cleanup/uv  Chamfer distance (% of the true bounding-box
+                                            diagonal) and normal consistency, in the
+                                            aligned frame
+params.json                fit_material     absolute error per parameter (relative for
+                                            sigma_t)
+heldout/NAME.render.exr    fit_material     PSNR against NAME.reference.exr on views
+                                            held out from fitting
+=========================  ===============  ==============================================
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import OpenImageIO as oiio
+import trimesh
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from pipeline.camera import Intrinsics, Pose, read_cameras, similarity_umeyama
+from pipeline.errors import PipelineError
+
+MESH_SAMPLES = 30000
+RELATIVE_PARAMETERS = {"sigma_t"}
+
+
+@dataclass(frozen=True)
+class Similarity:
+    """x_truth = scale * R @ x_estimate + t."""
+
+    scale: float
+    R: np.ndarray
+    t: np.ndarray
+
+    @classmethod
+    def identity(cls) -> "Similarity":
+        return cls(1.0, np.eye(3), np.zeros(3))
+
+    def points(self, x: np.ndarray) -> np.ndarray:
+        return self.scale * x @ self.R.T + self.t
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    # Rotation.magnitude stays accurate for tiny angles, unlike arccos of the trace.
+    return float(np.degrees(Rotation.from_matrix(R).magnitude()))
+
+
+def score_intrinsics(estimate: Intrinsics, truth: Intrinsics) -> dict[str, float]:
+    if (estimate.width, estimate.height) != (truth.width, truth.height):
+        raise PipelineError(
+            f"output/intrinsics.json is for {estimate.width}x{estimate.height} images but the "
+            f"photos are {truth.width}x{truth.height}: score intrinsics at the photos' resolution"
+        )
+    return {
+        "focal_error_pct": 100 * max(abs(estimate.fx / truth.fx - 1), abs(estimate.fy / truth.fy - 1)),
+        "principal_point_error_px": float(np.hypot(estimate.cx - truth.cx, estimate.cy - truth.cy)),
+        "distortion_max_abs_error": float(np.max(np.abs(np.subtract(estimate.dist, truth.dist)))),
+    }
+
+
+def score_cameras(estimate: dict[str, Pose], truth: dict[str, Pose]) -> tuple[dict[str, Any], Similarity]:
+    """Registration and pose errors after aligning the estimate to the truth."""
+    common = sorted(set(estimate) & set(truth))
+    metrics: dict[str, Any] = {
+        "registered": len(common),
+        "images": len(truth),
+        "registered_fraction": len(common) / len(truth),
+        "unregistered": sorted(set(truth) - set(estimate)),
+    }
+    if len(common) < 3:
+        return metrics, Similarity.identity()
+    est_centres = np.array([estimate[n].center for n in common])
+    true_centres = np.array([truth[n].center for n in common])
+    scale, R, t = similarity_umeyama(est_centres, true_centres)
+    similarity = Similarity(scale, R, t)
+    rotation_errors = [
+        # aligned camera-to-world rotation is R @ R_est^T; compare with the truth's
+        rotation_angle_deg(truth[n].R @ R @ estimate[n].R.T) for n in common
+    ]
+    scene_size = float(np.linalg.norm(true_centres.max(0) - true_centres.min(0)))
+    centre_errors = np.linalg.norm(similarity.points(est_centres) - true_centres, axis=1) / scene_size * 100
+    metrics.update(
+        rotation_error_deg_median=float(np.median(rotation_errors)),
+        rotation_error_deg_max=float(np.max(rotation_errors)),
+        centre_error_pct_median=float(np.median(centre_errors)),
+        centre_error_pct_max=float(np.max(centre_errors)),
+        per_image={n: {"rotation_deg": r, "centre_pct": float(c)} for n, r, c in zip(common, rotation_errors, centre_errors)},
+    )
+    return metrics, similarity
+
+
+def score_mesh(estimate: trimesh.Trimesh, truth: trimesh.Trimesh, seed: int = 0) -> dict[str, float]:
+    """Symmetric Chamfer distance and normal consistency from surface samples."""
+    # The same seed for both: identical surfaces then give identical samples, so a
+    # perfect mesh scores exactly zero instead of the sampling noise floor.
+    est_points, est_faces = trimesh.sample.sample_surface(estimate, MESH_SAMPLES, seed=seed)
+    true_points, true_faces = trimesh.sample.sample_surface(truth, MESH_SAMPLES, seed=seed)
+    est_normals, true_normals = estimate.face_normals[est_faces], truth.face_normals[true_faces]
+    to_truth, nearest_true = cKDTree(true_points).query(est_points)
+    to_estimate, nearest_est = cKDTree(est_points).query(true_points)
+    diagonal = float(np.linalg.norm(truth.bounds[1] - truth.bounds[0]))
+    chamfer = (to_truth.mean() + to_estimate.mean()) / 2
+    consistency = (
+        np.abs(np.sum(est_normals * true_normals[nearest_true], axis=1)).mean()
+        + np.abs(np.sum(true_normals * est_normals[nearest_est], axis=1)).mean()
+    ) / 2
+    return {
+        "chamfer_pct_of_diagonal": float(100 * chamfer / diagonal),
+        "normal_consistency": float(consistency),
+        "faces": int(len(estimate.faces)),
+        "watertight": bool(estimate.is_watertight),
+    }
+
+
+def score_material(estimate: dict[str, Any], truth: dict[str, Any]) -> dict[str, Any]:
+    if estimate.get("model") != truth["model"]:
+        return {"model": estimate.get("model"), "true_model": truth["model"], "note": "different models"}
+    errors: dict[str, Any] = {"model": truth["model"]}
+    for name, value in estimate["params"].items():
+        if name not in truth:
+            continue
+        est, true = np.asarray(value, dtype=float), np.asarray(truth[name], dtype=float)
+        if name == "base_color" and "base_color_mean" in truth:
+            # a constant fit to a textured specimen is compared with the texture's mean
+            true = np.asarray(truth["base_color_mean"], dtype=float)
+        if name in RELATIVE_PARAMETERS:
+            errors[f"{name}_rel_error"] = float(np.max(np.abs(est / true - 1)))
+        else:
+            errors[f"{name}_abs_error"] = float(np.max(np.abs(est - true)))
+    return errors
+
+
+def read_linear_image(path: Path) -> np.ndarray:
+    image = oiio.ImageBuf(str(path))
+    if image.has_error:
+        raise PipelineError(f"cannot read {path}: {image.geterror()}")
+    return image.get_pixels(oiio.FLOAT)
+
+
+def psnr(render: np.ndarray, reference: np.ndarray, peak: float = 1.0) -> float:
+    mse = float(np.mean((render - reference) ** 2))
+    return float("inf") if mse == 0 else 10 * np.log10(peak**2 / mse)
+
+
+def score_heldout(folder: Path) -> dict[str, Any]:
+    per_view = {}
+    for render_path in sorted(folder.glob("*.render.exr")):
+        name = render_path.name.removesuffix(".render.exr")
+        reference = read_linear_image(folder / f"{name}.reference.exr")
+        per_view[name] = psnr(read_linear_image(render_path), reference)
+    values = list(per_view.values())
+    return {"views": len(values), "psnr_db_mean": float(np.mean(values)) if values else None, "per_view": per_view}
+
+
+def score_capture(capture: Path) -> dict[str, Any]:
+    """Score whatever the capture's output/ holds; missing parts are listed, not fatal."""
+    truth_dir, out_dir = capture / "ground_truth", capture / "output"
+    if not (truth_dir / "cameras.json").is_file():
+        raise PipelineError(
+            f"{capture} has no ground_truth/cameras.json: only synthetic captures "
+            f"(made by `pipeline synth`) can be scored"
+        )
+    true_intrinsics, true_poses = read_cameras(truth_dir / "cameras.json")
+    report: dict[str, Any] = {"missing": []}
+
+    def present(name: str, stage: str) -> Path | None:
+        path = out_dir / name
+        if path.exists():
+            return path
+        report["missing"].append(f"{name} ({stage} has not run)")
+        return None
+
+    if path := present("intrinsics.json", "calibrate"):
+        report["intrinsics"] = score_intrinsics(Intrinsics.from_json(json.loads(path.read_text())), true_intrinsics)
+    similarity = Similarity.identity()
+    if path := present("cameras.json", "sfm"):
+        _, poses = read_cameras(path)
+        report["cameras"], similarity = score_cameras(poses, true_poses)
+    if path := present("mesh.ply", "mesh"):
+        estimate = trimesh.load(path, force="mesh")
+        estimate.apply_transform(_similarity_matrix(similarity))
+        report["mesh"] = score_mesh(estimate, trimesh.load(truth_dir / "mesh.ply", force="mesh"))
+    if path := present("params.json", "fit_material"):
+        truth = json.loads((truth_dir / "material.json").read_text())
+        report["material"] = score_material(json.loads(path.read_text()), truth)
+    if path := present("heldout", "fit_material"):
+        report["heldout"] = score_heldout(path)
+    return report
+
+
+def _similarity_matrix(s: Similarity) -> np.ndarray:
+    M = np.eye(4)
+    M[:3, :3] = s.scale * s.R
+    M[:3, 3] = s.t
+    return M
+
+
+def summary_rows(report: dict[str, Any]) -> list[tuple[str, str, str]]:
+    """(part, metric, value) rows for the table, skipping bulky per-item details."""
+    rows = []
+    for part, metrics in report.items():
+        if part == "missing" or not isinstance(metrics, dict):
+            continue
+        for name, value in metrics.items():
+            if name in ("per_image", "per_view", "unregistered"):
+                continue
+            text = f"{value:.4g}" if isinstance(value, float) else str(value)
+            rows.append((part, name, text))
+    return rows

@@ -1,0 +1,180 @@
+"""The scorer is proven on outputs built from the ground truth itself."""
+
+import json
+import shutil
+
+import numpy as np
+import OpenImageIO as oiio
+import pytest
+import trimesh
+from scipy.spatial.transform import Rotation
+
+from pipeline import cli
+from pipeline.camera import Intrinsics, Pose, read_cameras, write_cameras
+from pipeline.score import score_cameras, score_capture, score_mesh
+
+SIMILARITY = (2.3, Rotation.from_euler("xyz", [20, -35, 60], degrees=True).as_matrix(), np.array([1.0, -2.0, 0.5]))
+
+
+@pytest.fixture
+def capture(tiny_capture, tmp_path):
+    """A private copy of the tiny synthetic capture, with an empty output/."""
+    copy = tmp_path / "capture"
+    shutil.copytree(tiny_capture, copy)
+    (copy / "output").mkdir()
+    return copy
+
+
+def write_exr(path, pixels):
+    out = oiio.ImageOutput.create(str(path))
+    out.open(str(path), oiio.ImageSpec(pixels.shape[1], pixels.shape[0], 3, oiio.FLOAT))
+    out.write_image(pixels.astype(np.float32))
+    out.close()
+
+
+def perfect_outputs(capture, transform=None):
+    """Write output/ as a perfect pipeline would, optionally in a similarity-transformed frame."""
+    truth = capture / "ground_truth"
+    intrinsics, poses = read_cameras(truth / "cameras.json")
+    mesh = trimesh.load(truth / "mesh.ply")
+    if transform is not None:
+        s, R, t = transform
+        # x_new = s R x + t: camera rotation R_cam R^T, centre s R c + t
+        poses = {n: Pose(p.R @ R.T, -(p.R @ R.T) @ (s * R @ p.center + t)) for n, p in poses.items()}
+        M = np.eye(4)
+        M[:3, :3], M[:3, 3] = s * R, t
+        mesh.apply_transform(M)
+    write_cameras(capture / "output" / "cameras.json", intrinsics, poses)
+    (capture / "output" / "intrinsics.json").write_text(json.dumps(intrinsics.to_json()))
+    mesh.export(capture / "output" / "mesh.ply")
+    material = json.loads((truth / "material.json").read_text())
+    params = {k: material[k] for k in ("base_color_mean", "roughness", "spec_trans", "eta")}
+    params["base_color"] = params.pop("base_color_mean")
+    (capture / "output" / "params.json").write_text(json.dumps({"model": material["model"], "params": params}))
+    (capture / "output" / "heldout").mkdir()
+    image = np.random.default_rng(0).uniform(0, 1, (8, 8, 3))
+    write_exr(capture / "output" / "heldout" / "view_005.render.exr", image)
+    write_exr(capture / "output" / "heldout" / "view_005.reference.exr", image)
+
+
+def test_perfect_outputs_score_zero_error(capture):
+    perfect_outputs(capture)
+    report = score_capture(capture)
+    assert report["missing"] == []
+    assert report["intrinsics"] == {"focal_error_pct": 0, "principal_point_error_px": 0, "distortion_max_abs_error": 0}
+    assert report["cameras"]["registered_fraction"] == 1.0
+    assert report["cameras"]["rotation_error_deg_max"] < 1e-4
+    assert report["cameras"]["centre_error_pct_max"] < 1e-6
+    assert report["mesh"]["chamfer_pct_of_diagonal"] < 1e-6
+    assert report["mesh"]["normal_consistency"] > 0.999999
+    assert all(v == 0 for k, v in report["material"].items() if k.endswith("_error"))
+    assert report["heldout"]["psnr_db_mean"] == float("inf")
+
+
+def test_score_is_invariant_to_a_similarity_of_the_whole_reconstruction(capture):
+    perfect_outputs(capture, transform=SIMILARITY)
+    report = score_capture(capture)
+    assert report["cameras"]["rotation_error_deg_max"] < 1e-4
+    assert report["cameras"]["centre_error_pct_max"] < 1e-6
+    assert report["mesh"]["chamfer_pct_of_diagonal"] < 1e-3  # float32 PLY round-off at ~2 m offsets
+
+
+def ring_of_poses(count=30):
+    return {
+        f"v{i:02d}": Pose.look_at([np.cos(a) * 0.4, np.sin(a) * 0.4, 0.2], [0, 0, 0.05])
+        for i, a in enumerate(np.linspace(0, 2 * np.pi, count, endpoint=False))
+    }
+
+
+def test_rotated_camera_gives_its_rotation_error():
+    truth = ring_of_poses()
+    estimate = dict(truth)
+    tilt = Rotation.from_rotvec(np.radians(2.0) * np.array([0.6, 0.0, 0.8])).as_matrix()
+    # rotate camera v07 about its own centre: the centre stays, only R changes
+    pose = truth["v07"]
+    estimate["v07"] = Pose(tilt @ pose.R, -(tilt @ pose.R) @ pose.center)
+    metrics, _ = score_cameras(estimate, truth)
+    assert metrics["per_image"]["v07"]["rotation_deg"] == pytest.approx(2.0, abs=1e-6)
+    assert metrics["per_image"]["v03"]["rotation_deg"] < 1e-6
+    assert metrics["centre_error_pct_max"] < 1e-6
+
+
+def test_moved_camera_centre_gives_its_centre_error():
+    truth = ring_of_poses()
+    estimate = dict(truth)
+    scene_size = np.linalg.norm(np.ptp(np.array([p.center for p in truth.values()]), axis=0))
+    moved = truth["v10"].center + np.array([0.0, 0.0, 0.02 * scene_size])
+    estimate["v10"] = Pose(truth["v10"].R, -truth["v10"].R @ moved)
+    metrics, _ = score_cameras(estimate, truth)
+    # A 7-parameter similarity fit to 30 centres absorbs at most ~7/30 of one outlier.
+    moved_error = metrics["per_image"]["v10"]["centre_pct"]
+    assert 2.0 * (1 - 7 / 30) <= moved_error <= 2.0
+    others = [m["centre_pct"] for n, m in metrics["per_image"].items() if n != "v10"]
+    assert max(others) < moved_error / 5
+
+
+def test_missing_cameras_are_counted():
+    truth = ring_of_poses()
+    estimate = {n: p for n, p in truth.items() if n not in ("v00", "v01")}
+    metrics, _ = score_cameras(estimate, truth)
+    assert metrics["registered_fraction"] == pytest.approx(28 / 30)
+    assert metrics["unregistered"] == ["v00", "v01"]
+
+
+def test_scaled_mesh_gives_the_expected_chamfer_distance():
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=1.0)
+    bigger = sphere.copy()
+    bigger.apply_scale(1.05)
+    metrics = score_mesh(bigger, sphere)
+    diagonal = np.linalg.norm(sphere.bounds[1] - sphere.bounds[0])
+    assert metrics["chamfer_pct_of_diagonal"] == pytest.approx(100 * 0.05 / diagonal, rel=0.03)
+    assert metrics["normal_consistency"] > 0.999
+
+
+def test_offset_parameters_give_their_errors(capture):
+    perfect_outputs(capture)
+    params_file = capture / "output" / "params.json"
+    params = json.loads(params_file.read_text())
+    params["params"]["roughness"] += 0.1
+    params["params"]["base_color"][1] -= 0.04
+    params_file.write_text(json.dumps(params))
+    report = score_capture(capture)["material"]
+    assert report["roughness_abs_error"] == pytest.approx(0.1)
+    assert report["base_color_abs_error"] == pytest.approx(0.04)
+    assert report["eta_abs_error"] == 0
+
+
+def test_sigma_t_error_is_relative():
+    from pipeline.score import score_material
+
+    truth = {"model": "volumetric", "sigma_t": 180.0, "alpha": 0.12}
+    errors = score_material({"model": "volumetric", "params": {"sigma_t": 216.0, "alpha": 0.1}}, truth)
+    assert errors["sigma_t_rel_error"] == pytest.approx(0.2)
+    assert errors["alpha_abs_error"] == pytest.approx(0.02)
+
+
+def test_heldout_psnr_of_a_known_error(capture):
+    perfect_outputs(capture)
+    folder = capture / "output" / "heldout"
+    reference = np.full((8, 8, 3), 0.5)
+    write_exr(folder / "view_005.reference.exr", reference)
+    write_exr(folder / "view_005.render.exr", reference + 0.01)  # MSE 1e-4 -> 40 dB
+    assert score_capture(capture)["heldout"]["psnr_db_mean"] == pytest.approx(40.0, abs=1e-3)
+
+
+def test_cli_scores_what_exists_and_lists_what_is_missing(capture, capsys):
+    intrinsics, _ = read_cameras(capture / "ground_truth" / "cameras.json")
+    wrong = Intrinsics(**{**intrinsics.to_json(), "fx": intrinsics.fx * 1.02, "fy": intrinsics.fy * 1.02})
+    (capture / "output" / "intrinsics.json").write_text(json.dumps(wrong.to_json()))
+    assert cli.main(["score", str(capture)]) == 0
+    err = capsys.readouterr().err
+    assert "not scored: cameras.json (sfm has not run)" in err
+    report = json.loads((capture / "output" / "score.json").read_text())
+    assert report["intrinsics"]["focal_error_pct"] == pytest.approx(2.0)
+    assert len(report["missing"]) == 4
+
+
+def test_cli_refuses_a_capture_without_ground_truth(tmp_path, capsys):
+    (tmp_path / "real").mkdir()
+    assert cli.main(["score", str(tmp_path / "real")]) == 1
+    assert "only synthetic captures" in capsys.readouterr().err
