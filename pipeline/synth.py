@@ -343,12 +343,13 @@ class _Studio:
             raise OSError(f"could not write {path}: {oiio.geterror()}")
 
 
-def default_light(rig: str) -> LightSection:
+def default_light(options: SynthOptions) -> LightSection:
     """The rig's light: a softbox fixed in the world, or riding with a turntable's camera."""
-    if rig == "turntable":
-        # Camera frame: x right, y down, z forward; softbox up and to the right.
+    if options.rig == "turntable":
+        # Camera frame: x right, y down, z forward; softbox up and to the right, aimed at the bird.
         return LightSection(environment_radiance=(0.3, 0.3, 0.3), area_position=(0.25, -0.30, 0.05),
-                            area_target=(0.0, 0.0, 0.36), area_size=0.3, area_radiance=(10.0, 10.0, 10.0),
+                            area_target=(0.0, 0.0, options.distance), area_size=0.3,
+                            area_radiance=(10.0, 10.0, 10.0),
                             frame="camera")  # fmt: skip
     return LightSection(environment_radiance=(0.3, 0.3, 0.3), area_position=(0.30, 0.35, 0.50),
                         area_target=(0.0, 0.0, 0.04), area_size=0.3, area_radiance=(10.0, 10.0, 10.0))  # fmt: skip
@@ -381,7 +382,7 @@ def synthesize(out_dir: Path, options: SynthOptions, board: BoardSection = Board
     if out_dir.exists() and any(out_dir.iterdir()):
         raise PipelineError(f"{out_dir} is not empty: choose a new folder for the synthetic capture")
     mitsuba_variant.activate()
-    light = default_light(options.rig)
+    light = default_light(options)
     rng = np.random.default_rng(options.seed)
     mesh = bird_mesh()
     material = dict(PRINCIPLED_TRUTH if options.material == "principled" else VOLUMETRIC_TRUTH)
