@@ -63,7 +63,8 @@ class SynthOptions:
     """principled: Disney BSDF with specular transmission; volumetric: rough dielectric
     boundary around a homogeneous scattering medium."""
     texture: Literal["blotches", "plain"] = "blotches"
-    """blotches: mottled albedo that gives feature points; plain: a low-texture specimen."""
+    """blotches: mottled base colour that gives feature points; plain: a low-texture specimen.
+    Principled material only: the volumetric specimen is a homogeneous medium, untextured."""
     rig: Literal["handheld", "turntable"] = "handheld"
     """handheld: camera moves, light fixed in the world; turntable: the object turns."""
     turn_jitter: Annotated[float, Range(0.0, 0.9)] = 0.0
