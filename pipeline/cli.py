@@ -32,7 +32,7 @@ from pipeline.hashing import tree_size
 from pipeline.runner import PlannedStage, Runner, Selection, summary
 from pipeline.sections import schema
 from pipeline.stage import Stage
-from pipeline.synth import SynthOptions
+from pipeline.synth_options import SynthOptions
 
 COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {}
 

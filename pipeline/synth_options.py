@@ -1,0 +1,46 @@
+"""Options of `pipeline synth`, apart from the renderer so the CLI starts fast."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Annotated, Literal
+
+from pipeline.config import Range
+
+
+@dataclass(frozen=True)
+class SynthOptions:
+    """Options of `pipeline synth`."""
+
+    views: Annotated[int, Range(2, 400)] = 30
+    """Number of photos of the specimen."""
+    rings: tuple[float, ...] = (18.0, 42.0)
+    """Camera elevations in degrees; views are spread over these rings (one ring for a turntable)."""
+    width: Annotated[int, Range(32, 4096)] = 560
+    """Photo width in pixels."""
+    height: Annotated[int, Range(32, 4096)] = 420
+    """Photo height in pixels."""
+    hfov: Annotated[float, Range(10.0, 120.0)] = 42.0
+    """Horizontal field of view of the lens in degrees (before distortion)."""
+    distance: Annotated[float, Range(0.05, 5.0)] = 0.36
+    """Camera distance from the bird's centre in metres."""
+    spp: Annotated[int, Range(1, 4096)] = 64
+    """Samples per pixel of the specimen renders."""
+    material: Literal["principled", "volumetric"] = "principled"
+    """principled: Disney BSDF with specular transmission; volumetric: rough dielectric
+    boundary around a homogeneous scattering medium."""
+    texture: Literal["blotches", "plain"] = "blotches"
+    """blotches: mottled base colour that gives feature points; plain: a low-texture specimen.
+    Principled material only: the volumetric specimen is a homogeneous medium, untextured."""
+    rig: Literal["handheld", "turntable"] = "handheld"
+    """handheld: camera moves, light fixed in the world; turntable: the object turns."""
+    turn_jitter: Annotated[float, Range(0.0, 0.9)] = 0.0
+    """Turntable only: random unevenness of the steps, as a fraction of the mean step."""
+    calibration_shots: Annotated[int, Range(0, 100)] = 12
+    """Number of ChArUco board photos written to calibration/."""
+    noise: Annotated[float, Range(0.0, 10.0)] = 1.0
+    """Sensor noise level: 1 is a good camera at base ISO, 0 disables noise."""
+    jpeg_quality: Annotated[int, Range(50, 100)] = 92
+    """JPEG quality of the written photos."""
+    seed: int = 0
+    """Seed for the texture, camera jitter, turntable steps and noise."""
