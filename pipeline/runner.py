@@ -167,11 +167,10 @@ class Runner:
     # -- planning -----------------------------------------------------------
 
     def _check_name(self, name: str, option: str) -> None:
-        if name != "all" or option != "--force":
-            if name not in self.by_name:
-                raise ConfigError(
-                    f"{option} {name}: no such stage; stages are " + ", ".join(self.by_name)
-                )
+        if option == "--force" and name == "all":
+            return
+        if name not in self.by_name:
+            raise ConfigError(f"{option} {name}: no such stage; stages are " + ", ".join(self.by_name))
 
     def _components(self, stage: Stage, upstream_keys: dict[str, str]) -> dict[str, Any]:
         files = glob_capture_files(self.capture_dir, stage.reads)

@@ -55,6 +55,12 @@ class Similarity:
     def points(self, x: np.ndarray) -> np.ndarray:
         return self.scale * x @ self.R.T + self.t
 
+    def matrix(self) -> np.ndarray:
+        M = np.eye(4)
+        M[:3, :3] = self.scale * self.R
+        M[:3, 3] = self.t
+        return M
+
 
 def rotation_angle_deg(R: np.ndarray) -> float:
     # Rotation.magnitude stays accurate for tiny angles, unlike arccos of the trace.
@@ -194,7 +200,7 @@ def score_capture(capture: Path) -> dict[str, Any]:
         report["cameras"], similarity = score_cameras(poses, true_poses)
     if path := present("mesh.ply", "mesh"):
         estimate = trimesh.load(path, force="mesh")
-        estimate.apply_transform(_similarity_matrix(similarity))
+        estimate.apply_transform(similarity.matrix())
         report["mesh"] = score_mesh(estimate, trimesh.load(truth_dir / "mesh.ply", force="mesh"))
     if path := present("params.json", "fit_material"):
         truth = json.loads((truth_dir / "material.json").read_text())
@@ -202,13 +208,6 @@ def score_capture(capture: Path) -> dict[str, Any]:
     if path := present("heldout", "fit_material"):
         report["heldout"] = score_heldout(path)
     return report
-
-
-def _similarity_matrix(s: Similarity) -> np.ndarray:
-    M = np.eye(4)
-    M[:3, :3] = s.scale * s.R
-    M[:3, 3] = s.t
-    return M
 
 
 def summary_rows(report: dict[str, Any]) -> list[tuple[str, str, str]]:
