@@ -158,3 +158,48 @@ def similarity_umeyama(source: np.ndarray, target: np.ndarray) -> tuple[float, n
     R = U @ S @ Vt
     scale = np.trace(np.diag(D) @ S) / xs.var(0).sum()
     return scale, R, mu_t - scale * R @ mu_s
+
+
+def ideal_pinhole(intrinsics: Intrinsics, alpha: float, max_size: int) -> Intrinsics:
+    """The distortion-free camera that photos of ``intrinsics`` are undistorted to.
+
+    ``alpha`` is OpenCV's free scaling (0: only valid pixels, 1: every source pixel
+    kept); ``max_size`` (0 for none) caps the longer side, scaling the focal length
+    and principal point with the pixels.
+    """
+    size = (intrinsics.width, intrinsics.height)
+    if any(intrinsics.dist):
+        K, _ = cv2.getOptimalNewCameraMatrix(intrinsics.K, np.asarray(intrinsics.dist), size, alpha, size)
+    else:
+        K = intrinsics.K
+    pinhole = Intrinsics(size[0], size[1], K[0, 0], K[1, 1], K[0, 2], K[1, 2])
+    return scaled(pinhole, max_size / max(size)) if 0 < max_size < max(size) else pinhole
+
+
+def scaled(intrinsics: Intrinsics, factor: float) -> Intrinsics:
+    """The same camera for images resized by ``factor`` (pixel centres stay pixel centres)."""
+    width, height = round(intrinsics.width * factor), round(intrinsics.height * factor)
+    sx, sy = width / intrinsics.width, height / intrinsics.height
+    return Intrinsics(
+        width, height, intrinsics.fx * sx, intrinsics.fy * sy,
+        (intrinsics.cx + 0.5) * sx - 0.5, (intrinsics.cy + 0.5) * sy - 0.5, list(intrinsics.dist),
+    )  # fmt: skip
+
+
+def undistort(image: np.ndarray, source: Intrinsics, target: Intrinsics) -> np.ndarray:
+    """Resample a photo taken with ``source`` as the pinhole camera ``target`` sees it.
+
+    Undistortion runs at the source resolution (target's focal scaled up); a smaller
+    target is then reached by area averaging, which does not alias as remap would.
+    Masks go through as float and are thresholded afterwards.
+    """
+    factor = target.width / source.width
+    full = scaled(target, 1 / factor) if factor < 1 else target
+    if any(source.dist) or not np.allclose(source.K, full.K):
+        map_x, map_y = cv2.initUndistortRectifyMap(
+            source.K, np.asarray(source.dist), None, full.K, (full.width, full.height), cv2.CV_32FC1
+        )
+        image = cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    if factor < 1:
+        image = cv2.resize(image, (target.width, target.height), interpolation=cv2.INTER_AREA)
+    return image

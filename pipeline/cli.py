@@ -192,6 +192,48 @@ def cmd_score(args: argparse.Namespace) -> int:
     return 0
 
 
+@command
+def cmd_new(args: argparse.Namespace) -> int:
+    from pipeline.scaffold import create_capture
+
+    path = create_capture(Path(args.capture), args.description, args.rig, registered_stages())
+    print(f"created {path}: read {path / 'README.md'} before the photo session")
+    return 0
+
+
+@command
+def cmd_board(args: argparse.Namespace) -> int:
+    from pipeline.board import write_printable
+
+    capture = _capture_dir(args.capture) if args.capture else None
+    config = load_config(schema(registered_stages()), capture, args.preset, args.set or [])
+    if config["board"].kind == "none":
+        raise ConfigError("board.kind = 'none': set it to 'charuco' or 'checkerboard' to print a board")
+    try:
+        png, pdf = write_printable(config["board"], Path(args.out), args.paper, args.dpi)
+    except ValueError as e:
+        raise ConfigError(f"{e}: choose a larger --paper or a smaller board.square_mm") from None
+    print(f"wrote {pdf} (print at 100 %) and {png} ({args.dpi} dpi)")
+    return 0
+
+
+@command
+def cmd_check(args: argparse.Namespace) -> int:
+    from pipeline.check import as_json, check_capture
+
+    capture = _capture_dir(args.capture)
+    config = load_config(schema(registered_stages()), capture, args.preset, args.set or [])
+    problems = check_capture(capture, config, features=not args.no_features)
+    errors = sum(p.severity == "error" for p in problems)
+    if args.json:
+        print(json.dumps({"problems": as_json(problems), "errors": errors}, indent=1))
+    else:
+        for problem in problems:
+            print(problem.line())
+        print(f"{errors} error(s), {len(problems) - errors} warning(s) in {capture}")
+    return 1 if errors else 0
+
+
 def _add_config_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--preset",
@@ -243,6 +285,24 @@ def build_parser() -> argparse.ArgumentParser:
     score = sub.add_parser("score", help="compare a synthetic capture's outputs with its ground truth")
     score.add_argument("capture")
     score.add_argument("--json", action="store_true", help="print the full report")
+
+    new = sub.add_parser("new", help="create a capture folder with a documented capture.toml and a checklist")
+    new.add_argument("capture", help="new folder, e.g. captures/bird")
+    new.add_argument("--description", default="", help="what the specimen is")
+    new.add_argument("--rig", choices=["handheld", "turntable"], default="handheld", help="capture rig")
+
+    board = sub.add_parser("board", help="write a printable calibration board (PNG and PDF)")
+    board.add_argument("capture", nargs="?", help="use this capture's [board] section")
+    board.add_argument("--out", required=True, help="file name without extension; writes OUT.png and OUT.pdf")
+    board.add_argument("--paper", choices=["A4", "A3", "letter"], default="A4", help="page size of the PDF")
+    board.add_argument("--dpi", type=int, default=300, help="resolution of the PNG and of the PDF's image")
+    _add_config_options(board)
+
+    check = sub.add_parser("check", help="check the photos before the expensive run; exit 1 on errors")
+    check.add_argument("capture")
+    check.add_argument("--no-features", action="store_true", help="skip the pairwise feature matching (fast)")
+    check.add_argument("--json", action="store_true", help="print the problems as JSON")
+    _add_config_options(check)
 
     config = sub.add_parser("config", help="show every setting with its value and documentation")
     config.add_argument("capture", nargs="?", help="include this capture's capture.toml")

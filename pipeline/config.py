@@ -21,6 +21,7 @@ import ast
 import dataclasses
 import functools
 import inspect
+import json
 import textwrap
 import tomllib
 import typing
@@ -273,6 +274,29 @@ def describe_schema(schema: Mapping[str, type], config: Config | None = None) ->
     return "\n".join(lines)
 
 
+
+
+def toml_value(value: Any) -> str:
+    return json.dumps(list(value) if isinstance(value, tuple) else value)
+
+
+def toml_section(name: str, section: Any, documented: bool = True, commented: bool = False) -> list[str]:
+    """Lines of a TOML table for a config section object, optionally with each field's
+    documentation and type as comments, optionally commented out (a template)."""
+    cls = type(section)
+    hints = typing.get_type_hints(cls, include_extras=True)
+    docs = field_docs(cls)
+    prefix = "# " if commented else ""
+    lines = []
+    if documented:
+        lines += [f"# {line}".rstrip() for line in inspect.cleandoc(cls.__doc__ or "").splitlines()]
+    lines.append(f"{prefix}[{name}]")
+    for f in dataclasses.fields(cls):
+        if documented:
+            lines += [f"# {line}" for line in docs.get(f.name, "").splitlines()]
+            lines.append(f"# ({_describe_type(hints[f.name])})")
+        lines.append(f"{prefix}{f.name} = {toml_value(getattr(section, f.name))}")
+    return lines
 
 
 def add_dataclass_arguments(parser: Any, cls: type) -> None:

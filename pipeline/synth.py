@@ -24,13 +24,15 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import OpenImageIO as oiio
 import trimesh
 
 from pipeline import logger, mitsuba_variant, progress
+from pipeline.board import board_image
 from pipeline.camera import Intrinsics, Pose, distortion_maps, pinhole_render_size, write_cameras
 from pipeline.errors import PipelineError
-from pipeline.sections import BoardSection, LightSection
+from pipeline.photo_io import to_uint8, write_image
+from pipeline.config import toml_section
+from pipeline.sections import BoardSection, CaptureSection, LightSection
 from pipeline.synth_options import SynthOptions
 from pipeline.specimen import bird_mesh, blotch_colours
 
@@ -59,7 +61,6 @@ VOLUMETRIC_TRUTH = {
     "sigma_t": 180.0,
 }
 
-DISTORTION = [-0.09, 0.035, 0.0008, -0.0005, 0.0]
 """(k1, k2, p1, p2, k3) of the synthetic lens: mild barrel, slight decentring."""
 
 
@@ -73,7 +74,7 @@ def _intrinsics(options: SynthOptions) -> Intrinsics:
         fy=f,
         cx=(options.width - 1) / 2 + 0.011 * options.width,
         cy=(options.height - 1) / 2 - 0.008 * options.height,
-        dist=list(DISTORTION),
+        dist=list(options.distortion),
     )
 
 
@@ -123,20 +124,6 @@ def _calibration_poses(count: int, board_size: tuple[float, float], rng) -> list
     return poses
 
 
-def board_image(board: BoardSection, pixels_per_square: int = 120) -> np.ndarray:
-    """The printed board as a grayscale uint8 image (OpenCV's own rendering)."""
-    charuco = make_charuco_board(board)
-    size = (board.squares_x * pixels_per_square, board.squares_y * pixels_per_square)
-    return charuco.generateImage(size, marginSize=0, borderBits=1)
-
-
-def make_charuco_board(board: BoardSection) -> "cv2.aruco.CharucoBoard":
-    dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, board.dictionary))
-    return cv2.aruco.CharucoBoard(
-        (board.squares_x, board.squares_y), board.square_mm / 1000, board.marker_mm / 1000, dictionary
-    )
-
-
 def board_to_world(board: BoardSection) -> np.ndarray:
     """4x4 transform from OpenCV board coordinates to the synthetic world frame.
 
@@ -148,11 +135,6 @@ def board_to_world(board: BoardSection) -> np.ndarray:
     M = np.diag([1.0, -1.0, -1.0, 1.0])
     M[:3, 3] = [-width / 2, height / 2, 0.0]
     return M
-
-
-def _srgb_encode(linear: np.ndarray) -> np.ndarray:
-    linear = np.clip(linear, 0.0, 1.0)
-    return np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * np.power(linear, 1 / 2.4) - 0.055)
 
 
 def material_plugins(material: dict, textured: bool) -> tuple[dict, dict | None, dict]:
@@ -219,8 +201,10 @@ class _Studio:
             shape.add_attribute("vertex_color", 3, mi.Float(albedo.astype(np.float32).ravel()))
         return shape
 
-    def scene(self, pose: Pose, spp: int, integrator: dict, specimen=None, black_props: bool = False) -> dict:
-        """Board (+ turntable and specimen when given) under the rig, seen from ``pose``."""
+    def scene(self, pose: Pose, spp: int, integrator: dict, specimen=None, black_props: bool = False,
+              board_only: bool = False) -> dict:  # fmt: skip
+        """Board, turntable, rig and the specimen when given, seen from ``pose``; with
+        ``board_only`` just the board (the calibration shots add their own light)."""
         mi = self.mi
         render_w, render_h = self.render_size
         black = {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.0}}
@@ -244,14 +228,15 @@ class _Studio:
                 "bsdf": black if black_props else paper,
             },
         }
-        if specimen is None:
+        if board_only:
             return scene
         scene["turntable"] = {
             "type": "disk",
             "to_world": mi.ScalarTransform4f().translate([0, 0, -0.001]).scale(0.2),
             "bsdf": black if black_props else {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.25}},
         }
-        scene["specimen"] = specimen
+        if specimen is not None:
+            scene["specimen"] = specimen
         if not black_props:
             scene.update(self.lights(pose))
         return scene
@@ -287,22 +272,24 @@ class _Studio:
             electrons_at_white = 4000.0 / self.options.noise
             variance = np.clip(linear, 0, None) / electrons_at_white + (0.0015 * self.options.noise) ** 2
             linear = linear + self.noise_rng.normal(size=linear.shape) * np.sqrt(variance)
-        return np.round(_srgb_encode(linear) * 255).astype(np.uint8)
+        return to_uint8(linear)
 
     def write_jpeg(self, path: Path, pixels: np.ndarray) -> None:
-        focal_mm = self.intrinsics.fx * SENSOR_WIDTH_MM / self.intrinsics.width
-        spec = oiio.ImageSpec(pixels.shape[1], pixels.shape[0], pixels.shape[2], oiio.UINT8)
-        spec.attribute("Make", "pipeline-synth")
-        spec.attribute("Model", "SynthCam 1")
-        spec.attribute("Exif:FocalLength", float(focal_mm))
-        spec.attribute("Exif:FocalLengthIn35mmFilm", int(round(focal_mm * 36.0 / SENSOR_WIDTH_MM)))
-        spec.attribute("Exif:FocalPlaneXResolution", float(self.intrinsics.width / (SENSOR_WIDTH_MM / 10)))
-        spec.attribute("Exif:FocalPlaneYResolution", float(self.intrinsics.width / (SENSOR_WIDTH_MM / 10)))
-        spec.attribute("Exif:FocalPlaneResolutionUnit", 3)  # centimetres
-        spec.attribute("compression", f"jpeg:{self.options.jpeg_quality}")
-        out = oiio.ImageOutput.create(str(path))
-        if not out.open(str(path), spec) or not out.write_image(pixels) or not out.close():
-            raise OSError(f"could not write {path}: {oiio.geterror()}")
+        width, height = self.intrinsics.width, self.intrinsics.height
+        focal_mm = self.intrinsics.fx * SENSOR_WIDTH_MM / width
+        # The 35 mm equivalent is defined on the diagonal (CIPA DC-008): 43.27 mm.
+        sensor_diagonal_mm = SENSOR_WIDTH_MM * math.hypot(width, height) / width
+        pixels_per_cm = width / (SENSOR_WIDTH_MM / 10)
+        write_image(path, pixels, {
+            "Make": "pipeline-synth",
+            "Model": "SynthCam 1",
+            "Exif:FocalLength": float(focal_mm),
+            "Exif:FocalLengthIn35mmFilm": int(round(focal_mm * 43.27 / sensor_diagonal_mm)),
+            "Exif:FocalPlaneXResolution": float(pixels_per_cm),
+            "Exif:FocalPlaneYResolution": float(pixels_per_cm),
+            "Exif:FocalPlaneResolutionUnit": 3,  # centimetres
+            "compression": f"jpeg:{self.options.jpeg_quality}",
+        })  # fmt: skip
 
 
 def default_light(options: SynthOptions) -> LightSection:
@@ -318,23 +305,12 @@ def default_light(options: SynthOptions) -> LightSection:
 
 
 def _capture_toml(options: SynthOptions, board: BoardSection, light: LightSection) -> str:
-    def value(v) -> str:
-        return json.dumps(list(v) if isinstance(v, tuple) else v)
-
-    lines = [
-        "# Written by `pipeline synth`: what a user would write for this capture.",
-        "[capture]",
-        f'description = "synthetic bird, {options.material} material, seed {options.seed}"',
-        f'rig = "{options.rig}"',
-        f'material = "{options.material}"',
-        "",
-        "[board]",
-        *(f"{k} = {value(v)}" for k, v in asdict(board).items()),
-        "",
-        "[light]",
-        *(f"{k} = {value(v)}" for k, v in asdict(light).items()),
-    ]
-    text = "\n".join(lines) + "\n"
+    capture = CaptureSection(f"synthetic bird, {options.material} material, seed {options.seed}",
+                             options.rig, options.material)  # fmt: skip
+    lines = ["# Written by `pipeline synth`: what a user would write for this capture."]
+    for name, section in (("capture", capture), ("board", board), ("light", light)):
+        lines += toml_section(name, section, documented=False) + [""]
+    text = "\n".join(lines)
     tomllib.loads(text)  # what we write must parse
     return text
 
@@ -370,19 +346,23 @@ def synthesize(out_dir: Path, options: SynthOptions, board: BoardSection = Board
         studio.write_jpeg(images / name, studio.photo(studio.render(studio.scene(pose, options.spp, integrator, specimen))))
         coverage = studio.render(studio.scene(pose, 16, {"type": "path", "max_depth": 1}, silhouette, black_props=True))
         cv2.imwrite(str(truth / "masks" / name.replace(".jpg", ".png")), ((coverage[..., 0] > 0.5) * 255).astype(np.uint8))
+        if options.background_plates:
+            (out_dir / "background").mkdir(exist_ok=True)
+            plate = studio.photo(studio.render(studio.scene(pose, options.spp, integrator)))
+            studio.write_jpeg(out_dir / "background" / name, plate)
 
     board_size = (2 * studio.board_half[0], 2 * studio.board_half[1])
     calibration_env = {"type": "direct", "emitter_samples": 1, "bsdf_samples": 1}
     calibration_poses = _calibration_poses(options.calibration_shots, board_size, rng)
     for i, pose in enumerate(progress.track(calibration_poses, "rendering calibration shots")):
-        scene = studio.scene(pose, 16, calibration_env)
+        scene = studio.scene(pose, 16, calibration_env, board_only=True)
         scene["environment"] = {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}}
         studio.write_jpeg(calibration / f"board_{i:02d}.jpg", studio.photo(studio.render(scene)))
 
     write_cameras(truth / "cameras.json", studio.intrinsics, dict(zip(names, poses)))
     exported = mesh.copy()
     if albedo is not None:
-        srgb = np.round(_srgb_encode(albedo) * 255).astype(np.uint8)
+        srgb = to_uint8(albedo)
         exported.visual.vertex_colors = np.c_[srgb, np.full(len(srgb), 255, np.uint8)]
     exported.export(truth / "mesh.ply")
     (truth / "material.json").write_text(json.dumps(

@@ -22,6 +22,8 @@ class SynthOptions:
     """Photo height in pixels."""
     hfov: Annotated[float, Range(10.0, 120.0)] = 42.0
     """Horizontal field of view of the lens in degrees (before distortion)."""
+    distortion: tuple[float, float, float, float, float] = (-0.09, 0.035, 0.0008, -0.0005, 0.0)
+    """Lens distortion (k1, k2, p1, p2, k3), OpenCV's model; the default is a mild phone lens."""
     distance: Annotated[float, Range(0.05, 5.0)] = 0.36
     """Camera distance from the bird's centre in metres."""
     spp: Annotated[int, Range(1, 4096)] = 64
@@ -38,6 +40,9 @@ class SynthOptions:
     """Turntable only: random unevenness of the steps, as a fraction of the mean step."""
     calibration_shots: Annotated[int, Range(0, 100)] = 12
     """Number of ChArUco board photos written to calibration/."""
+    background_plates: bool = False
+    """Also render every view without the specimen into background/, as plates shot from a
+    tripod at each camera position."""
     noise: Annotated[float, Range(0.0, 10.0)] = 1.0
     """Sensor noise level: 1 is a good camera at base ISO, 0 disables noise."""
     jpeg_quality: Annotated[int, Range(50, 100)] = 92

@@ -5,5 +5,6 @@ added to ``STAGES``.
 """
 
 from pipeline.stage import Stage
+from stages import calibrate, masks, undistort
 
-STAGES: tuple[Stage, ...] = ()
+STAGES: tuple[Stage, ...] = (calibrate.STAGE, undistort.STAGE, masks.STAGE)

@@ -24,3 +24,43 @@ def tiny_capture(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("synth") / "bird"
     options = SynthOptions(views=6, width=96, height=72, spp=4, calibration_shots=3, seed=3)
     return synthesize(out, options)
+
+
+def synth_capture(tmp_path_factory, name: str, **options) -> Path:
+    from pipeline.synth import SynthOptions, synthesize
+
+    return synthesize(tmp_path_factory.mktemp("synth") / name, SynthOptions(**options))
+
+
+def run_stages(capture: Path, until: str, *overrides: str) -> dict[str, dict[str, Path]]:
+    """Run the real stage DAG on ``capture`` up to ``until``; outputs per stage."""
+    from pipeline.config import load_config
+    from pipeline.runner import Runner, Selection
+    from pipeline.sections import schema
+    from stages import STAGES
+
+    config = load_config(schema(STAGES), capture, "standard", list(overrides))
+    plan = Runner(capture, STAGES, config).run(Selection(until=until))
+    return {item.stage.name: item.entry.outputs for item in plan if item.entry is not None}
+
+
+@pytest.fixture(scope="session")
+def calibration_capture(tmp_path_factory) -> Path:
+    """Ten board shots at 320x240 through a strongly distorting lens. ArUco markers need
+    about 4 px per bit to decode, which rules out 96-pixel captures for board calibration."""
+    return synth_capture(tmp_path_factory, "calib", views=2, width=320, height=240, spp=4, calibration_shots=10,
+                         distortion=(-0.3, 0.1, 0.001, -0.001, 0.0), seed=5)  # fmt: skip
+
+
+@pytest.fixture(scope="session")
+def mask_capture(tmp_path_factory) -> Path:
+    """Six close views at 192x144 with background plates; the bird spans ~100 px."""
+    return synth_capture(tmp_path_factory, "masks", views=6, width=192, height=144, spp=8, distance=0.2,
+                         calibration_shots=0, background_plates=True, seed=4)  # fmt: skip
+
+
+@pytest.fixture(scope="session")
+def orbit_capture(tmp_path_factory) -> Path:
+    """Twelve views on one ring at 192x144: neighbours 30 degrees apart share SIFT features."""
+    return synth_capture(tmp_path_factory, "orbit", views=12, rings=(30.0,), width=192, height=144, spp=4,
+                         calibration_shots=0, seed=6)  # fmt: skip

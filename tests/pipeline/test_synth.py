@@ -11,7 +11,8 @@ from pipeline.camera import read_cameras
 from pipeline.config import load_config
 from pipeline.errors import PipelineError
 from pipeline.sections import BoardSection, schema
-from pipeline.synth import SENSOR_WIDTH_MM, SynthOptions, board_to_world, make_charuco_board, synthesize
+from pipeline.board import make_charuco_board
+from pipeline.synth import SENSOR_WIDTH_MM, SynthOptions, board_to_world, synthesize
 from stages import STAGES
 
 pytestmark = pytest.mark.slow

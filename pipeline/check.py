@@ -1,0 +1,281 @@
+"""``pipeline check``: quality control of a capture before the expensive stages.
+
+Looks at the photos the way the later stages will and reports, one line per
+problem, what is wrong with which file and what to do about it. Errors (the run
+would fail or be spoilt) make the command exit with 1; warnings do not.
+
+==================  =============================================================
+check               flagged when
+==================  =============================================================
+count               fewer than MIN_PHOTOS photos (error) or fewer than ENOUGH_PHOTOS
+readable            OpenImageIO cannot decode a file (error)
+camera settings     photos differ in camera, zoom or size (each setting gets its
+                    own intrinsics, so each needs enough photos)
+exposure            more than CLIPPED_FRACTION of a photo's pixels clipped; a photo
+                    more than EXPOSURE_STOPS stops off the set's median (exposure
+                    not locked)
+blur                variance of the Laplacian below BLUR_RATIO x the set's median
+near-duplicates     thumbnails correlate above DUPLICATE_CORRELATION
+strays              a photo shares fewer verified SIFT matches with every other
+                    photo than max(MIN_SHARED_MATCHES, STRAY_RATIO x the set's
+                    median): a photo of something else (error)
+board               calibration shots in which the board is not found
+masks               the specimen mask (user's, or segmented as the masks stage
+                    would) covers almost nothing (error) or almost everything,
+                    or touches the border
+==================  =============================================================
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from itertools import combinations
+from pathlib import Path
+from typing import Literal
+
+import cv2
+import numpy as np
+
+from pipeline import progress
+from pipeline.board import BoardDetector
+from pipeline.config import Config
+from pipeline.errors import PipelineError
+from pipeline.photo_io import camera_setting, gray_uint8, list_photos, read_photo, to_uint8
+from pipeline.segmentation import clean, segment_centre_prior, segment_neutral_backdrop
+
+MIN_PHOTOS = 3
+ENOUGH_PHOTOS = 20
+CLIPPED_FRACTION = 0.05
+EXPOSURE_STOPS = 1.0
+BLUR_RATIO = 0.3
+DUPLICATE_CORRELATION = 0.995
+MIN_SHARED_MATCHES = 12
+STRAY_RATIO = 0.3
+FEATURE_SIZE = (256, 640)
+"""Photos are resized for SIFT so that the longer side falls in this range."""
+MASK_WORKING_SIZE = 256
+
+
+@dataclass
+class Problem:
+    severity: Literal["error", "warning"]
+    check: str
+    file: str
+    """Photo or folder the problem is about, relative to the capture."""
+    message: str
+    advice: str
+
+    def line(self) -> str:
+        return f"{self.severity:7} {self.file}: {self.message}; {self.advice}"
+
+
+@dataclass
+class PhotoSummary:
+    name: str
+    gray: np.ndarray
+    """8-bit, resized for feature extraction."""
+    srgb: np.ndarray
+    """8-bit RGB at full size."""
+    setting: str
+
+
+def _feature_copy(gray: np.ndarray) -> np.ndarray:
+    longest = max(gray.shape)
+    factor = min(max(1.0, FEATURE_SIZE[0] / longest), FEATURE_SIZE[1] / longest)
+    if factor == 1.0:
+        return gray
+    interpolation = cv2.INTER_AREA if factor < 1 else cv2.INTER_CUBIC
+    return cv2.resize(gray, None, fx=factor, fy=factor, interpolation=interpolation)
+
+
+def check_exposure(photos: list[PhotoSummary]) -> list[Problem]:
+    problems = []
+    brightness = {}
+    for photo in photos:
+        clipped = float((photo.srgb.max(axis=-1) >= 250).mean())
+        if clipped > CLIPPED_FRACTION:
+            problems.append(Problem("warning", "exposure", f"images/{photo.name}",
+                                    f"overexposed: {100 * clipped:.1f} % of the pixels are clipped",
+                                    "retake it with a shorter exposure; clipped pixels carry no radiance"))  # fmt: skip
+        brightness[photo.name] = float(np.median(photo.gray)) + 1.0
+    median = np.median(list(brightness.values()))
+    for name, value in brightness.items():
+        # 8-bit sRGB is roughly gamma 2.2: a stop is a factor 2 ** (1 / 2.2) in encoded values.
+        stops = 2.2 * np.log2(value / median)
+        if abs(stops) > EXPOSURE_STOPS:
+            problems.append(Problem("warning", "exposure", f"images/{name}",
+                                    f"{abs(stops):.1f} stops {'brighter' if stops > 0 else 'darker'} than the set",
+                                    "lock exposure and white balance for the whole session"))  # fmt: skip
+    return problems
+
+
+def check_blur(photos: list[PhotoSummary]) -> list[Problem]:
+    sharpness = {p.name: float(cv2.Laplacian(p.gray, cv2.CV_64F).var()) for p in photos}
+    median = np.median(list(sharpness.values()))
+    return [
+        Problem("warning", "blur", f"images/{name}",
+                f"blurred: sharpness {value / median:.2f} of the set's median",
+                "retake it (tripod, shorter exposure, focus on the specimen) or remove it")  # fmt: skip
+        for name, value in sharpness.items()
+        if value < BLUR_RATIO * median
+    ]
+
+
+def check_duplicates(photos: list[PhotoSummary]) -> list[Problem]:
+    thumbnails = []
+    for photo in photos:
+        small = cv2.resize(photo.gray, (32, 32), interpolation=cv2.INTER_AREA).astype(np.float64).ravel()
+        thumbnails.append((small - small.mean()) / (small.std() + 1e-9))
+    problems = []
+    for i, j in combinations(range(len(photos)), 2):
+        correlation = float(thumbnails[i] @ thumbnails[j]) / thumbnails[i].size
+        if correlation > DUPLICATE_CORRELATION:
+            problems.append(Problem("warning", "duplicates", f"images/{photos[j].name}",
+                                    f"near-duplicate of {photos[i].name} (correlation {correlation:.4f})",
+                                    "it adds no viewpoint; remove one of the two"))  # fmt: skip
+    return problems
+
+
+def shared_matches(photos: list[PhotoSummary]) -> np.ndarray:
+    """Matrix of SIFT matches between photo pairs that survive a fundamental-matrix RANSAC."""
+    sift = cv2.SIFT_create(nfeatures=1500)
+    features = []
+    for photo in progress.track(photos, "finding features"):
+        keypoints, descriptors = sift.detectAndCompute(photo.gray, None)
+        features.append((np.float32([k.pt for k in keypoints]), descriptors))
+    matcher = cv2.BFMatcher(cv2.NORM_L2)
+    inliers = np.zeros((len(photos), len(photos)), int)
+    for i, j in progress.track(list(combinations(range(len(photos)), 2)), "matching photo pairs"):
+        (points_i, descriptors_i), (points_j, descriptors_j) = features[i], features[j]
+        if descriptors_i is None or descriptors_j is None or min(len(points_i), len(points_j)) < 8:
+            continue
+        pairs = [m for m, n in matcher.knnMatch(descriptors_i, descriptors_j, k=2) if m.distance < 0.8 * n.distance]
+        if len(pairs) < 8:
+            continue
+        _, verified = cv2.findFundamentalMat(
+            points_i[[m.queryIdx for m in pairs]], points_j[[m.trainIdx for m in pairs]], cv2.USAC_MAGSAC, 1.5, 0.999
+        )
+        inliers[i, j] = inliers[j, i] = 0 if verified is None else int(verified.sum())
+    return inliers
+
+
+def check_strays(photos: list[PhotoSummary], blurred: set[str]) -> list[Problem]:
+    """Photos that match no other; blurred photos match poorly too, but their problem is blur."""
+    if len(photos) < MIN_PHOTOS:
+        return []
+    best = shared_matches(photos).max(axis=1)
+    limit = max(MIN_SHARED_MATCHES, STRAY_RATIO * float(np.median(best)))
+    return [
+        Problem("error", "strays", f"images/{photo.name}",
+                f"shares only {count} verified feature matches with any other photo (the set: "
+                f"{np.median(best):.0f}); a photo of something else, or a gap in the orbit",
+                "remove it from images/, or add photos between it and its neighbours")  # fmt: skip
+        for photo, count in zip(photos, best)
+        if count < limit and f"images/{photo.name}" not in blurred
+    ]
+
+
+def check_board(capture_dir: Path, config: Config) -> list[Problem]:
+    shots = list_photos(capture_dir / "calibration")
+    board = config["board"]
+    if not shots:
+        return [Problem("warning", "board", "calibration/", "no board shots",
+                        "calibration will use EXIF or self-calibration; shoot 10-20 board photos "
+                        "(`pipeline board` prints one) for accurate intrinsics")]  # fmt: skip
+    if board.kind == "none":
+        return [Problem("warning", "board", "calibration/", "board shots but board.kind = 'none'",
+                        "set the [board] section of capture.toml to the printed board")]  # fmt: skip
+    detector = BoardDetector(board, min_corners=config["calibrate"].min_corners)
+    problems, found = [], 0
+    for shot in progress.track(shots, "detecting the board"):
+        if detector.detect(gray_uint8(read_photo(shot).pixels)) is None:
+            problems.append(Problem("warning", "board", f"calibration/{shot.name}",
+                                    "board not found (or too few corners)",
+                                    "check that the [board] section matches the print, and that the "
+                                    "board is sharp, evenly lit and fills much of the frame"))  # fmt: skip
+        else:
+            found += 1
+    if found < config["calibrate"].min_shots:
+        problems.append(Problem("warning", "board", "calibration/",
+                                f"only {found} usable board shots (calibrate.min_shots = {config['calibrate'].min_shots})",
+                                "calibration will fall back to EXIF; add shots from varied angles"))  # fmt: skip
+    return problems
+
+
+def check_masks(capture_dir: Path, photos: list[PhotoSummary], config: Config) -> list[Problem]:
+    conf = config["masks"]
+    user_masks = {p.stem: p for p in list_photos(capture_dir / "masks")}
+    problems = []
+    for photo in progress.track(photos, "checking masks"):
+        if user_masks:
+            if Path(photo.name).stem not in user_masks:
+                problems.append(Problem("error", "masks", f"images/{photo.name}", "no mask in masks/",
+                                        "add a PNG named like the photo, or empty masks/"))  # fmt: skip
+                continue
+            mask = read_photo(user_masks[Path(photo.name).stem], "linear").pixels[..., 0] > 0.5 / 255
+        elif conf.segmenter == "neutral_backdrop":
+            mask = segment_neutral_backdrop(photo.srgb, conf.backdrop_chroma, conf.centre_fraction,
+                                            conf.grabcut_iterations, MASK_WORKING_SIZE)  # fmt: skip
+        else:
+            mask = segment_centre_prior(photo.srgb, conf.centre_fraction, conf.grabcut_iterations, MASK_WORKING_SIZE)
+        mask = clean(mask, conf.min_component_fraction, conf.fill_holes)
+        coverage = float(mask.mean())
+        file = f"images/{photo.name}"
+        if coverage < 0.005:
+            problems.append(Problem("error", "masks", file, f"the specimen mask covers {100 * coverage:.1f} % of the photo",
+                                    "the specimen was not found: provide masks/ or background/ plates, "
+                                    "or try masks.segmenter = 'centre_prior'"))  # fmt: skip
+        elif coverage > 0.9:
+            problems.append(Problem("warning", "masks", file, f"the specimen mask covers {100 * coverage:.0f} % of the photo",
+                                    "step back so that the whole specimen and some set are in view"))  # fmt: skip
+        elif np.concatenate([mask[0], mask[-1], mask[:, 0], mask[:, -1]]).any():
+            problems.append(Problem("warning", "masks", file, "the specimen touches the image border",
+                                    "keep the whole specimen in frame: a cut-off part is lost from the visual hull"))  # fmt: skip
+    return problems
+
+
+def check_capture(capture_dir: Path, config: Config, features: bool = True) -> list[Problem]:
+    """Every check on ``capture_dir``; ``features=False`` skips the pairwise matching."""
+    paths = list_photos(capture_dir / "images")
+    if len(paths) < MIN_PHOTOS:
+        return [Problem("error", "count", "images/", f"{len(paths)} photos",
+                        f"structure-from-motion needs at least {MIN_PHOTOS}; {ENOUGH_PHOTOS}+ from all sides is better")]  # fmt: skip
+    problems, photos = [], []
+    for path in progress.track(paths, "reading photos"):
+        try:
+            photo = read_photo(path)
+        except PipelineError as e:
+            problems.append(Problem("error", "readable", f"images/{path.name}", str(e).split(": ", 1)[-1],
+                                    "remove or replace the file"))  # fmt: skip
+            continue
+        srgb = to_uint8(photo.pixels)
+        gray = _feature_copy(cv2.cvtColor(srgb, cv2.COLOR_RGB2GRAY))
+        photos.append(PhotoSummary(path.name, gray, srgb, camera_setting(photo.metadata, photo.size)))
+    if len(photos) < ENOUGH_PHOTOS:
+        problems.append(Problem("warning", "count", "images/", f"only {len(photos)} photos",
+                                f"shoot {ENOUGH_PHOTOS}+ from all sides with 60-80 % overlap between neighbours"))  # fmt: skip
+    settings = sorted({p.setting for p in photos})
+    if len(settings) > 1:
+        for setting in settings:
+            members = [p.name for p in photos if p.setting == setting]
+            problems.append(Problem("warning", "camera settings", f"images/{members[0]}",
+                                    f"{len(members)} photos taken with {setting}",
+                                    "each camera/zoom setting is calibrated on its own; keep the zoom fixed"))  # fmt: skip
+    for same_size_group in _by_setting(photos).values():
+        problems += check_exposure(same_size_group) + check_blur(same_size_group) + check_duplicates(same_size_group)
+    if features:
+        problems += check_strays(photos, {p.file for p in problems if p.check == "blur"})
+    problems += check_board(capture_dir, config)
+    problems += check_masks(capture_dir, photos, config)
+    return problems
+
+
+def _by_setting(photos: list[PhotoSummary]) -> dict[str, list[PhotoSummary]]:
+    groups: dict[str, list[PhotoSummary]] = {}
+    for photo in photos:
+        groups.setdefault(photo.setting, []).append(photo)
+    return groups
+
+
+def as_json(problems: list[Problem]) -> list[dict]:
+    return [asdict(p) for p in problems]

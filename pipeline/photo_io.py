@@ -1,0 +1,129 @@
+"""Reading photos the way the pipeline needs them, through OpenImageIO.
+
+Every reader returns linear-radiance float32 RGB, upright (EXIF orientation
+applied), whatever the file: 8-bit JPEG or PNG and 16-bit TIFF are sRGB-encoded
+unless their metadata says linear; EXR and float TIFF are linear.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import OpenImageIO as oiio
+
+from pipeline.errors import PipelineError
+
+PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr")
+Encoding = Literal["auto", "srgb", "linear"]
+
+
+def srgb_encode(linear: np.ndarray) -> np.ndarray:
+    linear = np.clip(linear, 0.0, 1.0)
+    return np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * np.power(linear, 1 / 2.4) - 0.055)
+
+
+def srgb_decode(encoded: np.ndarray) -> np.ndarray:
+    return np.where(encoded <= 0.04045, encoded / 12.92, np.power((encoded + 0.055) / 1.055, 2.4))
+
+
+def to_uint8(linear: np.ndarray) -> np.ndarray:
+    """8-bit sRGB for feature matching, previews and PNG masks."""
+    return np.round(srgb_encode(linear) * 255).astype(np.uint8)
+
+
+def gray_uint8(linear: np.ndarray) -> np.ndarray:
+    return np.round(srgb_encode(linear.mean(axis=-1)) * 255).astype(np.uint8)
+
+
+def list_photos(folder: Path) -> list[Path]:
+    """Image files directly in ``folder``, sorted by name; [] when it does not exist."""
+    if not folder.is_dir():
+        return []
+    return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in PHOTO_SUFFIXES)
+
+
+@dataclass
+class Photo:
+    pixels: np.ndarray
+    """Linear RGB, float32, (height, width, 3), upright."""
+    metadata: dict[str, object]
+    """EXIF and format attributes as OpenImageIO names them (``Make``, ``Exif:FocalLength``...)."""
+    encoding: Literal["srgb", "linear"]
+    """How the file's values were decoded."""
+    bits: int
+    """Bits per channel in the file."""
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return self.pixels.shape[1], self.pixels.shape[0]
+
+
+def read_metadata(path: Path) -> tuple[dict[str, object], tuple[int, int]]:
+    """(attributes, upright (width, height)) without decoding the pixels."""
+    image = oiio.ImageInput.open(str(path))
+    if image is None:
+        raise PipelineError(f"{path}: cannot read this image ({oiio.geterror()}); remove or replace it")
+    spec = image.spec()
+    image.close()
+    metadata = {attribute.name: attribute.value for attribute in spec.extra_attribs}
+    width, height = spec.width, spec.height
+    if int(metadata.get("Orientation", 1)) in (5, 6, 7, 8):  # rotated by 90 degrees
+        width, height = height, width
+    return metadata, (width, height)
+
+
+def read_photo(path: Path, encoding: Encoding = "auto") -> Photo:
+    """Decode ``path`` to upright linear RGB; a file OpenImageIO cannot read is a user error."""
+    buf = oiio.ImageBuf(str(path))
+    if buf.has_error or not buf.init_spec(str(path), 0, 0):
+        raise PipelineError(f"{path}: cannot read this image ({buf.geterror()}); remove or replace it")
+    spec = buf.spec()
+    metadata = {attribute.name: attribute.value for attribute in spec.extra_attribs}
+    buf = oiio.ImageBufAlgo.reorient(buf)
+    pixels = buf.get_pixels(oiio.FLOAT)
+    if pixels is None or buf.has_error:
+        raise PipelineError(f"{path}: the image data is damaged ({buf.geterror()}); remove or replace it")
+    pixels = np.asarray(pixels, dtype=np.float32)
+    if pixels.ndim == 2:
+        pixels = pixels[..., None]
+    channels = pixels.shape[2]
+    pixels = np.repeat(pixels[..., :1], 3, axis=2) if channels < 3 else pixels[..., :3]
+    is_float = spec.format.basetype in (oiio.HALF, oiio.FLOAT, oiio.DOUBLE)
+    colour_space = str(metadata.get("oiio:ColorSpace", "")).lower()
+    if encoding == "auto":
+        encoding = "linear" if is_float or colour_space.startswith("lin") else "srgb"
+    if encoding == "srgb":
+        pixels = srgb_decode(np.clip(pixels, 0.0, 1.0)).astype(np.float32)
+    return Photo(np.ascontiguousarray(pixels), metadata, encoding, spec.format.size() * 8)
+
+
+def write_image(path: Path, pixels: np.ndarray, attributes: dict[str, object] | None = None) -> Path:
+    """Write uint8 (PNG, JPEG) or float (EXR, stored as half) pixels through OpenImageIO."""
+    pixels = np.ascontiguousarray(pixels)
+    if pixels.ndim == 2:
+        pixels = pixels[..., None]
+    height, width, channels = pixels.shape
+    is_float = pixels.dtype.kind == "f"
+    spec = oiio.ImageSpec(width, height, channels, oiio.HALF if is_float else oiio.UINT8)
+    if is_float:
+        spec.attribute("compression", "zips")
+    for name, value in (attributes or {}).items():
+        spec.attribute(name, value)
+    out = oiio.ImageOutput.create(str(path))
+    if out is None or not out.open(str(path), spec) or not out.write_image(pixels) or not out.close():
+        raise OSError(f"could not write {path}: {oiio.geterror()}")
+    return path
+
+
+def camera_setting(metadata: dict[str, object], size: tuple[int, int]) -> str:
+    """What must match for two photos to share intrinsics: camera body, zoom, image size.
+
+    Photos without EXIF share one setting per image size.
+    """
+    body = " ".join(str(metadata[k]).strip() for k in ("Make", "Model") if metadata.get(k)) or "unknown camera"
+    focal = metadata.get("Exif:FocalLength")
+    zoom = f", f={float(focal):.2f} mm" if focal else ""
+    return f"{body}{zoom}, {size[0]}x{size[1]}"

@@ -1,0 +1,97 @@
+"""``pipeline new``: a capture folder ready for a photo session.
+
+Writes the folders the stages read, a capture.toml in which every setting is
+written out with its documentation (the capture's own sections active, the
+stages' sections commented out so the preset decides), and a README with the
+checklist for the session.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pipeline.config import load_config, toml_section
+from pipeline.errors import ConfigError
+from pipeline.sections import SHARED_SECTIONS, CaptureSection, schema
+from pipeline.stage import Stage
+
+FOLDERS = {
+    "images": "the specimen photos (JPEG, PNG, TIFF or EXR), any names, sorted order = turntable order",
+    "calibration": "10-20 photos of the printed board, same camera and zoom as images/",
+    "background": "optional: plates of the empty set from the same camera position(s)",
+    "masks": "optional: your own masks, one PNG per photo named like it (white = specimen)",
+}
+
+CHECKLIST = """\
+# {name}
+
+{description}
+
+Folders: {folders}
+
+## Before the session
+- [ ] Print the board: `pipeline board --out board {path}` (prints at 100 %, no fit to page);
+      measure a square and put the measured size into `[board]` of capture.toml.
+- [ ] Set the camera to manual: fixed exposure, ISO, white balance and focus distance;
+      no zoom changes (each zoom setting needs its own calibration). Shoot RAW+JPEG or
+      16-bit TIFF if you can: linear data fits materials better.
+- [ ] Light: diffuse and constant for the whole session (softboxes, no mixed daylight).
+      Write the rig into `[light]` of capture.toml: positions and sizes in metres.
+- [ ] Background: a neutral (grey, white or black) non-reflective set, and the specimen
+      standing on the printed board; or a coloured set and `masks.segmenter = "centre_prior"`.
+
+## Calibration shots (calibration/)
+- [ ] 10-20 photos of the flat board alone, filling half the frame or more, from varied
+      angles (up to 45 degrees) and positions, the board reaching the frame's corners in some.
+- [ ] Sharp: no motion blur, the whole board in focus.
+
+## Specimen photos (images/)
+- [ ] 30-80 photos on two or three rings around the specimen (low, middle, high), plus a
+      few from above; 60-80 % overlap between neighbours (about every 10-15 degrees).
+- [ ] The whole specimen in every frame, with some margin; the board visible in most.
+- [ ] Turntable (`capture.rig = "turntable"`): camera and lights fixed, only the table
+      turns; name the photos in turning order.
+- [ ] Translucent specimens: include back-lit and side-lit views if the rig allows.
+
+## Background plate (background/, optional)
+- [ ] With camera and lights untouched, remove the specimen and shoot the empty set once
+      per camera position (one plate per photo, named like it) or once for a fixed camera.
+
+## After the session
+- [ ] `pipeline check {path}`: blur, exposure, duplicates, strays, board, masks.
+- [ ] `pipeline run {path} --preset draft` for a quick end-to-end look, then the default.
+"""
+
+
+def _capture_toml(description: str, rig: str, stages: tuple[Stage, ...]) -> str:
+    lines = [
+        "# The capture's settings. The sections above the line describe this capture;",
+        "# fill them in. The stage sections below are commented out: the preset",
+        "# (configs/*.toml, chosen with --preset) decides them unless you uncomment a",
+        "# setting here to change it for this capture only. `pipeline config CAPTURE`",
+        "# shows the value every setting ends up with.",
+        "",
+    ]
+    sections = {"capture": CaptureSection(description=description, rig=rig)}
+    for name, cls in SHARED_SECTIONS.items():
+        if name != "mitsuba":
+            lines += toml_section(name, sections.get(name, cls())) + [""]
+    lines += ["# " + "-" * 70, ""]
+    for name, cls in schema(stages).items():
+        if name not in sections and (name == "mitsuba" or name not in SHARED_SECTIONS):
+            lines += toml_section(name, cls(), commented=True) + [""]
+    return "\n".join(lines)
+
+
+def create_capture(path: Path, description: str, rig: str, stages: tuple[Stage, ...]) -> Path:
+    if path.exists() and any(path.iterdir()):
+        raise ConfigError(f"{path} already exists and is not empty: choose a new folder for the capture")
+    for folder in FOLDERS:
+        (path / folder).mkdir(parents=True, exist_ok=True)
+    (path / "capture.toml").write_text(_capture_toml(description, rig, stages))
+    folders = "; ".join(f"`{folder}/`: {what}" for folder, what in FOLDERS.items())
+    (path / "README.md").write_text(
+        CHECKLIST.format(name=path.name, description=description or "(no description)", folders=folders, path=path)
+    )
+    load_config(schema(stages), path)  # the template must load as it is
+    return path

@@ -1,0 +1,204 @@
+"""Stage masks: one foreground mask of the specimen per undistorted photo.
+
+Where the masks come from, first match wins (``masks.source = "auto"``):
+
+1. ``masks/`` in the capture: the user's own masks, one PNG per photo named like
+   the photo (``view_003.png`` for ``view_003.jpg``), drawn on the original photo;
+   they are undistorted like the photos. Nonzero (or > 127) is specimen.
+2. ``background/`` in the capture: plates of the empty set, shot with the same
+   camera. A plate named like a photo serves that photo; a camera setting with a
+   single plate uses it for all its photos (a fixed camera, e.g. a turntable).
+   Pixels differing from the plate by more than the noise are specimen; GrabCut
+   settles shadows and colours that match the set.
+3. Automatic segmentation, ``masks.segmenter``: ``neutral_backdrop`` for a specimen
+   on a grey, white or black set (the printed board included): greyness says
+   backdrop, colour says specimen, GrabCut decides the rest; ``centre_prior`` for
+   anything else: GrabCut seeded with the specimen near the image centre.
+
+Every mask is then cleaned: components smaller than a fraction of the largest are
+removed and holes filled (a specimen's silhouette has no holes as seen from most
+views; for a ring-shaped specimen, set ``fill_holes = false``).
+
+==================  ============================================================
+output              content
+==================  ============================================================
+masks/NAME.png      8-bit mask, 255 = specimen, size of the undistorted photo
+masks.json          per photo: source, foreground fraction, whether it touches
+                    the image border (a cut-off specimen spoils the visual hull)
+==================  ============================================================
+
+Limitations: the automatic segmenters rely on colour. A white specimen on a white
+table (or a grey one on a grey board) needs a background plate or user masks;
+``pipeline check`` reports masks that cover almost nothing or almost everything.
+"""
+
+from __future__ import annotations
+
+import json
+from collections import defaultdict
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Literal
+
+import cv2
+import numpy as np
+
+from pipeline import logger, progress
+from pipeline.camera import Intrinsics, undistort
+from pipeline.config import Range
+from pipeline.errors import PipelineError
+from pipeline.photo_io import read_photo, to_uint8
+from pipeline.segmentation import clean, segment_centre_prior, segment_neutral_backdrop, segment_plate_difference
+from pipeline.stage import Stage, StageInputs, StageResult
+from stages.undistort import photo_files
+
+
+@dataclass(frozen=True)
+class Config:
+    """Foreground masks: the user's, from background plates, or segmented."""
+
+    source: Literal["auto", "user", "background", "segment"] = "auto"
+    """auto: masks/ if present, else background/ plates if present, else segmentation.
+    The others force one source (and fail if its files are missing)."""
+    segmenter: Literal["neutral_backdrop", "centre_prior"] = "neutral_backdrop"
+    """Automatic method. neutral_backdrop: the set (table, board, sweep) is grey, white
+    or black and the specimen is more colourful. centre_prior: GrabCut with the specimen
+    near the centre, for coloured sets."""
+    backdrop_chroma: Annotated[float, Range(0.0, 1.0, exclusive_lo=True)] = 0.04
+    """neutral_backdrop: spread of the 8-bit sRGB channels (as a fraction of 255) below
+    which a pixel is surely backdrop; twice this is probably backdrop, three times surely
+    specimen. Lower it for pale specimens."""
+    centre_fraction: Annotated[float, Range(0.1, 1.0)] = 0.9
+    """Fraction of each image side, centred, where the specimen may be; outside is backdrop."""
+    background_threshold: Annotated[float, Range(1.0, None)] = 4.0
+    """Background plates: difference, in noise standard deviations, above which a pixel is
+    probably specimen (three times this: surely)."""
+    grabcut_iterations: Annotated[int, Range(0, 20)] = 5
+    """GrabCut iterations; 0 keeps the seeds as they are (plates only)."""
+    working_size: Annotated[int, Range(64, 4096)] = 400
+    """Longer side, in pixels, at which segmentation runs; masks are resized to the photos.
+    Smaller photos are enlarged, which places their edges to a fraction of a pixel."""
+    min_component_fraction: Annotated[float, Range(0.0, 1.0)] = 0.1
+    """Components smaller than this fraction of the largest are dropped (dust, board bits)."""
+    fill_holes: bool = True
+    """Fill holes inside the silhouette."""
+
+
+def _user_masks(capture_dir: Path, files: tuple[Path, ...], photos: dict[str, dict]) -> dict[str, Path]:
+    by_stem = {p.stem: p for p in files if p.parent == capture_dir / "masks"}
+    missing = [name for name in photos if Path(name).stem not in by_stem]
+    if missing:
+        raise PipelineError(
+            f"masks/ has no mask for {', '.join(missing[:5])}{' ...' if len(missing) > 5 else ''}: "
+            "add one PNG per photo named like it, or empty masks/ to segment automatically"
+        )
+    return {name: by_stem[Path(name).stem] for name in photos}
+
+
+def _plates_for(photos: dict[str, dict], plates: dict[str, dict]) -> dict[str, dict]:
+    by_stem = {Path(name).stem: entry for name, entry in plates.items()}
+    by_camera: dict[int, list[dict]] = defaultdict(list)
+    for entry in plates.values():
+        by_camera[entry["camera"]].append(entry)
+    chosen = {}
+    for name, photo in photos.items():
+        if Path(name).stem in by_stem:
+            chosen[name] = by_stem[Path(name).stem]
+        elif len(by_camera[photo["camera"]]) == 1:
+            chosen[name] = by_camera[photo["camera"]][0]
+        else:
+            raise PipelineError(
+                f"background/: no plate for {name} ({len(by_camera[photo['camera']])} plates for its "
+                "camera): name each plate like its photo, or keep a single plate per camera setting"
+            )
+    return chosen
+
+
+def _choose_source(conf: Config, user_masks: bool, plates: bool) -> str:
+    if conf.source != "auto":
+        if conf.source == "user" and not user_masks:
+            raise PipelineError("masks.source = 'user' but the capture's masks/ folder is empty")
+        if conf.source == "background" and not plates:
+            raise PipelineError("masks.source = 'background' but the capture's background/ folder is empty")
+        return conf.source
+    return "user" if user_masks else "background" if plates else "segment"
+
+
+def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
+    pinhole_json = inputs.upstream["undistort"]["pinhole"]
+    photos, plates = photo_files(pinhole_json, "images"), photo_files(pinhole_json, "background")
+    cameras = json.loads(pinhole_json.read_text())["cameras"]
+    has_user_masks = any(p.parent == inputs.capture_dir / "masks" for p in inputs.files)
+    source = _choose_source(conf, has_user_masks, bool(plates))
+    user_masks = _user_masks(inputs.capture_dir, inputs.files, photos) if source == "user" else {}
+    plate_of = _plates_for(photos, plates) if source == "background" else {}
+    logger.info("masks from %s", {"user": "masks/", "background": "background plates"}.get(source, conf.segmenter))
+
+    (out_dir / "masks").mkdir()
+    report = {}
+    for name, photo in progress.track(photos.items(), "masking"):
+        camera = cameras[photo["camera"]]
+        target = Intrinsics.from_json(camera["intrinsics"])
+        if source == "user":
+            drawn = read_photo(user_masks[name], "linear").pixels[..., 0]
+            source_camera = Intrinsics.from_json(camera["source"])
+            if drawn.shape != (source_camera.height, source_camera.width):
+                raise PipelineError(
+                    f"{user_masks[name]} is {drawn.shape[1]}x{drawn.shape[0]} but {name} is "
+                    f"{source_camera.width}x{source_camera.height}: draw the mask on the original photo"
+                )
+            # Read as linear so that 8-bit 255 is 1.0 and any nonzero label survives resampling.
+            mask = undistort((drawn > 0.5 / 255).astype(np.float32), source_camera, target) >= 0.5
+        elif source == "background":
+            linear = read_photo(photo["linear"]).pixels
+            plate = read_photo(plate_of[name]["linear"]).pixels
+            mask = segment_plate_difference(
+                linear, plate, conf.background_threshold, conf.grabcut_iterations, conf.working_size
+            )
+        else:
+            srgb = to_uint8(read_photo(photo["linear"]).pixels)
+            if conf.segmenter == "neutral_backdrop":
+                mask = segment_neutral_backdrop(
+                    srgb, conf.backdrop_chroma, conf.centre_fraction, conf.grabcut_iterations, conf.working_size
+                )
+            else:
+                mask = segment_centre_prior(srgb, conf.centre_fraction, conf.grabcut_iterations, conf.working_size)
+        mask = clean(mask, conf.min_component_fraction, conf.fill_holes)
+        path = out_dir / "masks" / f"{Path(name).stem}.png"
+        cv2.imwrite(str(path), mask.astype(np.uint8) * 255)
+        border = np.concatenate([mask[0], mask[-1], mask[:, 0], mask[:, -1]])
+        report[name] = {
+            "mask": str(path.relative_to(out_dir)),
+            "source": source,
+            "coverage": float(mask.mean()),
+            "touches_border": bool(border.any()),
+        }
+        if not 0.005 <= mask.mean() <= 0.9:
+            logger.warning("%s: the mask covers %.1f %% of the photo; check it in %s", name, 100 * mask.mean(), path)
+    masks_json = out_dir / "masks.json"
+    masks_json.write_text(json.dumps({"source": source, "images": report}, indent=1))
+    cut_off = sorted(n for n, r in report.items() if r["touches_border"])
+    if cut_off:
+        logger.warning("the specimen touches the image border in %s", ", ".join(cut_off))
+    coverage = [r["coverage"] for r in report.values()]
+    return StageResult(
+        {"masks_json": masks_json, "masks": out_dir / "masks"},
+        {"source": source, "mean_coverage": float(np.mean(coverage)), "touching_border": len(cut_off)},
+    )
+
+
+STAGE = Stage(
+    name="masks",
+    version=1,
+    config=Config,
+    main=main,
+    upstream=("undistort",),
+    reads=("masks/*",),
+)
+
+
+def read_masks(masks_json: Path) -> dict[str, np.ndarray]:
+    """For downstream stages: photo name -> boolean mask."""
+    listing = json.loads(masks_json.read_text())["images"]
+    return {name: cv2.imread(str(masks_json.parent / e["mask"]), cv2.IMREAD_GRAYSCALE) > 127
+            for name, e in listing.items()}  # fmt: skip

@@ -1,0 +1,148 @@
+"""Stage undistort: the photos as an ideal pinhole camera sees them, in two encodings.
+
+Every photo in ``images/`` (and every background plate in ``background/``) is read
+through OpenImageIO (JPEG, PNG, 8- or 16-bit TIFF, EXR; EXIF orientation applied),
+decoded to linear radiance, remapped to the distortion-free camera of its camera
+setting, optionally reduced to a working resolution, and written twice:
+
+==================  =============================================================
+output              content
+==================  =============================================================
+undistorted/        8-bit sRGB PNGs, for feature matching and previews
+linear/             half-float linear-radiance EXRs, for masks and fitting
+pinhole.json        per camera setting: the calibrated (source) and the pinhole
+                    (target) intrinsics; per photo and plate: its setting and files
+==================  =============================================================
+
+Limitations: sRGB-encoded inputs are assumed to use the sRGB transfer curve (true
+for JPEGs from cameras and phones; a camera's picture style or tone curve is not
+undone, so fitting is only as linear as the photos). Files whose metadata names a
+linear colour space, and float files, are taken as linear.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+
+from pipeline import logger, progress
+from pipeline.camera import Intrinsics, ideal_pinhole, undistort
+from pipeline.config import Range
+from pipeline.errors import PipelineError
+from pipeline.photo_io import (
+    PHOTO_SUFFIXES,
+    Encoding,
+    camera_setting,
+    read_photo,
+    to_uint8,
+    write_image,
+)
+from pipeline.stage import Stage, StageInputs, StageResult
+
+
+@dataclass(frozen=True)
+class Config:
+    """Undistortion to a pinhole camera, and the working resolution."""
+
+    max_size: Annotated[int, Range(0, None)] = 0
+    """Longer side of the working images in pixels; 0 keeps the photos' size. Smaller
+    images make every later stage faster (fitting cost grows with the pixel count)."""
+    alpha: Annotated[float, Range(0.0, 1.0)] = 0.0
+    """0: crop to pixels the photo covers (no black borders); 1: keep every photo pixel."""
+    input_encoding: Encoding = "auto"
+    """How 8- and 16-bit values map to radiance. auto: sRGB unless the file's metadata
+    names a linear colour space; float files (EXR) are always linear."""
+
+
+def _output_names(paths: list[Path]) -> dict[Path, str]:
+    stems = [p.stem for p in paths]
+    clashes = sorted({s for s in stems if stems.count(s) > 1})
+    if clashes:
+        raise PipelineError(
+            f"photos {', '.join(p.name for p in paths if p.stem in clashes)} differ only in their "
+            "extension: rename one of each pair, the undistorted files are named by stem"
+        )
+    return {p: p.stem for p in paths}
+
+
+def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
+    calibration = json.loads(inputs.upstream["calibrate"]["calibration"].read_text())
+    groups = calibration["groups"]
+    setting_index = {group["camera"]: i for i, group in enumerate(groups)}
+    image_group = {name: i for i, group in enumerate(groups) for name in group["images"]}
+    cameras = []
+    for group in groups:
+        source = Intrinsics.from_json(group["intrinsics"])
+        target = ideal_pinhole(source, conf.alpha, conf.max_size)
+        cameras.append({"camera": group["camera"], "source": source.to_json(), "intrinsics": target.to_json()})
+
+    folders = {"images": [], "background": []}
+    for path in inputs.files:
+        if path.suffix.lower() in PHOTO_SUFFIXES:
+            folders[path.relative_to(inputs.capture_dir).parts[0]].append(path)
+    (out_dir / "undistorted").mkdir()
+    (out_dir / "linear").mkdir()
+    listing: dict[str, dict[str, dict]] = {"images": {}, "background": {}}
+    for folder, paths in folders.items():
+        names = _output_names(paths)
+        for path in progress.track(paths, f"undistorting {folder}/"):
+            photo = read_photo(path, conf.input_encoding)
+            if folder == "images":
+                index = image_group[path.name]
+            else:
+                setting = camera_setting(photo.metadata, photo.size)
+                if setting not in setting_index:
+                    raise PipelineError(
+                        f"background/{path.name} was taken with {setting}, which no photo in images/ "
+                        "uses: shoot the plate with the same camera, zoom and size, or remove it"
+                    )
+                index = setting_index[setting]
+            source = Intrinsics.from_json(cameras[index]["source"])
+            target = Intrinsics.from_json(cameras[index]["intrinsics"])
+            linear = undistort(photo.pixels, source, target)
+            prefix = "" if folder == "images" else "background_"
+            srgb_path = write_image(out_dir / "undistorted" / f"{prefix}{names[path]}.png", to_uint8(linear))
+            linear_path = write_image(out_dir / "linear" / f"{prefix}{names[path]}.exr", linear.astype(np.float32))
+            listing[folder][path.name] = {
+                "camera": index,
+                "srgb": str(srgb_path.relative_to(out_dir)),
+                "linear": str(linear_path.relative_to(out_dir)),
+                "encoding": photo.encoding,
+                "bits": photo.bits,
+            }
+    pinhole = out_dir / "pinhole.json"
+    pinhole.write_text(json.dumps({"cameras": cameras, **listing}, indent=1))
+    size = cameras[0]["intrinsics"]
+    logger.info(
+        "undistorted %d photos and %d background plates to %dx%d",
+        len(listing["images"]), len(listing["background"]), size["width"], size["height"],
+    )  # fmt: skip
+    return StageResult(
+        {"pinhole": pinhole, "undistorted": out_dir / "undistorted", "linear": out_dir / "linear"},
+        {"photos": len(listing["images"]), "plates": len(listing["background"]),
+         "width": size["width"], "height": size["height"]},
+    )  # fmt: skip
+
+
+STAGE = Stage(
+    name="undistort",
+    version=1,
+    config=Config,
+    main=main,
+    upstream=("calibrate",),
+    reads=("images/*", "background/*"),
+)
+
+
+def photo_files(pinhole_json: Path, folder: str = "images") -> dict[str, dict]:
+    """For downstream stages: photo name -> its entry of pinhole.json with absolute paths."""
+    listing = json.loads(pinhole_json.read_text())
+    base = pinhole_json.parent
+    return {
+        name: entry | {"srgb": base / entry["srgb"], "linear": base / entry["linear"]}
+        for name, entry in listing[folder].items()
+    }

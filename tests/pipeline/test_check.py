@@ -1,0 +1,81 @@
+import json
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import skimage.data
+
+from pipeline.check import check_capture
+from pipeline.cli import main
+from pipeline.config import load_config
+from pipeline.sections import schema
+from stages import STAGES
+
+pytestmark = pytest.mark.slow
+POROUS_CUBE = Path(__file__).resolve().parents[3] / "shared" / "captures" / "porous-cube"
+
+
+def _config(capture: Path):
+    return load_config(schema(STAGES), capture)
+
+
+def _flagged(problems, check: str) -> dict[str, str]:
+    return {p.file.removeprefix("images/"): p.severity for p in problems if p.check == check}
+
+
+@pytest.fixture
+def spoilt(orbit_capture, tmp_path) -> Path:
+    """The orbit with four planted problems."""
+    capture = Path(shutil.copytree(orbit_capture, tmp_path / "orbit"))
+    images = capture / "images"
+    photo = cv2.imread(str(images / "view_003.jpg"))
+    cv2.imwrite(str(images / "view_003.jpg"), cv2.GaussianBlur(photo, (0, 0), 2.5))
+    photo = cv2.imread(str(images / "view_007.jpg")).astype(np.float32)
+    cv2.imwrite(str(images / "view_007.jpg"), np.clip(photo * 2.5, 0, 255).astype(np.uint8))
+    shutil.copy(images / "view_009.jpg", images / "view_009b.jpg")
+    stray = cv2.resize(skimage.data.astronaut()[..., ::-1], (192, 144), interpolation=cv2.INTER_AREA)
+    cv2.imwrite(str(images / "view_100.jpg"), stray)
+    return capture
+
+
+def test_a_clean_capture_has_no_errors(orbit_capture):
+    problems = check_capture(orbit_capture, _config(orbit_capture))
+    assert [p for p in problems if p.severity == "error"] == []
+    assert not _flagged(problems, "blur") and not _flagged(problems, "duplicates") and not _flagged(problems, "strays")
+
+
+def test_planted_problems_are_flagged_by_name(spoilt):
+    problems = check_capture(spoilt, _config(spoilt))
+    assert _flagged(problems, "blur") == {"view_003.jpg": "warning"}
+    assert "view_007.jpg" in _flagged(problems, "exposure")
+    assert _flagged(problems, "duplicates") == {"view_009b.jpg": "warning"}
+    assert _flagged(problems, "strays") == {"view_100.jpg": "error"}
+
+
+def test_check_exits_1_on_errors_and_prints_one_line_per_problem(spoilt, capsys):
+    assert main(["check", str(spoilt)]) == 1
+    out = capsys.readouterr().out
+    assert "error   images/view_100.jpg: shares only" in out
+    assert main(["check", str(spoilt), "--json"]) == 1
+    report = json.loads(capsys.readouterr().out)
+    assert report["errors"] >= 1 and {"severity", "check", "file", "message", "advice"} <= set(report["problems"][0])
+
+
+def test_a_missing_specimen_is_an_error(orbit_capture, tmp_path):
+    capture = Path(shutil.copytree(orbit_capture, tmp_path / "orbit"))
+    plate = np.full((144, 192, 3), 128, np.uint8)
+    cv2.imwrite(str(capture / "images" / "view_005.jpg"), plate)
+    masks = _flagged(check_capture(capture, _config(capture), features=False), "masks")
+    assert masks == {"view_005.jpg": "error"}
+
+
+@pytest.mark.real_data
+@pytest.mark.skipif(not POROUS_CUBE.is_dir(), reason="../shared/captures/porous-cube is not here")
+def test_the_room_shot_in_the_porous_cube_capture_is_flagged(tmp_path):
+    capture = tmp_path / "porous-cube"
+    capture.mkdir()
+    (capture / "images").symlink_to(POROUS_CUBE / "images")
+    problems = check_capture(capture, _config(capture))
+    assert _flagged(problems, "strays") == {"20221109_144453775_iOS.jpg": "error"}

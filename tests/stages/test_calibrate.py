@@ -1,0 +1,147 @@
+import json
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import OpenImageIO as oiio
+import pytest
+from conftest import run_stages
+
+from pipeline.board import BoardDetection, BoardDetector
+from pipeline.camera import Intrinsics, ideal_pinhole, read_cameras, undistort
+from pipeline.errors import PipelineError
+from pipeline.photo_io import gray_uint8, read_photo, write_image
+from pipeline.sections import BoardSection
+from stages.calibrate import Config, calibrate_from_board, exif_focal_px
+
+pytestmark = pytest.mark.slow
+
+
+def _homography_residual_px(detection: BoardDetection) -> float:
+    """Largest distance of a corner from the best projective map of the flat board.
+
+    A pinhole camera sees a plane through a homography, which keeps every line
+    straight; lens distortion shows as residuals that grow towards the frame's edge.
+    """
+    H, _ = cv2.findHomography(detection.object_points[:, :2], detection.image_points, 0)
+    mapped = cv2.perspectiveTransform(detection.object_points[None, :, :2], H)[0]
+    return float(np.linalg.norm(mapped - detection.image_points, axis=1).max())
+
+
+def _straightness_px(detection: BoardDetection, board: BoardSection) -> float:
+    """Largest distance of a corner from the line fitted through its board row or column."""
+    columns = board.squares_x - 1
+    rows, cols = detection.ids // columns, detection.ids % columns
+    worst = 0.0
+    for labels in (rows, cols):
+        for label in np.unique(labels):
+            points = detection.image_points[labels == label]
+            if len(points) < 3:
+                continue
+            centred = points - points.mean(axis=0)
+            normal = np.linalg.svd(centred)[2][1]
+            worst = max(worst, float(np.abs(centred @ normal).max()))
+    return worst
+
+
+@pytest.fixture(scope="module")
+def calibrated(calibration_capture: Path) -> dict:
+    outputs = run_stages(calibration_capture, "calibrate")["calibrate"]
+    return json.loads(outputs["calibration"].read_text())["groups"][0]
+
+
+def test_board_calibration_recovers_the_focal_length(calibrated, calibration_capture):
+    truth, _ = read_cameras(calibration_capture / "ground_truth" / "cameras.json")
+    estimate = Intrinsics.from_json(calibrated["intrinsics"])
+    assert calibrated["source"] == "board" and calibrated["shots_used"] >= 6
+    assert estimate.fx == pytest.approx(truth.fx, rel=0.01)
+    assert estimate.fy == pytest.approx(truth.fy, rel=0.01)
+    assert calibrated["rms_px"] < 0.5
+    assert set(calibrated["shots"]) | set(calibrated["dropped"]) == {f"board_{i:02d}.jpg" for i in range(10)}
+
+
+def test_undistorted_board_corners_are_straight(calibrated, calibration_capture):
+    board = BoardSection()
+    detector = BoardDetector(board, min_corners=12)
+    source = Intrinsics.from_json(calibrated["intrinsics"])
+    target = ideal_pinhole(source, alpha=0.0, max_size=0)
+    distorted, straightened = [], []
+    for shot in sorted((calibration_capture / "calibration").glob("*.jpg")):
+        linear = read_photo(shot).pixels
+        before, after = detector.detect(gray_uint8(linear)), detector.detect(gray_uint8(undistort(linear, source, target)))
+        if before is None or after is None:
+            continue
+        distorted.append(_homography_residual_px(before))
+        straightened.append((_straightness_px(after, board), _homography_residual_px(after)))
+    assert len(straightened) >= 5
+    assert max(line for line, _ in straightened) < 0.5, straightened
+    assert max(plane for _, plane in straightened) < 0.5, straightened
+    assert max(distorted) > 0.5, "on the raw shots this check must fail, or it proves nothing"
+
+
+def test_a_bad_shot_is_dropped_and_named(calibration_capture):
+    detector = BoardDetector(BoardSection(), min_corners=8)
+    detections = {}
+    for shot in sorted((calibration_capture / "calibration").glob("*.jpg")):
+        if (found := detector.detect(gray_uint8(read_photo(shot).pixels))) is not None:
+            detections[shot.name] = found
+    victim = sorted(detections)[2]
+    rng = np.random.default_rng(0)
+    detections[victim].image_points = detections[victim].image_points + rng.normal(0, 3.0, detections[victim].image_points.shape)
+    result = calibrate_from_board(detections, (320, 240), Config())
+    assert list(result.dropped) == [victim]
+    assert "RMS" in result.dropped[victim]
+    assert victim not in result.shot_rms_px
+    assert result.rms_px < 0.5
+
+
+def test_without_usable_board_shots_exif_gives_the_focal_length(tiny_capture, tmp_path):
+    capture = tmp_path / "bird"
+    shutil.copytree(tiny_capture, capture, ignore=shutil.ignore_patterns(".pipeline", "output"))
+    outputs = run_stages(capture, "calibrate")["calibrate"]
+    group = json.loads(outputs["calibration"].read_text())["groups"][0]
+    truth, _ = read_cameras(capture / "ground_truth" / "cameras.json")
+    assert group["source"] == "exif" and group["refine_in_sfm"]
+    assert group["intrinsics"]["fx"] == pytest.approx(truth.fx, rel=1e-3)
+    assert json.loads((capture / "output" / "intrinsics.json").read_text()) == group["intrinsics"]
+
+
+def test_each_zoom_setting_gets_its_own_intrinsics(tiny_capture, tmp_path):
+    capture = tmp_path / "bird"
+    shutil.copytree(tiny_capture, capture, ignore=shutil.ignore_patterns(".pipeline", "output"))
+    for name in ("view_004.jpg", "view_005.jpg"):
+        photo = read_photo(capture / "images" / name)
+        zoomed = {k: v for k, v in photo.metadata.items() if k.startswith(("Exif:", "Make", "Model"))}
+        zoomed["Exif:FocalLength"] = 2 * float(photo.metadata["Exif:FocalLength"])
+        buf = oiio.ImageBuf(str(capture / "images" / name))
+        write_image(capture / "images" / name, buf.get_pixels(oiio.UINT8), zoomed)
+    outputs = run_stages(capture, "calibrate")["calibrate"]
+    groups = json.loads(outputs["calibration"].read_text())["groups"]
+    assert [len(g["images"]) for g in groups] == [4, 2]
+    assert groups[1]["images"] == ["view_004.jpg", "view_005.jpg"]
+    assert groups[1]["intrinsics"]["fx"] == pytest.approx(2 * groups[0]["intrinsics"]["fx"], rel=1e-3)
+
+
+def test_a_capture_without_photos_is_a_clear_error(tmp_path):
+    (tmp_path / "images").mkdir()
+    with pytest.raises(PipelineError, match="images.*has no photos"):
+        run_stages(tmp_path, "calibrate")
+
+
+@pytest.mark.parametrize(
+    "metadata, expected, how",
+    [
+        ({"Exif:FocalLength": 4.0, "Exif:FocalPlaneXResolution": 100.0, "Exif:FocalPlaneResolutionUnit": 4},
+         400.0, "focal-plane"),
+        ({"Exif:FocalLength": 4.0}, 4.0 * 1000 / 8.0, "sensor_width_mm"),
+        ({"Exif:FocalLengthIn35mmFilm": 43.27}, float(np.hypot(1000, 750)), "35 mm"),
+    ],
+)  # fmt: skip
+def test_exif_focal_length_paths(metadata, expected, how):
+    focal, description = exif_focal_px(metadata, (1000, 750), sensor_width_mm=8.0)
+    assert focal == pytest.approx(expected) and how in description
+
+
+def test_no_exif_means_no_exif_focal_length():
+    assert exif_focal_px({}, (1000, 750), sensor_width_mm=0.0) is None

@@ -1,0 +1,82 @@
+import json
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from conftest import run_stages
+
+from pipeline.camera import Intrinsics, undistort
+from pipeline.errors import PipelineError
+from pipeline.segmentation import clean, iou
+from stages.masks import read_masks
+
+pytestmark = pytest.mark.slow
+
+
+def _copy(capture: Path, tmp_path: Path, *, plates: bool = True) -> Path:
+    ignored = [".pipeline", "output"] + ([] if plates else ["background"])
+    return Path(shutil.copytree(capture, tmp_path / capture.name, ignore=shutil.ignore_patterns(*ignored)))
+
+
+def _ious(capture: Path, outputs: dict) -> list[float]:
+    """IoU against the true masks, brought into the undistorted frame by the same remap."""
+    camera = json.loads(outputs["undistort"]["pinhole"].read_text())["cameras"][0]
+    source, target = Intrinsics.from_json(camera["source"]), Intrinsics.from_json(camera["intrinsics"])
+    scores = []
+    for name, mask in read_masks(outputs["masks"]["masks_json"]).items():
+        truth = cv2.imread(str(capture / "ground_truth" / "masks" / f"{Path(name).stem}.png"), 0) > 127
+        scores.append(iou(mask, undistort(truth.astype(np.float32), source, target) >= 0.5))
+    return scores
+
+
+def test_segmentation_on_a_neutral_set_matches_the_truth(mask_capture, tmp_path):
+    capture = _copy(mask_capture, tmp_path, plates=False)
+    outputs = run_stages(capture, "masks")
+    assert json.loads(outputs["masks"]["masks_json"].read_text())["source"] == "segment"
+    scores = _ious(capture, outputs)
+    assert len(scores) == 6
+    assert np.mean(scores) >= 0.95 and min(scores) >= 0.92, scores
+
+
+def test_centre_prior_alone_is_worse_on_a_board(mask_capture, tmp_path):
+    """The board's black and white squares fool plain GrabCut: why neutral_backdrop exists."""
+    capture = _copy(mask_capture, tmp_path, plates=False)
+    scores = _ious(capture, run_stages(capture, "masks", "masks.segmenter=centre_prior"))
+    assert np.mean(scores) < 0.9
+
+
+def test_background_plates_give_masks(mask_capture, tmp_path):
+    capture = _copy(mask_capture, tmp_path)
+    outputs = run_stages(capture, "masks")
+    assert json.loads(outputs["masks"]["masks_json"].read_text())["source"] == "background"
+    scores = _ious(capture, outputs)
+    assert np.mean(scores) >= 0.95 and min(scores) >= 0.92, scores
+
+
+def test_user_masks_win_and_are_undistorted_with_the_photos(mask_capture, tmp_path):
+    capture = _copy(mask_capture, tmp_path)
+    shutil.copytree(capture / "ground_truth" / "masks", capture / "masks")
+    outputs = run_stages(capture, "masks")
+    assert json.loads(outputs["masks"]["masks_json"].read_text())["source"] == "user"
+    assert min(_ious(capture, outputs)) > 0.99
+
+
+def test_a_missing_user_mask_is_named(mask_capture, tmp_path):
+    capture = _copy(mask_capture, tmp_path)
+    shutil.copytree(capture / "ground_truth" / "masks", capture / "masks")
+    (capture / "masks" / "view_002.png").unlink()
+    with pytest.raises(PipelineError, match="no mask for view_002.jpg"):
+        run_stages(capture, "masks")
+
+
+def test_clean_keeps_the_specimen_and_fills_its_holes():
+    mask = np.zeros((60, 60), bool)
+    mask[10:40, 10:40] = True
+    mask[20:25, 20:25] = False  # a hole
+    mask[50:52, 50:52] = True  # dust
+    mask[5:8, 45:55] = True  # a part: 30 px, 3 % of the body
+    cleaned = clean(mask, min_component_fraction=0.02, fill_holes=True)
+    assert cleaned[22, 22] and not cleaned[51, 51] and cleaned[6, 50]
+    assert not clean(mask, min_component_fraction=0.05, fill_holes=False)[22, 22]

@@ -1,0 +1,76 @@
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import run_stages
+
+from pipeline.camera import Intrinsics
+from pipeline.photo_io import read_photo, srgb_decode, srgb_encode, write_image
+from stages.undistort import photo_files
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture
+def gradient() -> np.ndarray:
+    """Linear RGB with distinct rows, columns and channels, 40x30."""
+    y, x = np.mgrid[0:30, 0:40]
+    return np.stack([x / 39, y / 29, 0.25 + 0 * x], axis=-1).astype(np.float32)
+
+
+def _write_tiff16(path: Path, linear: np.ndarray) -> None:
+    import OpenImageIO as oiio
+
+    encoded = np.round(srgb_encode(linear) * 65535).astype(np.uint16)
+    spec = oiio.ImageSpec(linear.shape[1], linear.shape[0], 3, oiio.UINT16)
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), spec) and out.write_image(encoded) and out.close()
+
+
+def test_every_format_reads_as_the_same_linear_radiance(gradient, tmp_path):
+    write_image(tmp_path / "a.png", np.round(srgb_encode(gradient) * 255).astype(np.uint8))
+    _write_tiff16(tmp_path / "a.tif", gradient)
+    write_image(tmp_path / "a.exr", gradient)
+    png, tiff, exr = (read_photo(tmp_path / f"a.{ext}") for ext in ("png", "tif", "exr"))
+    assert (png.encoding, tiff.encoding, exr.encoding) == ("srgb", "srgb", "linear")
+    assert (png.bits, tiff.bits, exr.bits) == (8, 16, 16)
+    np.testing.assert_allclose(tiff.pixels, gradient, atol=1e-4)
+    np.testing.assert_allclose(exr.pixels, gradient, atol=1e-3)  # half float
+    np.testing.assert_allclose(png.pixels, gradient, atol=5e-3)  # 8-bit steps
+
+
+def test_exif_orientation_is_applied(gradient, tmp_path):
+    # Orientation 6: the camera was turned clockwise; the viewer rotates 90 degrees clockwise.
+    write_image(tmp_path / "turned.tif", np.round(srgb_encode(gradient) * 255).astype(np.uint8),
+                {"Orientation": 6})  # fmt: skip
+    photo = read_photo(tmp_path / "turned.tif")
+    assert photo.size == (30, 40)
+    upright = np.rot90(gradient, k=-1)
+    np.testing.assert_allclose(photo.pixels, upright, atol=5e-3)
+
+
+def test_linear_copies_decode_the_srgb_copies(tiny_capture, tmp_path):
+    capture = tmp_path / "bird"
+    shutil.copytree(tiny_capture, capture, ignore=shutil.ignore_patterns(".pipeline", "output"))
+    outputs = run_stages(capture, "undistort")["undistort"]
+    photos = photo_files(outputs["pinhole"])
+    assert sorted(photos) == sorted(p.name for p in (capture / "images").glob("*.jpg"))
+    for entry in photos.values():
+        srgb, linear = read_photo(entry["srgb"]), read_photo(entry["linear"])
+        assert srgb.size == linear.size == (96, 72)
+        np.testing.assert_allclose(linear.pixels, srgb_decode(np.round(srgb_encode(linear.pixels) * 255) / 255), atol=2e-3)
+
+
+def test_working_resolution_scales_the_camera(tiny_capture, tmp_path):
+    capture = tmp_path / "bird"
+    shutil.copytree(tiny_capture, capture, ignore=shutil.ignore_patterns(".pipeline", "output"))
+    outputs = run_stages(capture, "undistort", "undistort.max_size=48")["undistort"]
+    listing = json.loads(outputs["pinhole"].read_text())
+    source, target = (Intrinsics.from_json(listing["cameras"][0][k]) for k in ("source", "intrinsics"))
+    assert (target.width, target.height) == (48, 36)
+    assert target.fx == pytest.approx(source.fx / 2, rel=0.02)  # alpha=0 crops a little
+    assert target.dist == [0.0] * 5
+    for entry in photo_files(outputs["pinhole"]).values():
+        assert read_photo(entry["linear"]).size == (48, 36)
