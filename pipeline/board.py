@@ -13,6 +13,7 @@ pattern, x to the right, y down the page, z into the board, in metres. Corner
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -86,6 +87,32 @@ class BoardDetector:
         if len(ids) < self.min_corners:
             return None
         return BoardDetection(ids, points.astype(np.float64), self.corners[ids])
+
+
+def homography_residual_px(detection: BoardDetection) -> float:
+    """Largest distance of a corner from the best projective map of the flat board.
+
+    A pinhole camera sees a plane through a homography, which keeps every line
+    straight; lens distortion shows as residuals that grow towards the frame's edge.
+    """
+    H, _ = cv2.findHomography(detection.object_points[:, :2], detection.image_points, 0)
+    mapped = cv2.perspectiveTransform(detection.object_points[None, :, :2], H)[0]
+    return float(np.linalg.norm(mapped - detection.image_points, axis=1).max())
+
+
+def straightness_px(detection: BoardDetection, board: BoardSection) -> float:
+    """Largest distance of a corner from the line fitted through its board row or column."""
+    columns = board.squares_x - 1
+    worst = 0.0
+    for labels in (detection.ids // columns, detection.ids % columns):
+        for label in np.unique(labels):
+            points = detection.image_points[labels == label]
+            if len(points) < 3:
+                continue
+            centred = points - points.mean(axis=0)
+            normal = np.linalg.svd(centred)[2][1]
+            worst = max(worst, float(np.abs(centred @ normal).max()))
+    return worst
 
 
 PAPER_MM = {"A4": (210.0, 297.0), "A3": (297.0, 420.0), "letter": (215.9, 279.4)}

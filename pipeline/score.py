@@ -134,6 +134,28 @@ def score_mesh(estimate: trimesh.Trimesh, truth: trimesh.Trimesh, seed: int = 0)
     }
 
 
+def score_masks(truth_dir: Path, pinhole_json: Path, masks_json: Path) -> dict[str, float]:
+    """IoU of each mask of the masks stage against the true mask, which is brought into
+    the undistorted frame by the same remap as the photos (a cache-side score: masks
+    are not exported)."""
+    import cv2
+
+    from pipeline.camera import undistort
+    from pipeline.segmentation import iou
+
+    cameras = json.loads(pinhole_json.read_text())["cameras"]
+    photos = json.loads(pinhole_json.read_text())["images"]
+    masks = json.loads(masks_json.read_text())["images"]
+    scores = {}
+    for name, entry in masks.items():
+        camera = cameras[photos[name]["camera"]]
+        source, target = Intrinsics.from_json(camera["source"]), Intrinsics.from_json(camera["intrinsics"])
+        truth = cv2.imread(str(truth_dir / "masks" / f"{Path(name).stem}.png"), cv2.IMREAD_GRAYSCALE) > 127
+        mask = cv2.imread(str(masks_json.parent / entry["mask"]), cv2.IMREAD_GRAYSCALE) > 127
+        scores[name] = iou(mask, undistort(truth.astype(np.float32), source, target) >= 0.5)
+    return scores
+
+
 def score_material(estimate: dict[str, Any], truth: dict[str, Any]) -> dict[str, Any]:
     if estimate.get("model") != truth["model"]:
         return {"model": estimate.get("model"), "true_model": truth["model"], "note": "different models"}

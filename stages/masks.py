@@ -196,9 +196,3 @@ STAGE = Stage(
     reads=("masks/*",),
 )
 
-
-def read_masks(masks_json: Path) -> dict[str, np.ndarray]:
-    """For downstream stages: photo name -> boolean mask."""
-    listing = json.loads(masks_json.read_text())["images"]
-    return {name: cv2.imread(str(masks_json.parent / e["mask"]), cv2.IMREAD_GRAYSCALE) > 127
-            for name, e in listing.items()}  # fmt: skip

@@ -2,13 +2,12 @@ import json
 import shutil
 from pathlib import Path
 
-import cv2
 import numpy as np
 import OpenImageIO as oiio
 import pytest
 from conftest import run_stages
 
-from pipeline.board import BoardDetection, BoardDetector
+from pipeline.board import BoardDetector, homography_residual_px, straightness_px
 from pipeline.camera import Intrinsics, ideal_pinhole, read_cameras, undistort
 from pipeline.errors import PipelineError
 from pipeline.photo_io import gray_uint8, read_photo, write_image
@@ -16,33 +15,6 @@ from pipeline.sections import BoardSection
 from stages.calibrate import Config, calibrate_from_board, exif_focal_px
 
 pytestmark = pytest.mark.slow
-
-
-def _homography_residual_px(detection: BoardDetection) -> float:
-    """Largest distance of a corner from the best projective map of the flat board.
-
-    A pinhole camera sees a plane through a homography, which keeps every line
-    straight; lens distortion shows as residuals that grow towards the frame's edge.
-    """
-    H, _ = cv2.findHomography(detection.object_points[:, :2], detection.image_points, 0)
-    mapped = cv2.perspectiveTransform(detection.object_points[None, :, :2], H)[0]
-    return float(np.linalg.norm(mapped - detection.image_points, axis=1).max())
-
-
-def _straightness_px(detection: BoardDetection, board: BoardSection) -> float:
-    """Largest distance of a corner from the line fitted through its board row or column."""
-    columns = board.squares_x - 1
-    rows, cols = detection.ids // columns, detection.ids % columns
-    worst = 0.0
-    for labels in (rows, cols):
-        for label in np.unique(labels):
-            points = detection.image_points[labels == label]
-            if len(points) < 3:
-                continue
-            centred = points - points.mean(axis=0)
-            normal = np.linalg.svd(centred)[2][1]
-            worst = max(worst, float(np.abs(centred @ normal).max()))
-    return worst
 
 
 @pytest.fixture(scope="module")
@@ -72,8 +44,8 @@ def test_undistorted_board_corners_are_straight(calibrated, calibration_capture)
         before, after = detector.detect(gray_uint8(linear)), detector.detect(gray_uint8(undistort(linear, source, target)))
         if before is None or after is None:
             continue
-        distorted.append(_homography_residual_px(before))
-        straightened.append((_straightness_px(after, board), _homography_residual_px(after)))
+        distorted.append(homography_residual_px(before))
+        straightened.append((straightness_px(after, board), homography_residual_px(after)))
     assert len(straightened) >= 5
     assert max(line for line, _ in straightened) < 0.5, straightened
     assert max(plane for _, plane in straightened) < 0.5, straightened

@@ -2,15 +2,13 @@ import json
 import shutil
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 from conftest import run_stages
 
-from pipeline.camera import Intrinsics, undistort
 from pipeline.errors import PipelineError
-from pipeline.segmentation import clean, iou
-from stages.masks import read_masks
+from pipeline.score import score_masks
+from pipeline.segmentation import clean
 
 pytestmark = pytest.mark.slow
 
@@ -21,14 +19,7 @@ def _copy(capture: Path, tmp_path: Path, *, plates: bool = True) -> Path:
 
 
 def _ious(capture: Path, outputs: dict) -> list[float]:
-    """IoU against the true masks, brought into the undistorted frame by the same remap."""
-    camera = json.loads(outputs["undistort"]["pinhole"].read_text())["cameras"][0]
-    source, target = Intrinsics.from_json(camera["source"]), Intrinsics.from_json(camera["intrinsics"])
-    scores = []
-    for name, mask in read_masks(outputs["masks"]["masks_json"]).items():
-        truth = cv2.imread(str(capture / "ground_truth" / "masks" / f"{Path(name).stem}.png"), 0) > 127
-        scores.append(iou(mask, undistort(truth.astype(np.float32), source, target) >= 0.5))
-    return scores
+    return list(score_masks(capture / "ground_truth", outputs["undistort"]["pinhole"], outputs["masks"]["masks_json"]).values())
 
 
 def test_segmentation_on_a_neutral_set_matches_the_truth(mask_capture, tmp_path):
