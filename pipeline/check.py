@@ -41,7 +41,8 @@ from pipeline.board import BoardDetector
 from pipeline.config import Config
 from pipeline.errors import PipelineError
 from pipeline.photo_io import camera_setting, gray_uint8, list_photos, read_photo, to_uint8
-from pipeline.segmentation import clean, segment_centre_prior, segment_neutral_backdrop
+from pipeline.segmentation import clean
+from stages.masks import read_user_mask, segment
 
 MIN_PHOTOS = 3
 ENOUGH_PHOTOS = 20
@@ -212,12 +213,9 @@ def check_masks(capture_dir: Path, photos: list[PhotoSummary], config: Config) -
                 problems.append(Problem("error", "masks", f"images/{photo.name}", "no mask in masks/",
                                         "add a PNG named like the photo, or empty masks/"))  # fmt: skip
                 continue
-            mask = read_photo(user_masks[Path(photo.name).stem], "linear").pixels[..., 0] > 0.5 / 255
-        elif conf.segmenter == "neutral_backdrop":
-            mask = segment_neutral_backdrop(photo.srgb, conf.backdrop_chroma, conf.centre_fraction,
-                                            conf.grabcut_iterations, MASK_WORKING_SIZE)  # fmt: skip
+            mask = read_user_mask(user_masks[Path(photo.name).stem])
         else:
-            mask = segment_centre_prior(photo.srgb, conf.centre_fraction, conf.grabcut_iterations, MASK_WORKING_SIZE)
+            mask = segment(photo.srgb, conf, MASK_WORKING_SIZE)
         mask = clean(mask, conf.min_component_fraction, conf.fill_holes)
         coverage = float(mask.mean())
         file = f"images/{photo.name}"

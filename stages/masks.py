@@ -84,6 +84,21 @@ class Config:
     """Fill holes inside the silhouette."""
 
 
+def read_user_mask(path: Path) -> np.ndarray:
+    """A user's mask as booleans: any nonzero value is specimen (read as linear so that
+    8-bit 255 is 1.0 and label images with small values count too)."""
+    return read_photo(path, "linear").pixels[..., 0] > 0.5 / 255
+
+
+def segment(srgb: np.ndarray, conf: Config, working_size: int) -> np.ndarray:
+    """The configured automatic segmenter on an 8-bit RGB photo (before cleaning)."""
+    if conf.segmenter == "neutral_backdrop":
+        return segment_neutral_backdrop(
+            srgb, conf.backdrop_chroma, conf.centre_fraction, conf.grabcut_iterations, working_size
+        )
+    return segment_centre_prior(srgb, conf.centre_fraction, conf.grabcut_iterations, working_size)
+
+
 def _user_masks(capture_dir: Path, files: tuple[Path, ...], photos: dict[str, dict]) -> dict[str, Path]:
     by_stem = {p.stem: p for p in files if p.parent == capture_dir / "masks"}
     missing = [name for name in photos if Path(name).stem not in by_stem]
@@ -140,15 +155,14 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         camera = cameras[photo["camera"]]
         target = Intrinsics.from_json(camera["intrinsics"])
         if source == "user":
-            drawn = read_photo(user_masks[name], "linear").pixels[..., 0]
+            drawn = read_user_mask(user_masks[name])
             source_camera = Intrinsics.from_json(camera["source"])
             if drawn.shape != (source_camera.height, source_camera.width):
                 raise PipelineError(
                     f"{user_masks[name]} is {drawn.shape[1]}x{drawn.shape[0]} but {name} is "
                     f"{source_camera.width}x{source_camera.height}: draw the mask on the original photo"
                 )
-            # Read as linear so that 8-bit 255 is 1.0 and any nonzero label survives resampling.
-            mask = undistort((drawn > 0.5 / 255).astype(np.float32), source_camera, target) >= 0.5
+            mask = undistort(drawn.astype(np.float32), source_camera, target) >= 0.5
         elif source == "background":
             linear = read_photo(photo["linear"]).pixels
             plate = read_photo(plate_of[name]["linear"]).pixels
@@ -156,13 +170,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
                 linear, plate, conf.background_threshold, conf.grabcut_iterations, conf.working_size
             )
         else:
-            srgb = to_uint8(read_photo(photo["linear"]).pixels)
-            if conf.segmenter == "neutral_backdrop":
-                mask = segment_neutral_backdrop(
-                    srgb, conf.backdrop_chroma, conf.centre_fraction, conf.grabcut_iterations, conf.working_size
-                )
-            else:
-                mask = segment_centre_prior(srgb, conf.centre_fraction, conf.grabcut_iterations, conf.working_size)
+            mask = segment(to_uint8(read_photo(photo["linear"]).pixels), conf, conf.working_size)
         mask = clean(mask, conf.min_component_fraction, conf.fill_holes)
         path = out_dir / "masks" / f"{Path(name).stem}.png"
         cv2.imwrite(str(path), mask.astype(np.uint8) * 255)
