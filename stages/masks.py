@@ -47,7 +47,7 @@ from pipeline import logger, progress
 from pipeline.camera import Intrinsics, undistort
 from pipeline.config import Range
 from pipeline.errors import PipelineError
-from pipeline.photo_io import read_photo, to_uint8
+from pipeline.photo_io import read_photo
 from pipeline.segmentation import clean, segment_centre_prior, segment_neutral_backdrop, segment_plate_difference
 from pipeline.stage import Stage, StageInputs, StageResult
 from stages.undistort import photo_files
@@ -170,7 +170,8 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
                 linear, plate, conf.background_threshold, conf.grabcut_iterations, conf.working_size
             )
         else:
-            mask = segment(to_uint8(read_photo(photo["linear"]).pixels), conf, conf.working_size)
+            srgb = cv2.cvtColor(cv2.imread(str(photo["srgb"])), cv2.COLOR_BGR2RGB)  # undistort's 8-bit copy
+            mask = segment(srgb, conf, conf.working_size)
         mask = clean(mask, conf.min_component_fraction, conf.fill_holes)
         path = out_dir / "masks" / f"{Path(name).stem}.png"
         cv2.imwrite(str(path), mask.astype(np.uint8) * 255)
@@ -197,7 +198,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="masks",
-    version=1,
+    version=2,
     config=Config,
     main=main,
     upstream=("undistort",),
