@@ -89,6 +89,20 @@ class BoardDetector:
         return BoardDetection(ids, points.astype(np.float64), self.corners[ids])
 
 
+def board_to_world(board: BoardSection) -> np.ndarray:
+    """4x4 transform from OpenCV board coordinates to the world frame.
+
+    OpenCV's board frame has its origin at the top-left corner of the printed
+    image, x to the right, y down the image and z into the board. The world frame
+    (of synthetic captures and of the sfm stage when the board is seen) has z up
+    and the board centred on the origin, so the board's z points down.
+    """
+    width, height = board.squares_x * board.square_mm / 1000, board.squares_y * board.square_mm / 1000
+    M = np.diag([1.0, -1.0, -1.0, 1.0])
+    M[:3, 3] = [-width / 2, height / 2, 0.0]
+    return M
+
+
 def homography_residual_px(detection: BoardDetection) -> float:
     """Largest distance of a corner from the best projective map of the flat board.
 

@@ -95,20 +95,83 @@ class Pose:
         return cls(np.asarray(data["R"], dtype=float), np.asarray(data["t"], dtype=float))
 
 
-def write_cameras(path: Path, intrinsics: Intrinsics, poses: dict[str, Pose]) -> None:
-    """The plain JSON camera file shared by ground truth and the sfm stage."""
+@dataclass(frozen=True)
+class Similarity:
+    """x_truth = scale * R @ x_estimate + t."""
+
+    scale: float
+    R: np.ndarray
+    t: np.ndarray
+
+    @classmethod
+    def identity(cls) -> "Similarity":
+        return cls(1.0, np.eye(3), np.zeros(3))
+
+    def points(self, x: np.ndarray) -> np.ndarray:
+        return self.scale * x @ self.R.T + self.t
+
+    def pose(self, pose: Pose) -> Pose:
+        """The same camera in the new frame (rotation and centre; scale moves the centre)."""
+        R = pose.R @ self.R.T
+        return Pose(R, -R @ self.points(pose.center[None])[0])
+
+    def then(self, other: "Similarity") -> "Similarity":
+        """``other`` applied after this one."""
+        return Similarity(other.scale * self.scale, other.R @ self.R, other.points(self.t[None])[0])
+
+    def matrix(self) -> np.ndarray:
+        M = np.eye(4)
+        M[:3, :3] = self.scale * self.R
+        M[:3, 3] = self.t
+        return M
+
+
+def write_cameras(
+    path: Path,
+    intrinsics: Intrinsics | dict[str, Intrinsics],
+    poses: dict[str, Pose],
+    frame: dict | None = None,
+) -> None:
+    """The plain JSON camera file shared by ground truth and the sfm stage.
+
+    ``intrinsics`` is one camera for all images, or one per image name (several
+    camera settings); then each image entry carries its own and the top-level
+    ``intrinsics`` is the most common one. ``frame`` describes the world frame.
+    """
+    if isinstance(intrinsics, Intrinsics):
+        common, own = intrinsics, {}
+    else:
+        settings = [json.dumps(i.to_json(), sort_keys=True) for i in intrinsics.values()]
+        common = Intrinsics.from_json(json.loads(max(set(settings), key=settings.count)))
+        own = {name: i for name, i in intrinsics.items() if i != common}
     data = {
         "convention": "COLMAP: x_cam = R x_world + t; camera x right, y down, z forward",
-        "intrinsics": intrinsics.to_json(),
-        "images": {name: pose.to_json() for name, pose in sorted(poses.items())},
+        "intrinsics": common.to_json(),
+        "images": {
+            name: {**pose.to_json(), **({"intrinsics": own[name].to_json()} if name in own else {})}
+            for name, pose in sorted(poses.items())
+        },
     }
+    if frame is not None:
+        data["frame"] = frame
     path.write_text(json.dumps(data, indent=1))
 
 
 def read_cameras(path: Path) -> tuple[Intrinsics, dict[str, Pose]]:
+    """The most common intrinsics and every image's pose."""
     data = json.loads(path.read_text())
     poses = {name: Pose.from_json(p) for name, p in data["images"].items()}
     return Intrinsics.from_json(data["intrinsics"]), poses
+
+
+def read_views(path: Path) -> dict[str, tuple[Intrinsics, Pose]]:
+    """Every image's own intrinsics and pose."""
+    data = json.loads(path.read_text())
+    common = Intrinsics.from_json(data["intrinsics"])
+    return {
+        name: (Intrinsics.from_json(entry["intrinsics"]) if "intrinsics" in entry else common, Pose.from_json(entry))
+        for name, entry in data["images"].items()
+    }
 
 
 def pinhole_render_size(intrinsics: Intrinsics, margin: int = 4) -> tuple[int, int]:

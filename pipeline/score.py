@@ -23,7 +23,6 @@ heldout/NAME.render.exr    fit_material     PSNR against NAME.reference.exr on v
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -33,33 +32,11 @@ import trimesh
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from pipeline.camera import Intrinsics, Pose, read_cameras, similarity_umeyama
+from pipeline.camera import Intrinsics, Pose, Similarity, read_cameras, similarity_umeyama
 from pipeline.errors import PipelineError
 
 MESH_SAMPLES = 30000
 RELATIVE_PARAMETERS = {"sigma_t"}
-
-
-@dataclass(frozen=True)
-class Similarity:
-    """x_truth = scale * R @ x_estimate + t."""
-
-    scale: float
-    R: np.ndarray
-    t: np.ndarray
-
-    @classmethod
-    def identity(cls) -> "Similarity":
-        return cls(1.0, np.eye(3), np.zeros(3))
-
-    def points(self, x: np.ndarray) -> np.ndarray:
-        return self.scale * x @ self.R.T + self.t
-
-    def matrix(self) -> np.ndarray:
-        M = np.eye(4)
-        M[:3, :3] = self.scale * self.R
-        M[:3, 3] = self.t
-        return M
 
 
 def rotation_angle_deg(R: np.ndarray) -> float:

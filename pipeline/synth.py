@@ -27,7 +27,7 @@ import numpy as np
 import trimesh
 
 from pipeline import logger, mitsuba_variant, progress
-from pipeline.board import board_image
+from pipeline.board import board_image, board_to_world
 from pipeline.camera import Intrinsics, Pose, distortion_maps, pinhole_render_size, write_cameras
 from pipeline.errors import PipelineError
 from pipeline.photo_io import to_uint8, write_image
@@ -124,19 +124,6 @@ def _calibration_poses(count: int, board_size: tuple[float, float], rng) -> list
     return poses
 
 
-def board_to_world(board: BoardSection) -> np.ndarray:
-    """4x4 transform from OpenCV board coordinates to the synthetic world frame.
-
-    OpenCV's board frame has its origin at the top-left corner of the printed
-    image, x to the right, y down the image and z into the board. The world frame
-    has z up with the board centred on the origin, so the board's z points down.
-    """
-    width, height = board.squares_x * board.square_mm / 1000, board.squares_y * board.square_mm / 1000
-    M = np.diag([1.0, -1.0, -1.0, 1.0])
-    M[:3, 3] = [-width / 2, height / 2, 0.0]
-    return M
-
-
 def material_plugins(material: dict, textured: bool) -> tuple[dict, dict | None, dict]:
     """(bsdf, interior medium or None, integrator) for a ground-truth material.
 
@@ -173,6 +160,7 @@ class _Studio:
         self.render_size = pinhole_render_size(self.intrinsics)
         self.maps = distortion_maps(self.intrinsics, self.render_size)
         self.noise_rng = np.random.default_rng(options.seed + 1)
+        self.renders = 1000 * options.seed
         # Printed paper: ink reflects ~4 %, paper ~80 %.
         reflectance = 0.04 + 0.76 * board_image(board).astype(np.float32) / 255.0
         # Mitsuba's rectangle maps the bitmap's first row to local y = -1; the board's
@@ -262,8 +250,14 @@ class _Studio:
         return lights
 
     def render(self, scene: dict) -> np.ndarray:
-        """Render a pinhole image and bend it through the lens: linear, distorted."""
-        image = np.asarray(self.mi.render(self.mi.load_dict(scene)), dtype=np.float32)
+        """Render a pinhole image and bend it through the lens: linear, distorted.
+
+        Every render gets its own sampler seed: with one seed, Monte Carlo noise is
+        the same pattern at the same pixels in every photo, a "texture" that stays
+        put in the image while the scene moves, which SIFT matches (fixed-pattern
+        noise that real sensors have far less of)."""
+        self.renders += 1
+        image = np.asarray(self.mi.render(self.mi.load_dict(scene), seed=self.renders), dtype=np.float32)
         return cv2.remap(image, *self.maps, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
     def photo(self, linear: np.ndarray) -> np.ndarray:

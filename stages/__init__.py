@@ -5,6 +5,6 @@ added to ``STAGES``.
 """
 
 from pipeline.stage import Stage
-from stages import calibrate, masks, undistort
+from stages import calibrate, cleanup, masks, mesh, sfm, undistort, uv
 
-STAGES: tuple[Stage, ...] = (calibrate.STAGE, undistort.STAGE, masks.STAGE)
+STAGES: tuple[Stage, ...] = (calibrate.STAGE, undistort.STAGE, masks.STAGE, sfm.STAGE, mesh.STAGE, cleanup.STAGE, uv.STAGE)

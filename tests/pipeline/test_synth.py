@@ -11,8 +11,8 @@ from pipeline.camera import read_cameras
 from pipeline.config import load_config
 from pipeline.errors import PipelineError
 from pipeline.sections import BoardSection, schema
-from pipeline.board import make_charuco_board
-from pipeline.synth import SENSOR_WIDTH_MM, SynthOptions, board_to_world, synthesize
+from pipeline.board import board_to_world, make_charuco_board
+from pipeline.synth import SENSOR_WIDTH_MM, SynthOptions, synthesize
 from stages import STAGES
 
 pytestmark = pytest.mark.slow
@@ -80,7 +80,7 @@ def test_photos_are_noisy_srgb_renders_of_a_mottled_specimen(tiny_capture):
 
 def test_board_pose_from_a_photo_matches_the_ground_truth(tmp_path):
     """ChArUco detection + PnP with the true intrinsics recovers pose @ board_to_world."""
-    capture = synthesize(tmp_path / "c", SynthOptions(views=2, width=480, height=360, spp=2,
+    capture = synthesize(tmp_path / "c", SynthOptions(views=2, width=480, height=360, spp=8,
                                                       calibration_shots=0, rings=(40.0,), noise=0.5))  # fmt: skip
     intrinsics, poses = read_cameras(capture / "ground_truth" / "cameras.json")
     board = BoardSection()

@@ -1,0 +1,190 @@
+"""Stage mesh: one watertight surface of the specimen, from silhouettes and sparse points.
+
+The pycolmap wheel has no dense stereo and no Delaunay meshing (both need CUDA or
+CGAL), so the dense shape comes from the masks:
+
+1. **Visual hull** (pipeline.visual_hull): a box around the specimen is found by a
+   coarse carve, then a grid of ``resolution`` voxels along its longest side holds
+   each voxel's distance to the nearest silhouette edge; marching cubes at 0 gives
+   a closed surface. Voxels below the ground plane (the table, when the sfm stage
+   found it) are cut off: cameras above a table cannot carve underneath the
+   specimen, and the table and board never enter the hull as the masks exclude them.
+2. **Sparse points** (``refine = "poisson"``): a visual hull bridges concavities
+   that no silhouette shows; SfM points inside the hull lie on the true surface
+   there. Hull samples near such interior points are dropped, the points join
+   the rest with normals estimated from their neighbours and turned towards the
+   cameras that saw them, and a screened Poisson reconstruction (pymeshlab)
+   makes the surface watertight again. Points outside the hull contradict the
+   silhouettes and are discarded as outliers.
+
+==================  =============================================================
+output              content
+==================  =============================================================
+mesh.ply            the specimen's surface in the world frame of cameras.json
+mesh.json           faces, watertightness, volume, points used, timings
+==================  =============================================================
+
+Limitations: concavities need texture (sparse points) to be recovered; a
+specimen cut off by the frame in many photos, or masks that include the table,
+inflate the hull. The resolution bounds the detail: the voxel size is the
+specimen's largest extent divided by ``resolution``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Literal
+
+import cv2
+import numpy as np
+import pycolmap
+import pymeshlab
+import trimesh
+from scipy.spatial import cKDTree
+
+from pipeline import logger
+from pipeline.camera import read_views
+from pipeline.config import Range
+from pipeline.errors import PipelineError
+from pipeline.stage import Stage, StageInputs, StageResult
+from pipeline.visual_hull import Grid, View, bounds, hull_field, surface
+
+
+@dataclass(frozen=True)
+class Config:
+    """Dense geometry on CPU: visual hull, refined with the sparse points."""
+
+    resolution: Annotated[int, Range(16, 512)] = 128
+    """Voxels along the specimen's longest side; time and memory grow with its cube."""
+    carve_tolerance: Annotated[int, Range(0, None)] = 1
+    """Views allowed to disagree before a voxel is carved away: one bad mask then cannot
+    cut a piece off the specimen (at the cost of a slightly fatter hull)."""
+    clip_to_ground: bool = True
+    """Cut the hull at the ground plane found by the sfm stage (the table or board)."""
+    refine: Literal["poisson", "none"] = "poisson"
+    """poisson: add the sparse points inside the hull and rebuild with screened Poisson;
+    none: the visual hull as it is."""
+    poisson_depth: Annotated[int, Range(5, 12)] = 8
+    """Octree depth of the Poisson reconstruction (2^depth cells along the longest side)."""
+    min_track_length: Annotated[int, Range(2, None)] = 3
+    """Sparse points seen in fewer photos are not trusted."""
+    max_point_error_px: Annotated[float, Range(0.0, None, exclusive_lo=True)] = 2.0
+    """Sparse points with a larger mean reprojection error are not trusted."""
+
+
+def _views(cameras_json: Path, masks_json: Path) -> list[View]:
+    masks = json.loads(masks_json.read_text())["images"]
+    views = []
+    for name, (intrinsics, pose) in sorted(read_views(cameras_json).items()):
+        mask = cv2.imread(str(masks_json.parent / masks[name]["mask"]), cv2.IMREAD_GRAYSCALE) > 127
+        if mask.shape != (intrinsics.height, intrinsics.width):
+            raise PipelineError(f"the mask of {name} is {mask.shape[::-1]} but its camera is "
+                                f"{intrinsics.width}x{intrinsics.height}: rerun the masks and sfm stages")  # fmt: skip
+        views.append(View(intrinsics, pose, mask))
+    return views
+
+
+def _ground_height(cameras_json: Path) -> float | None:
+    """Height of the ground plane z = h in the world frame, if the sfm stage found one."""
+    plane = json.loads(cameras_json.read_text()).get("frame", {}).get("ground_plane")
+    return None if plane is None else float(-plane[3] / plane[2])
+
+
+def _trusted_points(sparse: Path, conf: Config) -> tuple[np.ndarray, np.ndarray]:
+    """Sparse points and, for each, the mean direction towards the cameras that saw it."""
+    model = pycolmap.Reconstruction(sparse)
+    centres = {image_id: image.projection_center() for image_id, image in model.images.items() if image.has_pose}
+    points, towards = [], []
+    for point in model.points3D.values():
+        if point.track.length() < conf.min_track_length or point.error > conf.max_point_error_px:
+            continue
+        directions = [centres[e.image_id] - point.xyz for e in point.track.elements if e.image_id in centres]
+        directions = [d / np.linalg.norm(d) for d in directions]
+        points.append(point.xyz)
+        towards.append(np.mean(directions, axis=0))
+    return np.reshape(points, (-1, 3)), np.reshape(towards, (-1, 3))
+
+
+def _refine_with_points(hull: trimesh.Trimesh, views: list[View], points: np.ndarray, towards: np.ndarray,
+                        conf: Config, voxel: float) -> tuple[trimesh.Trimesh, dict]:  # fmt: skip
+    depth_in_hull = hull_field(points, views, conf.carve_tolerance)
+    consistent = depth_in_hull > -voxel
+    interior = depth_in_hull > voxel  # deeper than the hull's own error: a concavity
+    points, towards, interior = points[consistent], towards[consistent], interior[consistent]
+    samples, normals = hull.vertices, hull.vertex_normals
+    if interior.any():
+        near_interior = cKDTree(points[interior]).query(samples, distance_upper_bound=2 * voxel)[0] < np.inf
+        samples, normals = samples[~near_interior], normals[~near_interior]
+    cloud = np.vstack([samples, points])
+    # Normals of the sparse points from their neighbours in the joint cloud, turned
+    # towards the cameras that saw them.
+    tree = cKDTree(cloud)
+    _, neighbours = tree.query(points, k=min(12, len(cloud)))
+    point_normals = np.empty_like(points)
+    for i, index in enumerate(neighbours):
+        local = cloud[index] - cloud[index].mean(axis=0)
+        normal = np.linalg.svd(local, full_matrices=False)[2][2]
+        point_normals[i] = normal if normal @ towards[i] >= 0 else -normal
+    meshset = pymeshlab.MeshSet()
+    meshset.add_mesh(pymeshlab.Mesh(vertex_matrix=cloud, v_normals_matrix=np.vstack([normals, point_normals])))
+    meshset.generate_surface_reconstruction_screened_poisson(depth=conf.poisson_depth, preclean=True)
+    result = meshset.current_mesh()
+    mesh = trimesh.Trimesh(result.vertex_matrix(), result.face_matrix(), process=True)
+    parts = mesh.split(only_watertight=False)
+    mesh = max(parts, key=lambda part: len(part.faces)) if len(parts) > 1 else mesh
+    if mesh.volume < 0:
+        mesh.invert()
+    report = {"sparse_points_used": int(len(points)), "sparse_points_inside": int(interior.sum()),
+              "sparse_points_rejected": int((~consistent).sum())}  # fmt: skip
+    return mesh, report
+
+
+def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
+    cameras_json = inputs.upstream["sfm"]["cameras"]
+    views = _views(cameras_json, inputs.upstream["masks"]["masks_json"])
+    started = time.perf_counter()
+    try:
+        lo, hi = bounds(views, conf.carve_tolerance)
+    except ValueError as error:
+        raise PipelineError(f"no visual hull: {error}. Look at the masks in the masks stage's output") from error
+    ground = _ground_height(cameras_json) if conf.clip_to_ground else None
+    if ground is not None:
+        lo[2] = max(lo[2], ground)
+    grid = Grid.around(lo, hi, conf.resolution)
+    centres = grid.centres()
+    field = hull_field(centres, views, conf.carve_tolerance)
+    if ground is not None:
+        field = np.minimum(field, centres[:, 2] - ground)
+    mesh = surface(field, grid)
+    report: dict = {"views": len(views), "voxel": grid.voxel, "grid": list(grid.shape),
+                    "hull_seconds": time.perf_counter() - started, "ground_clipped": ground is not None}  # fmt: skip
+    if conf.refine == "poisson":
+        points, towards = _trusted_points(inputs.upstream["sfm"]["sparse"], conf)
+        if len(points) >= 10:
+            mesh, refined = _refine_with_points(mesh, views, points, towards, conf, grid.voxel)
+            report.update(refined)
+        else:
+            logger.warning("only %d trusted sparse points: keeping the visual hull as it is", len(points))
+    report.update(faces=int(len(mesh.faces)), watertight=bool(mesh.is_watertight), volume=float(mesh.volume),
+                  extent=(mesh.bounds[1] - mesh.bounds[0]).tolist(), seconds=time.perf_counter() - started)  # fmt: skip
+    if not mesh.is_watertight:
+        logger.warning("the mesh is not watertight; the cleanup stage closes its holes")
+    mesh_ply = out_dir / "mesh.ply"
+    mesh.export(mesh_ply)
+    mesh_json = out_dir / "mesh.json"
+    mesh_json.write_text(json.dumps(report, indent=1))
+    metrics = {k: report[k] for k in ("faces", "watertight", "voxel")}
+    return StageResult({"mesh": mesh_ply, "report": mesh_json}, metrics)
+
+
+STAGE = Stage(
+    name="mesh",
+    version=1,
+    config=Config,
+    main=main,
+    upstream=("sfm", "masks"),
+    exports=("mesh",),
+)

@@ -1,0 +1,529 @@
+"""Stage sfm: camera poses of the undistorted photos, in a metric, upright world frame.
+
+1. **Features**: SIFT (pycolmap, CPU) on undistort's 8-bit photos, each camera
+   setting one COLMAP camera (PINHOLE, since the photos are undistorted). Where
+   features may come from is ``sfm.feature_mask``: for a turntable, only pixels
+   that change between photos (what turns) plus the dilated specimen mask, so a
+   still room cannot pull every pose towards "nothing moved".
+2. **Matching**: exhaustive up to ``exhaustive_max_images`` photos, else sequential
+   in file order with loop detection off (no vocabulary tree ships with pycolmap).
+3. **Mapping**: incremental; a calibrated camera (board) stays fixed, a guessed
+   one (EXIF, prior) has its focal length refined. The largest model is kept.
+   Fewer than ``min_registered_fraction`` registered photos is an error that
+   names the unregistered photos and the likely cause for each.
+4. **Turntable** (``capture.rig = "turntable"``): the poses are explained by one
+   circle about one axis (pipeline.turntable). Photos SfM could not register
+   are placed on it: from the board when it is seen, else from the silhouette.
+5. **World frame** (``frame``): from the ChArUco board when it is seen in at least
+   three registered photos (PnP per photo, similarity to the SfM centres; metres,
+   z up, origin at the board's centre as pipeline.board.board_to_world); else from
+   the turntable axis (up) and the table plane if one is found; else from a ground
+   plane in the sparse points; else centred on where the cameras look, scaled to
+   a median camera distance of 1, with z along the cameras' average up. Only the
+   board gives metric scale; the stage says which frame it used.
+
+==================  =============================================================
+output              content
+==================  =============================================================
+sparse/             the model in COLMAP's binary format (cameras.bin, images.bin,
+                    points3D.bin, frames.bin, rigs.bin), in the world frame
+cameras.json        pinhole intrinsics and pose per photo (pipeline.camera), with
+                    the world frame's description; keyed by the original photo name
+sfm.json            registered and unregistered photos (with causes), metrics,
+                    board and turntable residuals
+==================  =============================================================
+
+Limitations: SIFT needs texture. A plain specimen on a plain set registers only
+through the board (or, on a turntable, its silhouette). Without a board the scale
+is arbitrary. A handheld photo SfM cannot register is dropped.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Literal
+
+import cv2
+import numpy as np
+import pycolmap
+
+from pipeline import logger, turntable
+from pipeline.board import BoardDetector, board_to_world
+from pipeline.camera import Intrinsics, Pose, Similarity, similarity_umeyama, write_cameras
+from pipeline.config import Range
+from pipeline.errors import PipelineError
+from pipeline.sections import BoardSection, CaptureSection
+from pipeline.stage import Stage, StageInputs, StageResult
+from pipeline.visual_hull import Grid, View, bounds, convergence_point, hull_field
+from stages.undistort import photo_files
+
+
+@dataclass(frozen=True)
+class Config:
+    """Structure from motion with pycolmap, and the world frame."""
+
+    max_features: Annotated[int, Range(256, 65536)] = 8192
+    """Most SIFT features kept per photo."""
+    feature_mask: Literal["auto", "everywhere", "specimen", "moving"] = "auto"
+    """Where features are extracted. everywhere: the whole photo (a handheld capture,
+    where the set is as still as the specimen); specimen: the dilated specimen mask;
+    moving: the specimen plus whatever changes between photos of a fixed camera (the
+    turning table and board), not the still room. auto: moving for a turntable, else
+    everywhere."""
+    mask_dilation: Annotated[float, Range(0.0, 0.5)] = 0.03
+    """Margin added around the specimen mask, as a fraction of the image diagonal:
+    features on the silhouette's edge are among the best."""
+    matcher: Literal["auto", "exhaustive", "sequential", "ring"] = "auto"
+    """exhaustive: every pair; sequential: each photo with the next sequential_overlap in
+    file order; ring: with the next ring_neighbours, wrapping round (a turntable's
+    revolution). auto: ring for a turntable, else exhaustive up to exhaustive_max_images
+    photos and sequential beyond. Exhaustive matching of a turntable finds false pairs
+    between opposite sides of a repetitive set (a checkerboard from 180 degrees away)."""
+    exhaustive_max_images: Annotated[int, Range(2, None)] = 150
+    """Largest capture matched exhaustively (pairs grow with the square of the count)."""
+    sequential_overlap: Annotated[int, Range(1, None)] = 20
+    """Sequential matching: each photo is matched with this many following ones."""
+    ring_neighbours: Annotated[int, Range(1, None)] = 4
+    """Ring matching: each photo is matched with this many following ones, cyclically."""
+    min_pose_inliers: Annotated[int, Range(6, None)] = 15
+    """2D-3D inliers a photo needs to be registered (COLMAP's default, 30, leaves out
+    photos of low-texture specimens that share only a few dozen points)."""
+    turntable_poses: Literal["model", "sfm"] = "model"
+    """Turntable: model puts every photo exactly on the fitted circle (the rig allows one
+    angle per photo, so per-photo SfM noise averages out); sfm keeps SfM's poses for the
+    photos it registered."""
+    min_registered_fraction: Annotated[float, Range(0.0, 1.0)] = 0.5
+    """Below this fraction of registered photos the stage fails; above, it warns."""
+    frame: Literal["auto", "board", "turntable", "ground_plane", "normalised"] = "auto"
+    """World frame source; auto tries them in this order. Forcing one that cannot be
+    found is an error."""
+    board_min_corners: Annotated[int, Range(4, None)] = 8
+    """Board corners a photo needs for its board pose to count."""
+    board_max_error_px: Annotated[float, Range(0.0, None, exclusive_lo=True)] = 2.0
+    """Board poses with a larger RMS reprojection error are ignored (a misdetection)."""
+    silhouette_resolution: Annotated[int, Range(16, 256)] = 64
+    """Voxels along the hull's longest side used to place turntable photos by silhouette."""
+
+
+def _feature_masks(
+    conf: Config, rig: str, photos: dict[str, dict], masks: dict[str, Path], out_dir: Path
+) -> Path | None:
+    """Masks in COLMAP's convention (IMAGE.png.png, 0 = no features), or None."""
+    mode = conf.feature_mask if conf.feature_mask != "auto" else ("moving" if rig == "turntable" else "everywhere")
+    if mode == "everywhere":
+        return None
+    folder = out_dir / "feature_masks"
+    folder.mkdir()
+    grays = {name: cv2.imread(str(photo["srgb"]), cv2.IMREAD_GRAYSCALE) for name, photo in photos.items()}
+    moving: dict[str, np.ndarray] = {}
+    if mode == "moving":
+        for camera in {photo["camera"] for photo in photos.values()}:
+            names = [n for n, p in photos.items() if p["camera"] == camera]
+            stack = np.stack([grays[n] for n in names]).astype(np.float32)
+            still = np.median(stack, axis=0)
+            difference = np.abs(stack - still)
+            noise = max(1.4826 * float(np.median(difference)), 1.0)
+            for name, diff in zip(names, difference):
+                moving[name] = cv2.GaussianBlur(diff, (0, 0), 2.0) > 4 * noise
+    for name, photo in photos.items():
+        specimen = cv2.imread(str(masks[name]), cv2.IMREAD_GRAYSCALE) > 127
+        h, w = specimen.shape
+        radius = max(int(conf.mask_dilation * np.hypot(w, h)), 1)
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1,) * 2)
+        allowed = cv2.dilate(specimen.astype(np.uint8), kernel) > 0
+        if name in moving:
+            allowed |= cv2.dilate(moving[name].astype(np.uint8), kernel) > 0
+        cv2.imwrite(str(folder / f"{Path(photo['srgb']).name}.png"), allowed.astype(np.uint8) * 255)
+    return folder
+
+
+def _extract_and_match(conf: Config, rig: str, photos: dict[str, dict], cameras: list[dict],
+                       mask_dir: Path | None, image_dir: Path, database: Path) -> None:  # fmt: skip
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.sift.max_num_features = conf.max_features
+    extraction.num_threads = -1
+    for index, camera in enumerate(cameras):
+        names = [Path(p["srgb"]).name for p in photos.values() if p["camera"] == index]
+        if not names:
+            continue
+        K = Intrinsics.from_json(camera["intrinsics"])
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = "PINHOLE"
+        reader.camera_params = f"{K.fx},{K.fy},{K.cx},{K.cy}"
+        if mask_dir is not None:
+            reader.mask_path = str(mask_dir)
+        pycolmap.extract_features(database, image_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
+                                  reader_options=reader, extraction_options=extraction,
+                                  device=pycolmap.Device.cpu)  # fmt: skip
+    matcher = conf.matcher
+    if matcher == "auto":
+        matcher = "ring" if rig == "turntable" else "exhaustive" if len(photos) <= conf.exhaustive_max_images else "sequential"
+    logger.info("%s matching of %d photos", matcher, len(photos))
+    verification = pycolmap.TwoViewGeometryOptions()
+    # A fixed camera sees the still room at the same pixels in every photo: matches
+    # that do not move say nothing about the turning object.
+    verification.filter_stationary_matches = rig == "turntable"
+    device = pycolmap.Device.cpu
+    if matcher == "exhaustive":
+        pycolmap.match_exhaustive(database, verification_options=verification, device=device)
+    elif matcher == "sequential":
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = conf.sequential_overlap
+        pycolmap.match_sequential(database, pairing_options=pairing, verification_options=verification, device=device)
+    else:
+        names = sorted(Path(p["srgb"]).name for p in photos.values())
+        neighbours = min(conf.ring_neighbours, len(names) // 2)
+        pairs = {tuple(sorted((names[i], names[(i + k) % len(names)])))
+                 for i in range(len(names)) for k in range(1, neighbours + 1)}  # fmt: skip
+        pairs_file = database.with_name("pairs.txt")
+        pairs_file.write_text("".join(f"{a} {b}\n" for a, b in sorted(pairs)))
+        pairing = pycolmap.ImportedPairingOptions()
+        pairing.match_list_path = pairs_file
+        pycolmap.match_image_pairs(database, pairing_options=pairing, verification_options=verification, device=device)
+
+
+def _map(database: Path, image_dir: Path, work_dir: Path, refine_focal: bool,
+         min_pose_inliers: int) -> pycolmap.Reconstruction | None:  # fmt: skip
+    options = pycolmap.IncrementalPipelineOptions()
+    options.mapper.abs_pose_min_num_inliers = min_pose_inliers
+    options.ba_refine_focal_length = refine_focal
+    options.ba_refine_principal_point = False
+    options.ba_refine_extra_params = False
+    options.random_seed = 0
+    models = pycolmap.incremental_mapping(database, image_dir, work_dir, options=options)
+    return max(models.values(), key=lambda m: m.num_reg_images()) if models else None
+
+
+def _unregistered_causes(database: Path, unregistered: list[str], stem_of: dict[str, str]) -> dict[str, str]:
+    """Why each photo may have failed: few features, or few verified matches."""
+    with pycolmap.Database.open(database) as db:
+        images = {image.name: image.image_id for image in db.read_all_images()}
+        best: dict[int, int] = {}
+        for pair_id, geometry in zip(*db.read_two_view_geometries()):
+            i, j = pycolmap.pair_id_to_image_pair(pair_id)
+            inliers = len(geometry.inlier_matches)
+            best[i], best[j] = max(best.get(i, 0), inliers), max(best.get(j, 0), inliers)
+        causes = {}
+        for name in unregistered:
+            image_id = images[stem_of[name]]
+            keypoints = db.num_keypoints_for_image(image_id)
+            matches = best.get(image_id, 0)
+            if keypoints < 300:
+                causes[name] = f"{keypoints} features: blurred, low-texture or masked out"
+            elif matches < 30:
+                causes[name] = (f"{keypoints} features but at most {matches} verified matches with any photo: "
+                                "too little overlap, another scene, or a background that moved")  # fmt: skip
+            else:
+                causes[name] = f"{matches} verified matches but no consistent pose: a repeated or moving pattern"
+    return causes
+
+
+def _board_poses(conf: Config, board: BoardSection, photos: dict[str, dict], intrinsics: dict[str, Intrinsics]):
+    """World pose of every photo in which the board is found (pipeline.board's frame)."""
+    if board.kind == "none":
+        return {}, {}
+    detector = BoardDetector(board, conf.board_min_corners)
+    B = board_to_world(board)
+    poses, errors = {}, {}
+    for name, photo in photos.items():
+        gray = cv2.imread(str(photo["srgb"]), cv2.IMREAD_GRAYSCALE)
+        detection = detector.detect(gray)
+        if detection is None:
+            continue
+        K = intrinsics[name].K
+        found, rvec, tvec = cv2.solvePnP(detection.object_points, detection.image_points, K, None,
+                                         flags=cv2.SOLVEPNP_IPPE)  # fmt: skip
+        if not found:
+            continue
+        rvec, tvec = cv2.solvePnPRefineLM(detection.object_points, detection.image_points, K, None, rvec, tvec)
+        projected = cv2.projectPoints(detection.object_points, rvec, tvec, K, None)[0].reshape(-1, 2)
+        rms = float(np.sqrt(np.mean(np.sum((projected - detection.image_points) ** 2, axis=1))))
+        if rms > conf.board_max_error_px:
+            continue
+        R_board = cv2.Rodrigues(rvec)[0]
+        R = R_board @ B[:3, :3].T
+        poses[name] = Pose(R, tvec.ravel() - R @ B[:3, 3])
+        errors[name] = rms
+    return poses, errors
+
+
+def _robust_similarity(source: dict[str, np.ndarray], target: dict[str, np.ndarray]) -> tuple[Similarity, dict]:
+    """Similarity taking SfM centres to board centres; photos whose residual exceeds
+    three times the median (a misdetected board) are dropped once and it is refitted."""
+    names = sorted(set(source) & set(target))
+    for _ in range(2):
+        s, R, t = similarity_umeyama(np.array([source[n] for n in names]), np.array([target[n] for n in names]))
+        similarity = Similarity(s, R, t)
+        residuals = {n: float(np.linalg.norm(similarity.points(source[n][None])[0] - target[n])) for n in names}
+        limit = max(3 * np.median(list(residuals.values())), 1e-4)
+        kept = [n for n in names if residuals[n] <= limit]
+        if len(kept) == len(names) or len(kept) < 3:
+            break
+        names = kept
+    return similarity, {"photos": len(names), "centre_residual_mm_median": 1000 * float(np.median([residuals[n] for n in names]))}
+
+
+def _ground_plane(points: np.ndarray, centres: np.ndarray, scale: float, rng=np.random.default_rng(0)):
+    """The dominant plane of the sparse points with the cameras on one side of it, as
+    (unit normal towards the cameras, offset) with normal . x + offset = 0, or None."""
+    if len(points) < 50:
+        return None
+    threshold = 0.005 * scale
+    best, best_count = None, 0
+    for _ in range(500):
+        sample = points[rng.choice(len(points), 3, replace=False)]
+        normal = np.cross(sample[1] - sample[0], sample[2] - sample[0])
+        if np.linalg.norm(normal) < 1e-12:
+            continue
+        normal /= np.linalg.norm(normal)
+        count = int(np.count_nonzero(np.abs((points - sample[0]) @ normal) < threshold))
+        if count > best_count:
+            best, best_count = (normal, -normal @ sample[0]), count
+    if best is None or best_count < 0.25 * len(points):
+        return None
+    normal, offset = best
+    inliers = points[np.abs(points @ normal + offset) < threshold]
+    centroid = inliers.mean(axis=0)
+    normal = np.linalg.svd(inliers - centroid)[2][2]
+    side = np.sign(centres @ normal - normal @ centroid)
+    if abs(side.sum()) < 0.9 * len(side):
+        return None  # cameras on both sides: not a table
+    normal = normal * np.sign(side.sum())
+    return normal, float(-normal @ centroid)
+
+
+def _frame_rotation(up: np.ndarray, forward_hint: np.ndarray) -> np.ndarray:
+    """Rotation taking ``up`` to +z, with ``forward_hint`` (projected) to +x."""
+    z = up / np.linalg.norm(up)
+    x = forward_hint - z * (forward_hint @ z)
+    if np.linalg.norm(x) < 1e-9:
+        x = np.cross(z, [1.0, 0, 0]) if abs(z[0]) < 0.9 else np.cross(z, [0, 1.0, 0])
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(z, x), z])
+
+
+def _level_frame(origin: np.ndarray, up: np.ndarray, poses: dict[str, Pose]) -> Similarity:
+    """Up to +z, origin to 0, median camera distance to 1."""
+    centres = np.array([p.center for p in poses.values()])
+    R = _frame_rotation(up, centres[0] - origin)
+    scale = 1.0 / float(np.median(np.linalg.norm(centres - origin, axis=1)))
+    return Similarity(scale, R, -scale * R @ origin)
+
+
+def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
+    capture: CaptureSection = inputs.shared["capture"]
+    board: BoardSection = inputs.shared["board"]
+    pinhole_json = inputs.upstream["undistort"]["pinhole"]
+    cameras = json.loads(pinhole_json.read_text())["cameras"]
+    photos = json.loads(pinhole_json.read_text())["images"]
+    photo_paths = photo_files(pinhole_json, "images")
+    masks_json = inputs.upstream["masks"]["masks_json"]
+    masks = {n: masks_json.parent / e["mask"] for n, e in json.loads(masks_json.read_text())["images"].items()}
+    order = sorted(photos)
+    stem_of = {name: Path(photo_paths[name]["srgb"]).name for name in order}
+    name_of = {stem: name for name, stem in stem_of.items()}
+    intrinsics = {name: Intrinsics.from_json(cameras[photos[name]["camera"]]["intrinsics"]) for name in order}
+    image_dir = photo_paths[order[0]]["srgb"].parent
+
+    work = out_dir / "colmap"
+    work.mkdir()
+    mask_dir = _feature_masks(conf, capture.rig, photo_paths, masks, work)
+    database = work / "database.db"
+    _extract_and_match(conf, capture.rig, photo_paths, cameras, mask_dir, image_dir, database)
+    refine_focal = any(c["source"] != "board" for c in cameras)
+    model = _map(database, image_dir, work / "models", refine_focal, conf.min_pose_inliers)
+    registered = {} if model is None else {name_of[im.name]: im for im in model.images.values() if im.has_pose}
+    unregistered = [n for n in order if n not in registered]
+    causes = _unregistered_causes(database, unregistered, stem_of) if unregistered else {}
+    if len(registered) < conf.min_registered_fraction * len(order):
+        listing = "; ".join(f"{n}: {causes[n]}" for n in unregistered[:12])
+        raise PipelineError(
+            f"only {len(registered)} of {len(order)} photos registered (sfm.min_registered_fraction = "
+            f"{conf.min_registered_fraction}). Unregistered: {listing}{' ...' if len(unregistered) > 12 else ''}. "
+            "Check them with `pipeline check`; add texture or a board near the specimen, or reshoot with more overlap"
+        )
+    poses = {}
+    for name, image in registered.items():
+        rigid = image.cam_from_world()
+        poses[name] = Pose(np.asarray(rigid.rotation.matrix()), np.asarray(rigid.translation))
+        if refine_focal:
+            fx, fy, cx, cy = image.camera.params
+            K = intrinsics[name]
+            intrinsics[name] = Intrinsics(K.width, K.height, float(fx), float(fy), float(cx), float(cy))
+    points = np.array([p.xyz for p in model.points3D.values()]) if model is not None else np.zeros((0, 3))
+    report: dict = {"registered": len(registered), "photos": len(order), "unregistered": causes,
+                    "mean_reprojection_error_px": model.compute_mean_reprojection_error(),
+                    "mean_track_length": model.compute_mean_track_length(), "points": len(points)}  # fmt: skip
+
+    # World frame from the board when possible (before the turntable, whose
+    # fallback may then place photos from their board poses directly).
+    board_poses, board_errors = _board_poses(conf, board, photo_paths, intrinsics)
+    frame = _frame_from_board(conf, board_poses, poses, report)
+    if frame is not None:
+        poses = {n: frame.pose(p) for n, p in poses.items()}
+        points = frame.points(points) if len(points) else points
+    to_world = frame or Similarity.identity()
+
+    if capture.rig == "turntable":
+        if len(poses) < 3:
+            raise PipelineError(f"only {len(poses)} photos registered: a turntable needs three to find its axis")
+        table, inconsistent = turntable.fit_robust(poses, order)
+        for name in inconsistent:
+            logger.warning("%s: SfM's pose is off the turntable's circle; placing it again", name)
+            del poses[name]
+        residuals = table.residuals(poses)
+        report["turntable"] = {
+            "off_circle": inconsistent,
+            "rotation_residual_deg_max": max(r for r, _ in residuals.values()),
+            "centre_residual_of_radius_max": max(c for _, c in residuals.values()),
+            "placed": _place_on_turntable(conf, table, order, poses, intrinsics, masks,
+                                          board_poses if frame is not None else {}),  # fmt: skip
+        }
+        if conf.turntable_poses == "model":
+            poses = {n: table.pose(table.angles[n]) for n in poses}
+    if frame is None:
+        level = _frame_without_board(conf, capture.rig, poses, points, table if capture.rig == "turntable" else None, report)
+        poses = {n: level.pose(p) for n, p in poses.items()}
+        points = level.points(points) if len(points) else points
+        to_world = to_world.then(level)
+    if unregistered and len(poses) < len(order):
+        logger.warning("%d of %d photos are not registered and are left out: %s", len(order) - len(poses),
+                       len(order), ", ".join(n for n in order if n not in poses))  # fmt: skip
+
+    sparse = _write_colmap(model, database, to_world, poses, stem_of, out_dir / "sparse")
+    cameras_json = out_dir / "cameras.json"
+    write_cameras(cameras_json, {n: intrinsics[n] for n in poses}, poses, frame=report["frame"])
+    report["board_reprojection_px"] = board_errors
+    sfm_json = out_dir / "sfm.json"
+    sfm_json.write_text(json.dumps(report, indent=1))
+    shutil.rmtree(work / "models")
+    metrics = {k: report[k] for k in ("registered", "photos", "mean_reprojection_error_px", "mean_track_length")}
+    metrics["frame"] = report["frame"]["source"]
+    return StageResult({"cameras": cameras_json, "sparse": sparse, "report": sfm_json}, metrics)
+
+
+def _place_on_turntable(conf: Config, table: turntable.Turntable, order: list[str], poses: dict[str, Pose],
+                        intrinsics: dict[str, Intrinsics], masks: dict[str, Path],
+                        board_poses: dict[str, Pose]) -> dict[str, dict]:  # fmt: skip
+    """Give every photo SfM left out its pose on the turntable (added to ``poses``)."""
+    missing = [n for n in order if n not in poses]
+    if not missing:
+        return {}
+    placed: dict[str, dict] = {}
+    mask_of = {n: cv2.imread(str(masks[n]), cv2.IMREAD_GRAYSCALE) > 127 for n in order}
+    views = [View(intrinsics[n], poses[n], mask_of[n]) for n in order if n in poses]
+    try:
+        lo, hi = bounds(views, tolerance=1)
+    except ValueError as error:
+        raise PipelineError(f"cannot place {', '.join(missing)} on the turntable by silhouette: {error}") from error
+    grid = Grid.around(lo, hi, conf.silhouette_resolution)
+    centres = grid.centres()
+    hull_points = centres[hull_field(centres, views, tolerance=1) > 0]
+    for name in missing:
+        if name in board_poses:
+            angle = table.angle_of(board_poses[name])
+            placed[name] = {"method": "board", "angle_deg": float(np.degrees(angle))}
+        else:
+            low, high = turntable.bracket(table, order, name)
+            angle, iou = turntable.angle_from_silhouette(table, low, high, hull_points, grid.voxel,
+                                                         intrinsics[name], mask_of[name])  # fmt: skip
+            placed[name] = {"method": "silhouette", "angle_deg": float(np.degrees(angle)), "silhouette_iou": iou}
+        table.angles[name] = angle
+        poses[name] = table.pose(angle)
+        logger.info("%s placed on the turntable by its %s at %.2f degrees", name, placed[name]["method"],
+                    placed[name]["angle_deg"])  # fmt: skip
+    return placed
+
+
+def _write_colmap(model: pycolmap.Reconstruction, database: Path, to_world: Similarity, poses: dict[str, Pose],
+                  stem_of: dict[str, str], folder: Path) -> Path:  # fmt: skip
+    """The model in the world frame with the final poses (turntable-placed photos
+    registered too, without observations), in COLMAP's binary format. The points
+    stay where SfM triangulated them."""
+    model.transform(pycolmap.Sim3d(to_world.scale, pycolmap.Rotation3d(to_world.R), to_world.t))
+    with pycolmap.Database.open(database) as db:
+        for name, pose in poses.items():
+            rigid = pycolmap.Rigid3d(pycolmap.Rotation3d(pose.R), pose.t)
+            image = model.find_image_with_name(stem_of[name])
+            if image is not None:
+                model.frame(image.frame_id).rig_from_world = rigid
+                continue
+            stored = db.read_image_with_name(stem_of[name])
+            if not model.exists_camera(stored.camera_id):
+                model.add_camera_with_trivial_rig(db.read_camera(stored.camera_id))
+            model.add_image_with_trivial_frame(
+                pycolmap.Image(name=stored.name, camera_id=stored.camera_id, image_id=stored.image_id), rigid
+            )
+    folder.mkdir()
+    model.write_binary(folder)
+    return folder
+
+
+def _frame_from_board(conf: Config, board_poses: dict[str, Pose], poses: dict[str, Pose], report: dict):
+    common = set(board_poses) & set(poses)
+    if conf.frame not in ("auto", "board"):
+        return None
+    if len(common) < 3:
+        if conf.frame == "board":
+            raise PipelineError(
+                f"sfm.frame = 'board' but the board was found in only {len(common)} registered photos "
+                "(3 needed): check the [board] section, or set sfm.frame = 'auto'"
+            )
+        return None
+    frame, fit = _robust_similarity({n: poses[n].center for n in common}, {n: board_poses[n].center for n in common})
+    report["frame"] = {"source": "board", "metric": True, "units": "metres", "up": "+z, normal to the board",
+                       "ground_plane": [0.0, 0.0, 1.0, 0.0], **fit}  # fmt: skip
+    logger.info("world frame from the board in %d photos (centres agree to %.2f mm)", fit["photos"],
+                fit["centre_residual_mm_median"])  # fmt: skip
+    return frame
+
+
+def _frame_without_board(conf: Config, rig: str, poses: dict[str, Pose], points: np.ndarray,
+                         table: turntable.Turntable | None, report: dict) -> Similarity:  # fmt: skip
+    if conf.frame == "board":
+        raise PipelineError("sfm.frame = 'board' but no board was found")
+    centres = np.array([p.center for p in poses.values()])
+    spread = float(np.median(np.linalg.norm(centres - centres.mean(axis=0), axis=1)))
+    plane = _ground_plane(points, centres, spread) if conf.frame != "normalised" else None
+    if table is not None and conf.frame in ("auto", "turntable"):
+        up = table.axis if (centres.mean(axis=0) - table.point) @ table.axis >= 0 else -table.axis
+        if plane is not None and abs(plane[0] @ up) > np.cos(np.radians(10)):
+            # The axis meets the table plane: the natural origin.
+            origin = table.point - up * ((plane[0] @ table.point + plane[1]) / (plane[0] @ up))
+        else:
+            plane = None
+            origin = table.point
+        source = "turntable"
+    elif plane is not None and conf.frame in ("auto", "ground_plane"):
+        up = plane[0]
+        looked_at = convergence_point(poses.values())
+        origin = looked_at - up * (up @ looked_at + plane[1])
+        source = "ground_plane"
+    elif conf.frame in ("auto", "normalised"):
+        up = -np.mean([p.R[1] for p in poses.values()], axis=0)
+        origin = convergence_point(poses.values())
+        plane = None
+        source = "normalised"
+    else:
+        raise PipelineError(f"sfm.frame = '{conf.frame}' could not be established: set sfm.frame = 'auto'")
+    level = _level_frame(origin, up, poses)
+    # The origin was put on the table plane when there is one: it becomes z = 0.
+    ground = [0.0, 0.0, 1.0, 0.0] if plane is not None else None
+    report["frame"] = {"source": source, "metric": False, "units": "median camera distance = 1",
+                       "up": "+z", "ground_plane": ground}  # fmt: skip
+    logger.warning("no board seen: world frame from %s, scale normalised (not metric)", source.replace("_", " "))
+    return level
+
+
+STAGE = Stage(
+    name="sfm",
+    version=1,
+    config=Config,
+    main=main,
+    upstream=("undistort", "masks"),
+    shared=("capture", "board"),
+    exports=("cameras",),
+)

@@ -1,0 +1,89 @@
+"""sfm, mesh, cleanup and uv on the bundled sample bird (30 views, 560x420): the
+smallest capture on which SIFT registers every view; it is read from disk, not rendered."""
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import pytest
+import trimesh
+from conftest import run_stages
+
+from pipeline.camera import read_cameras, read_views
+from pipeline.errors import PipelineError
+from pipeline.score import score_cameras, score_mesh
+
+pytestmark = pytest.mark.slow
+SAMPLE = Path(__file__).parents[2] / "sample_captures" / "bird"
+
+
+@pytest.fixture(scope="module")
+def bird(tmp_path_factory) -> tuple[Path, dict]:
+    capture = Path(shutil.copytree(SAMPLE, tmp_path_factory.mktemp("geometry") / "bird",
+                                   ignore=shutil.ignore_patterns(".pipeline", "output")))  # fmt: skip
+    return capture, run_stages(capture, "uv")
+
+
+def test_sfm_registers_every_photo_in_the_board_frame(bird):
+    capture, outputs = bird
+    _, truth = read_cameras(capture / "ground_truth" / "cameras.json")
+    views = read_views(outputs["sfm"]["cameras"])
+    assert sorted(views) == sorted(truth)  # keyed by the original photo names
+    metrics, _ = score_cameras({n: pose for n, (_, pose) in views.items()}, truth)
+    assert metrics["rotation_error_deg_median"] <= 0.5
+    # Board frame: metric and identical to the synthetic world, without any alignment.
+    offsets = [np.linalg.norm(views[n][1].center - truth[n].center) for n in truth]
+    assert np.median(offsets) < 0.004
+    frame = json.loads(outputs["sfm"]["cameras"].read_text())["frame"]
+    assert frame["source"] == "board" and frame["metric"]
+
+
+def test_sfm_writes_a_colmap_model_in_the_same_frame(bird):
+    _, outputs = bird
+    model = pycolmap.Reconstruction(outputs["sfm"]["sparse"])
+    views = read_views(outputs["sfm"]["cameras"])
+    assert model.num_reg_images() == len(views)
+    for image in model.images.values():
+        name = image.name.replace(".png", ".jpg")
+        np.testing.assert_allclose(image.projection_center(), views[name][1].center, atol=1e-6)
+    report = json.loads(outputs["sfm"]["report"].read_text())
+    assert report["mean_reprojection_error_px"] < 1.0 and report["mean_track_length"] > 3
+
+
+def test_mesh_is_a_watertight_specimen_close_to_the_truth(bird):
+    capture, outputs = bird
+    truth = trimesh.load(capture / "ground_truth" / "mesh.ply", force="mesh")
+    for stage in ("mesh", "cleanup", "uv"):
+        mesh = trimesh.load(outputs[stage]["mesh"], force="mesh")
+        scores = score_mesh(mesh, truth)
+        assert scores["chamfer_pct_of_diagonal"] <= 1.5, (stage, scores)
+        assert mesh.bounds[0][2] > -0.002  # cut at the board, nothing of the table below
+    cleaned = json.loads(outputs["cleanup"]["report"].read_text())["after"]
+    assert cleaned["watertight"] and cleaned["genus"] == 0 and cleaned["components"] == 1
+    assert cleaned["faces"] <= 20000
+
+
+def test_uv_covers_the_mesh_with_little_area_distortion(bird):
+    _, outputs = bird
+    report = json.loads(outputs["uv"]["report"].read_text())
+    assert report["area_distortion_median"] < 1.2 and report["utilisation"] > 0.5
+    obj = trimesh.load(outputs["uv"]["obj"], force="mesh", process=False)
+    ply = trimesh.load(outputs["uv"]["mesh"], force="mesh", process=False)
+    for mesh in (obj, ply):
+        assert mesh.visual.uv is not None and len(mesh.visual.uv) == len(mesh.vertices)
+        assert mesh.visual.uv.min() >= 0 and mesh.visual.uv.max() <= 1
+    cleaned = trimesh.load(outputs["cleanup"]["mesh"], force="mesh")
+    assert abs(ply.area - cleaned.area) < 1e-9 * max(1.0, cleaned.area) + 1e-12
+
+
+def test_too_few_registered_photos_names_them(tmp_path):
+    capture = Path(shutil.copytree(SAMPLE, tmp_path / "bird", ignore=shutil.ignore_patterns(".pipeline", "output")))
+    rng = np.random.default_rng(0)
+    import cv2
+
+    for path in sorted((capture / "images").glob("*.jpg"))[:20]:
+        cv2.imwrite(str(path), rng.integers(0, 256, (420, 560, 3), dtype=np.uint8))
+    with pytest.raises(PipelineError, match=r"only \d+ of 30 photos registered.*view_000\.jpg"):
+        run_stages(capture, "sfm", "masks.source=segment")
