@@ -123,11 +123,10 @@ def _refine_with_points(hull: trimesh.Trimesh, views: list[View], points: np.nda
     # towards the cameras that saw them.
     tree = cKDTree(cloud)
     _, neighbours = tree.query(points, k=min(12, len(cloud)))
-    point_normals = np.empty_like(points)
-    for i, index in enumerate(neighbours):
-        local = cloud[index] - cloud[index].mean(axis=0)
-        normal = np.linalg.svd(local, full_matrices=False)[2][2]
-        point_normals[i] = normal if normal @ towards[i] >= 0 else -normal
+    local = cloud[neighbours] - cloud[neighbours].mean(axis=1, keepdims=True)
+    # The smallest-eigenvalue eigenvector of each neighbourhood's scatter, all at once.
+    point_normals = np.linalg.eigh(np.einsum("nki,nkj->nij", local, local))[1][:, :, 0]
+    point_normals *= np.where(np.sum(point_normals * towards, axis=1) >= 0, 1.0, -1.0)[:, None]
     meshset = pymeshlab.MeshSet()
     meshset.add_mesh(pymeshlab.Mesh(vertex_matrix=cloud, v_normals_matrix=np.vstack([normals, point_normals])))
     meshset.generate_surface_reconstruction_screened_poisson(depth=conf.poisson_depth, preclean=True)

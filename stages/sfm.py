@@ -117,12 +117,11 @@ def _feature_masks(
         return None
     folder = out_dir / "feature_masks"
     folder.mkdir()
-    grays = {name: cv2.imread(str(photo["srgb"]), cv2.IMREAD_GRAYSCALE) for name, photo in photos.items()}
     moving: dict[str, np.ndarray] = {}
     if mode == "moving":
         for camera in {photo["camera"] for photo in photos.values()}:
             names = [n for n, p in photos.items() if p["camera"] == camera]
-            stack = np.stack([grays[n] for n in names]).astype(np.float32)
+            stack = np.stack([cv2.imread(str(photos[n]["srgb"]), cv2.IMREAD_GRAYSCALE) for n in names]).astype(np.float32)
             still = np.median(stack, axis=0)
             difference = np.abs(stack - still)
             noise = max(1.4826 * float(np.median(difference)), 1.0)
@@ -367,6 +366,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         points = frame.points(points) if len(points) else points
     to_world = frame or Similarity.identity()
 
+    table = None
     if capture.rig == "turntable":
         if len(poses) < 3:
             raise PipelineError(f"only {len(poses)} photos registered: a turntable needs three to find its axis")
@@ -385,7 +385,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         if conf.turntable_poses == "model":
             poses = {n: table.pose(table.angles[n]) for n in poses}
     if frame is None:
-        level = _frame_without_board(conf, capture.rig, poses, points, table if capture.rig == "turntable" else None, report)
+        level = _frame_without_board(conf, poses, points, table, report)
         poses = {n: level.pose(p) for n, p in poses.items()}
         points = level.points(points) if len(points) else points
         to_world = to_world.then(level)
@@ -481,7 +481,7 @@ def _frame_from_board(conf: Config, board_poses: dict[str, Pose], poses: dict[st
     return frame
 
 
-def _frame_without_board(conf: Config, rig: str, poses: dict[str, Pose], points: np.ndarray,
+def _frame_without_board(conf: Config, poses: dict[str, Pose], points: np.ndarray,
                          table: turntable.Turntable | None, report: dict) -> Similarity:  # fmt: skip
     if conf.frame == "board":
         raise PipelineError("sfm.frame = 'board' but no board was found")

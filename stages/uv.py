@@ -70,7 +70,7 @@ def unwrap(mesh: trimesh.Trimesh, conf: Config) -> tuple[trimesh.Trimesh, dict]:
     pack.padding = conf.padding
     pack.bilinear = True
     atlas.generate(xatlas.ChartOptions(), pack)
-    mapping, faces, uvs = atlas[0] if hasattr(atlas, "__getitem__") else atlas.get_mesh(0)
+    mapping, faces, uvs = atlas[0]
     visual = trimesh.visual.TextureVisuals(uv=uvs)
     unwrapped = trimesh.Trimesh(mesh.vertices[mapping], faces, visual=visual, process=False)
     edges = uvs[faces[:, 1:]] - uvs[faces[:, :1]]
