@@ -199,6 +199,8 @@ def score_capture(capture: Path) -> dict[str, Any]:
         report["cameras"], similarity = score_cameras(poses, true_poses)
     if path := present("mesh.ply", "mesh"):
         estimate = trimesh.load(path, force="mesh")
+        # uv's mesh splits vertices along chart seams; watertightness is about the surface.
+        estimate.merge_vertices(merge_tex=True, merge_norm=True)
         estimate.apply_transform(similarity.matrix())
         report["mesh"] = score_mesh(estimate, trimesh.load(truth_dir / "mesh.ply", force="mesh"))
     if path := present("params.json", "fit_material"):
