@@ -69,7 +69,16 @@ class BoardDetector:
         self.min_corners = min_corners
         self.corners = corner_positions(board)
         if board.kind == "charuco":
-            self.charuco = cv2.aruco.CharucoDetector(make_charuco_board(board))
+            # Markers a few pixels across, foreshortened on a table, are often rejected
+            # at first; refining against the board layout recovers them (on a
+            # 384 px turntable capture: 3 of 24 views found the board without it, 24 with).
+            charuco = cv2.aruco.CharucoParameters()
+            charuco.tryRefineMarkers = True
+            # Marker bits are sampled at 8 px per cell instead of 4: a marker 10 px
+            # wide decodes more often (7 of 12 photos of a 256 px capture instead of 4).
+            markers = cv2.aruco.DetectorParameters()
+            markers.perspectiveRemovePixelPerCell = 8
+            self.charuco = cv2.aruco.CharucoDetector(make_charuco_board(board), charuco, markers)
 
     def detect(self, gray: np.ndarray) -> BoardDetection | None:
         """The corners found, or None when fewer than ``min_corners`` were."""

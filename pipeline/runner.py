@@ -336,7 +336,8 @@ class Runner:
                 source = item.entry.outputs[name]
                 target = out_dir / source.name
                 record = {"stage": item.stage.name, "key": item.key, "path": target.name}
-                if manifest.get(name) == record and target.exists():
+                # A forced rerun keeps its key but may change the content.
+                if item.action == "cached" and manifest.get(name) == record and target.exists():
                     continue
                 out_dir.mkdir(exist_ok=True)
                 staging = out_dir / f".{target.name}.tmp"

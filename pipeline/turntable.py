@@ -8,7 +8,8 @@ circle: photo i, taken after the table turned by ``angle[i]``, has the pose
 with ``o`` a point on the axis. The model has 6 + 2 + 2 degrees of freedom plus
 one angle per photo, against 6 per photo for free poses, so a photo SfM could not
 register needs only its angle: from the board when it is seen (the board turns
-with the object), else from the silhouette, searched between the angles of its
+with the object), else from its feature matches with posed photos (epipolar
+geometry), else from the silhouette; searched between the angles of its
 neighbours in file order (a turntable only turns one way; steps may be uneven).
 
 Limitations: the camera and the table must not move between photos, and the
@@ -64,15 +65,16 @@ class Turntable:
         rotvec = Rotation.from_matrix(self.R_fixed.T @ pose.R).as_rotvec()
         return float(rotvec @ self.axis)
 
+    def residuals_at(self, pose: Pose, angle: float) -> tuple[float, float]:
+        """Rotation difference (degrees) and centre distance (fraction of the radius)
+        between ``pose`` and the model's pose at ``angle``."""
+        model = self.pose(angle)
+        rotation = np.degrees(Rotation.from_matrix(model.R @ pose.R.T).magnitude())
+        return float(rotation), float(np.linalg.norm(model.center - pose.center) / self.radius)
+
     def residuals(self, poses: dict[str, Pose]) -> dict[str, tuple[float, float]]:
-        """Per photo: rotation difference (degrees) and centre distance (fraction of
-        the radius) between the given pose and the model's pose at its angle."""
-        result = {}
-        for name, pose in poses.items():
-            model = self.pose(self.angles[name])
-            angle = np.degrees(Rotation.from_matrix(model.R @ pose.R.T).magnitude())
-            result[name] = (float(angle), float(np.linalg.norm(model.center - pose.center) / self.radius))
-        return result
+        """``residuals_at`` for each photo the model was fitted to, at its angle."""
+        return {name: self.residuals_at(pose, self.angles[name]) for name, pose in poses.items()}
 
 
 def fit(poses: dict[str, Pose], order: list[str]) -> Turntable:
@@ -128,6 +130,75 @@ def bracket(model: Turntable, order: list[str], name: str) -> tuple[float, float
     lo = model.angles[before[-1]] if before else model.angles[placed[-1]] - 2 * np.pi
     hi = model.angles[after[0]] if after else model.angles[placed[0]] + 2 * np.pi
     return lo, hi
+
+
+@dataclass(eq=False)
+class Matches:
+    """Keypoints of an unposed photo matched to those of a posed one (pixels)."""
+
+    pose: Pose
+    """The posed photo's pose."""
+    intrinsics: Intrinsics
+    """The posed photo's camera."""
+    points: np.ndarray
+    """(n, 2) keypoints in the unposed photo."""
+    partner_points: np.ndarray
+    """(n, 2) the matching keypoints in the posed photo."""
+
+
+def _sampson_px(model: Turntable, angles: np.ndarray, intrinsics: Intrinsics, matches: Matches) -> np.ndarray:
+    """(angles, n) Sampson distances of the matches for the photo at each angle."""
+    x = np.column_stack([matches.points, np.ones(len(matches.points))])
+    x_partner = np.column_stack([matches.partner_points, np.ones(len(matches.points))])
+    K_inv = np.linalg.inv(intrinsics.K)
+    K_partner_inv = np.linalg.inv(matches.intrinsics.K)
+    distances = []
+    for angle in angles:
+        pose = model.pose(angle)
+        R = matches.pose.R @ pose.R.T
+        t = matches.pose.t - R @ pose.t
+        t_cross = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+        F = K_partner_inv.T @ t_cross @ R @ K_inv
+        Fx, Ftx = x @ F.T, x_partner @ F
+        algebraic = np.sum(x_partner * Fx, axis=1)
+        denominator = Fx[:, 0] ** 2 + Fx[:, 1] ** 2 + Ftx[:, 0] ** 2 + Ftx[:, 1] ** 2
+        distances.append(np.abs(algebraic) / np.sqrt(np.maximum(denominator, 1e-300)))
+    return np.array(distances)
+
+
+def angle_from_matches(
+    model: Turntable, lo: float, hi: float, intrinsics: Intrinsics, matches: list[Matches], threshold_px: float = 2.0
+) -> tuple[float, list[Matches]]:
+    """The angle in [lo, hi] at which the photo's feature matches with posed photos
+    best obey their epipolar geometry, and the partners that agree with it (most of
+    their matches within ``threshold_px``). A planar set that defeats SfM's pose
+    estimation still gives correct correspondences, and one unknown needs few. A
+    repetitive set also gives false pairs (a checkerboard a quarter turn away):
+    partners that disagree are dropped and the angle is searched again.
+
+    The cost is the mean truncated squared Sampson distance (outliers count
+    ``threshold_px``), searched on a grid of 1/4 degree and then 1/64 degree.
+
+    Limitation: for cameras on one circle the turn moves image points mostly along
+    the epipolar lines, so the angle is weakly determined: with matches spread over
+    the whole frame, 0.3 px of keypoint noise moves it by about 0.2 degrees."""
+
+    def cost(angles: np.ndarray, partners: list[Matches]) -> np.ndarray:
+        distances = np.hstack([_sampson_px(model, angles, intrinsics, m) for m in partners])
+        return np.mean(np.minimum(distances, threshold_px) ** 2, axis=1)
+
+    coarse_step, fine_step = np.radians(0.25), np.radians(1 / 64)
+    partners = list(matches)
+    while True:
+        coarse = np.arange(lo, hi + coarse_step / 2, coarse_step)
+        angle = float(coarse[int(np.argmin(cost(coarse, partners)))])
+        fine = np.clip(np.arange(angle - coarse_step, angle + coarse_step + fine_step / 2, fine_step), lo, hi)
+        angle = float(fine[int(np.argmin(cost(fine, partners)))])
+        agreeing = [m for m in partners
+                    if np.mean(_sampson_px(model, np.array([angle]), intrinsics, m)[0] < threshold_px) >= 0.5]  # fmt: skip
+        if len(agreeing) == len(partners) or not agreeing:
+            return angle, agreeing
+        partners = agreeing
 
 
 def splat(points: np.ndarray, radius_px: int, pose: Pose, intrinsics: Intrinsics, shape: tuple[int, int]) -> np.ndarray:

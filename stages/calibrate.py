@@ -235,7 +235,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="calibrate",
-    version=1,
+    version=2,
     config=Config,
     main=main,
     reads=("images/*", "calibration/*"),

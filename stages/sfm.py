@@ -60,6 +60,8 @@ from pipeline.stage import Stage, StageInputs, StageResult
 from pipeline.visual_hull import Grid, View, bounds, convergence_point, hull_field
 from stages.undistort import photo_files
 
+COLMAP_PIXEL_OFFSET = 0.5
+
 
 @dataclass(frozen=True)
 class Config:
@@ -91,10 +93,10 @@ class Config:
     min_pose_inliers: Annotated[int, Range(6, None)] = 15
     """2D-3D inliers a photo needs to be registered (COLMAP's default, 30, leaves out
     photos of low-texture specimens that share only a few dozen points)."""
-    turntable_poses: Literal["model", "sfm"] = "model"
+    turntable_poses: Literal["model", "measured"] = "model"
     """Turntable: model puts every photo exactly on the fitted circle (the rig allows one
-    angle per photo, so per-photo SfM noise averages out); sfm keeps SfM's poses for the
-    photos it registered."""
+    angle per photo, so per-photo noise averages out); measured keeps the board or SfM
+    pose of each photo that has one."""
     min_registered_fraction: Annotated[float, Range(0.0, 1.0)] = 0.5
     """Below this fraction of registered photos the stage fails; above, it warns."""
     frame: Literal["auto", "board", "turntable", "ground_plane", "normalised"] = "auto"
@@ -104,6 +106,9 @@ class Config:
     """Board corners a photo needs for its board pose to count."""
     board_max_error_px: Annotated[float, Range(0.0, None, exclusive_lo=True)] = 2.0
     """Board poses with a larger RMS reprojection error are ignored (a misdetection)."""
+    board_max_disagreement: Annotated[float, Range(0.0, 1.0, exclusive_lo=True)] = 0.02
+    """SfM is aligned to the board only when their camera centres agree to this fraction
+    of the camera's distance from the board (median over photos)."""
     silhouette_resolution: Annotated[int, Range(16, 256)] = 64
     """Voxels along the hull's longest side used to place turntable photos by silhouette."""
 
@@ -151,7 +156,8 @@ def _extract_and_match(conf: Config, rig: str, photos: dict[str, dict], cameras:
         K = Intrinsics.from_json(camera["intrinsics"])
         reader = pycolmap.ImageReaderOptions()
         reader.camera_model = "PINHOLE"
-        reader.camera_params = f"{K.fx},{K.fy},{K.cx},{K.cy}"
+        # COLMAP puts the first pixel's centre at (0.5, 0.5), OpenCV and we at (0, 0).
+        reader.camera_params = f"{K.fx},{K.fy},{K.cx + COLMAP_PIXEL_OFFSET},{K.cy + COLMAP_PIXEL_OFFSET}"
         if mask_dir is not None:
             reader.mask_path = str(mask_dir)
         pycolmap.extract_features(database, image_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
@@ -265,9 +271,17 @@ def _robust_similarity(source: dict[str, np.ndarray], target: dict[str, np.ndarr
     return similarity, {"photos": len(names), "centre_residual_mm_median": 1000 * float(np.median([residuals[n] for n in names]))}
 
 
-def _ground_plane(points: np.ndarray, centres: np.ndarray, scale: float, rng=np.random.default_rng(0)):
-    """The dominant plane of the sparse points with the cameras on one side of it, as
-    (unit normal towards the cameras, offset) with normal . x + offset = 0, or None."""
+def _ground_plane(points: np.ndarray, centres: np.ndarray, looked_at: np.ndarray, scale: float,
+                  rng=np.random.default_rng(0)):  # fmt: skip
+    """The plane the scene stands on, as (unit normal towards the cameras, offset)
+    with normal . x + offset = 0, or None.
+
+    Its normal is that of the dominant plane of the sparse points (RANSAC; the
+    cameras must be on one side of it). Its level is where the points near the
+    specimen bottom out (their 1st percentile of height): a textured specimen on a
+    plain table gives its top face more points than the table gets (a cube: most
+    of 23k points on its faces, few on the white table), and the top face is
+    parallel to the table."""
     if len(points) < 50:
         return None
     threshold = 0.005 * scale
@@ -291,7 +305,10 @@ def _ground_plane(points: np.ndarray, centres: np.ndarray, scale: float, rng=np.
     if abs(side.sum()) < 0.9 * len(side):
         return None  # cameras on both sides: not a table
     normal = normal * np.sign(side.sum())
-    return normal, float(-normal @ centroid)
+    # Near the specimen only: a floor seen past the table's edge is lower still.
+    near = points[np.linalg.norm(points - looked_at, axis=1) < 0.75 * scale]
+    heights = (near if len(near) >= 50 else points) @ normal - normal @ centroid
+    return normal, float(-normal @ centroid - min(np.percentile(heights, 1), 0.0))
 
 
 def _frame_rotation(up: np.ndarray, forward_hint: np.ndarray) -> np.ndarray:
@@ -337,11 +354,15 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     registered = {} if model is None else {name_of[im.name]: im for im in model.images.values() if im.has_pose}
     unregistered = [n for n in order if n not in registered]
     causes = _unregistered_causes(database, unregistered, stem_of) if unregistered else {}
-    if len(registered) < conf.min_registered_fraction * len(order):
-        listing = "; ".join(f"{n}: {causes[n]}" for n in unregistered[:12])
+    board_poses, board_errors = _board_poses(conf, board, photo_paths, intrinsics)
+    # On a turntable the board turns with the specimen, so a board pose is as good
+    # as a registration, and SfM may fail on a plain specimen.
+    posed = set(registered) | (set(board_poses) if capture.rig == "turntable" else set())
+    if len(posed) < conf.min_registered_fraction * len(order):
+        listing = "; ".join(f"{n}: {causes[n]}" for n in unregistered if n not in posed)
         raise PipelineError(
-            f"only {len(registered)} of {len(order)} photos registered (sfm.min_registered_fraction = "
-            f"{conf.min_registered_fraction}). Unregistered: {listing}{' ...' if len(unregistered) > 12 else ''}. "
+            f"only {len(posed)} of {len(order)} photos registered (sfm.min_registered_fraction = "
+            f"{conf.min_registered_fraction}). Unregistered: {listing}. "
             "Check them with `pipeline check`; add texture or a board near the specimen, or reshoot with more overlap"
         )
     poses = {}
@@ -351,45 +372,38 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         if refine_focal:
             fx, fy, cx, cy = image.camera.params
             K = intrinsics[name]
-            intrinsics[name] = Intrinsics(K.width, K.height, float(fx), float(fy), float(cx), float(cy))
+            intrinsics[name] = Intrinsics(K.width, K.height, float(fx), float(fy),
+                                          float(cx) - COLMAP_PIXEL_OFFSET, float(cy) - COLMAP_PIXEL_OFFSET)  # fmt: skip
     points = np.array([p.xyz for p in model.points3D.values()]) if model is not None else np.zeros((0, 3))
     report: dict = {"registered": len(registered), "photos": len(order), "unregistered": causes,
-                    "mean_reprojection_error_px": model.compute_mean_reprojection_error(),
-                    "mean_track_length": model.compute_mean_track_length(), "points": len(points)}  # fmt: skip
+                    "mean_reprojection_error_px": model.compute_mean_reprojection_error() if model else None,
+                    "mean_track_length": model.compute_mean_track_length() if model else None,
+                    "points": len(points)}  # fmt: skip
 
-    # World frame from the board when possible (before the turntable, whose
-    # fallback may then place photos from their board poses directly).
-    board_poses, board_errors = _board_poses(conf, board, photo_paths, intrinsics)
     frame = _frame_from_board(conf, board_poses, poses, report)
     if frame is not None:
         poses = {n: frame.pose(p) for n, p in poses.items()}
         points = frame.points(points) if len(points) else points
+    elif capture.rig == "turntable" and len(board_poses) >= 3 and conf.frame in ("auto", "board"):
+        # The board poses alone define the world; SfM's model, not tied to them, is dropped.
+        logger.warning("SfM's %d photos could not be tied to the board: the turntable uses the board poses alone",
+                       len(poses))  # fmt: skip
+        frame, model, poses, points = Similarity.identity(), None, {}, np.zeros((0, 3))
+        report["frame"] = {"source": "board", "metric": True, "units": "metres", "up": "+z, normal to the board",
+                           "ground_plane": [0.0, 0.0, 1.0, 0.0], "photos": len(board_poses)}  # fmt: skip
     to_world = frame or Similarity.identity()
 
     table = None
     if capture.rig == "turntable":
-        if len(poses) < 3:
-            raise PipelineError(f"only {len(poses)} photos registered: a turntable needs three to find its axis")
-        table, inconsistent = turntable.fit_robust(poses, order)
-        for name in inconsistent:
-            logger.warning("%s: SfM's pose is off the turntable's circle; placing it again", name)
-            del poses[name]
-        residuals = table.residuals(poses)
-        report["turntable"] = {
-            "off_circle": inconsistent,
-            "rotation_residual_deg_max": max(r for r, _ in residuals.values()),
-            "centre_residual_of_radius_max": max(c for _, c in residuals.values()),
-            "placed": _place_on_turntable(conf, table, order, poses, intrinsics, masks,
-                                          board_poses if frame is not None else {}),  # fmt: skip
-        }
-        if conf.turntable_poses == "model":
-            poses = {n: table.pose(table.angles[n]) for n in poses}
+        measured = {"board": board_poses if frame is not None else {}, "sfm": poses}
+        table, poses, report["turntable"] = _turntable_poses(conf, order, measured, intrinsics, masks, database,
+                                                             stem_of)  # fmt: skip
     if frame is None:
         level = _frame_without_board(conf, poses, points, table, report)
         poses = {n: level.pose(p) for n, p in poses.items()}
         points = level.points(points) if len(points) else points
         to_world = to_world.then(level)
-    if unregistered and len(poses) < len(order):
+    if len(poses) < len(order):
         logger.warning("%d of %d photos are not registered and are left out: %s", len(order) - len(poses),
                        len(order), ", ".join(n for n in order if n not in poses))  # fmt: skip
 
@@ -405,13 +419,110 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     return StageResult({"cameras": cameras_json, "sparse": sparse, "report": sfm_json}, metrics)
 
 
-def _place_on_turntable(conf: Config, table: turntable.Turntable, order: list[str], poses: dict[str, Pose],
-                        intrinsics: dict[str, Intrinsics], masks: dict[str, Path],
-                        board_poses: dict[str, Pose]) -> dict[str, dict]:  # fmt: skip
-    """Give every photo SfM left out its pose on the turntable (added to ``poses``)."""
+def _turntable_poses(conf: Config, order: list[str], measured: dict[str, dict[str, Pose]],
+                     intrinsics: dict[str, Intrinsics], masks: dict[str, Path], database: Path,
+                     stem_of: dict[str, str]):  # fmt: skip
+    """The turntable fitted to the measured poses (per photo its board pose, else its
+    SfM pose; a board turns with the specimen and does not depend on SfM's luck with
+    a plain specimen), and a pose for every photo: a measured one the model agrees
+    with, else its angle from feature matches with posed photos, else from its
+    silhouette. Returns (model, poses, report)."""
+    first_choice = measured["sfm"] | measured["board"]
+    if len(first_choice) < 3:
+        raise PipelineError(f"only {len(first_choice)} photos registered: a turntable needs three to find its axis")
+    table, off_circle = turntable.fit_robust(first_choice, order)
+    fitted = {n: p for n, p in first_choice.items() if n not in off_circle}
+    limit = max(3 * float(np.median([r for r, _ in table.residuals(fitted).values()])), 1.0)
+    method = {n: "board" if n in measured["board"] else "sfm" for n in fitted}
+    poses = dict(fitted)
+    for name in order:
+        for source in ("board", "sfm"):
+            pose = measured[source].get(name)
+            if name in poses or pose is None:
+                continue
+            angle = table.angle_of(pose)
+            rotation, centre = table.residuals_at(pose, angle)
+            if rotation <= limit and centre <= 0.1:
+                table.angles[name], poses[name], method[name] = angle, pose, source
+    for name in off_circle:
+        logger.warning("%s: its measured pose is off the turntable's circle", name)
     missing = [n for n in order if n not in poses]
-    if not missing:
-        return {}
+    by_matches = _place_by_matches(conf, table, order, missing, poses, intrinsics, database, stem_of)
+    missing = [n for n in missing if n not in by_matches]
+    by_silhouette = _place_by_silhouette(conf, table, order, missing, poses, intrinsics, masks) if missing else {}
+    placed = by_matches | by_silhouette
+    method |= {n: "matches" for n in by_matches} | {n: "silhouette" for n in by_silhouette}
+    report = {
+        "off_circle": off_circle,
+        "pose_source": {source: sorted(n for n in method if method[n] == source)
+                        for source in ("board", "sfm", "matches", "silhouette")},  # fmt: skip
+        "rotation_residual_deg_max": max(r for r, _ in table.residuals(fitted).values()),
+        "centre_residual_of_radius_max": max(c for _, c in table.residuals(fitted).values()),
+        "placed": placed,
+    }
+    poses |= {n: table.pose(table.angles[n]) for n in placed}
+    if conf.turntable_poses == "model":
+        poses = {n: table.pose(table.angles[n]) for n in poses}
+    return table, poses, report
+
+
+def _verified_matches(database: Path, order: list[str], stem_of: dict[str, str]):
+    """Keypoints per photo (our pixel convention) and the verified inlier matches per
+    ordered photo pair, as {(a, b): {keypoint in a: keypoint in b}}."""
+    keypoints, matches = {}, {}
+    with pycolmap.Database.open(database) as db:
+        name_of = {}
+        for name in order:
+            image_id = db.read_image_with_name(stem_of[name]).image_id
+            name_of[image_id] = name
+            keypoints[name] = db.read_keypoints(image_id)[:, :2] - COLMAP_PIXEL_OFFSET
+        for pair_id, geometry in zip(*db.read_two_view_geometries()):
+            pairs = np.asarray(geometry.inlier_matches)
+            if len(pairs) == 0:
+                continue
+            a, b = (name_of[i] for i in pycolmap.pair_id_to_image_pair(pair_id))
+            matches[a, b] = dict(zip(pairs[:, 0].tolist(), pairs[:, 1].tolist()))
+            matches[b, a] = dict(zip(pairs[:, 1].tolist(), pairs[:, 0].tolist()))
+    return keypoints, matches
+
+
+def _place_by_matches(conf: Config, table: turntable.Turntable, order: list[str], missing: list[str],
+                      poses: dict[str, Pose], intrinsics: dict[str, Intrinsics], database: Path,
+                      stem_of: dict[str, str]) -> dict[str, dict]:  # fmt: skip
+    """Angles for photos with at least ``min_pose_inliers`` verified matches with
+    posed photos that agree on one angle (recorded in ``table.angles``)."""
+    keypoints, matches = _verified_matches(database, order, stem_of)
+    placed = {}
+    for name in missing:
+        partners = []
+        for partner in poses:
+            pairs = matches.get((name, partner))
+            if pairs:
+                mine, theirs = (np.array(side) for side in zip(*pairs.items()))
+                partners.append(turntable.Matches(poses[partner], intrinsics[partner], keypoints[name][mine],
+                                                  keypoints[partner][theirs]))  # fmt: skip
+        if sum(len(m.points) for m in partners) < conf.min_pose_inliers:
+            continue
+        low, high = turntable.bracket(table, order, name)
+        angle, agreeing = turntable.angle_from_matches(table, low, high, intrinsics[name], partners)
+        supporting = sum(len(m.points) for m in agreeing)
+        if supporting < conf.min_pose_inliers:
+            logger.info("%s: no posed photo's matches agree on an angle; trying its silhouette", name)
+            continue
+        table.angles[name] = angle
+        placed[name] = {"method": "matches", "angle_deg": float(np.degrees(angle)), "matches": supporting,
+                        "partners": len(agreeing), "partners_dropped": len(partners) - len(agreeing)}  # fmt: skip
+        logger.info("%s placed on the turntable at %.2f degrees by its feature matches (posed photos: %d agree, "
+                    "%d disagree)", name, placed[name]["angle_deg"], len(agreeing),
+                    placed[name]["partners_dropped"])  # fmt: skip
+    return placed
+
+
+def _place_by_silhouette(conf: Config, table: turntable.Turntable, order: list[str], missing: list[str],
+                         poses: dict[str, Pose], intrinsics: dict[str, Intrinsics],
+                         masks: dict[str, Path]) -> dict[str, dict]:  # fmt: skip
+    """Angles for the ``missing`` photos from their silhouettes against the hull of
+    the posed photos (recorded in ``table.angles``)."""
     placed: dict[str, dict] = {}
     mask_of = {n: cv2.imread(str(masks[n]), cv2.IMREAD_GRAYSCALE) > 127 for n in order}
     views = [View(intrinsics[n], poses[n], mask_of[n]) for n in order if n in poses]
@@ -423,26 +534,24 @@ def _place_on_turntable(conf: Config, table: turntable.Turntable, order: list[st
     centres = grid.centres()
     hull_points = centres[hull_field(centres, views, tolerance=1) > 0]
     for name in missing:
-        if name in board_poses:
-            angle = table.angle_of(board_poses[name])
-            placed[name] = {"method": "board", "angle_deg": float(np.degrees(angle))}
-        else:
-            low, high = turntable.bracket(table, order, name)
-            angle, iou = turntable.angle_from_silhouette(table, low, high, hull_points, grid.voxel,
-                                                         intrinsics[name], mask_of[name])  # fmt: skip
-            placed[name] = {"method": "silhouette", "angle_deg": float(np.degrees(angle)), "silhouette_iou": iou}
+        low, high = turntable.bracket(table, order, name)
+        angle, iou = turntable.angle_from_silhouette(table, low, high, hull_points, grid.voxel,
+                                                     intrinsics[name], mask_of[name])  # fmt: skip
         table.angles[name] = angle
-        poses[name] = table.pose(angle)
-        logger.info("%s placed on the turntable by its %s at %.2f degrees", name, placed[name]["method"],
-                    placed[name]["angle_deg"])  # fmt: skip
+        placed[name] = {"method": "silhouette", "angle_deg": float(np.degrees(angle)), "silhouette_iou": iou}
+        log = logger.warning if iou < 0.8 else logger.info
+        log("%s placed on the turntable by its silhouette at %.2f degrees (IoU %.3f%s)", name,
+            placed[name]["angle_deg"], iou, ", unreliable" if iou < 0.8 else "")  # fmt: skip
     return placed
 
 
-def _write_colmap(model: pycolmap.Reconstruction, database: Path, to_world: Similarity, poses: dict[str, Pose],
+def _write_colmap(model: pycolmap.Reconstruction | None, database: Path, to_world: Similarity, poses: dict[str, Pose],
                   stem_of: dict[str, str], folder: Path) -> Path:  # fmt: skip
     """The model in the world frame with the final poses (turntable-placed photos
     registered too, without observations), in COLMAP's binary format. The points
     stay where SfM triangulated them."""
+    if model is None:  # SfM failed or disagreed with the board: cameras and poses only
+        model = pycolmap.Reconstruction()
     model.transform(pycolmap.Sim3d(to_world.scale, pycolmap.Rotation3d(to_world.R), to_world.t))
     with pycolmap.Database.open(database) as db:
         for name, pose in poses.items():
@@ -464,16 +573,16 @@ def _write_colmap(model: pycolmap.Reconstruction, database: Path, to_world: Simi
 
 def _frame_from_board(conf: Config, board_poses: dict[str, Pose], poses: dict[str, Pose], report: dict):
     common = set(board_poses) & set(poses)
-    if conf.frame not in ("auto", "board"):
-        return None
-    if len(common) < 3:
-        if conf.frame == "board":
-            raise PipelineError(
-                f"sfm.frame = 'board' but the board was found in only {len(common)} registered photos "
-                "(3 needed): check the [board] section, or set sfm.frame = 'auto'"
-            )
+    if conf.frame not in ("auto", "board") or len(common) < 3:
         return None
     frame, fit = _robust_similarity({n: poses[n].center for n in common}, {n: board_poses[n].center for n in common})
+    distance = float(np.median([np.linalg.norm(board_poses[n].center) for n in common]))
+    if fit["centre_residual_mm_median"] / 1000 > conf.board_max_disagreement * distance:
+        # SfM and the board tell different stories: SfM joined photos wrongly
+        # (a repetitive set) or the board moved against the specimen.
+        logger.warning("SfM's camera centres and the board's disagree by %.1f mm (median; %.0f mm from the board): "
+                       "not aligning SfM to the board", fit["centre_residual_mm_median"], 1000 * distance)  # fmt: skip
+        return None
     report["frame"] = {"source": "board", "metric": True, "units": "metres", "up": "+z, normal to the board",
                        "ground_plane": [0.0, 0.0, 1.0, 0.0], **fit}  # fmt: skip
     logger.info("world frame from the board in %d photos (centres agree to %.2f mm)", fit["photos"],
@@ -484,10 +593,12 @@ def _frame_from_board(conf: Config, board_poses: dict[str, Pose], poses: dict[st
 def _frame_without_board(conf: Config, poses: dict[str, Pose], points: np.ndarray,
                          table: turntable.Turntable | None, report: dict) -> Similarity:  # fmt: skip
     if conf.frame == "board":
-        raise PipelineError("sfm.frame = 'board' but no board was found")
+        raise PipelineError("sfm.frame = 'board' but the board was not found in three registered photos, or SfM "
+                            "disagrees with it (see the log): check [board], or set sfm.frame = 'auto'")  # fmt: skip
     centres = np.array([p.center for p in poses.values()])
     spread = float(np.median(np.linalg.norm(centres - centres.mean(axis=0), axis=1)))
-    plane = _ground_plane(points, centres, spread) if conf.frame != "normalised" else None
+    looked_at = convergence_point(poses.values())
+    plane = _ground_plane(points, centres, looked_at, spread) if conf.frame != "normalised" else None
     if table is not None and conf.frame in ("auto", "turntable"):
         up = table.axis if (centres.mean(axis=0) - table.point) @ table.axis >= 0 else -table.axis
         if plane is not None and abs(plane[0] @ up) > np.cos(np.radians(10)):
@@ -499,7 +610,6 @@ def _frame_without_board(conf: Config, poses: dict[str, Pose], points: np.ndarra
         source = "turntable"
     elif plane is not None and conf.frame in ("auto", "ground_plane"):
         up = plane[0]
-        looked_at = convergence_point(poses.values())
         origin = looked_at - up * (up @ looked_at + plane[1])
         source = "ground_plane"
     elif conf.frame in ("auto", "normalised"):
@@ -520,7 +630,7 @@ def _frame_without_board(conf: Config, poses: dict[str, Pose], points: np.ndarra
 
 STAGE = Stage(
     name="sfm",
-    version=1,
+    version=2,
     config=Config,
     main=main,
     upstream=("undistort", "masks"),

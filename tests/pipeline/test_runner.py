@@ -217,3 +217,12 @@ def test_status_json_records_inputs_config_and_versions(tmp_path, presets_dir):
     assert (plan["ingest"].entry.path / "log.txt").read_text().count("stage ingest") == 2
     runs = list((capture / ".pipeline" / "runs").glob("*.json"))
     assert len(runs) == 1
+
+
+def test_forced_rerun_exports_again_under_the_same_key(tmp_path, presets_dir):
+    # A forced rerun keeps its cache key; what it exports must still replace the old copy.
+    capture = make_capture(tmp_path)
+    run(capture, presets_dir)
+    (capture / "output" / "report.txt").write_text("stale\n")
+    run(capture, presets_dir, selection=Selection(force=("report",)))
+    assert (capture / "output" / "report.txt").read_text() == "result 12.0\n"

@@ -57,3 +57,32 @@ def test_silhouette_places_a_photo_between_its_neighbours():
     angle, iou = angle_from_silhouette(model, lo, hi, points, 0.004, K, mask)
     assert iou > 0.95
     assert abs(np.degrees(angle - angles[missing])) < 0.5
+
+
+def _project(points: np.ndarray, pose: Pose) -> np.ndarray:
+    camera = points @ pose.R.T + pose.t
+    return np.column_stack([K.fx * camera[:, 0] / camera[:, 2] + K.cx, K.fy * camera[:, 1] / camera[:, 2] + K.cy])
+
+
+def test_matches_place_a_photo_and_a_false_pair_is_dropped():
+    truth, angles = _truth(3)
+    rng = np.random.default_rng(1)
+    missing = NAMES[6]
+    model = fit({n: truth.pose(a) for n, a in angles.items() if n != missing}, NAMES)
+    # Features on a board-sized patch of table and on the specimen, spanning the frame.
+    points = rng.uniform([-0.12, -0.12, 0], [0.12, 0.12, 0.06], (80, 3))
+    pose = truth.pose(angles[missing])
+
+    def seen_from(name: str) -> np.ndarray:
+        return _project(points, truth.pose(angles[name])) + rng.normal(0, 0.3, (len(points), 2))
+
+    seen = seen_from(missing)
+    matches = [turntable.Matches(truth.pose(angles[n]), K, seen, seen_from(n)) for n in (NAMES[5], NAMES[7])]
+    # A false pair: a quarter turn away, matched at random (a repetitive pattern).
+    matches.append(turntable.Matches(truth.pose(angles[NAMES[10]]), K, seen,
+                                     rng.uniform([0, 0], [K.width, K.height], (len(points), 2))))  # fmt: skip
+    lo, hi = turntable.bracket(model, NAMES, missing)
+    angle, agreeing = turntable.angle_from_matches(model, lo, hi, K, matches)
+    # 0.3 px of keypoint noise moves the angle by about 0.2 degrees (see its limitation).
+    assert abs(np.degrees(angle - model.angle_of(pose))) < 0.3  # the fitted model counts from its own zero
+    assert len(agreeing) == 2 and matches[2] not in agreeing
