@@ -15,7 +15,9 @@ CGAL), so the dense shape comes from the masks:
    the rest with normals estimated from their neighbours and turned towards the
    cameras that saw them, and a screened Poisson reconstruction (pymeshlab)
    makes the surface watertight again. Points outside the hull contradict the
-   silhouettes and are discarded as outliers.
+   silhouettes and are discarded as outliers. A refined surface that is not
+   watertight or has more handles than the hull (noisy points on a porous
+   surface) is rejected, and the hull kept (mesh.json says which).
 
 ==================  =============================================================
 output              content
@@ -112,7 +114,11 @@ def _refine_with_points(hull: trimesh.Trimesh, views: list[View], points: np.nda
                         conf: Config, voxel: float) -> tuple[trimesh.Trimesh, dict]:  # fmt: skip
     depth_in_hull = hull_field(points, views, conf.carve_tolerance)
     consistent = depth_in_hull > -voxel
-    interior = depth_in_hull > voxel  # deeper than the hull's own error: a concavity
+    # A concavity the hull cannot carve: inside and further than two voxels from its
+    # surface. (The hull field is no measure of that: a point mid-face of a cube is
+    # far from every silhouette's edge, yet on the surface.)
+    to_surface = cKDTree(hull.vertices).query(points)[0]
+    interior = (depth_in_hull > 0) & (to_surface > 2 * voxel)
     points, towards, interior = points[consistent], towards[consistent], interior[consistent]
     samples, normals = hull.vertices, hull.vertex_normals
     if interior.any():
@@ -141,6 +147,10 @@ def _refine_with_points(hull: trimesh.Trimesh, views: list[View], points: np.nda
     return mesh, report
 
 
+def _genus(mesh: trimesh.Trimesh) -> int:
+    return round(1 - mesh.euler_number / 2) if mesh.is_watertight else -1
+
+
 def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     cameras_json = inputs.upstream["sfm"]["cameras"]
     views = _views(cameras_json, inputs.upstream["masks"]["masks_json"])
@@ -163,8 +173,16 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     if conf.refine == "poisson":
         points, towards = _trusted_points(inputs.upstream["sfm"]["sparse"], conf)
         if len(points) >= 10:
-            mesh, refined = _refine_with_points(mesh, views, points, towards, conf, grid.voxel)
-            report.update(refined)
+            refined, details = _refine_with_points(mesh, views, points, towards, conf, grid.voxel)
+            report.update(details)
+            # Noisy points (a porous surface, pores deeper than the hull) can give
+            # Poisson handles and holes; the hull is closed by construction.
+            if refined.is_watertight and _genus(refined) <= _genus(mesh):
+                mesh, report["refinement"] = refined, "kept"
+            else:
+                report["refinement"] = (f"rejected: genus {_genus(refined)}, watertight {refined.is_watertight} "
+                                        f"against the hull's genus {_genus(mesh)}")  # fmt: skip
+                logger.warning("Poisson refinement %s; keeping the visual hull", report["refinement"])
         else:
             logger.warning("only %d trusted sparse points: keeping the visual hull as it is", len(points))
     report.update(faces=int(len(mesh.faces)), watertight=bool(mesh.is_watertight), volume=float(mesh.volume),
@@ -181,7 +199,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="mesh",
-    version=1,
+    version=3,
     config=Config,
     main=main,
     upstream=("sfm", "masks"),

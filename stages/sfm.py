@@ -1,7 +1,7 @@
 """Stage sfm: camera poses of the undistorted photos, in a metric, upright world frame.
 
 1. **Features**: SIFT (pycolmap, CPU) on undistort's 8-bit photos, each camera
-   setting one COLMAP camera (PINHOLE, since the photos are undistorted). Where
+   setting one COLMAP camera (SIMPLE_PINHOLE: undistorted, square pixels). Where
    features may come from is ``sfm.feature_mask``: for a turntable, only pixels
    that change between photos (what turns) plus the dilated specimen mask, so a
    still room cannot pull every pose towards "nothing moved".
@@ -12,13 +12,19 @@
    Fewer than ``min_registered_fraction`` registered photos is an error that
    names the unregistered photos and the likely cause for each.
 4. **Turntable** (``capture.rig = "turntable"``): the poses are explained by one
-   circle about one axis (pipeline.turntable). Photos SfM could not register
-   are placed on it: from the board when it is seen, else from the silhouette.
+   circle about one axis (pipeline.turntable), fitted to each photo's board pose
+   (the board turns with the specimen) or else its SfM pose, poses off the circle
+   dropped. SfM poses that disagree with the board's are not used at all: a plain
+   specimen on a repetitive set makes COLMAP join photos wrongly. Photos without a
+   pose get their angle from their verified feature matches with posed photos,
+   else from their silhouette.
 5. **World frame** (``frame``): from the ChArUco board when it is seen in at least
-   three registered photos (PnP per photo, similarity to the SfM centres; metres,
+   three registered photos whose SfM centres agree with it (PnP per photo,
+   similarity to the SfM centres; on a turntable the board poses alone do; metres,
    z up, origin at the board's centre as pipeline.board.board_to_world); else from
    the turntable axis (up) and the table plane if one is found; else from a ground
-   plane in the sparse points; else centred on where the cameras look, scaled to
+   plane (the sparse points' dominant plane, lowered to where the points near the
+   specimen end); else centred on where the cameras look, scaled to
    a median camera distance of 1, with z along the cameras' average up. Only the
    board gives metric scale; the stage says which frame it used.
 
@@ -34,7 +40,9 @@ sfm.json            registered and unregistered photos (with causes), metrics,
 ==================  =============================================================
 
 Limitations: SIFT needs texture. A plain specimen on a plain set registers only
-through the board (or, on a turntable, its silhouette). Without a board the scale
+through the board (or, on a turntable, its matches on the table and silhouette;
+the board's markers need about 10 px to decode, so below ~384 px wide a turntable
+capture loses its board poses and accuracy: 0.5-2.4 degrees at 256x192). Without a board the scale
 is arbitrary. A handheld photo SfM cannot register is dropped.
 """
 
@@ -155,9 +163,10 @@ def _extract_and_match(conf: Config, rig: str, photos: dict[str, dict], cameras:
             continue
         K = Intrinsics.from_json(camera["intrinsics"])
         reader = pycolmap.ImageReaderOptions()
-        reader.camera_model = "PINHOLE"
+        # One focal length: undistort makes square pixels, and refining keeps them.
+        reader.camera_model = "SIMPLE_PINHOLE"
         # COLMAP puts the first pixel's centre at (0.5, 0.5), OpenCV and we at (0, 0).
-        reader.camera_params = f"{K.fx},{K.fy},{K.cx + COLMAP_PIXEL_OFFSET},{K.cy + COLMAP_PIXEL_OFFSET}"
+        reader.camera_params = f"{K.fx},{K.cx + COLMAP_PIXEL_OFFSET},{K.cy + COLMAP_PIXEL_OFFSET}"
         if mask_dir is not None:
             reader.mask_path = str(mask_dir)
         pycolmap.extract_features(database, image_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
@@ -370,9 +379,9 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         rigid = image.cam_from_world()
         poses[name] = Pose(np.asarray(rigid.rotation.matrix()), np.asarray(rigid.translation))
         if refine_focal:
-            fx, fy, cx, cy = image.camera.params
+            focal, cx, cy = image.camera.params
             K = intrinsics[name]
-            intrinsics[name] = Intrinsics(K.width, K.height, float(fx), float(fy),
+            intrinsics[name] = Intrinsics(K.width, K.height, float(focal), float(focal),
                                           float(cx) - COLMAP_PIXEL_OFFSET, float(cy) - COLMAP_PIXEL_OFFSET)  # fmt: skip
     points = np.array([p.xyz for p in model.points3D.values()]) if model is not None else np.zeros((0, 3))
     report: dict = {"registered": len(registered), "photos": len(order), "unregistered": causes,

@@ -130,7 +130,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="undistort",
-    version=1,
+    version=2,
     config=Config,
     main=main,
     upstream=("calibrate",),
