@@ -243,10 +243,12 @@ def ideal_pinhole(intrinsics: Intrinsics, alpha: float, max_size: int) -> Intrin
     return scaled(pinhole, max_size / max(size)) if 0 < max_size < max(size) else pinhole
 
 
-def scaled(intrinsics: Intrinsics, factor: float) -> Intrinsics:
-    """The same camera for images resized by ``factor`` (pixel centres stay pixel centres)."""
+def scaled(intrinsics: Intrinsics, factor: float, exact: bool = False) -> Intrinsics:
+    """The same camera for images resized by ``factor`` (pixel centres stay pixel centres):
+    to the rounded size (``cv2.resize`` with a size), or with ``exact`` by the factor
+    itself on both axes (``cv2.resize`` with fx = fy = factor; square pixels stay square)."""
     width, height = round(intrinsics.width * factor), round(intrinsics.height * factor)
-    sx, sy = width / intrinsics.width, height / intrinsics.height
+    sx, sy = (factor, factor) if exact else (width / intrinsics.width, height / intrinsics.height)
     return Intrinsics(
         width, height, intrinsics.fx * sx, intrinsics.fy * sy,
         (intrinsics.cx + 0.5) * sx - 0.5, (intrinsics.cy + 0.5) * sy - 0.5, list(intrinsics.dist),

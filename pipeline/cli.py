@@ -173,6 +173,24 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
 
 @command
+def cmd_fit(args: argparse.Namespace) -> int:
+    from pipeline.fit_scene import fit_scene, list_keys
+    from pipeline.fitting import FitSettings
+
+    if args.list:
+        print("\n".join(list_keys(Path(args.scene), args.variant)))
+        return 0
+    if not args.references or not args.params:
+        raise ConfigError("pipeline fit needs --references DIR and --params PATTERN (or --list to see the keys)")
+    settings = FitSettings(iterations=args.iterations, batch=args.batch, spp=args.spp, loss=args.loss,
+                           tolerance=args.tolerance, time_budget_s=args.time_budget, seed=args.seed)  # fmt: skip
+    params_json = fit_scene(Path(args.scene), Path(args.references), args.params, settings, args.bound or [],
+                            args.lr, Path(args.out), args.variant)  # fmt: skip
+    print(params_json.read_text())
+    return 0
+
+
+@command
 def cmd_score(args: argparse.Namespace) -> int:
     from pipeline.score import score_capture, summary_rows
 
@@ -281,6 +299,26 @@ def build_parser() -> argparse.ArgumentParser:
     synth = sub.add_parser("synth", help="render a synthetic capture with ground truth")
     synth.add_argument("out_dir", help="new folder for the capture")
     add_dataclass_arguments(synth, SynthOptions)
+
+    fit = sub.add_parser("fit", help="fit parameters of any Mitsuba scene to reference images (the original tool)")
+    fit.add_argument("scene", help="Mitsuba 3 scene XML, one sensor per reference image")
+    fit.add_argument("--references", metavar="DIR", help="one image per sensor, matched by sorted file name")
+    fit.add_argument("--params", nargs="+", metavar="PATTERN",
+                     help="regular expressions selecting mi.traverse keys, e.g. 'bsdf.roughness'")
+    fit.add_argument("--list", action="store_true", help="list the scene's parameter keys and exit")
+    fit.add_argument("--loss", choices=["dual", "l2"], default="dual", help="dual-buffer (Deng et al. 2022) or L2")
+    fit.add_argument("--spp", type=int, default=16, help="samples per pixel per render")
+    fit.add_argument("--iterations", type=int, default=100, help="most Adam steps")
+    fit.add_argument("--batch", type=int, default=1, help="views per step (their gradients add up)")
+    fit.add_argument("--lr", type=float, default=None,
+                     help="one learning rate for every parameter (default: per parameter, pipeline.materials)")
+    fit.add_argument("--bound", action="append", metavar="NAME=LO:HI",
+                     help="bounds of a parameter, by property name or full key (repeatable)")
+    fit.add_argument("--tolerance", type=float, default=1e-3, help="stop when the loss improves less than this")
+    fit.add_argument("--time-budget", type=float, default=0.0, help="stop after this many seconds (0: no limit)")
+    fit.add_argument("--seed", type=int, default=0, help="seed of the renders and the view order")
+    fit.add_argument("--variant", default="auto", help="Mitsuba variant (auto: cuda_ad_rgb if it works, else llvm_ad_rgb)")
+    fit.add_argument("--out", default="fit_out", help="folder for the fitted scene, params.json, log.jsonl, loss.png")
 
     score = sub.add_parser("score", help="compare a synthetic capture's outputs with its ground truth")
     score.add_argument("capture")

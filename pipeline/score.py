@@ -164,11 +164,16 @@ def psnr(render: np.ndarray, reference: np.ndarray, peak: float = 1.0) -> float:
 
 
 def score_heldout(folder: Path) -> dict[str, Any]:
+    """PSNR of each held-out render against its photo, over NAME.mask.png's pixels when
+    there is one (the specimen), else over the whole image."""
     per_view = {}
     for render_path in sorted(folder.glob("*.render.exr")):
         name = render_path.name.removesuffix(".render.exr")
-        reference = read_linear_image(folder / f"{name}.reference.exr")
-        per_view[name] = psnr(read_linear_image(render_path), reference)
+        render, reference = read_linear_image(render_path), read_linear_image(folder / f"{name}.reference.exr")
+        if (mask_path := folder / f"{name}.mask.png").is_file():
+            inside = read_linear_image(mask_path)[..., 0] > 0.5
+            render, reference = render[inside], reference[inside]
+        per_view[name] = psnr(render, reference)
     values = list(per_view.values())
     return {"views": len(values), "psnr_db_mean": float(np.mean(values)) if values else None, "per_view": per_view}
 

@@ -5,6 +5,7 @@ added to ``STAGES``.
 """
 
 from pipeline.stage import Stage
-from stages import calibrate, cleanup, masks, mesh, sfm, undistort, uv
+from stages import calibrate, cleanup, fit_material, masks, mesh, scene, sfm, undistort, uv
 
-STAGES: tuple[Stage, ...] = (calibrate.STAGE, undistort.STAGE, masks.STAGE, sfm.STAGE, mesh.STAGE, cleanup.STAGE, uv.STAGE)
+STAGES: tuple[Stage, ...] = (calibrate.STAGE, undistort.STAGE, masks.STAGE, sfm.STAGE, mesh.STAGE, cleanup.STAGE, uv.STAGE,
+                             scene.STAGE, fit_material.STAGE)

@@ -117,6 +117,9 @@ class Config:
     board_max_disagreement: Annotated[float, Range(0.0, 1.0, exclusive_lo=True)] = 0.02
     """SfM is aligned to the board only when their camera centres agree to this fraction
     of the camera's distance from the board (median over photos)."""
+    min_silhouette_iou: Annotated[float, Range(0.0, 1.0)] = 0.5
+    """A registered photo whose mask overlaps the visual hull of all photos, seen from
+    its pose, by less than this (IoU) is left out: SfM posed it wrongly."""
     silhouette_resolution: Annotated[int, Range(16, 256)] = 64
     """Voxels along the hull's longest side used to place turntable photos by silhouette."""
 
@@ -366,14 +369,11 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     board_poses, board_errors = _board_poses(conf, board, photo_paths, intrinsics)
     # On a turntable the board turns with the specimen, so a board pose is as good
     # as a registration, and SfM may fail on a plain specimen.
-    posed = set(registered) | (set(board_poses) if capture.rig == "turntable" else set())
+    # A board pose is as good as a registration (in the board frame), and SfM may
+    # fail on a plain specimen.
+    posed = set(registered) | set(board_poses)
     if len(posed) < conf.min_registered_fraction * len(order):
-        listing = "; ".join(f"{n}: {causes[n]}" for n in unregistered if n not in posed)
-        raise PipelineError(
-            f"only {len(posed)} of {len(order)} photos registered (sfm.min_registered_fraction = "
-            f"{conf.min_registered_fraction}). Unregistered: {listing}. "
-            "Check them with `pipeline check`; add texture or a board near the specimen, or reshoot with more overlap"
-        )
+        _too_few(conf, posed, order, causes)
     poses = {}
     for name, image in registered.items():
         rigid = image.cam_from_world()
@@ -393,14 +393,17 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     if frame is not None:
         poses = {n: frame.pose(p) for n, p in poses.items()}
         points = frame.points(points) if len(points) else points
-    elif capture.rig == "turntable" and len(board_poses) >= 3 and conf.frame in ("auto", "board"):
+        report["replaced_by_board"] = _replace_by_board(conf, poses, board_poses)
+    elif len(board_poses) >= 3 and conf.frame in ("auto", "board"):
         # The board poses alone define the world; SfM's model, not tied to them, is dropped.
-        logger.warning("SfM's %d photos could not be tied to the board: the turntable uses the board poses alone",
-                       len(poses))  # fmt: skip
+        logger.warning("SfM's %d photos could not be tied to the board: using the board poses alone", len(poses))
         frame, model, poses, points = Similarity.identity(), None, {}, np.zeros((0, 3))
         report["frame"] = {"source": "board", "metric": True, "units": "metres", "up": "+z, normal to the board",
                            "ground_plane": [0.0, 0.0, 1.0, 0.0], "photos": len(board_poses)}  # fmt: skip
     to_world = frame or Similarity.identity()
+    if frame is not None and capture.rig != "turntable":
+        report["posed_by_board"] = sorted(set(board_poses) - set(poses))
+        poses |= {n: board_poses[n] for n in report["posed_by_board"]}
 
     table = None
     if capture.rig == "turntable":
@@ -412,6 +415,22 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         poses = {n: level.pose(p) for n, p in poses.items()}
         points = level.points(points) if len(points) else points
         to_world = to_world.then(level)
+    if capture.rig != "turntable" and len(poses) >= 3:
+        report["silhouette_iou"], off = _silhouette_check(conf, poses, intrinsics, masks)
+        for name in off:
+            logger.warning("%s: its silhouette does not match the hull of the other photos at SfM's pose (IoU %.2f "
+                           "< sfm.min_silhouette_iou = %.2f); leaving the photo out", name,
+                           report["silhouette_iou"][name], conf.min_silhouette_iou)  # fmt: skip
+            del poses[name]
+    if report["frame"].get("ground_plane") is not None:
+        # The world's z = 0 is the table: a camera below it cannot see the specimen on
+        # it. SfM does this to a view of a plain, symmetric specimen it mirrors.
+        report["below_ground"] = sorted(n for n, p in poses.items() if p.center[2] < 0)
+        for name in report["below_ground"]:
+            logger.warning("%s: SfM put the camera below the table (z = %.3f); leaving the photo out", name,
+                           poses.pop(name).center[2])  # fmt: skip
+    if len(poses) < conf.min_registered_fraction * len(order):
+        _too_few(conf, set(poses), order, causes)
     if len(poses) < len(order):
         logger.warning("%d of %d photos are not registered and are left out: %s", len(order) - len(poses),
                        len(order), ", ".join(n for n in order if n not in poses))  # fmt: skip
@@ -597,6 +616,57 @@ def _frame_from_board(conf: Config, board_poses: dict[str, Pose], poses: dict[st
     logger.info("world frame from the board in %d photos (centres agree to %.2f mm)", fit["photos"],
                 fit["centre_residual_mm_median"])  # fmt: skip
     return frame
+
+
+def _too_few(conf: Config, posed: set[str], order: list[str], causes: dict[str, str]) -> None:
+    listing = "; ".join(f"{n}: {causes.get(n, 'a pose SfM got wrong (see the warnings above)')}"
+                        for n in order if n not in posed)  # fmt: skip
+    raise PipelineError(
+        f"only {len(posed)} of {len(order)} photos registered (sfm.min_registered_fraction = "
+        f"{conf.min_registered_fraction}). Unregistered: {listing}. "
+        "Check them with `pipeline check`; add texture or a board near the specimen, or reshoot with more overlap"
+    )
+
+
+def _silhouette_check(conf: Config, poses: dict[str, Pose], intrinsics: dict[str, Intrinsics],
+                      masks: dict[str, Path]) -> tuple[dict[str, float], list[str]]:  # fmt: skip
+    """Each photo's mask against the visual hull of all posed photos seen from its pose
+    (IoU), and the photos below ``min_silhouette_iou``: a pose SfM got wrong shows the
+    specimen where it is not. The hull lets one photo disagree, so one wrong pose
+    does not carve it away."""
+    names = sorted(poses)
+    mask_of = {n: cv2.imread(str(masks[n]), cv2.IMREAD_GRAYSCALE) > 127 for n in names}
+    views = [View(intrinsics[n], poses[n], mask_of[n]) for n in names]
+    try:
+        lo, hi = bounds(views, tolerance=1)
+    except ValueError:
+        return {}, []  # no common hull: nothing to check against
+    grid = Grid.around(lo, hi, conf.silhouette_resolution)
+    centres = grid.centres()
+    hull_points = centres[hull_field(centres, views, tolerance=1) > 0]
+    scores = {}
+    for name in names:
+        depth = np.linalg.norm(poses[name].center - hull_points.mean(axis=0))
+        radius = max(int(np.ceil(0.5 * grid.voxel * intrinsics[name].fx / depth)), 0)
+        scores[name] = turntable.silhouette_iou(hull_points, radius, poses[name], intrinsics[name], mask_of[name])
+    return scores, [n for n in names if scores[n] < conf.min_silhouette_iou]
+
+
+def _replace_by_board(conf: Config, poses: dict[str, Pose], board_poses: dict[str, Pose]) -> list[str]:
+    """Photos whose SfM pose, in the board frame, contradicts their own board pose
+    (SfM placed them wrongly on a plain or symmetric specimen: a view from behind
+    registered as one from the front) take the board pose. Returns their names."""
+    replaced = []
+    for name in sorted(set(poses) & set(board_poses)):
+        sfm, board = poses[name], board_poses[name]
+        rotation = np.degrees(np.arccos(np.clip((np.trace(sfm.R @ board.R.T) - 1) / 2, -1, 1)))
+        distance = np.linalg.norm(sfm.center - board.center) / np.linalg.norm(board.center)
+        if rotation > 2.0 or distance > conf.board_max_disagreement:
+            logger.warning("%s: SfM's pose is %.1f degrees and %.1f %% of the distance from its board pose; "
+                           "using the board pose", name, rotation, 100 * distance)  # fmt: skip
+            poses[name] = board
+            replaced.append(name)
+    return replaced
 
 
 def _frame_without_board(conf: Config, poses: dict[str, Pose], points: np.ndarray,

@@ -26,6 +26,17 @@ def tiny_capture(tmp_path_factory) -> Path:
     return synthesize(out, options)
 
 
+@pytest.fixture(scope="session")
+def bird_capture(tmp_path_factory) -> Path:
+    """A copy of sample_captures/bird (30 views, 560x420), shared by the stage tests:
+    the runner's cache lets each module run only the stages it adds."""
+    import shutil
+
+    sample = Path(__file__).parents[1] / "sample_captures" / "bird"
+    return Path(shutil.copytree(sample, tmp_path_factory.mktemp("bird") / "bird",
+                                ignore=shutil.ignore_patterns(".pipeline", "output")))  # fmt: skip
+
+
 def synth_capture(tmp_path_factory, name: str, **options) -> Path:
     from pipeline.synth import SynthOptions, synthesize
 

@@ -20,10 +20,8 @@ SAMPLE = Path(__file__).parents[2] / "sample_captures" / "bird"
 
 
 @pytest.fixture(scope="module")
-def bird(tmp_path_factory) -> tuple[Path, dict]:
-    capture = Path(shutil.copytree(SAMPLE, tmp_path_factory.mktemp("geometry") / "bird",
-                                   ignore=shutil.ignore_patterns(".pipeline", "output")))  # fmt: skip
-    return capture, run_stages(capture, "uv")
+def bird(bird_capture) -> tuple[Path, dict]:
+    return bird_capture, run_stages(bird_capture, "uv")
 
 
 def test_sfm_registers_every_photo_in_the_board_frame(bird):

@@ -1,0 +1,108 @@
+"""The specimen's material models: their Mitsuba plugins, parameters and bounds.
+
+Each model states only what it needs (the brief: no medium, texture or parameter
+the scene does not require):
+
+===========  ====================================  ===============  =================
+model        plugins                               integrator       fitted parameters
+===========  ====================================  ===============  =================
+opaque       principled, no transmission           prb, depth 4     base_color, roughness, specular
+principled   principled with spec_trans            prb, depth 8     base_color, roughness, spec_trans, eta
+volumetric   roughdielectric + homogeneous medium  prbvolpath, 32   alpha, eta, albedo, sigma_t
+===========  ====================================  ===============  =================
+
+Mitsuba's principled BSDF derives ``specular`` from ``eta`` when it transmits
+(specular = ((eta - 1) / (eta + 1))^2 / 0.08) and rejects both at once, so the
+translucent model fits eta and the opaque one specular.
+
+Bounds (physically sensible, overridable in the fit stages' config): colours and
+albedo in [0, 1]; roughness and alpha in [0.001, 1] (a perfectly smooth surface
+is a different plugin); eta in [1, 3]; sigma_t in [0.1, 1e5] per metre. sigma_t,
+roughness and alpha are optimised as logarithms: they span decades, and a
+fixed step in the value overshoots a small roughness into the lower bound,
+where a highlight too sharp for the samples gives no gradient back.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+MaterialModel = Literal["opaque", "principled", "volumetric"]
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One fitted material parameter."""
+
+    name: str
+    """Name in params.json and on the command line (base_color, eta, ...)."""
+    key: str
+    """Key in ``mi.traverse(scene)``, with the shape id ``specimen``."""
+    initial: tuple[float, ...]
+    """Starting value (1 or 3 numbers)."""
+    lower: float
+    upper: float
+    units: str
+    log: bool = False
+    """Optimised as log(value): positive, spanning decades."""
+    learning_rate: float = 0.02
+    """Adam step size, in the optimised space (log units when ``log``)."""
+
+
+SPECIMEN = "specimen"
+
+PARAMETERS: dict[str, Parameter] = {
+    p.name: p
+    for p in (
+        Parameter("base_color", f"{SPECIMEN}.bsdf.base_color.value", (0.5, 0.5, 0.5), 0.0, 1.0, "linear RGB reflectance"),
+        Parameter("roughness", f"{SPECIMEN}.bsdf.roughness.value", (0.5,), 0.001, 1.0, "1 (GGX, Disney)", log=True,
+                  learning_rate=0.05),  # fmt: skip
+        Parameter("specular", f"{SPECIMEN}.bsdf.specular", (0.5,), 0.0, 1.0, "1 (F0 / 0.08)"),
+        Parameter("spec_trans", f"{SPECIMEN}.bsdf.spec_trans.value", (0.3,), 0.0, 1.0, "1 (fraction transmitted)"),
+        Parameter("eta", f"{SPECIMEN}.bsdf.eta", (1.5,), 1.0, 3.0, "1 (relative index of refraction)", learning_rate=0.01),
+        Parameter("alpha", f"{SPECIMEN}.bsdf.alpha.value", (0.2,), 0.001, 1.0, "1 (GGX roughness)", log=True,
+                  learning_rate=0.05),  # fmt: skip
+        Parameter("albedo", f"{SPECIMEN}.interior_medium.albedo.value.value", (0.8, 0.8, 0.8), 0.0, 1.0,
+                  "linear RGB single-scattering albedo"),  # fmt: skip
+        Parameter("sigma_t", f"{SPECIMEN}.interior_medium.sigma_t.value.value", (50.0,), 0.1, 1e5,
+                  "1/m (extinction, world units)", log=True, learning_rate=0.05),  # fmt: skip
+    )
+}
+
+MODEL_PARAMETERS: dict[str, tuple[str, ...]] = {
+    "opaque": ("base_color", "roughness", "specular"),
+    "principled": ("base_color", "roughness", "spec_trans", "eta"),
+    "volumetric": ("alpha", "eta", "albedo", "sigma_t"),
+}
+
+INTEGRATORS: dict[str, tuple[str, int]] = {
+    # prb: one bounce more than the direct light needs for interreflection; the
+    # translucent surface needs in-and-out paths; a medium needs long random walks.
+    "opaque": ("prb", 4),
+    "principled": ("prb", 8),
+    "volumetric": ("prbvolpath", 32),
+}
+
+
+def bsdf_and_medium(model: MaterialModel, values: dict[str, tuple[float, ...]]) -> tuple[dict, dict | None]:
+    """The specimen's BSDF and interior medium (or None) as plain dicts of plugin
+    properties: {"type": ..., "id": ..., name: number or RGB tuple}."""
+    if model == "volumetric":
+        bsdf = {"type": "roughdielectric", "id": "specimen_bsdf", "alpha": values["alpha"][0],
+                "int_ior": values["eta"][0], "ext_ior": 1.0}  # fmt: skip
+        medium = {"type": "homogeneous", "id": "specimen_medium", "albedo": tuple(values["albedo"]),
+                  "sigma_t": values["sigma_t"][0]}  # fmt: skip
+        return bsdf, medium
+    bsdf = {"type": "principled", "id": "specimen_bsdf", "base_color": tuple(values["base_color"]),
+            "roughness": values["roughness"][0]}  # fmt: skip
+    if model == "opaque":
+        bsdf["specular"] = values["specular"][0]
+    else:
+        bsdf["spec_trans"] = values["spec_trans"][0]
+        bsdf["eta"] = values["eta"][0]
+    return bsdf, None
+
+
+def initial_values(model: MaterialModel) -> dict[str, tuple[float, ...]]:
+    return {name: PARAMETERS[name].initial for name in MODEL_PARAMETERS[model]}

@@ -1,0 +1,171 @@
+"""pipeline.fitting, pipeline.scene_xml and `pipeline fit` on a tiny scene: a sphere
+under a constant sky and one softbox, seen by three 40x30 sensors."""
+
+import json
+import xml.etree.ElementTree as ET
+
+import numpy as np
+import pytest
+
+from pipeline import fitting, scene_xml
+from pipeline.camera import Intrinsics, Pose
+from pipeline.cli import main as cli_main
+from pipeline.errors import PipelineError
+from pipeline.mitsuba_variant import activate
+from pipeline.photo_io import write_image
+
+pytestmark = pytest.mark.slow
+K = Intrinsics(40, 30, 45.0, 45.0, 21.3, 13.6)
+TRUTH = {"base_color": [0.7, 0.4, 0.2], "roughness": [0.3]}
+
+
+@pytest.fixture(scope="module")
+def mi():
+    activate("auto")
+    import mitsuba
+
+    return mitsuba
+
+
+def _scene_file(folder, base_color, roughness, spp=16):
+    root = scene_xml.new_scene()
+    scene_xml.plugin(root, "integrator", {"type": "prb", "id": "integrator", "max_depth": 3})
+    for index, eye in enumerate(([0.6, 0.0, 0.25], [0.0, 0.6, 0.3], [-0.5, -0.3, 0.35])):
+        pose = Pose.look_at(eye, [0.0, 0.0, 0.0], up=[0.0, 0.0, 1.0])
+        scene_xml.sensor(root, f"cam{index}", scene_xml.sensor_properties(K, pose, spp, 0.01))
+    scene_xml.plugin(root, "emitter", {"type": "constant", "id": "sky", "radiance": (0.3, 0.3, 0.3)})
+    scene_xml.area_light(root, "softbox", [0.4, 0.4, 0.6], [0, 0, 0], [0, 0, 1], 0.3, (8.0, 8.0, 8.0))
+    shape = scene_xml.plugin(root, "shape", {"type": "sphere", "id": "specimen", "radius": 0.1})
+    scene_xml.plugin(shape, "bsdf", {"type": "principled", "id": "specimen_bsdf", "base_color": tuple(base_color),
+                                     "roughness": float(roughness[0])})  # fmt: skip
+    folder.mkdir(exist_ok=True)
+    return scene_xml.write(root, folder / "scene.xml")
+
+
+@pytest.fixture(scope="module")
+def references(mi, tmp_path_factory):
+    """Reference renders at the true parameters (high spp), one EXR per sensor."""
+    folder = tmp_path_factory.mktemp("fit")
+    scene = mi.load_file(str(_scene_file(folder / "truth", TRUTH["base_color"], TRUTH["roughness"])))
+    images = folder / "references"
+    images.mkdir()
+    for index, sensor in enumerate(scene.sensors()):
+        write_image(images / f"ref_{index}.exr", np.asarray(mi.render(scene, sensor=sensor, spp=512, seed=99), np.float32))
+    return folder
+
+
+def _views(mi, path, references):
+    scene = mi.load_file(str(path))
+    from pipeline.photo_io import read_photo
+
+    return [fitting.FitView(f"ref_{i}", scene, sensor, read_photo(references / f"ref_{i}.exr").pixels)
+            for i, sensor in enumerate(scene.sensors())]  # fmt: skip
+
+
+PARAMETERS = [
+    fitting.FitParameter("base_color", "specimen.bsdf.base_color.value", 0.0, 1.0, learning_rate=0.05),
+    fitting.FitParameter("roughness", "specimen.bsdf.roughness.value", 0.001, 1.0, log=True, learning_rate=0.05),
+]
+
+
+def test_sensor_matches_the_pinhole_projection(mi):
+    """A small glowing ball at a known point lands where the pinhole camera (OpenCV
+    conventions, off-centre principal point) puts it, also inside a crop window."""
+    pose = Pose.look_at([0.0, 0.0, 0.0], [0.0, 0.0, 1.0], up=[0.0, -1.0, 0.0])
+    point = np.array([0.08, -0.05, 1.0])
+    expected = [K.fx * point[0] / point[2] + K.cx, K.fy * point[1] / point[2] + K.cy]
+    for crop in (None, (10, 4, 24, 16)):
+        sensor = scene_xml.load_sensor(scene_xml.sensor_properties(K, pose, 64, 0.01, crop))
+        scene = mi.load_dict({"type": "scene", "integrator": {"type": "direct"},
+                              "ball": {"type": "sphere", "center": point.tolist(), "radius": 0.01,
+                                       "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 1.0}}}})  # fmt: skip
+        image = np.asarray(mi.render(scene, sensor=sensor, spp=256))[..., 0]
+        rows, cols = np.mgrid[: image.shape[0], : image.shape[1]]
+        found = [np.sum(image * cols) / image.sum(), np.sum(image * rows) / image.sum()]
+        offset = (0, 0) if crop is None else crop[:2]
+        np.testing.assert_allclose(np.add(found, offset), expected, atol=0.1)
+
+
+def test_fit_moves_every_parameter_toward_the_truth_within_bounds(mi, references, tmp_path):
+    start = {"base_color": [0.5, 0.5, 0.5], "roughness": [0.7]}
+    views = _views(mi, _scene_file(tmp_path, start["base_color"], start["roughness"]), references / "references")
+    result = fitting.fit(PARAMETERS, views, [], fitting.FitSettings(iterations=40, batch=3, spp=8, loss="dual",
+                                                                     tolerance=0.0))  # fmt: skip
+    for name, truth in TRUTH.items():
+        before = np.abs(np.subtract(start[name], truth))
+        after = np.abs(np.subtract(result.values[name], truth))
+        assert np.all(after < 0.5 * before), (name, result.values[name])
+    assert 0.0 <= min(result.values["base_color"]) and max(result.values["base_color"]) <= 1.0
+    assert result.log[-1]["loss"] < result.log[0]["loss"]
+
+
+def test_bounds_hold_and_order_of_views_does_not_matter(mi, references, tmp_path):
+    scene = _scene_file(tmp_path, [0.5, 0.5, 0.5], [0.7])
+    tight = [PARAMETERS[0], fitting.FitParameter("roughness", PARAMETERS[1].key, 0.6, 0.9, log=True, learning_rate=0.05)]
+    settings = fitting.FitSettings(iterations=6, batch=2, spp=4, loss="l2", tolerance=0.0)
+    # Fresh scenes for each run: a fit leaves its scene in the fitted state.
+    forward = fitting.fit(tight, _views(mi, scene, references / "references"), [], settings)
+    backward = fitting.fit(tight, list(reversed(_views(mi, scene, references / "references"))), [], settings)
+    # Equal up to float32 rounding: Dr.Jit adds gradients with parallel atomics.
+    for name in forward.values:
+        np.testing.assert_allclose(forward.values[name], backward.values[name], rtol=1e-5)
+    assert all(0.6 - 1e-6 <= e["params"]["roughness"][0] <= 0.9 + 1e-6 for e in forward.log)  # float32
+
+
+def test_validation_keeps_the_best_state(mi, references, tmp_path):
+    views = _views(mi, _scene_file(tmp_path, [0.5, 0.5, 0.5], [0.7]), references / "references")
+    settings = fitting.FitSettings(iterations=8, batch=2, spp=4, validate_every=2, validation_spp=16, tolerance=0.0)
+    result = fitting.fit(PARAMETERS, views[:2], views[2:], settings)
+    validated = [e for e in result.log if "validation_error" in e]
+    best = min(validated, key=lambda e: e["validation_error"])
+    assert result.best_iteration == best["iteration"] and result.values == best["params"]
+
+
+def test_set_values_writes_back_and_keeps_files_reachable(mi, tmp_path):
+    source = tmp_path / "in"
+    source.mkdir()
+    root = scene_xml.new_scene()
+    shape = scene_xml.plugin(root, "shape", {"type": "ply", "id": "specimen", "filename": "mesh.ply"})
+    scene_xml.plugin(shape, "bsdf", {"type": "roughdielectric", "id": "specimen_bsdf", "alpha": 0.2,
+                                     "int_ior": 1.5, "ext_ior": 1.0})  # fmt: skip
+    scene_xml.plugin(shape, "medium", {"type": "homogeneous", "id": "specimen_medium", "albedo": (0.5, 0.5, 0.5),
+                                       "sigma_t": 10.0}, name="interior")  # fmt: skip
+    import trimesh
+
+    trimesh.creation.icosphere(1, 0.1).export(source / "mesh.ply")
+    scene_xml.write(root, source / "scene.xml")
+    out = tmp_path / "out"
+    out.mkdir()
+    values = {"specimen.bsdf.alpha.value": [0.05], "specimen.bsdf.eta": [1.33],
+              "specimen.interior_medium.albedo.value.value": [0.9, 0.8, 0.7],
+              "specimen.interior_medium.sigma_t.value.value": [123.0]}  # fmt: skip
+    scene_xml.set_values(source / "scene.xml", values, out / "scene.xml")
+    params = mi.traverse(mi.load_file(str(out / "scene.xml")))
+    for key, value in values.items():
+        np.testing.assert_allclose(np.ravel(np.asarray(params[key])), value, rtol=1e-5)
+    with pytest.raises(PipelineError, match="no element with id 'nothing'"):
+        scene_xml.set_values(source / "scene.xml", {"nothing.roughness.value": [0.1]}, out / "x.xml")
+
+
+def test_pipeline_fit_command(mi, references, tmp_path, capsys):
+    scene = _scene_file(tmp_path / "start", [0.5, 0.5, 0.5], [0.7])
+    out = tmp_path / "out"
+    code = cli_main(["fit", str(scene), "--references", str(references / "references"), "--params", "roughness",
+                     "base_color", "--iterations", "25", "--batch", "3", "--spp", "8", "--tolerance", "0",
+                     "--out", str(out)])  # fmt: skip
+    assert code == 0
+    params = json.loads((out / "params.json").read_text())["params"]
+    assert abs(params["specimen.bsdf.roughness.value"][0] - 0.3) < abs(0.7 - 0.3)
+    fitted = mi.traverse(mi.load_file(str(out / "scene.xml")))
+    assert fitted["specimen.bsdf.roughness.value"][0] == pytest.approx(params["specimen.bsdf.roughness.value"][0], rel=1e-5)
+    assert ET.parse(out / "scene.xml").getroot().tag == "scene"
+    assert (out / "log.jsonl").read_text().count("\n") == 25 and (out / "loss.png").is_file()
+
+
+def test_pipeline_fit_needs_one_reference_per_sensor(mi, references, tmp_path):
+    scene = _scene_file(tmp_path / "start", [0.5, 0.5, 0.5], [0.7])
+    few = tmp_path / "few"
+    few.mkdir()
+    (few / "ref_0.exr").write_bytes((references / "references" / "ref_0.exr").read_bytes())
+    code = cli_main(["fit", str(scene), "--references", str(few), "--params", "roughness", "--out", str(tmp_path / "o")])
+    assert code != 0

@@ -1,0 +1,97 @@
+"""scene and fit_material on the bundled sample bird (after the geometry stages,
+shared with test_geometry through the runner's cache)."""
+
+import json
+import xml.etree.ElementTree as ET
+
+import cv2
+import numpy as np
+import pytest
+from conftest import run_stages
+
+from pipeline.camera import read_views
+from pipeline.mitsuba_variant import activate
+from pipeline.score import score_heldout, score_material
+
+pytestmark = pytest.mark.slow
+# A fit small enough for a test: windows of 48 px, 4 spp, a few steps.
+TINY_FIT = ("fit_material.iterations=8", "fit_material.batch=2", "fit_material.spp=4", "fit_material.max_size=48",
+            "fit_material.validate_every=4", "fit_material.validation_spp=8", "fit_material.loss=l2")  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def mi():
+    activate("auto")
+    import mitsuba
+
+    return mitsuba
+
+
+def test_scene_loads_renders_and_lines_up_with_the_photos(bird_capture, mi):
+    outputs = run_stages(bird_capture, "scene")["scene"]
+    folder = outputs["scene_dir"]
+    description = json.loads(outputs["description"].read_text())
+    views = read_views(run_stages(bird_capture, "sfm")["sfm"]["cameras"])
+    scene = mi.load_file(str(outputs["scene"]))
+    assert len(scene.sensors()) == len(views) == len(description["views"])
+    root = ET.parse(folder / "specimen.xml").getroot()
+    # Every shape, BSDF, medium and emitter has an id; the principled model has no medium.
+    for file in [outputs["scene"], folder / "specimen.xml"]:
+        for element in ET.parse(file).getroot().iter():
+            if element.tag in ("shape", "bsdf", "medium", "emitter", "sensor"):
+                assert element.get("id"), f"{file.name}: <{element.tag} type={element.get('type')}> has no id"
+    assert root.find(".//medium") is None and description["model"] == "principled"
+    assert description["integrator"] == {"type": "prb", "max_depth": 8}
+    # The specimen alone, rendered white on black from a photo's view file, covers its mask.
+    name = sorted(views)[3]
+    view_scene = mi.load_file(str(folder / description["views"][name]["xml"]))
+    params = mi.traverse(view_scene)
+    silhouette = mi.load_dict({"type": "scene", "integrator": {"type": "aov", "aovs": "depth:depth"},
+                               "specimen": {"type": "ply", "filename": str(folder / "mesh.ply")}})  # fmt: skip
+    depth = np.asarray(mi.render(silhouette, sensor=view_scene.sensors()[0], spp=4))[..., 0]
+    masks_json = run_stages(bird_capture, "masks")["masks"]["masks_json"]
+    mask = cv2.imread(str(masks_json.parent / json.loads(masks_json.read_text())["images"][name]["mask"]), 0) > 127
+    covered = depth > 0
+    assert np.count_nonzero(covered & mask) / np.count_nonzero(covered | mask) > 0.9
+    assert "specimen.bsdf.roughness.value" in params.keys()
+
+
+@pytest.mark.parametrize("model, medium, integrator", [("volumetric", True, "prbvolpath"), ("opaque", False, "prb")])
+def test_each_model_writes_only_what_it_needs(bird_capture, mi, model, medium, integrator):
+    outputs = run_stages(bird_capture, "scene", f"scene.model={model}")["scene"]
+    specimen = ET.parse(outputs["scene_dir"] / "specimen.xml").getroot()
+    assert (specimen.find(".//medium") is not None) == medium
+    names = {e.get("name") for e in specimen.find(".//bsdf").iter()}
+    if model == "opaque":
+        assert "spec_trans" not in names and "eta" not in names and "specular" in names
+    assert json.loads(outputs["description"].read_text())["integrator"]["type"] == integrator
+    mi.load_file(str(outputs["scene"]))
+
+
+def test_fit_material_moves_base_colour_toward_the_truth_within_bounds(bird_capture, mi):
+    outputs = run_stages(bird_capture, "fit_material", *TINY_FIT)["fit_material"]
+    params = json.loads(outputs["params"].read_text())
+    truth = json.loads((bird_capture / "ground_truth" / "material.json").read_text())
+    start = np.array([0.5, 0.5, 0.5])
+    fitted = np.array(params["params"]["base_color"])
+    target = np.array(truth["base_color_mean"])  # a constant fit to the textured bird
+    assert np.abs(fitted - target).max() < np.abs(start - target).max()
+    for name, (lower, upper) in params["bounds"].items():
+        assert all(lower - 1e-6 <= v <= upper + 1e-6 for v in params["params"][name])
+    assert len(params["held_out"]) == 2 and params["validation_mse"] is not None
+    errors = score_material(params, truth)
+    assert set(errors) >= {"base_color_abs_error", "roughness_abs_error", "spec_trans_abs_error", "eta_abs_error"}
+    heldout = score_heldout(outputs["heldout"])
+    assert heldout["views"] == 2 and np.isfinite(heldout["psnr_db_mean"])
+    # The fitted scene renders as-is and carries the fitted values.
+    fitted_scene = mi.traverse(mi.load_file(str(outputs["scene"])))
+    np.testing.assert_allclose(np.ravel(fitted_scene["specimen.bsdf.base_color.value"]), fitted, rtol=1e-5)
+    log = [json.loads(line) for line in (outputs["fitted_dir"] / "log.jsonl").read_text().splitlines()]
+    assert len(log) == params["iterations"] and "validation_error" in log[3]
+
+
+def test_fit_material_rejects_bounds_of_unknown_parameters(bird_capture):
+    from pipeline.errors import PipelineError
+
+    with pytest.raises(PipelineError, match="alpha, not parameters of the principled model"):
+        run_stages(bird_capture, "fit_material", *TINY_FIT, 'fit_material.bounds=["alpha=0.1:0.5"]')
