@@ -77,7 +77,7 @@ def bird_rows(tmp: Path) -> tuple[list[str], list[str], list[str]]:
         f"{sfm['mean_track_length']:.2f} |",
         f"| bird: world frame | {sfm['frame']['source']} in {sfm['frame']['photos']} photos "
         f"(centres agree to {sfm['frame']['centre_residual_mm_median']:.1f} mm) |",
-        *[f"| bird: Chamfer distance, {s} mesh | {chamfer[s]:.2f} % of the diagonal |" for s in chamfer],
+        *[f"| bird: Chamfer distance, {s} stage | {chamfer[s]:.2f} % of the diagonal |" for s in chamfer],
         f"| bird: uv mesh | {_shape_text(shape(outputs['uv']['mesh']))} |",
     ]
     timing = [f"| bird ({cameras['images']} photos, 560x420) | " + " | ".join(f"{seconds[s]:.1f} s" for s in GEOMETRY_STAGES) + " |"]
