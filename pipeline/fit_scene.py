@@ -22,7 +22,6 @@ from pathlib import Path
 from pipeline import fitting, logger, materials, mitsuba_variant, scene_xml
 from pipeline.errors import PipelineError
 from pipeline.photo_io import list_photos, read_photo
-from stages.fit_material import parse_bounds, plot_loss
 
 EXR_SUFFIXES = (".exr",)
 
@@ -98,7 +97,7 @@ def fit_scene(scene_path: Path, references: Path, patterns: list[str], settings:
             raise PipelineError(f"{path} is {pixels.shape[1]}x{pixels.shape[0]} but sensor {index} renders "
                                 f"{size[0]}x{size[1]}: resize it or fix the film")  # fmt: skip
         views.append(fitting.FitView(path.stem, scene, sensor, pixels))
-    parameters = select_parameters(mi.traverse(scene), patterns, parse_bounds(bound_entries, "--bound"), learning_rate)
+    parameters = select_parameters(mi.traverse(scene), patterns, fitting.parse_bounds(bound_entries, "--bound"), learning_rate)
     logger.info("fitting %s on %d views", ", ".join(p.key for p in parameters), len(views))
     result = fitting.fit(parameters, views, [], settings)
 
@@ -107,7 +106,7 @@ def fit_scene(scene_path: Path, references: Path, patterns: list[str], settings:
     with (out_dir / "log.jsonl").open("w") as log:
         for entry in result.log:
             log.write(json.dumps(entry) + "\n")
-    plot_loss(result.log, out_dir / "loss.png")
+    fitting.plot_loss(result.log, out_dir / "loss.png")
     params_json = out_dir / "params.json"
     params_json.write_text(json.dumps({
         "scene": str(scene_path),

@@ -32,6 +32,7 @@ fitted by their own stage); the same key must exist in every view's scene.
 from __future__ import annotations
 
 import time
+from pathlib import Path
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -100,6 +101,41 @@ class FitResult:
 
 def _to_numpy(value) -> list[float]:
     return [float(v) for v in np.ravel(np.asarray(value))]
+
+
+def parse_bounds(entries: tuple[str, ...] | list[str], where: str) -> dict[str, tuple[float, float]]:
+    """Entries "name=lower:upper" (config or command line) as {name: (lower, upper)}."""
+    result = {}
+    for entry in entries:
+        name, _, span = entry.partition("=")
+        lower, _, upper = span.partition(":")
+        try:
+            result[name.strip()] = (float(lower), float(upper))
+        except ValueError:
+            raise PipelineError(f"{where}: '{entry}' is not name=lower:upper (e.g. eta=1.3:1.6)") from None
+        if not result[name.strip()][0] < result[name.strip()][1]:
+            raise PipelineError(f"{where}: '{entry}' has lower >= upper")
+    return result
+
+
+def plot_loss(log: list[dict], path: Path) -> None:
+    """Training loss and validation error against iteration (matplotlib, no display)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axis = plt.subplots(figsize=(6, 3.5), dpi=100)
+    axis.semilogy([e["iteration"] for e in log], [max(e["loss"], 1e-12) for e in log], label="training loss")
+    validated = [e for e in log if "validation_error" in e]
+    if validated:
+        axis.semilogy([e["iteration"] for e in validated], [e["validation_error"] for e in validated], "o-",
+                      label="validation MSE")  # fmt: skip
+    axis.set_xlabel("iteration")
+    axis.legend()
+    figure.tight_layout()
+    figure.savefig(path)
+    plt.close(figure)
 
 
 def _weighted_mean(values, view: FitView, mi, dr):

@@ -90,9 +90,9 @@ class Config:
     """Seed of the batch order and the renders."""
 
 
-def fit_parameters(model: str, bounds: tuple[str, ...], learning_rate_scale: float = 1.0) -> list[fitting.FitParameter]:
+def fit_parameters(model: str, bounds: tuple[str, ...]) -> list[fitting.FitParameter]:
     """The model's parameters with their bounds, ``bounds`` overriding them."""
-    overrides = parse_bounds(bounds, "fit_material.bounds")
+    overrides = fitting.parse_bounds(bounds, "fit_material.bounds")
     result = []
     for name in materials.MODEL_PARAMETERS[model]:
         spec = materials.PARAMETERS[name]
@@ -101,20 +101,6 @@ def fit_parameters(model: str, bounds: tuple[str, ...], learning_rate_scale: flo
     if overrides:
         raise PipelineError(f"fit_material.bounds names {', '.join(overrides)}, not parameters of the {model} "
                             f"model ({', '.join(materials.MODEL_PARAMETERS[model])})")  # fmt: skip
-    return result
-
-
-def parse_bounds(entries: tuple[str, ...] | list[str], where: str) -> dict[str, tuple[float, float]]:
-    result = {}
-    for entry in entries:
-        name, _, span = entry.partition("=")
-        lower, _, upper = span.partition(":")
-        try:
-            result[name.strip()] = (float(lower), float(upper))
-        except ValueError:
-            raise PipelineError(f"{where}: '{entry}' is not name=lower:upper (e.g. eta=1.3:1.6)") from None
-        if not result[name.strip()][0] < result[name.strip()][1]:
-            raise PipelineError(f"{where}: '{entry}' has lower >= upper")
     return result
 
 
@@ -176,25 +162,6 @@ def held_out_names(names: list[str], count: int) -> list[str]:
     return [sorted(names)[i] for i in np.linspace(0, len(names) - 1, count + 2)[1:-1].round().astype(int)]
 
 
-def plot_loss(log: list[dict], path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    figure, axis = plt.subplots(figsize=(6, 3.5), dpi=100)
-    axis.semilogy([e["iteration"] for e in log], [max(e["loss"], 1e-12) for e in log], label="training loss")
-    validated = [e for e in log if "validation_error" in e]
-    if validated:
-        axis.semilogy([e["iteration"] for e in validated], [e["validation_error"] for e in validated], "o-",
-                      label="validation MSE")  # fmt: skip
-    axis.set_xlabel("iteration")
-    axis.legend()
-    figure.tight_layout()
-    figure.savefig(path)
-    plt.close(figure)
-
-
 def write_heldout(views: list[fitting.FitView], spp: int, folder: Path) -> None:
     import mitsuba as mi
 
@@ -210,7 +177,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     scene_source = inputs.upstream["scene"]["scene_dir"]
     description = json.loads(inputs.upstream["scene"]["description"].read_text())
     model = description["model"]
-    parameters = fit_parameters(model, conf.bounds, conf.learning_rate_scale)
+    parameters = fit_parameters(model, conf.bounds)
     cameras = read_views(inputs.upstream["sfm"]["cameras"])
     linear = {n: p["linear"] for n, p in photo_files(inputs.upstream["undistort"]["pinhole"]).items()}
     masks_json = inputs.upstream["masks"]["masks_json"]
@@ -230,7 +197,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     with (fitted / "log.jsonl").open("w") as log:
         for entry in result.log:
             log.write(json.dumps(entry) + "\n")
-    plot_loss(result.log, fitted / "loss.png")
+    fitting.plot_loss(result.log, fitted / "loss.png")
     write_heldout([v for v in views if v.name in held], 4 * conf.validation_spp, fitted / "heldout")
     params = {
         "model": model,

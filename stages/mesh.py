@@ -45,6 +45,7 @@ import numpy as np
 import pycolmap
 import pymeshlab
 import trimesh
+from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from pipeline import logger
@@ -64,6 +65,9 @@ class Config:
     carve_tolerance: Annotated[int, Range(0, None)] = 1
     """Views allowed to disagree before a voxel is carved away: one bad mask then cannot
     cut a piece off the specimen (at the cost of a slightly fatter hull)."""
+    close_voxels: Annotated[int, Range(0, 8)] = 1
+    """Tunnels and gaps through the hull up to twice this many voxels wide are filled
+    (a stray gap in one mask would otherwise give the hull a handle)."""
     clip_to_ground: bool = True
     """Cut the hull at the ground plane found by the sfm stage (the table or board)."""
     refine: Literal["poisson", "none"] = "poisson"
@@ -167,6 +171,11 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     field = hull_field(centres, views, conf.carve_tolerance)
     if ground is not None:
         field = np.minimum(field, centres[:, 2] - ground)
+    if conf.close_voxels:
+        # A tunnel a voxel or two wide is a mask's stray gap, not a handle of the
+        # specimen: a grey closing of the inside field fills it.
+        size = 2 * conf.close_voxels + 1
+        field = ndimage.grey_closing(field.reshape(grid.shape), size=(size,) * 3).ravel()
     mesh = surface(field, grid)
     report: dict = {"views": len(views), "voxel": grid.voxel, "grid": list(grid.shape),
                     "hull_seconds": time.perf_counter() - started, "ground_clipped": ground is not None}  # fmt: skip
@@ -199,7 +208,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="mesh",
-    version=3,
+    version=4,
     config=Config,
     main=main,
     upstream=("sfm", "masks"),
