@@ -104,3 +104,27 @@ def test_turntable_of_a_plain_specimen_poses_every_photo_within_a_degree(tmp_pat
     assert metrics["rotation_error_deg_max"] < 1.0
     report = json.loads(outputs["sfm"]["report"].read_text())["turntable"]
     assert sum(len(names) for names in report["pose_source"].values()) == 12
+
+
+POROUS_CUBE = Path(__file__).resolve().parents[3] / "shared" / "captures" / "porous-cube"
+
+
+@pytest.mark.real_data
+@pytest.mark.skipif(not POROUS_CUBE.is_dir(), reason="../shared/captures/porous-cube is not here")
+def test_porous_cube_registers_all_but_the_room_shot_and_meshes_a_closed_box(tmp_path):
+    """Every second photo of the porous cube (white on a white table, no board) plus
+    the unrelated room shot: the room shot alone is left out, and the cleaned mesh is
+    one closed, box-like surface (a box fills its oriented box; a sphere fills 0.52)."""
+    photos = sorted((POROUS_CUBE / "images").glob("*.jpg"))
+    room_shot = photos[0]
+    (tmp_path / "images").mkdir()
+    for photo in [room_shot, *photos[1::2]]:
+        (tmp_path / "images" / photo.name).symlink_to(photo)
+    (tmp_path / "capture.toml").write_text('[board]\nkind = "none"\n\n[masks]\nsegmenter = "centre_prior"\n')
+    outputs = run_stages(tmp_path, "cleanup")
+    report = json.loads(outputs["sfm"]["report"].read_text())
+    assert set(read_views(outputs["sfm"]["cameras"])) == {p.name for p in photos[1::2]}
+    assert report["frame"]["source"] == "ground_plane"
+    mesh = trimesh.load(outputs["cleanup"]["mesh"], force="mesh")
+    assert mesh.is_watertight and mesh.euler_number == 2
+    assert mesh.volume / mesh.bounding_box_oriented.volume > 0.7
