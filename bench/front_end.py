@@ -29,8 +29,9 @@ from pipeline.score import score_masks  # noqa: E402
 from pipeline.sections import BoardSection, schema  # noqa: E402
 from stages import STAGES  # noqa: E402
 
+from report import write_section  # noqa: E402
+
 POROUS_CUBE = ROOT.parent / "shared" / "captures" / "porous-cube"
-BEGIN, END = "<!-- front-end:begin -->", "<!-- front-end:end -->"
 
 
 def run(capture: Path, *overrides: str) -> tuple[dict, dict]:
@@ -92,8 +93,7 @@ def main() -> None:
             strays = [p.file for p in problems if p.check == "strays"]
             rows.append(f"| porous-cube: `pipeline check` | {len(problems)} problems in {elapsed:.0f} s; strays: "
                         f"{', '.join(strays) or 'none'} |")  # fmt: skip
-    section = "\n".join([
-        BEGIN,
+    section = write_section("front-end", [
         "## Capture front end (issue 4)",
         "",
         "Stages calibrate, undistort and masks on the standard preset, scored against the",
@@ -106,15 +106,7 @@ def main() -> None:
         "| capture | calibrate | undistort | masks |",
         "|---|---|---|---|",
         *timing_rows,
-        END,
     ])  # fmt: skip
-    doc = ROOT / "docs" / "benchmarks.md"
-    text = doc.read_text()
-    if BEGIN in text:
-        text = text[: text.index(BEGIN)] + section + text[text.index(END) + len(END) :]
-    else:
-        text = text.replace("\n## Test suite", f"\n{section}\n\n## Test suite")
-    doc.write_text(text)
     print(section)
 
 

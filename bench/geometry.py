@@ -30,8 +30,9 @@ from pipeline.sections import schema  # noqa: E402
 from pipeline.synth import SynthOptions, synthesize  # noqa: E402
 from stages import STAGES  # noqa: E402
 
+from report import write_section  # noqa: E402
+
 POROUS_CUBE = ROOT.parent / "shared" / "captures" / "porous-cube"
-BEGIN, END = "<!-- geometry:begin -->", "<!-- geometry:end -->"
 GEOMETRY_STAGES = ("sfm", "mesh", "cleanup", "uv")
 TURNTABLE = SynthOptions(views=24, rings=(25.0,), width=384, height=288, spp=16, rig="turntable", turn_jitter=0.4,
                          texture="plain", seed=0)  # fmt: skip
@@ -143,8 +144,7 @@ def main() -> None:
             porous, porous_timing = porous_rows(tmp)
             rows += porous
             timing += porous_timing
-    section = "\n".join([
-        BEGIN,
+    section = write_section("geometry", [
         "## Geometry (issue 5)",
         "",
         "Stages sfm, mesh, cleanup and uv on the standard preset. Errors are against the",
@@ -169,15 +169,7 @@ def main() -> None:
         "| mesh.resolution | mesh stage time | Chamfer distance |",
         "|---|---|---|",
         *trade,
-        END,
     ])  # fmt: skip
-    doc = ROOT / "docs" / "benchmarks.md"
-    text = doc.read_text()
-    if BEGIN in text:
-        text = text[: text.index(BEGIN)] + section + text[text.index(END) + len(END) :]
-    else:
-        text = text.replace("\n## Test suite", f"\n{section}\n\n## Test suite")
-    doc.write_text(text)
     print(section)
 
 

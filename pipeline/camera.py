@@ -223,6 +223,12 @@ def similarity_umeyama(source: np.ndarray, target: np.ndarray) -> tuple[float, n
     return scale, R, mu_t - scale * R @ mu_s
 
 
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """Angle of a rotation matrix, in degrees."""
+    # Rotation.magnitude stays accurate for tiny angles, unlike arccos of the trace.
+    return float(np.degrees(Rotation.from_matrix(R).magnitude()))
+
+
 def ideal_pinhole(intrinsics: Intrinsics, alpha: float, max_size: int) -> Intrinsics:
     """The distortion-free camera with square pixels that photos of ``intrinsics`` are
     undistorted to.
@@ -253,6 +259,12 @@ def scaled(intrinsics: Intrinsics, factor: float, exact: bool = False) -> Intrin
         width, height, intrinsics.fx * sx, intrinsics.fy * sy,
         (intrinsics.cx + 0.5) * sx - 0.5, (intrinsics.cy + 0.5) * sy - 0.5, list(intrinsics.dist),
     )  # fmt: skip
+
+
+def resize_exact(image: np.ndarray, factor: float) -> np.ndarray:
+    """``image`` area-averaged by exactly ``factor`` on both axes: the pixels of
+    ``scaled(intrinsics, factor, exact=True)``."""
+    return image if factor == 1.0 else cv2.resize(image, None, fx=factor, fy=factor, interpolation=cv2.INTER_AREA)
 
 
 def undistort(image: np.ndarray, source: Intrinsics, target: Intrinsics) -> np.ndarray:

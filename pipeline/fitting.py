@@ -138,16 +138,25 @@ def plot_loss(log: list[dict], path: Path) -> None:
     plt.close(figure)
 
 
-def _weighted_mean(values, view: FitView, mi, dr):
-    """Mean of a per-pixel tensor over the view's weight mask (all pixels without one)."""
-    if view.weight is None:
-        return dr.mean(values, axis=None)
-    weight = mi.TensorXf(np.repeat(view.weight[..., None], 3, axis=2).astype(np.float32))
-    return dr.sum(values * weight, axis=None) / float(3 * view.weight.sum())
+class _Target:
+    """A view's reference and pixel weights as Dr.Jit tensors, converted once rather
+    than at every render."""
 
+    def __init__(self, view: FitView, mi):
+        self.reference = mi.TensorXf(view.reference.astype(np.float32))
+        self.weight = None
+        if view.weight is not None:
+            self.weight = mi.TensorXf(np.repeat(view.weight[..., None], 3, axis=2).astype(np.float32))
+            self.weight_sum = float(3 * view.weight.sum())
 
-def _mse(image, view: FitView, mi, dr):
-    return _weighted_mean(dr.square(image - mi.TensorXf(view.reference.astype(np.float32))), view, mi, dr)
+    def mean(self, values, dr):
+        """Mean of a per-pixel tensor over the weights (all pixels without them)."""
+        if self.weight is None:
+            return dr.mean(values, axis=None)
+        return dr.sum(values * self.weight, axis=None) / self.weight_sum
+
+    def mse(self, image, dr):
+        return self.mean(dr.square(image - self.reference), dr)
 
 
 def fit(parameters: list[FitParameter], training: list[FitView], validation: list[FitView],
@@ -161,6 +170,7 @@ def fit(parameters: list[FitParameter], training: list[FitView], validation: lis
     training = sorted(training, key=lambda v: v.name)
     validation = sorted(validation, key=lambda v: v.name)
     scenes = {id(v.scene): v.scene for v in training + validation}
+    targets = {v.name: _Target(v, mi) for v in training + validation}
     traversed = {key: mi.traverse(scene) for key, scene in scenes.items()}
     for parameter in parameters:
         missing = [v.name for v in training + validation if parameter.key not in traversed[id(v.scene)]]
@@ -201,7 +211,7 @@ def fit(parameters: list[FitParameter], training: list[FitView], validation: lis
             with dr.suspend_grad():
                 apply(id(view.scene))
                 image = mi.render(view.scene, sensor=view.sensor, spp=settings.validation_spp, seed=index)
-                errors.append(float(_mse(image, view, mi, dr).array[0]))
+                errors.append(float(targets[view.name].mse(image, dr).array[0]))
         return float(np.mean(errors))
 
     clamp()
@@ -230,10 +240,10 @@ def fit(parameters: list[FitParameter], training: list[FitView], validation: lis
                                    seed=seed + 1)  # fmt: skip
                 if settings.exposure:
                     second = second * dr.exp(optimizer[f"exposure:{view.name}"])
-                reference = mi.TensorXf(view.reference.astype(np.float32))
-                loss = _weighted_mean((image - reference) * (second - reference), view, mi, dr)
+                reference = targets[view.name].reference
+                loss = targets[view.name].mean((image - reference) * (second - reference), dr)
             else:
-                loss = _mse(image, view, mi, dr)
+                loss = targets[view.name].mse(image, dr)
             dr.backward(loss / settings.batch)
             value = float(loss.array[0])
             total += value

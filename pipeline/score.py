@@ -30,18 +30,12 @@ import numpy as np
 import OpenImageIO as oiio
 import trimesh
 from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
 
-from pipeline.camera import Intrinsics, Pose, Similarity, read_cameras, similarity_umeyama
+from pipeline.camera import Intrinsics, Pose, Similarity, read_cameras, rotation_angle_deg, similarity_umeyama
 from pipeline.errors import PipelineError
 
 MESH_SAMPLES = 30000
 RELATIVE_PARAMETERS = {"sigma_t"}
-
-
-def rotation_angle_deg(R: np.ndarray) -> float:
-    # Rotation.magnitude stays accurate for tiny angles, unlike arccos of the trace.
-    return float(np.degrees(Rotation.from_matrix(R).magnitude()))
 
 
 def score_intrinsics(estimate: Intrinsics, truth: Intrinsics) -> dict[str, float]:

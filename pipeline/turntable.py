@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from pipeline.camera import Intrinsics, Pose
+from pipeline.camera import Intrinsics, Pose, rotation_angle_deg
 
 
 def _turn(axis: np.ndarray, angle: float) -> np.ndarray:
@@ -69,8 +69,7 @@ class Turntable:
         """Rotation difference (degrees) and centre distance (fraction of the radius)
         between ``pose`` and the model's pose at ``angle``."""
         model = self.pose(angle)
-        rotation = np.degrees(Rotation.from_matrix(model.R @ pose.R.T).magnitude())
-        return float(rotation), float(np.linalg.norm(model.center - pose.center) / self.radius)
+        return rotation_angle_deg(model.R @ pose.R.T), float(np.linalg.norm(model.center - pose.center) / self.radius)
 
     def residuals(self, poses: dict[str, Pose]) -> dict[str, tuple[float, float]]:
         """``residuals_at`` for each photo the model was fitted to, at its angle."""
@@ -216,6 +215,11 @@ def splat(points: np.ndarray, radius_px: int, pose: Pose, intrinsics: Intrinsics
     return rendered.astype(bool)
 
 
+def splat_radius(voxel: float, intrinsics: Intrinsics, depth: float) -> int:
+    """Pixels of half a voxel at ``depth``: hull points splatted this wide leave no gaps."""
+    return max(int(np.ceil(0.5 * voxel * intrinsics.fx / depth)), 0)
+
+
 def silhouette_iou(points: np.ndarray, radius_px: int, pose: Pose, intrinsics: Intrinsics, mask: np.ndarray) -> float:
     """IoU of ``mask`` with the splatted projection of hull points seen from ``pose``."""
     rendered = splat(points, radius_px, pose, intrinsics, mask.shape)
@@ -231,8 +235,7 @@ def angle_from_silhouette(
 
     A grid search at 1/4 degree, then at 1/64 degree around the best: the IoU is
     not smooth enough in the angle for a gradient method."""
-    depth = np.linalg.norm(model.c_fixed - hull_points.mean(axis=0))
-    splat = max(int(np.ceil(0.5 * voxel * intrinsics.fx / depth)), 0)
+    splat = splat_radius(voxel, intrinsics, np.linalg.norm(model.c_fixed - hull_points.mean(axis=0)))
 
     def best(candidates: np.ndarray) -> tuple[float, float]:
         scores = [silhouette_iou(hull_points, splat, model.pose(a), intrinsics, mask) for a in candidates]

@@ -43,11 +43,12 @@ import cv2
 import numpy as np
 
 from pipeline import fitting, logger, materials, mitsuba_variant, scene_xml
-from pipeline.camera import Intrinsics, Pose, read_views, scaled
+from pipeline.camera import Intrinsics, Pose, read_views, resize_exact, scaled
 from pipeline.config import Range
 from pipeline.errors import PipelineError
 from pipeline.photo_io import read_photo, write_image
 from pipeline.stage import Stage, StageInputs, StageResult
+from stages.masks import mask_files
 from stages.undistort import photo_files
 
 
@@ -117,11 +118,6 @@ def _window(mask: np.ndarray, max_size: int, margin: int = 8) -> tuple[float, tu
     return scale, (int(lo_s[0]), int(lo_s[1]), int(hi_s[0] - lo_s[0]), int(hi_s[1] - lo_s[1]))
 
 
-def _resize(image: np.ndarray, scale: float) -> np.ndarray:
-    """Area-averaged by exactly ``scale`` on both axes (camera.scaled(..., exact=True))."""
-    return image if scale == 1.0 else cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
-
-
 def load_views(scene_dir: Path, description: dict, cameras: dict[str, tuple[Intrinsics, Pose]],
                linear: dict[str, Path], masks: dict[str, Path], conf) -> list[tuple[fitting.FitView, tuple]]:  # fmt: skip
     """Every photo as a FitView in its window, with the window's scaled camera and crop."""
@@ -142,10 +138,10 @@ def load_views(scene_dir: Path, description: dict, cameras: dict[str, tuple[Intr
         w, h = min(w, small.width - x), min(h, small.height - y)
         crop = (x, y, w, h)
         photo = read_photo(linear[name]).pixels
-        reference = _resize(photo, scale)[y : y + h, x : x + w]
+        reference = resize_exact(photo, scale)[y : y + h, x : x + w]
         if conf.erode_px:
             mask = cv2.erode(mask.astype(np.uint8), np.ones((2 * conf.erode_px + 1,) * 2, np.uint8)) > 0
-        coverage = _resize(mask.astype(np.float32), scale)
+        coverage = resize_exact(mask.astype(np.float32), scale)
         weight = (coverage[y : y + h, x : x + w] > 0.999).astype(np.float32)
         scene = shared_scene or mi.load_file(str(scene_dir / description["views"][name]["xml"]))
         sensor = scene_xml.load_sensor(scene_xml.sensor_properties(small, pose, conf.spp,
@@ -180,8 +176,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     parameters = fit_parameters(model, conf.bounds)
     cameras = read_views(inputs.upstream["sfm"]["cameras"])
     linear = {n: p["linear"] for n, p in photo_files(inputs.upstream["undistort"]["pinhole"]).items()}
-    masks_json = inputs.upstream["masks"]["masks_json"]
-    masks = {n: masks_json.parent / e["mask"] for n, e in json.loads(masks_json.read_text())["images"].items()}
+    masks = mask_files(inputs.upstream["masks"]["masks_json"])
 
     mitsuba_variant.activate(inputs.shared["mitsuba"].variant)
     fitted = out_dir / "fitted"

@@ -196,6 +196,11 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     )
 
 
+def mask_files(masks_json: Path) -> dict[str, Path]:
+    """For downstream stages: photo name -> its mask PNG (white = specimen)."""
+    return {name: masks_json.parent / entry["mask"] for name, entry in json.loads(masks_json.read_text())["images"].items()}
+
+
 STAGE = Stage(
     name="masks",
     version=2,

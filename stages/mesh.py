@@ -54,6 +54,7 @@ from pipeline.config import Range
 from pipeline.errors import PipelineError
 from pipeline.stage import Stage, StageInputs, StageResult
 from pipeline.visual_hull import Grid, View, bounds, hull_field, surface
+from stages.masks import mask_files
 
 
 @dataclass(frozen=True)
@@ -82,10 +83,10 @@ class Config:
 
 
 def _views(cameras_json: Path, masks_json: Path) -> list[View]:
-    masks = json.loads(masks_json.read_text())["images"]
+    masks = mask_files(masks_json)
     views = []
     for name, (intrinsics, pose) in sorted(read_views(cameras_json).items()):
-        mask = cv2.imread(str(masks_json.parent / masks[name]["mask"]), cv2.IMREAD_GRAYSCALE) > 127
+        mask = cv2.imread(str(masks[name]), cv2.IMREAD_GRAYSCALE) > 127
         if mask.shape != (intrinsics.height, intrinsics.width):
             raise PipelineError(f"the mask of {name} is {mask.shape[::-1]} but its camera is "
                                 f"{intrinsics.width}x{intrinsics.height}: rerun the masks and sfm stages")  # fmt: skip

@@ -58,12 +58,13 @@ import trimesh
 
 from pipeline import logger, materials, mitsuba_variant, scene_xml
 from pipeline.board import board_image
-from pipeline.camera import Intrinsics, Pose, read_views, scaled
+from pipeline.camera import Intrinsics, Pose, read_views, resize_exact, scaled
 from pipeline.config import Range
 from pipeline.errors import PipelineError
 from pipeline.photo_io import read_photo, to_uint8
 from pipeline.sections import BoardSection, CaptureSection, LightSection
 from pipeline.stage import Stage, StageInputs, StageResult
+from stages.masks import mask_files
 from stages.undistort import photo_files
 
 PAPER, TONER = 0.80, 0.04
@@ -189,14 +190,12 @@ def _ground_albedo(view_files: dict[str, Path], views: dict[str, tuple[Intrinsic
             seen &= np.any(np.abs(hits[..., :2]) > half, axis=-1)
         specimen = cv2.imread(str(masks[name]), cv2.IMREAD_GRAYSCALE) > 127
         specimen = cv2.dilate(specimen.astype(np.uint8), np.ones((15, 15), np.uint8))
-        seen &= cv2.resize(specimen.astype(np.float32), None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)[
-            : small.height, : small.width] == 0  # fmt: skip
+        seen &= resize_exact(specimen.astype(np.float32), scale)[: small.height, : small.width] == 0
         if np.count_nonzero(seen) < 50:
             continue
         sensor = scene_xml.load_sensor(scene_xml.sensor_properties(small, pose, 64, near_clip))
         white = np.asarray(mi.render(mi.load_file(str(view_files[name])), sensor=sensor, spp=64), dtype=np.float32)
-        photo = read_photo(linear[name]).pixels
-        photo = cv2.resize(photo, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) if scale < 1 else photo
+        photo = resize_exact(read_photo(linear[name]).pixels, scale)
         ratios.append(photo[: small.height, : small.width][seen] / np.maximum(white[seen], 1e-4))
     if not ratios:
         return None
@@ -289,8 +288,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     ground_albedo = None
     if ground_radius:
         linear = {n: p["linear"] for n, p in photo_files(inputs.upstream["undistort"]["pinhole"]).items()}
-        masks_json = inputs.upstream["masks"]["masks_json"]
-        masks = {n: masks_json.parent / e["mask"] for n, e in json.loads(masks_json.read_text())["images"].items()}
+        masks = mask_files(inputs.upstream["masks"]["masks_json"])
         ground_albedo = _ground_albedo(view_files, views, linear, masks, board, ground_radius, near_clip)
         if ground_albedo is None:
             logger.warning("too little of the table is seen to measure its albedo: no ground in the scene")

@@ -60,12 +60,13 @@ import pycolmap
 
 from pipeline import logger, turntable
 from pipeline.board import BoardDetector, board_to_world
-from pipeline.camera import Intrinsics, Pose, Similarity, similarity_umeyama, write_cameras
+from pipeline.camera import Intrinsics, Pose, Similarity, rotation_angle_deg, similarity_umeyama, write_cameras
 from pipeline.config import Range
 from pipeline.errors import PipelineError
 from pipeline.sections import BoardSection, CaptureSection
 from pipeline.stage import Stage, StageInputs, StageResult
 from pipeline.visual_hull import Grid, View, bounds, convergence_point, hull_field
+from stages.masks import mask_files
 from stages.undistort import photo_files
 
 COLMAP_PIXEL_OFFSET = 0.5
@@ -350,8 +351,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     cameras = json.loads(pinhole_json.read_text())["cameras"]
     photos = json.loads(pinhole_json.read_text())["images"]
     photo_paths = photo_files(pinhole_json, "images")
-    masks_json = inputs.upstream["masks"]["masks_json"]
-    masks = {n: masks_json.parent / e["mask"] for n, e in json.loads(masks_json.read_text())["images"].items()}
+    masks = mask_files(inputs.upstream["masks"]["masks_json"])
     order = sorted(photos)
     stem_of = {name: Path(photo_paths[name]["srgb"]).name for name in order}
     name_of = {stem: name for name, stem in stem_of.items()}
@@ -555,17 +555,13 @@ def _place_by_silhouette(conf: Config, table: turntable.Turntable, order: list[s
     the posed photos (recorded in ``table.angles``)."""
     placed: dict[str, dict] = {}
     mask_of = {n: cv2.imread(str(masks[n]), cv2.IMREAD_GRAYSCALE) > 127 for n in order}
-    views = [View(intrinsics[n], poses[n], mask_of[n]) for n in order if n in poses]
     try:
-        lo, hi = bounds(views, tolerance=1)
+        hull_points, voxel = _hull_points(conf, [n for n in order if n in poses], poses, intrinsics, mask_of)
     except ValueError as error:
         raise PipelineError(f"cannot place {', '.join(missing)} on the turntable by silhouette: {error}") from error
-    grid = Grid.around(lo, hi, conf.silhouette_resolution)
-    centres = grid.centres()
-    hull_points = centres[hull_field(centres, views, tolerance=1) > 0]
     for name in missing:
         low, high = turntable.bracket(table, order, name)
-        angle, iou = turntable.angle_from_silhouette(table, low, high, hull_points, grid.voxel,
+        angle, iou = turntable.angle_from_silhouette(table, low, high, hull_points, voxel,
                                                      intrinsics[name], mask_of[name])  # fmt: skip
         table.angles[name] = angle
         placed[name] = {"method": "silhouette", "angle_deg": float(np.degrees(angle)), "silhouette_iou": iou}
@@ -630,6 +626,17 @@ def _too_few(conf: Config, posed: set[str], order: list[str], causes: dict[str, 
     )
 
 
+def _hull_points(conf: Config, names: list[str], poses: dict[str, Pose], intrinsics: dict[str, Intrinsics],
+                 mask_of: dict[str, np.ndarray]) -> tuple[np.ndarray, float]:  # fmt: skip
+    """Voxel centres inside the visual hull of the posed ``names`` (one photo may
+    disagree), and the voxel size. ValueError when the silhouettes do not meet."""
+    views = [View(intrinsics[n], poses[n], mask_of[n]) for n in names]
+    lo, hi = bounds(views, tolerance=1)
+    grid = Grid.around(lo, hi, conf.silhouette_resolution)
+    centres = grid.centres()
+    return centres[hull_field(centres, views, tolerance=1) > 0], grid.voxel
+
+
 def _silhouette_check(conf: Config, poses: dict[str, Pose], intrinsics: dict[str, Intrinsics],
                       masks: dict[str, Path]) -> tuple[dict[str, float], list[str]]:  # fmt: skip
     """Each photo's mask against the visual hull of all posed photos seen from its pose
@@ -638,18 +645,13 @@ def _silhouette_check(conf: Config, poses: dict[str, Pose], intrinsics: dict[str
     does not carve it away."""
     names = sorted(poses)
     mask_of = {n: cv2.imread(str(masks[n]), cv2.IMREAD_GRAYSCALE) > 127 for n in names}
-    views = [View(intrinsics[n], poses[n], mask_of[n]) for n in names]
     try:
-        lo, hi = bounds(views, tolerance=1)
+        hull_points, voxel = _hull_points(conf, names, poses, intrinsics, mask_of)
     except ValueError:
         return {}, []  # no common hull: nothing to check against
-    grid = Grid.around(lo, hi, conf.silhouette_resolution)
-    centres = grid.centres()
-    hull_points = centres[hull_field(centres, views, tolerance=1) > 0]
     scores = {}
     for name in names:
-        depth = np.linalg.norm(poses[name].center - hull_points.mean(axis=0))
-        radius = max(int(np.ceil(0.5 * grid.voxel * intrinsics[name].fx / depth)), 0)
+        radius = turntable.splat_radius(voxel, intrinsics[name], np.linalg.norm(poses[name].center - hull_points.mean(axis=0)))
         scores[name] = turntable.silhouette_iou(hull_points, radius, poses[name], intrinsics[name], mask_of[name])
     return scores, [n for n in names if scores[n] < conf.min_silhouette_iou]
 
@@ -661,7 +663,7 @@ def _replace_by_board(conf: Config, poses: dict[str, Pose], board_poses: dict[st
     replaced = []
     for name in sorted(set(poses) & set(board_poses)):
         sfm, board = poses[name], board_poses[name]
-        rotation = np.degrees(np.arccos(np.clip((np.trace(sfm.R @ board.R.T) - 1) / 2, -1, 1)))
+        rotation = rotation_angle_deg(sfm.R @ board.R.T)
         distance = np.linalg.norm(sfm.center - board.center) / np.linalg.norm(board.center)
         if rotation > 2.0 or distance > conf.board_max_disagreement:
             logger.warning("%s: SfM's pose is %.1f degrees and %.1f %% of the distance from its board pose; "
