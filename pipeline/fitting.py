@@ -10,9 +10,10 @@ Shared by the fit stages and ``pipeline fit``. The loop, per iteration:
    gradients of the batch add up in the latents;
 3. one Adam step (``mi.ad.Adam``, one learning rate per parameter), then every
    latent is clamped to its bounds (box constraints);
-4. every ``validate_every`` iterations, the held-out views are rendered with a
-   fixed seed and their mean squared error recorded; the state with the lowest
-   validation error is kept.
+4. every ``validate_every`` iterations, the held-out views are rendered with
+   fixed seeds and their error recorded (with the dual loss, by the dual
+   estimator, which unlike MSE does not reward noise-free renders); the state
+   with the lowest validation error is kept.
 
 It stops at ``iterations``, when the time budget is spent, or when the mean
 training loss over the last ``window`` iterations improved by less than
@@ -25,8 +26,15 @@ expectation is the squared error without the Monte Carlo variance that biases
 plain L2 at low spp. Optional per-view exposure (a latent log-scale per fitting
 view) absorbs exposure differences between photos.
 
-Limitations: parameters must be plain values in ``mi.traverse`` (textures are
-fitted by their own stage); the same key must exist in every view's scene.
+Parameters are plain values (floats, colours) or textures: a bitmap's or a
+grid volume's ``data`` tensor, which ``fit_texture`` optimises. A texture may
+carry a smoothness prior, ``smoothness`` times the mean squared difference
+between neighbouring texels, added once per step; texels that no view sees are
+filled from their neighbours by it. The log holds a texture's per-channel mean;
+``FitResult.textures`` holds the full arrays.
+
+Limitations: the same key must exist in every view's scene; a texture's
+resolution is fixed during one call (coarse to fine is the caller's loop).
 """
 
 from __future__ import annotations
@@ -53,6 +61,8 @@ class FitParameter:
     upper: float
     log: bool = False
     learning_rate: float = 0.02
+    smoothness: float = 0.0
+    """Weight of the neighbour-difference prior (textures only)."""
 
 
 @dataclass
@@ -91,16 +101,36 @@ class FitSettings:
 @dataclass
 class FitResult:
     values: dict[str, list[float]]
-    """Best-validation values (last values when nothing is held out)."""
+    """Best-validation values (last values when nothing is held out); a texture's
+    per-channel mean."""
     best_iteration: int
     validation_error: float | None
     stopped: str
     log: list[dict] = field(default_factory=list)
     exposures: dict[str, float] = field(default_factory=dict)
+    start_validation_error: float | None = None
+    """Validation error of the starting values."""
+    textures: dict[str, np.ndarray] = field(default_factory=dict)
+    """Best-validation arrays of texture parameters, (..., channels)."""
 
 
-def _to_numpy(value) -> list[float]:
-    return [float(v) for v in np.ravel(np.asarray(value))]
+def _summary(value: np.ndarray) -> list[float]:
+    """A plain value as a list; a texture as its per-channel mean."""
+    if value.ndim > 1:
+        value = value.reshape(-1, value.shape[-1]).mean(axis=0)
+    return [float(v) for v in np.ravel(value)]
+
+
+def _neighbour_pairs(shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Flat indices (i, j) of every pair of texels adjacent along a spatial axis,
+    channel by channel, of a C-ordered array of ``shape`` (spatial..., channels)."""
+    index = np.arange(int(np.prod(shape))).reshape(shape)
+    first, second = [], []
+    for axis in range(len(shape) - 1):
+        count = shape[axis] - 1
+        first.append(np.take(index, range(count), axis=axis).ravel())
+        second.append(np.take(index, range(1, count + 1), axis=axis).ravel())
+    return np.concatenate(first), np.concatenate(second)
 
 
 def parse_bounds(entries: tuple[str, ...] | list[str], where: str) -> dict[str, tuple[float, float]]:
@@ -129,7 +159,7 @@ def plot_loss(log: list[dict], path: Path) -> None:
     axis.semilogy([e["iteration"] for e in log], [max(e["loss"], 1e-12) for e in log], label="training loss")
     validated = [e for e in log if "validation_error" in e]
     if validated:
-        axis.semilogy([e["iteration"] for e in validated], [e["validation_error"] for e in validated], "o-",
+        axis.semilogy([e["iteration"] for e in validated], [max(e["validation_error"], 1e-12) for e in validated], "o-",
                       label="validation MSE")  # fmt: skip
     axis.set_xlabel("iteration")
     axis.legend()
@@ -157,6 +187,10 @@ class _Target:
 
     def mse(self, image, dr):
         return self.mean(dr.square(image - self.reference), dr)
+
+    def dual(self, image, second, dr):
+        """Deng et al.'s dual-buffer estimator of the squared error of the expected image."""
+        return self.mean((image - self.reference) * (second - self.reference), dr)
 
 
 def fit(parameters: list[FitParameter], training: list[FitView], validation: list[FitView],
@@ -201,17 +235,43 @@ def fit(parameters: list[FitParameter], training: list[FitView], validation: lis
             params[parameter.key] = dr.exp(latent) if parameter.log else latent
         params.update()
 
-    def current() -> dict[str, list[float]]:
-        return {p.name: _to_numpy(np.exp(_to_numpy(optimizer[p.name])) if p.log else optimizer[p.name])
-                for p in parameters}  # fmt: skip
+    textured = {p.name for p in parameters if dr.is_tensor_v(optimizer[p.name])}
+
+    def current() -> dict[str, np.ndarray]:
+        """Values as arrays: a texture (..., channels), else flat."""
+        arrays = {p.name: np.array(optimizer[p.name], dtype=np.float64) for p in parameters}
+        arrays = {n: a if n in textured else np.ravel(a) for n, a in arrays.items()}
+        return {p.name: np.exp(arrays[p.name]) if p.log else arrays[p.name] for p in parameters}
+
+    priors = []
+    for parameter in parameters:
+        if parameter.smoothness > 0 and parameter.name in textured:
+            first_index, second_index = _neighbour_pairs(tuple(optimizer[parameter.name].shape))
+            priors.append((parameter, mi.UInt32(first_index), mi.UInt32(second_index)))
+
+    def add_prior() -> None:
+        for parameter, first_index, second_index in priors:
+            texels = optimizer[parameter.name].array
+            if parameter.log:
+                texels = dr.exp(texels)
+            difference = dr.gather(mi.Float, texels, first_index) - dr.gather(mi.Float, texels, second_index)
+            dr.backward(parameter.smoothness * dr.mean(dr.square(difference)))
 
     def validate(iteration: int) -> float:
+        """Held-out error with fixed seeds; with the dual loss, the dual estimator:
+        plain MSE adds the renders' variance, which rewards parameters that merely
+        render with less noise (a rougher or denser specimen)."""
         errors = []
         for index, view in enumerate(validation):
             with dr.suspend_grad():
                 apply(id(view.scene))
-                image = mi.render(view.scene, sensor=view.sensor, spp=settings.validation_spp, seed=index)
-                errors.append(float(targets[view.name].mse(image, dr).array[0]))
+                image = mi.render(view.scene, sensor=view.sensor, spp=settings.validation_spp, seed=2 * index)
+                if settings.loss == "dual":
+                    second = mi.render(view.scene, sensor=view.sensor, spp=settings.validation_spp, seed=2 * index + 1)
+                    error = targets[view.name].dual(image, second, dr)
+                else:
+                    error = targets[view.name].mse(image, dr)
+                errors.append(float(error.array[0]))
         return float(np.mean(errors))
 
     clamp()
@@ -219,6 +279,7 @@ def fit(parameters: list[FitParameter], training: list[FitView], validation: lis
     order: list[int] = []
     started = time.perf_counter()
     best = {"values": current(), "iteration": 0, "error": validate(0) if validation else None}
+    start_error = best["error"]
     losses: list[float] = []
     first_loss: dict[str, float] = {}
     log: list[dict] = []
@@ -240,8 +301,7 @@ def fit(parameters: list[FitParameter], training: list[FitView], validation: lis
                                    seed=seed + 1)  # fmt: skip
                 if settings.exposure:
                     second = second * dr.exp(optimizer[f"exposure:{view.name}"])
-                reference = targets[view.name].reference
-                loss = targets[view.name].mean((image - reference) * (second - reference), dr)
+                loss = targets[view.name].dual(image, second, dr)
             else:
                 loss = targets[view.name].mse(image, dr)
             dr.backward(loss / settings.batch)
@@ -251,18 +311,20 @@ def fit(parameters: list[FitParameter], training: list[FitView], validation: lis
             # view's loss with its first one.
             first_loss.setdefault(view.name, max(abs(value), 1e-12))
             relative += value / first_loss[view.name]
+        add_prior()
         optimizer.step()
         clamp()
         views_per_step = min(settings.batch, len(training))
         losses.append(relative / views_per_step)
+        values = current()
         entry = {"iteration": iteration, "loss": total / views_per_step, "relative_loss": losses[-1],
-                 "seconds": time.perf_counter() - started, "params": current()}  # fmt: skip
+                 "seconds": time.perf_counter() - started, "params": {n: _summary(v) for n, v in values.items()}}  # fmt: skip
         if validation and (iteration % settings.validate_every == 0 or iteration == settings.iterations):
             entry["validation_error"] = validate(iteration)
             if entry["validation_error"] < best["error"]:
-                best = {"values": entry["params"], "iteration": iteration, "error": entry["validation_error"]}
+                best = {"values": values, "iteration": iteration, "error": entry["validation_error"]}
         elif not validation:
-            best = {"values": entry["params"], "iteration": iteration, "error": None}
+            best = {"values": values, "iteration": iteration, "error": None}
         log.append(entry)
         if on_iteration is not None:
             on_iteration(entry)
@@ -277,13 +339,122 @@ def fit(parameters: list[FitParameter], training: list[FitView], validation: lis
             break
     # Leave the scenes in the best state.
     for parameter in parameters:
-        value = np.asarray(best["values"][parameter.name])
-        latent = np.log(value) if parameter.log else value
-        optimizer[parameter.name] = type(optimizer[parameter.name])(*[float(v) for v in latent])
+        value = best["values"][parameter.name]
+        latent = (np.log(value) if parameter.log else value).astype(np.float32)
+        kind = type(optimizer[parameter.name])
+        optimizer[parameter.name] = kind(latent) if value.ndim > 1 else kind(*[float(v) for v in latent])
     for key in traversed:
         with dr.suspend_grad():
             apply(key)
-    exposures = {v.name: float(np.exp(_to_numpy(optimizer[f"exposure:{v.name}"])[0])) for v in training} if settings.exposure else {}
+    exposures = {v.name: float(np.exp(np.ravel(optimizer[f"exposure:{v.name}"])[0])) for v in training} if settings.exposure else {}
     logger.info("fit stopped (%s) after %d iterations in %.0f s; best at iteration %d", stopped, len(log),
                 time.perf_counter() - started, best["iteration"])  # fmt: skip
-    return FitResult(best["values"], best["iteration"], best["error"], stopped, log, exposures)
+    textures = {n: v.astype(np.float32) for n, v in best["values"].items() if v.ndim > 1}
+    return FitResult({n: _summary(v) for n, v in best["values"].items()}, best["iteration"], best["error"], stopped,
+                     log, exposures, start_error, textures)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class ShapeSettings:
+    """How ``fit_shape`` runs."""
+
+    iterations: int = 40
+    batch: int = 2
+    spp: int = 8
+    step: float = 1e-3
+    """Adam step (uniform) on the differential coordinates, in world units."""
+    smoothing: float = 20.0
+    """LargeSteps' lambda: how far a vertex's gradient spreads over the surface."""
+    validate_every: int = 10
+    validation_spp: int = 32
+    seed: int = 0
+
+
+@dataclass
+class ShapeResult:
+    positions: np.ndarray
+    """(n, 3) best-validation vertex positions (last ones when nothing is held out)."""
+    best_iteration: int
+    validation_error: float | None
+    start_validation_error: float | None
+    log: list[dict] = field(default_factory=list)
+
+
+def fit_shape(shape_id: str, training: list[FitView], validation: list[FitView], settings: ShapeSettings,
+              integrator) -> ShapeResult:  # fmt: skip
+    """Vertex positions of the mesh ``shape_id`` in every view's scene, everything else
+    frozen: Adam on LargeSteps' differential coordinates (Nicolet et al. 2021, seams
+    welded), L2 loss, rendered with ``integrator`` (a projective one, the only kind
+    whose gradients include silhouette edges). Batches, seeds and the best-validation
+    rule are ``fit``'s; the scenes end in the best state."""
+    import drjit as dr
+    import mitsuba as mi
+
+    if not training:
+        raise PipelineError("no views to fit: every view is held out")
+    training = sorted(training, key=lambda v: v.name)
+    validation = sorted(validation, key=lambda v: v.name)
+    targets = {v.name: _Target(v, mi) for v in training + validation}
+    traversed = {id(v.scene): mi.traverse(v.scene) for v in training + validation}
+    key = f"{shape_id}.vertex_positions"
+    first = traversed[id(training[0].scene)]
+    steps = mi.ad.LargeSteps(first[key], first[f"{shape_id}.faces"], settings.smoothing)
+    optimizer = mi.ad.Adam(lr=settings.step, uniform=True)
+    optimizer["u"] = steps.to_differential(first[key])
+
+    def apply(scene_key: int) -> None:
+        traversed[scene_key][key] = dr.ravel(steps.from_differential(optimizer["u"]))
+        traversed[scene_key].update()
+
+    def positions() -> np.ndarray:
+        with dr.suspend_grad():
+            return np.array(steps.from_differential(optimizer["u"]), dtype=np.float32).reshape(-1, 3)
+
+    def validate() -> float:
+        errors = []
+        with dr.suspend_grad():
+            for index, view in enumerate(validation):
+                apply(id(view.scene))
+                image = mi.render(view.scene, sensor=view.sensor, integrator=integrator,
+                                  spp=settings.validation_spp, seed=index)  # fmt: skip
+                errors.append(float(targets[view.name].mse(image, dr).array[0]))
+        return float(np.mean(errors))
+
+    rng = np.random.default_rng(settings.seed)
+    order: list[int] = []
+    started = time.perf_counter()
+    start_error = validate() if validation else None
+    best = {"positions": positions(), "iteration": 0, "error": start_error}
+    log: list[dict] = []
+    for iteration in range(1, settings.iterations + 1):
+        total = 0.0
+        views_per_step = min(settings.batch, len(training))
+        for _ in range(views_per_step):
+            if not order:
+                order = [int(i) for i in rng.permutation(len(training))]
+            index = order.pop()
+            view = training[index]
+            apply(id(view.scene))
+            image = mi.render(view.scene, traversed[id(view.scene)], sensor=view.sensor, integrator=integrator,
+                              spp=settings.spp, seed=(iteration * len(training) + index) * 2)  # fmt: skip
+            loss = targets[view.name].mse(image, dr)
+            dr.backward(loss / views_per_step)
+            total += float(loss.array[0])
+        optimizer.step()
+        entry = {"iteration": iteration, "loss": total / views_per_step, "seconds": time.perf_counter() - started}
+        if validation and (iteration % settings.validate_every == 0 or iteration == settings.iterations):
+            entry["validation_error"] = validate()
+            if entry["validation_error"] < best["error"]:
+                best = {"positions": positions(), "iteration": iteration, "error": entry["validation_error"]}
+            logger.info("shape iteration %d: loss %.4g, held-out %.4g (%.0f s)", iteration, entry["loss"],
+                        entry["validation_error"], entry["seconds"])  # fmt: skip
+        elif not validation:
+            best = {"positions": positions(), "iteration": iteration, "error": None}
+        log.append(entry)
+    optimizer["u"] = steps.to_differential(mi.Float(best["positions"].ravel()))
+    for scene_key in traversed:
+        with dr.suspend_grad():
+            apply(scene_key)
+    logger.info("shape fit: %d iterations in %.0f s; best at iteration %d (held-out MSE %s -> %s)", len(log),
+                time.perf_counter() - started, best["iteration"], start_error, best["error"])  # fmt: skip
+    return ShapeResult(best["positions"], best["iteration"], best["error"], start_error, log)

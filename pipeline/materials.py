@@ -85,6 +85,26 @@ INTEGRATORS: dict[str, tuple[str, int]] = {
 }
 
 
+@dataclass(frozen=True)
+class TextureSlot:
+    """Where a model's colour varies over the specimen (fit_texture)."""
+
+    parameter: str
+    """The constant it replaces (a key of PARAMETERS)."""
+    key: str
+    """Key of the texture's data tensor in ``mi.traverse``."""
+    kind: Literal["bitmap", "gridvolume"]
+    """bitmap: on the mesh's UVs; gridvolume: a 3D grid over the specimen's box
+    (a medium is a volume: its albedo cannot live on the surface)."""
+
+
+TEXTURE_SLOTS: dict[str, TextureSlot] = {
+    "opaque": TextureSlot("base_color", f"{SPECIMEN}.bsdf.base_color.data", "bitmap"),
+    "principled": TextureSlot("base_color", f"{SPECIMEN}.bsdf.base_color.data", "bitmap"),
+    "volumetric": TextureSlot("albedo", f"{SPECIMEN}.interior_medium.albedo.data", "gridvolume"),
+}
+
+
 def bsdf_and_medium(model: MaterialModel, values: dict[str, tuple[float, ...]]) -> tuple[dict, dict | None]:
     """The specimen's BSDF and interior medium (or None) as plain dicts of plugin
     properties: {"type": ..., "id": ..., name: number or RGB tuple}."""

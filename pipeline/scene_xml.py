@@ -2,7 +2,8 @@
 
 Every element the pipeline writes has an id, so that ``mi.traverse`` keys stay
 stable (``specimen.bsdf.roughness.value``). ``set_values`` writes fitted numbers
-back into any scene file whose parameters are plain values (not textures).
+back into any scene file whose parameters are plain values, and swaps a plain
+value for a texture or volume element (fit_texture).
 """
 
 from __future__ import annotations
@@ -73,17 +74,20 @@ def transform_matrix(parent: ET.Element, matrix: np.ndarray) -> None:
 
 
 def sensor_properties(intrinsics: Intrinsics, pose: Pose, spp: int, near_clip: float,
-                      crop: tuple[int, int, int, int] | None = None) -> dict:  # fmt: skip
+                      crop: tuple[int, int, int, int] | None = None, sample_border: bool = False) -> dict:  # fmt: skip
     """A perspective sensor reproducing a pinhole camera with square pixels, as a
     ``mi.load_dict`` dict (``to_world`` a 4x4 nested list): focal length as
     horizontal field of view, principal point as Mitsuba's offsets (a fraction of
     the film, positive moving the image content left/up; Mitsuba puts pixel
     centres at +0.5, OpenCV at 0). ``crop`` = (x, y, width, height) renders only
-    that window of the full image."""
+    that window of the full image. ``sample_border`` lets geometry that moves across
+    the window's edge be differentiated (projective integrators want it)."""
     if abs(intrinsics.fx - intrinsics.fy) > 1e-3 * intrinsics.fx:
         raise PipelineError(f"a camera has fx = {intrinsics.fx:.2f} and fy = {intrinsics.fy:.2f}: Mitsuba's "
                             "perspective sensor needs square pixels (rerun undistort and sfm)")  # fmt: skip
     film = {"type": "hdrfilm", "width": int(intrinsics.width), "height": int(intrinsics.height), "pixel_format": "rgb"}
+    if sample_border:
+        film["sample_border"] = True
     if crop is not None:
         film.update(zip(("crop_offset_x", "crop_offset_y", "crop_width", "crop_height"), map(int, crop)))
     return {
@@ -137,30 +141,40 @@ def include(parent: ET.Element, filename: str) -> ET.Element:
     return ET.SubElement(parent, "include", filename=filename)
 
 
-def set_values(path: Path, values: dict[str, Sequence[float]], out: Path) -> Path:
+def _property_of(by_id: dict[str, ET.Element], key: str, path: Path) -> tuple[ET.Element, list[str]]:
+    """The element holding ``mi.traverse`` key ``key`` (``<id>.<child>...<property>[.value]``):
+    the element with the first part as id is searched for the property named by the
+    last part that is not ``value``."""
+    parts = [p for p in key.split(".") if p != "value"]
+    owner = by_id.get(parts[0])
+    if owner is None:
+        raise PipelineError(f"{path}: no element with id '{parts[0]}' for parameter {key}")
+    matches = [e for e in owner.iter() if e.get("name") == parts[-1]]
+    if not matches and parts[-1] == "eta":
+        # Dielectrics are written with int_ior / ext_ior; Mitsuba exposes their ratio.
+        matches = [e for e in owner.iter() if e.get("name") == "int_ior"]
+    if len(matches) != 1 or matches[0].tag not in ("float", "rgb", "spectrum"):
+        raise PipelineError(f"{path}: cannot write {key}: its property '{parts[-1]}' under id "
+                            f"'{parts[0]}' is not one plain value (a texture or a reference)")  # fmt: skip
+    return matches[0], parts
+
+
+def set_values(path: Path, values: dict[str, Sequence[float]], out: Path,
+               textures: dict[str, ET.Element] | None = None) -> Path:  # fmt: skip
     """Copy the scene at ``path`` to ``out`` with fitted values written in (file names
-    it refers to are made relative to ``out``'s folder). Keys are
-    ``mi.traverse`` keys (``<id>.<child>...<property>[.value]``): the element with
-    the first part as id is searched for the property named by the last part that
-    is not ``value``. Textured properties cannot be written back as numbers."""
+    it refers to are made relative to ``out``'s folder). Keys are ``mi.traverse``
+    keys of plain values (see ``_property_of``). ``textures`` maps such keys to a
+    ``<texture>`` or ``<volume>`` element that takes the value's place (its file
+    names relative to ``out``)."""
     tree = ET.parse(path)
     by_id = {element.get("id"): element for element in tree.iter() if element.get("id")}
+    parents = {child: parent for parent in tree.iter() for child in parent}
     for key, value in values.items():
-        parts = [p for p in key.split(".") if p != "value"]
-        owner = by_id.get(parts[0])
-        if owner is None:
-            raise PipelineError(f"{path}: no element with id '{parts[0]}' for parameter {key}")
-        matches = [e for e in owner.iter() if e.get("name") == parts[-1]]
+        element, parts = _property_of(by_id, key, path)
         numbers = [float(v) for v in np.ravel(value)]
-        if not matches and parts[-1] == "eta":
-            # Dielectrics are written with int_ior / ext_ior; Mitsuba exposes their ratio.
-            matches = [e for e in owner.iter() if e.get("name") == "int_ior"]
-            exterior = [float(e.get("value")) for e in owner.iter() if e.get("name") == "ext_ior" and e.tag == "float"]
+        if element.get("name") == "int_ior" and parts[-1] == "eta":
+            exterior = [float(e.get("value")) for e in by_id[parts[0]].iter() if e.get("name") == "ext_ior" and e.tag == "float"]
             numbers = [numbers[0] * (exterior[0] if exterior else 1.000277)]
-        if len(matches) != 1 or matches[0].tag not in ("float", "rgb", "spectrum"):
-            raise PipelineError(f"{path}: cannot write {key} back: its property '{parts[-1]}' under id "
-                                f"'{parts[0]}' is not one plain value (a texture or a reference)")  # fmt: skip
-        element = matches[0]
         if element.tag == "float":
             element.set("value", _number(numbers[0]))
         else:
@@ -175,6 +189,12 @@ def set_values(path: Path, values: dict[str, Sequence[float]], out: Path) -> Pat
                 target = element.get(attribute)
                 if target and not Path(target).is_absolute() and (path.parent / target).exists():
                     element.set(attribute, os.path.relpath(path.parent / target, out.parent))
+    for key, texture in (textures or {}).items():
+        element, _ = _property_of(by_id, key, path)
+        parent = parents[element]
+        texture.set("name", element.get("name"))
+        parent.insert(list(parent).index(element), texture)
+        parent.remove(element)
     ET.indent(tree.getroot())
     tree.write(out, encoding="unicode", xml_declaration=True)
     return out

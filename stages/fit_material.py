@@ -119,15 +119,17 @@ def _window(mask: np.ndarray, max_size: int, margin: int = 8) -> tuple[float, tu
 
 
 def load_views(scene_dir: Path, description: dict, cameras: dict[str, tuple[Intrinsics, Pose]],
-               linear: dict[str, Path], masks: dict[str, Path], conf) -> list[tuple[fitting.FitView, tuple]]:  # fmt: skip
-    """Every photo as a FitView in its window, with the window's scaled camera and crop."""
+               linear: dict[str, Path], masks: dict[str, Path], max_size: int, erode_px: int,
+               spp: int, sample_border: bool = False) -> list[tuple[fitting.FitView, tuple]]:  # fmt: skip
+    """Every photo as a FitView in its window (longer side at most ``max_size`` px), with
+    the window's scaled camera and crop; weights are the mask eroded by ``erode_px``."""
     import mitsuba as mi
 
     shared_scene = mi.load_file(str(scene_dir / "scene.xml")) if description["light_frame"] == "world" else None
     views = []
     for name in sorted(description["views"]):
         mask = cv2.imread(str(masks[name]), cv2.IMREAD_GRAYSCALE) > 127
-        window = _window(mask, conf.max_size)
+        window = _window(mask, max_size)
         if window is None:
             logger.warning("%s: empty mask, left out of fitting", name)
             continue
@@ -139,13 +141,13 @@ def load_views(scene_dir: Path, description: dict, cameras: dict[str, tuple[Intr
         crop = (x, y, w, h)
         photo = read_photo(linear[name]).pixels
         reference = resize_exact(photo, scale)[y : y + h, x : x + w]
-        if conf.erode_px:
-            mask = cv2.erode(mask.astype(np.uint8), np.ones((2 * conf.erode_px + 1,) * 2, np.uint8)) > 0
+        if erode_px:
+            mask = cv2.erode(mask.astype(np.uint8), np.ones((2 * erode_px + 1,) * 2, np.uint8)) > 0
         coverage = resize_exact(mask.astype(np.float32), scale)
         weight = (coverage[y : y + h, x : x + w] > 0.999).astype(np.float32)
         scene = shared_scene or mi.load_file(str(scene_dir / description["views"][name]["xml"]))
-        sensor = scene_xml.load_sensor(scene_xml.sensor_properties(small, pose, conf.spp,
-                                                                   description["near_clip"], crop))  # fmt: skip
+        sensor = scene_xml.load_sensor(scene_xml.sensor_properties(small, pose, spp,
+                                                                   description["near_clip"], crop, sample_border))  # fmt: skip
         views.append((fitting.FitView(name, scene, sensor, np.ascontiguousarray(reference), weight), (small, crop)))
     return views
 
@@ -181,7 +183,8 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     mitsuba_variant.activate(inputs.shared["mitsuba"].variant)
     fitted = out_dir / "fitted"
     shutil.copytree(scene_source, fitted)
-    views = [view for view, _ in load_views(fitted, description, cameras, linear, masks, conf)]
+    views = [view for view, _ in load_views(fitted, description, cameras, linear, masks, conf.max_size,
+                                                     conf.erode_px, conf.spp)]
     held = set(held_out_names([v.name for v in views], conf.held_out))
     settings = fitting.FitSettings(**{f: getattr(conf, f) for f in fitting.FitSettings.__dataclass_fields__})
     result = fitting.fit(parameters, [v for v in views if v.name not in held], [v for v in views if v.name in held],
@@ -216,7 +219,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_material",
-    version=1,
+    version=2,
     config=Config,
     main=main,
     upstream=("scene", "sfm", "undistort", "masks"),

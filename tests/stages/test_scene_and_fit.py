@@ -95,3 +95,51 @@ def test_fit_material_rejects_bounds_of_unknown_parameters(bird_capture):
 
     with pytest.raises(PipelineError, match="alpha, not parameters of the principled model"):
         run_stages(bird_capture, "fit_material", *TINY_FIT, 'fit_material.bounds=["alpha=0.1:0.5"]')
+
+
+TINY_TEXTURE = ("fit_texture.levels=2", "fit_texture.max_resolution=32", "fit_texture.iterations_per_level=6",
+                "fit_texture.spp=4", "fit_texture.max_size=48", "fit_texture.validate_every=3",
+                "fit_texture.validation_spp=8", "fit_texture.loss=l2")  # fmt: skip
+
+
+def test_fit_texture_lowers_the_held_out_error_and_the_scene_loads_it(bird_capture, mi):
+    outputs = run_stages(bird_capture, "fit_texture", *TINY_FIT, *TINY_TEXTURE, "fit_texture.texture=on")
+    folder = outputs["fit_texture"]["textured_dir"]
+    report = json.loads((folder / "params.json").read_text())
+    assert report["kept"] and report["kind"] == "bitmap" and report["parameter"] == "base_color"
+    assert [level["resolution"] for level in report["levels"]] == [[16, 16], [32, 32]]
+    # The blotchy bird is what a texture is for.
+    assert report["validation_mse_texture"] < 0.9 * report["validation_mse_constant"]
+    assert {"base_color.exr", "base_color.png"} <= {p.name for p in folder.iterdir()}
+    texture = mi.traverse(mi.load_file(str(folder / "scene.xml")))["specimen.bsdf.base_color.data"]
+    assert texture.shape == (32, 32, 3) and 0.0 <= np.min(texture) and np.max(texture) <= 1.0
+    assert sorted(p.name for p in (folder / "heldout").glob("*.render.exr")) == [f"{n}.render.exr" for n in report["held_out"]]
+
+
+def test_fit_geometry_pulls_a_sphere_towards_the_silhouettes(bird_capture):
+    outputs = run_stages(bird_capture, "fit_geometry", *TINY_FIT, *TINY_TEXTURE, "fit_geometry.start=sphere",
+                         "fit_geometry.loss=silhouette", "fit_geometry.iterations=4", "fit_geometry.max_size=32",
+                         "fit_geometry.validate_every=4", "fit_geometry.validation_spp=8", "fit_geometry.spp=4",
+                         "fit_geometry.sphere_subdivisions=3", "fit_geometry.step=0.03")  # fmt: skip
+    report = json.loads((outputs["fit_geometry"]["geometry_dir"] / "params.json").read_text())
+    assert report["loss"] == "silhouette" and report["vertices"] == 642
+    # Slow on a CPU (see docs/benchmarks.md): four steps only show the direction.
+    assert report["validation_mse"] < report["validation_mse_start"]
+    assert report["median_vertex_move_of_diagonal"] > 0
+
+
+def test_export_writes_gltf_with_the_models_extensions(bird_capture):
+    import struct
+
+    outputs = run_stages(bird_capture, "export", *TINY_FIT, *TINY_TEXTURE, "fit_geometry.enabled=false")
+    data = outputs["export"]["glb"].read_bytes()
+    tree = json.loads(data[20 : 20 + struct.unpack("<I", data[12:16])[0]])
+    material = tree["materials"][0]
+    fitted = json.loads(outputs["fit_material"]["params"].read_text())["params"]
+    extensions = material["extensions"]
+    assert extensions["KHR_materials_transmission"]["transmissionFactor"] == pytest.approx(fitted["spec_trans"][0])
+    assert extensions["KHR_materials_ior"]["ior"] == pytest.approx(fitted["eta"][0])
+    assert set(tree["extensionsUsed"]) == {"KHR_materials_transmission", "KHR_materials_ior"}
+    # y up: the bird stands on y = 0.
+    positions = tree["accessors"][tree["meshes"][0]["primitives"][0]["attributes"]["POSITION"]]
+    assert positions["min"][1] > -0.005 and positions["max"][1] > 0.05

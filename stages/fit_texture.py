@@ -1,0 +1,262 @@
+"""Stage fit_texture: a colour that varies over the specimen, fitted coarse to fine.
+
+Starts from fit_material's scene and replaces one constant of the model by a
+texture initialised to that constant (pipeline.materials.TEXTURE_SLOTS):
+
+==========================  ==============================================================
+model                       texture
+==========================  ==============================================================
+opaque, principled          base_color as a bitmap on the mesh's UVs (uv stage)
+volumetric                  the medium's albedo as a grid volume over the specimen's box
+                            (a medium has no surface to carry a UV texture)
+==========================  ==============================================================
+
+The other parameters stay as fit_material left them. The texture is fitted by
+pipeline.fitting (the same loop, loss, views and held-out photos as
+fit_material) at ``levels`` resolutions, each twice the last, ending at
+``max_resolution`` texels a side (``max_grid_resolution`` along a grid's longest
+side); every level starts from the last one's best state, resampled. A
+smoothness prior (``smoothness`` times the mean squared difference of
+neighbouring texels) keeps texels from absorbing highlights and noise and fills
+texels no photo sees from their neighbours.
+
+Model only what the scene needs: with ``texture = "auto"`` the texture is kept
+only when it lowers the held-out error by at least ``min_improvement``
+(relative); otherwise the scene keeps fit_material's constant and says why.
+
+Outputs, all in textured/ (exported to CAPTURE/output/textured/):
+
+===================  ==========================================================
+file                 content
+===================  ==========================================================
+scene.xml, ...       the scene with the texture in specimen.xml; renders as-is
+base_color.exr/.png  the bitmap, linear EXR (what the scene loads) and sRGB PNG
+albedo.vol/.png      the grid volume (Mitsuba's format) and its z slices as PNG
+params.json          kept or not and why, validation error with and without the
+                     texture, per level: resolution, iterations, best iteration
+log.jsonl            per iteration: level, resolution, loss, validation error,
+                     the texture's per-channel mean, seconds
+loss.png             training loss and validation error against iteration
+heldout/             held-out renders, references and masks (as fit_material's)
+===================  ==========================================================
+
+Limitations: the prior links texels that are neighbours in the atlas, also
+across chart seams; UV charts (xatlas) leave texels between charts that only
+the prior sets. Held-out photos are fit_material's.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Annotated, Literal
+
+import cv2
+import numpy as np
+import trimesh
+from scipy import ndimage
+
+from pipeline import fitting, logger, materials, mitsuba_variant, scene_xml
+from pipeline.camera import read_views
+from pipeline.config import Range
+from pipeline.photo_io import to_uint8
+from pipeline.stage import Stage, StageInputs, StageResult
+from stages.fit_material import load_views, write_heldout
+from stages.masks import mask_files
+from stages.undistort import photo_files
+
+
+@dataclass(frozen=True)
+class Config:
+    """Texture fitting, coarse to fine."""
+
+    texture: Literal["auto", "on", "off"] = "auto"
+    """auto: keep the texture only when it lowers the held-out error by
+    ``min_improvement``; on: always keep it; off: keep fit_material's constant."""
+    min_improvement: Annotated[float, Range(0.0, 1.0)] = 0.05
+    """Relative drop of held-out MSE a texture must bring to be kept (auto)."""
+    levels: Annotated[int, Range(1, None)] = 3
+    """Resolutions fitted, each twice the last."""
+    max_resolution: Annotated[int, Range(4, None)] = 128
+    """Texels per side of the finest bitmap."""
+    max_grid_resolution: Annotated[int, Range(4, None)] = 32
+    """Voxels along the longest side of the finest albedo grid (volumetric model)."""
+    iterations_per_level: Annotated[int, Range(1, None)] = 30
+    """Most Adam steps per level."""
+    smoothness: Annotated[float, Range(0.0, None)] = 0.05
+    """Weight of the neighbour-difference prior (see the module docstring)."""
+    learning_rate: Annotated[float, Range(0.0, None, exclusive_lo=True)] = 0.03
+    """Adam step of every texel (colour units)."""
+    batch: Annotated[int, Range(1, None)] = 2
+    """Views rendered per step; their gradients add up before the step."""
+    spp: Annotated[int, Range(1, None)] = 16
+    """Samples per pixel of each training render."""
+    loss: Literal["l2", "dual"] = "dual"
+    """l2 or Deng et al.'s dual-buffer estimator (see fit_material)."""
+    max_size: Annotated[int, Range(16, None)] = 128
+    """Longer side, in pixels, of the window each view is rendered in."""
+    erode_px: Annotated[int, Range(0, None)] = 2
+    """Mask erosion at full resolution before scoring pixels."""
+    validate_every: Annotated[int, Range(1, None)] = 10
+    """Iterations between validation renders."""
+    validation_spp: Annotated[int, Range(1, None)] = 64
+    """Samples per pixel of validation renders (and 4x that for heldout/)."""
+    tolerance: Annotated[float, Range(0.0, None)] = 1e-3
+    """Stop a level when its mean loss over ``window`` iterations improves by less than this."""
+    window: Annotated[int, Range(1, None)] = 10
+    """Iterations per window of the tolerance test."""
+    seed: int = 0
+    """Seed of the batch order and the renders."""
+
+
+def level_shapes(conf: Config, kind: str, box_extent: np.ndarray) -> list[tuple[int, ...]]:
+    """Spatial shape of the texture at each level, coarsest first: (side, side) for a
+    bitmap, (z, y, x) proportional to the box for a grid."""
+    shapes = []
+    for level in range(conf.levels):
+        factor = 2 ** (conf.levels - 1 - level)
+        if kind == "bitmap":
+            side = max(conf.max_resolution // factor, 2)
+            shapes.append((side, side))
+        else:
+            longest = max(conf.max_grid_resolution // factor, 2)
+            x, y, z = np.maximum(np.round(longest * box_extent / box_extent.max()), 2).astype(int)
+            shapes.append((int(z), int(y), int(x)))
+    return shapes
+
+
+def resample(texture: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """Linear resampling to a new spatial shape, texel centres aligned."""
+    factors = [new / old for new, old in zip(shape, texture.shape[:-1])] + [1.0]
+    return ndimage.zoom(texture, factors, order=1, mode="nearest", grid_mode=True).astype(np.float32)
+
+
+def write_texture(folder: Path, slot: materials.TextureSlot, texture: np.ndarray, box: np.ndarray) -> ET.Element:
+    """Write the texture's files into ``folder``; the XML element that loads them."""
+    import mitsuba as mi
+
+    holder = ET.Element("holder")
+    name = slot.parameter
+    if slot.kind == "bitmap":
+        # float32, not write_image's half: the scene loads this file as the
+        # starting point of the optimisation, which needs full precision.
+        mi.Bitmap(np.ascontiguousarray(texture, dtype=np.float32)).write(str(folder / f"{name}.exr"))
+        cv2.imwrite(str(folder / f"{name}.png"), to_uint8(texture)[..., ::-1])
+        element = scene_xml.plugin(holder, "texture", {"type": "bitmap", "id": f"specimen_{name}",
+                                                       "filename": f"{name}.exr"})  # fmt: skip
+        return element
+    mi.VolumeGrid(texture).write(str(folder / f"{name}.vol"))
+    columns = int(np.ceil(np.sqrt(texture.shape[0])))
+    slices = [texture[z] for z in range(texture.shape[0])]
+    slices += [np.zeros_like(slices[0])] * (columns * columns - len(slices))
+    rows = [np.concatenate(slices[r * columns : (r + 1) * columns], axis=1) for r in range(columns)]
+    cv2.imwrite(str(folder / f"{name}.png"), to_uint8(np.concatenate(rows, axis=0)[::-1])[..., ::-1])
+    element = scene_xml.plugin(holder, "volume", {"type": "gridvolume", "id": f"specimen_{name}",
+                                                  "filename": f"{name}.vol"})  # fmt: skip
+    lower, upper = box
+    to_world = np.diag([*(upper - lower), 1.0])
+    to_world[:3, 3] = lower
+    scene_xml.transform_matrix(element, to_world)
+    return element
+
+
+def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
+    material_dir = inputs.upstream["fit_material"]["fitted_dir"]
+    material = json.loads(inputs.upstream["fit_material"]["params"].read_text())
+    description = json.loads(inputs.upstream["scene"]["description"].read_text())
+    model = description["model"]
+    slot = materials.TEXTURE_SLOTS[model]
+    textured = out_dir / "textured"
+    shutil.copytree(material_dir, textured, ignore=shutil.ignore_patterns("heldout", "log.jsonl", "loss.png", "params.json"))
+    report = {"model": model, "parameter": slot.parameter, "kind": slot.kind, "mode": conf.texture,
+              "constant": material["params"][slot.parameter], "held_out": material["held_out"]}  # fmt: skip
+    if conf.texture == "off":
+        shutil.copytree(material_dir / "heldout", textured / "heldout")
+        (textured / "params.json").write_text(json.dumps({**report, "kept": False, "reason": "texture = off"}, indent=1))
+        return StageResult({"textured_dir": textured}, {"kept": False})
+
+    mesh = trimesh.load(textured / "mesh.ply", force="mesh")
+    box = np.array([mesh.bounds[0] - 0.02 * mesh.extents, mesh.bounds[1] + 0.02 * mesh.extents])
+    shapes = level_shapes(conf, slot.kind, box[1] - box[0])
+    texture = np.broadcast_to(np.float32(material["params"][slot.parameter]), (*shapes[0], 3)).copy()
+    specimen = textured / "specimen.xml"
+    parameter_key = materials.PARAMETERS[slot.parameter].key
+    scene_xml.set_values(specimen, {}, specimen, textures={parameter_key: write_texture(textured, slot, texture, box)})
+
+    mitsuba_variant.activate(inputs.shared["mitsuba"].variant)
+    import mitsuba as mi
+
+    cameras = read_views(inputs.upstream["sfm"]["cameras"])
+    linear = {n: p["linear"] for n, p in photo_files(inputs.upstream["undistort"]["pinhole"]).items()}
+    masks = mask_files(inputs.upstream["masks"]["masks_json"])
+    views = [view for view, _ in load_views(textured, description, cameras, linear, masks, conf.max_size,
+                                                     conf.erode_px, conf.spp)]
+    held = set(material["held_out"])
+    training, validation = [v for v in views if v.name not in held], [v for v in views if v.name in held]
+    scenes = {id(v.scene): v.scene for v in views}
+    spec = materials.PARAMETERS[slot.parameter]
+    parameter = fitting.FitParameter(slot.parameter, slot.key, spec.lower, spec.upper, False, conf.learning_rate,
+                                     conf.smoothness)  # fmt: skip
+    settings = fitting.FitSettings(iterations=conf.iterations_per_level, batch=conf.batch, spp=conf.spp, loss=conf.loss,
+                                   validate_every=conf.validate_every, validation_spp=conf.validation_spp,
+                                   tolerance=conf.tolerance, window=conf.window, seed=conf.seed)  # fmt: skip
+    log, levels, constant_error = [], [], None
+    for level, shape in enumerate(shapes):
+        texture = resample(texture, shape)
+        for scene in scenes.values():
+            params = mi.traverse(scene)
+            params[slot.key] = mi.TensorXf(texture)
+            params.update()
+        result = fitting.fit([parameter], training, validation, replace(settings, seed=conf.seed + level))
+        texture = result.textures[slot.parameter]
+        if constant_error is None:
+            constant_error = result.start_validation_error
+        offset = len(log)
+        log += [{**e, "iteration": e["iteration"] + offset, "level": level, "resolution": list(shape)} for e in result.log]
+        levels.append({"resolution": list(shape), "iterations": len(result.log), "best_iteration": result.best_iteration,
+                       "validation_mse": result.validation_error, "stopped": result.stopped})  # fmt: skip
+        logger.info("level %d (%s texels): held-out MSE %s", level, "x".join(map(str, shape)), result.validation_error)
+    texture_error = levels[-1]["validation_mse"]
+    if constant_error is None:
+        kept, reason = True, "no held-out photos to decide with: kept"
+    else:
+        improvement = (constant_error - texture_error) / constant_error
+        kept = conf.texture == "on" or improvement >= conf.min_improvement
+        reason = (f"held-out MSE {constant_error:.4g} with the constant, {texture_error:.4g} with the texture "
+                  f"({100 * improvement:+.1f} %, threshold {100 * conf.min_improvement:g} %)")  # fmt: skip
+    logger.info("texture %s: %s", "kept" if kept else "not kept", reason)
+
+    with (textured / "log.jsonl").open("w") as handle:
+        for entry in log:
+            handle.write(json.dumps(entry) + "\n")
+    fitting.plot_loss(log, textured / "loss.png")
+    if kept:
+        write_texture(textured, slot, texture, box)
+        write_heldout(validation, 4 * conf.validation_spp, textured / "heldout")
+    else:
+        # The constant scene is what fit_material left: restore its file.
+        shutil.copy2(material_dir / "specimen.xml", specimen)
+        for leftover in textured.glob(f"{slot.parameter}.*"):
+            leftover.unlink()
+        shutil.copytree(material_dir / "heldout", textured / "heldout")
+    report |= {"kept": kept, "reason": reason, "validation_mse_constant": constant_error,
+               "validation_mse_texture": texture_error, "levels": levels,
+               "texture_mean": [float(v) for v in texture.reshape(-1, 3).mean(axis=0)],
+               "files": sorted(p.name for p in textured.glob(f"{slot.parameter}.*"))}  # fmt: skip
+    (textured / "params.json").write_text(json.dumps(report, indent=1))
+    return StageResult({"textured_dir": textured}, {"kept": kept, "validation_mse_constant": constant_error,
+                                                    "validation_mse_texture": texture_error})  # fmt: skip
+
+
+STAGE = Stage(
+    name="fit_texture",
+    version=1,
+    config=Config,
+    main=main,
+    upstream=("fit_material", "scene", "sfm", "undistort", "masks"),
+    shared=("mitsuba",),
+    exports=("textured_dir",),
+)

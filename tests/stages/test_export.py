@@ -1,0 +1,25 @@
+"""The glTF material mapping of stages.export, model by model."""
+
+import numpy as np
+import pytest
+
+from stages.export import gltf_material
+
+
+def test_volumetric_keeps_absorption_as_attenuation_at_the_mean_chord():
+    values = {"alpha": [0.04], "eta": [1.4], "albedo": [0.9, 0.5, 1.0], "sigma_t": [200.0]}
+    pbr, extensions = gltf_material("volumetric", values, thickness=0.01)
+    assert pbr["roughnessFactor"] == pytest.approx(0.2)  # glTF roughness is sqrt(GGX alpha)
+    volume = extensions["KHR_materials_volume"]
+    assert volume["attenuationDistance"] == volume["thicknessFactor"] == 0.01
+    # sigma_a = sigma_t (1 - albedo): 20, 100 and 0 per metre over 1 cm.
+    np.testing.assert_allclose(volume["attenuationColor"], np.exp([-0.2, -1.0, 0.0]), rtol=1e-6)
+    assert extensions["KHR_materials_transmission"]["transmissionFactor"] == 1.0
+
+
+def test_opaque_specular_becomes_the_matching_index_of_refraction():
+    values = {"base_color": [0.2, 0.3, 0.4], "roughness": [0.5], "specular": [0.5]}
+    pbr, extensions = gltf_material("opaque", values, thickness=0.01)
+    # specular 0.5 is F0 = 0.04, the reflectance of ior 1.5.
+    assert extensions == {"KHR_materials_ior": {"ior": pytest.approx(1.5)}}
+    assert pbr["baseColorFactor"] == [0.2, 0.3, 0.4, 1.0] and pbr["metallicFactor"] == 0.0
