@@ -168,6 +168,27 @@ def plot_loss(log: list[dict], path: Path) -> None:
     plt.close(figure)
 
 
+class _Batches:
+    """Views to render per step: a seeded permutation of the views (sorted by name by
+    the caller), drawn ``batch`` at a time, so results do not depend on the order
+    views were given in; each draw carries its own render seed (even: a second,
+    independent render may use seed + 1)."""
+
+    def __init__(self, views: list[FitView], batch: int, seed: int):
+        self.views, self.size = views, min(batch, len(views))
+        self.rng = np.random.default_rng(seed)
+        self.order: list[int] = []
+
+    def draw(self, iteration: int) -> list[tuple[FitView, int]]:
+        batch = []
+        for _ in range(self.size):
+            if not self.order:
+                self.order = [int(i) for i in self.rng.permutation(len(self.views))]
+            index = self.order.pop()
+            batch.append((self.views[index], (iteration * len(self.views) + index) * 2))
+        return batch
+
+
 class _Target:
     """A view's reference and pixel weights as Dr.Jit tensors, converted once rather
     than at every render."""
@@ -275,8 +296,7 @@ def fit(parameters: list[FitParameter], training: list[FitView], validation: lis
         return float(np.mean(errors))
 
     clamp()
-    rng = np.random.default_rng(settings.seed)
-    order: list[int] = []
+    batches = _Batches(training, settings.batch, settings.seed)
     started = time.perf_counter()
     best = {"values": current(), "iteration": 0, "error": validate(0) if validation else None}
     start_error = best["error"]
@@ -286,13 +306,8 @@ def fit(parameters: list[FitParameter], training: list[FitView], validation: lis
     stopped = "iterations"
     for iteration in range(1, settings.iterations + 1):
         total, relative = 0.0, 0.0
-        for _ in range(min(settings.batch, len(training))):
-            if not order:
-                order = [int(i) for i in rng.permutation(len(training))]
-            index = order.pop()
-            view = training[index]
+        for view, seed in batches.draw(iteration):
             apply(id(view.scene))
-            seed = (iteration * len(training) + index) * 2
             image = mi.render(view.scene, traversed[id(view.scene)], sensor=view.sensor, spp=settings.spp, seed=seed)
             if settings.exposure:
                 image = image * dr.exp(optimizer[f"exposure:{view.name}"])
@@ -304,7 +319,7 @@ def fit(parameters: list[FitParameter], training: list[FitView], validation: lis
                 loss = targets[view.name].dual(image, second, dr)
             else:
                 loss = targets[view.name].mse(image, dr)
-            dr.backward(loss / settings.batch)
+            dr.backward(loss / batches.size)
             value = float(loss.array[0])
             total += value
             # Views differ in brightness and size: the stopping rule compares each
@@ -413,35 +428,30 @@ def fit_shape(shape_id: str, training: list[FitView], validation: list[FitView],
     def validate() -> float:
         errors = []
         with dr.suspend_grad():
+            for scene_key in {id(view.scene) for view in validation}:
+                apply(scene_key)
             for index, view in enumerate(validation):
-                apply(id(view.scene))
                 image = mi.render(view.scene, sensor=view.sensor, integrator=integrator,
                                   spp=settings.validation_spp, seed=index)  # fmt: skip
                 errors.append(float(targets[view.name].mse(image, dr).array[0]))
         return float(np.mean(errors))
 
-    rng = np.random.default_rng(settings.seed)
-    order: list[int] = []
+    batches = _Batches(training, settings.batch, settings.seed)
     started = time.perf_counter()
     start_error = validate() if validation else None
     best = {"positions": positions(), "iteration": 0, "error": start_error}
     log: list[dict] = []
     for iteration in range(1, settings.iterations + 1):
         total = 0.0
-        views_per_step = min(settings.batch, len(training))
-        for _ in range(views_per_step):
-            if not order:
-                order = [int(i) for i in rng.permutation(len(training))]
-            index = order.pop()
-            view = training[index]
+        for view, seed in batches.draw(iteration):
             apply(id(view.scene))
             image = mi.render(view.scene, traversed[id(view.scene)], sensor=view.sensor, integrator=integrator,
-                              spp=settings.spp, seed=(iteration * len(training) + index) * 2)  # fmt: skip
+                              spp=settings.spp, seed=seed)  # fmt: skip
             loss = targets[view.name].mse(image, dr)
-            dr.backward(loss / views_per_step)
+            dr.backward(loss / batches.size)
             total += float(loss.array[0])
         optimizer.step()
-        entry = {"iteration": iteration, "loss": total / views_per_step, "seconds": time.perf_counter() - started}
+        entry = {"iteration": iteration, "loss": total / batches.size, "seconds": time.perf_counter() - started}
         if validation and (iteration % settings.validate_every == 0 or iteration == settings.iterations):
             entry["validation_error"] = validate()
             if entry["validation_error"] < best["error"]:

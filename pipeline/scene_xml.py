@@ -141,22 +141,26 @@ def include(parent: ET.Element, filename: str) -> ET.Element:
     return ET.SubElement(parent, "include", filename=filename)
 
 
-def _property_of(by_id: dict[str, ET.Element], key: str, path: Path) -> tuple[ET.Element, list[str]]:
-    """The element holding ``mi.traverse`` key ``key`` (``<id>.<child>...<property>[.value]``):
-    the element with the first part as id is searched for the property named by the
-    last part that is not ``value``."""
+def _property_of(by_id: dict[str, ET.Element], key: str, path: Path) -> tuple[ET.Element, float]:
+    """The element holding ``mi.traverse`` key ``key`` (``<id>.<child>...<property>[.value]``)
+    and the factor from Mitsuba's value to the file's: the element with the first
+    part as id is searched for the property named by the last part that is not
+    ``value``."""
     parts = [p for p in key.split(".") if p != "value"]
     owner = by_id.get(parts[0])
     if owner is None:
         raise PipelineError(f"{path}: no element with id '{parts[0]}' for parameter {key}")
     matches = [e for e in owner.iter() if e.get("name") == parts[-1]]
+    factor = 1.0
     if not matches and parts[-1] == "eta":
         # Dielectrics are written with int_ior / ext_ior; Mitsuba exposes their ratio.
         matches = [e for e in owner.iter() if e.get("name") == "int_ior"]
+        exterior = [float(e.get("value")) for e in owner.iter() if e.get("name") == "ext_ior" and e.tag == "float"]
+        factor = exterior[0] if exterior else 1.000277
     if len(matches) != 1 or matches[0].tag not in ("float", "rgb", "spectrum"):
         raise PipelineError(f"{path}: cannot write {key}: its property '{parts[-1]}' under id "
                             f"'{parts[0]}' is not one plain value (a texture or a reference)")  # fmt: skip
-    return matches[0], parts
+    return matches[0], factor
 
 
 def set_values(path: Path, values: dict[str, Sequence[float]], out: Path,
@@ -170,11 +174,8 @@ def set_values(path: Path, values: dict[str, Sequence[float]], out: Path,
     by_id = {element.get("id"): element for element in tree.iter() if element.get("id")}
     parents = {child: parent for parent in tree.iter() for child in parent}
     for key, value in values.items():
-        element, parts = _property_of(by_id, key, path)
-        numbers = [float(v) for v in np.ravel(value)]
-        if element.get("name") == "int_ior" and parts[-1] == "eta":
-            exterior = [float(e.get("value")) for e in by_id[parts[0]].iter() if e.get("name") == "ext_ior" and e.tag == "float"]
-            numbers = [numbers[0] * (exterior[0] if exterior else 1.000277)]
+        element, factor = _property_of(by_id, key, path)
+        numbers = [factor * float(v) for v in np.ravel(value)]
         if element.tag == "float":
             element.set("value", _number(numbers[0]))
         else:

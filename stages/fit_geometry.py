@@ -33,8 +33,10 @@ refined mesh.ply (UVs kept), params.json (loss, start, held-out error before and
 after, best iteration, vertices, seconds), log.jsonl, loss.png.
 
 Limitations: vertices move, connectivity does not (no remeshing), so a start
-far from the truth (the sphere) cannot grow handles or thin limbs; L2 loss,
-whose Monte Carlo noise adds a constant, not a bias in the shape.
+far from the truth (the sphere) cannot grow handles or thin limbs. The loss is
+plain L2 (one render per view, half the dual estimator's cost): its Monte Carlo
+variance counts in the loss and may pull the shape slightly towards renders with
+less noise. A render and backward step costs seconds even at 32-96 px on a CPU.
 """
 
 from __future__ import annotations
@@ -126,6 +128,10 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     source = inputs.upstream["fit_material" if conf.start == "sphere" else "fit_texture"]
     source_dir = source["fitted_dir" if conf.start == "sphere" else "textured_dir"]
     description = json.loads(inputs.upstream["scene"]["description"].read_text())
+    loss = conf.loss if conf.loss != "auto" else ("silhouette" if description["model"] == "volumetric" else "photometric")
+    if loss == "photometric" and description["model"] == "volumetric":
+        raise PipelineError("fit_geometry.loss = photometric: no Mitsuba integrator differentiates geometry through "
+                            "the volumetric model's medium; use loss = silhouette (or auto)")  # fmt: skip
     geometry = out_dir / "geometry"
     shutil.copytree(source_dir, geometry, ignore=shutil.ignore_patterns("heldout", "log.jsonl", "loss.png", "params.json"))
     report = {"enabled": conf.enabled, "start": conf.start, "model": description["model"]}
@@ -136,10 +142,6 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     hull = trimesh.load(geometry / "mesh.ply", force="mesh", process=False)
     if conf.start == "sphere":
         sphere_in_box(hull.bounds, conf.sphere_subdivisions).export(geometry / "mesh.ply")
-    loss = conf.loss if conf.loss != "auto" else ("silhouette" if description["model"] == "volumetric" else "photometric")
-    if loss == "photometric" and description["model"] == "volumetric":
-        raise PipelineError("fit_geometry.loss = photometric: no Mitsuba integrator differentiates geometry through "
-                            "the volumetric model's medium; use loss = silhouette (or auto)")  # fmt: skip
 
     mitsuba_variant.activate(inputs.shared["mitsuba"].variant)
     import mitsuba as mi
