@@ -24,20 +24,13 @@ from pipeline.camera import Intrinsics, read_cameras, undistort  # noqa: E402
 from pipeline.check import check_capture  # noqa: E402
 from pipeline.config import load_config  # noqa: E402
 from pipeline.photo_io import gray_uint8, read_photo  # noqa: E402
-from pipeline.runner import Runner, Selection  # noqa: E402
 from pipeline.score import score_masks  # noqa: E402
 from pipeline.sections import BoardSection, schema  # noqa: E402
 from stages import STAGES  # noqa: E402
 
-from report import write_section  # noqa: E402
+from report import run_stages, write_section  # noqa: E402
 
 POROUS_CUBE = ROOT.parent / "shared" / "captures" / "porous-cube"
-
-
-def run(capture: Path, *overrides: str) -> tuple[dict, dict]:
-    config = load_config(schema(STAGES), capture, "standard", list(overrides))
-    plan = Runner(capture, STAGES, config).run(Selection(until="masks"))
-    return {i.stage.name: i.entry.outputs for i in plan}, {i.stage.name: i.seconds for i in plan}
 
 
 def calibration_rows(capture: Path, outputs: dict) -> list[str]:
@@ -73,7 +66,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for sample in ("bird", "bird_volumetric"):
             capture = Path(shutil.copytree(ROOT / "sample_captures" / sample, Path(tmp) / sample))
-            outputs, seconds = run(capture)
+            outputs, seconds = run_stages(capture, "masks")
             rows += calibration_rows(capture, outputs)
             scores = list(score_masks(capture / "ground_truth", outputs["undistort"]["pinhole"],
                                       outputs["masks"]["masks_json"]).values())  # fmt: skip

@@ -23,25 +23,15 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from pipeline.camera import read_cameras, read_views  # noqa: E402
-from pipeline.config import load_config  # noqa: E402
-from pipeline.runner import Runner, Selection  # noqa: E402
 from pipeline.score import score_cameras, score_mesh  # noqa: E402
-from pipeline.sections import schema  # noqa: E402
 from pipeline.synth import SynthOptions, synthesize  # noqa: E402
-from stages import STAGES  # noqa: E402
 
-from report import write_section  # noqa: E402
+from report import run_stages, write_section  # noqa: E402
 
 POROUS_CUBE = ROOT.parent / "shared" / "captures" / "porous-cube"
 GEOMETRY_STAGES = ("sfm", "mesh", "cleanup", "uv")
 TURNTABLE = SynthOptions(views=24, rings=(25.0,), width=384, height=288, spp=16, rig="turntable", turn_jitter=0.4,
                          texture="plain", seed=0)  # fmt: skip
-
-
-def run(capture: Path, until: str, *overrides: str, force: tuple[str, ...] = ()) -> tuple[dict, dict]:
-    config = load_config(schema(STAGES), capture, "standard", list(overrides))
-    plan = Runner(capture, STAGES, config).run(Selection(until=until, force=force))
-    return {i.stage.name: i.entry.outputs for i in plan}, {i.stage.name: i.seconds for i in plan}
 
 
 def pose_errors(capture: Path, cameras_json: Path) -> dict:
@@ -64,7 +54,7 @@ def shape(mesh_ply: Path) -> dict:
 def bird_rows(tmp: Path) -> tuple[list[str], list[str], list[str]]:
     capture = Path(shutil.copytree(ROOT / "sample_captures" / "bird", tmp / "bird",
                                    ignore=shutil.ignore_patterns(".pipeline", "output")))  # fmt: skip
-    outputs, seconds = run(capture, "uv")
+    outputs, seconds = run_stages(capture, "uv")
     cameras = pose_errors(capture, outputs["sfm"]["cameras"])
     sfm = json.loads(outputs["sfm"]["report"].read_text())
     truth = trimesh.load(capture / "ground_truth" / "mesh.ply", force="mesh")
@@ -84,7 +74,7 @@ def bird_rows(tmp: Path) -> tuple[list[str], list[str], list[str]]:
     timing = [f"| bird ({cameras['images']} photos, 560x420) | " + " | ".join(f"{seconds[s]:.1f} s" for s in GEOMETRY_STAGES) + " |"]
     trade = []
     for resolution in (64, 96, 128, 192, 256):
-        outputs, seconds = run(capture, "mesh", f"mesh.resolution={resolution}")
+        outputs, seconds = run_stages(capture, "mesh", f"mesh.resolution={resolution}")
         mesh = trimesh.load(outputs["mesh"]["mesh"], force="mesh")
         trade.append(f"| {resolution} | {seconds['mesh']:.1f} s | {score_mesh(mesh, truth)['chamfer_pct_of_diagonal']:.2f} % |")
     return rows, timing, trade
@@ -98,7 +88,7 @@ def _shape_text(s: dict) -> str:
 
 def turntable_rows(tmp: Path) -> tuple[list[str], list[str]]:
     capture = synthesize(tmp / "turntable", TURNTABLE)
-    outputs, seconds = run(capture, "sfm")
+    outputs, seconds = run_stages(capture, "sfm")
     cameras = pose_errors(capture, outputs["sfm"]["cameras"])
     report = json.loads(outputs["sfm"]["report"].read_text())
     sources = ", ".join(f"{source} {len(names)}" for source, names in report["turntable"]["pose_source"].items())
@@ -119,7 +109,7 @@ def porous_rows(tmp: Path) -> tuple[list[str], list[str]]:
     (capture / "images").symlink_to(POROUS_CUBE / "images")
     (capture / "capture.toml").write_text('[capture]\nrig = "handheld"\n\n[board]\nkind = "none"\n\n'
                                           '[masks]\nsegmenter = "centre_prior"\n')  # fmt: skip
-    outputs, seconds = run(capture, "uv")
+    outputs, seconds = run_stages(capture, "uv")
     report = json.loads(outputs["sfm"]["report"].read_text())
     rows = [
         f"| porous-cube: photos registered | {report['registered']} of {report['photos']} "

@@ -1,10 +1,28 @@
-"""Writing benchmark results into docs/benchmarks.md, one marked section per benchmark."""
+"""What the benchmarks share: running the real stages, and writing results into
+docs/benchmarks.md, one marked section per benchmark."""
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
-BENCHMARKS = Path(__file__).resolve().parents[1] / "docs" / "benchmarks.md"
+ROOT = Path(__file__).resolve().parents[1]
+BENCHMARKS = ROOT / "docs" / "benchmarks.md"
+sys.path.insert(0, str(ROOT))
+
+
+def run_stages(capture: Path, until: str, *overrides: str, force: tuple[str, ...] = (),
+               preset: str = "standard") -> tuple[dict, dict]:  # fmt: skip
+    """The stage DAG on ``capture`` up to ``until``: (outputs, seconds) per stage; a
+    cached stage's seconds are those of the run that computed it."""
+    from pipeline.config import load_config
+    from pipeline.runner import Runner, Selection
+    from pipeline.sections import schema
+    from stages import STAGES
+
+    config = load_config(schema(STAGES), capture, preset, list(overrides))
+    plan = Runner(capture, STAGES, config).run(Selection(until=until, force=force))
+    return {i.stage.name: i.entry.outputs for i in plan}, {i.stage.name: i.seconds for i in plan}
 
 
 def write_section(name: str, lines: list[str]) -> str:

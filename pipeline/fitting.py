@@ -253,8 +253,26 @@ def fit(parameters: list[FitParameter], training: list[FitView], validation: lis
         params = traversed[scene_key]
         for parameter in parameters:
             latent = optimizer[parameter.name]
-            params[parameter.key] = dr.exp(latent) if parameter.log else latent
+            if parameter.log:
+                # exp of a float32 log-bound can land a hair outside the bound; clip
+                # the value, but pass the gradient straight through (a clip's gradient
+                # is zero there, which would pin the parameter to its bound for good)
+                value = dr.exp(latent)
+                latent = value + dr.detach(dr.clip(value, parameter.lower, parameter.upper) - value)
+            params[parameter.key] = latent
         params.update()
+
+    def drop_non_finite_gradients(iteration: int) -> None:
+        """Zero NaN or infinite gradient entries (with a warning) before the step: one
+        such entry turns Adam's state, and so the fit, into NaN for good. A degenerate
+        configuration causes them (Mitsuba's dielectric at eta = 1 exactly)."""
+        for key in optimizer.keys():
+            value = optimizer[key]
+            gradient = dr.grad(value)
+            finite = dr.isfinite(gradient)
+            if not dr.all(finite, axis=None):
+                dr.set_grad(value, dr.select(finite, gradient, 0))
+                logger.warning("iteration %d: non-finite gradient of %s dropped", iteration, key)
 
     textured = {p.name for p in parameters if dr.is_tensor_v(optimizer[p.name])}
 
@@ -262,7 +280,7 @@ def fit(parameters: list[FitParameter], training: list[FitView], validation: lis
         """Values as arrays: a texture (..., channels), else flat."""
         arrays = {p.name: np.array(optimizer[p.name], dtype=np.float64) for p in parameters}
         arrays = {n: a if n in textured else np.ravel(a) for n, a in arrays.items()}
-        return {p.name: np.exp(arrays[p.name]) if p.log else arrays[p.name] for p in parameters}
+        return {p.name: np.clip(np.exp(arrays[p.name]), p.lower, p.upper) if p.log else arrays[p.name] for p in parameters}
 
     priors = []
     for parameter in parameters:
@@ -327,6 +345,7 @@ def fit(parameters: list[FitParameter], training: list[FitView], validation: lis
             first_loss.setdefault(view.name, max(abs(value), 1e-12))
             relative += value / first_loss[view.name]
         add_prior()
+        drop_non_finite_gradients(iteration)
         optimizer.step()
         clamp()
         views_per_step = min(settings.batch, len(training))

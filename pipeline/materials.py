@@ -15,9 +15,14 @@ Mitsuba's principled BSDF derives ``specular`` from ``eta`` when it transmits
 (specular = ((eta - 1) / (eta + 1))^2 / 0.08) and rejects both at once, so the
 translucent model fits eta and the opaque one specular.
 
-Bounds (physically sensible, overridable in the fit stages' config): colours and
-albedo in [0, 1]; roughness and alpha in [0.001, 1] (a perfectly smooth surface
-is a different plugin); eta in [1, 3]; sigma_t in [0.1, 1e5] per metre. sigma_t,
+Bounds (physically sensible, overridable in the fit stages' config): colours in
+[0, 1], albedo in [0.001, 1]; roughness and alpha in [0.001, 1] (a perfectly
+smooth surface is a different plugin); eta in [1.001, 3]; sigma_t in [0.1, 1e5]
+per metre. Two lower bounds sit a hair above the physical edge, because the
+plugins degenerate there (measured by pipeline.stability, docs/benchmarks.md):
+at eta = 1 exactly the dielectric interface vanishes and roughdielectric's
+gradients are NaN; at albedo = 0 prbvolpath's gradient with respect to the
+albedo is exactly 0, so a channel clamped there could never come back. sigma_t,
 roughness and alpha are optimised as logarithms: they span decades, and a
 fixed step in the value overshoots a small roughness into the lower bound,
 where a highlight too sharp for the samples gives no gradient back.
@@ -60,10 +65,10 @@ PARAMETERS: dict[str, Parameter] = {
                   learning_rate=0.05),  # fmt: skip
         Parameter("specular", f"{SPECIMEN}.bsdf.specular", (0.5,), 0.0, 1.0, "1 (F0 / 0.08)"),
         Parameter("spec_trans", f"{SPECIMEN}.bsdf.spec_trans.value", (0.3,), 0.0, 1.0, "1 (fraction transmitted)"),
-        Parameter("eta", f"{SPECIMEN}.bsdf.eta", (1.5,), 1.0, 3.0, "1 (relative index of refraction)", learning_rate=0.01),
+        Parameter("eta", f"{SPECIMEN}.bsdf.eta", (1.5,), 1.001, 3.0, "1 (relative index of refraction)", learning_rate=0.01),
         Parameter("alpha", f"{SPECIMEN}.bsdf.alpha.value", (0.2,), 0.001, 1.0, "1 (GGX roughness)", log=True,
                   learning_rate=0.05),  # fmt: skip
-        Parameter("albedo", f"{SPECIMEN}.interior_medium.albedo.value.value", (0.8, 0.8, 0.8), 0.0, 1.0,
+        Parameter("albedo", f"{SPECIMEN}.interior_medium.albedo.value.value", (0.8, 0.8, 0.8), 0.001, 1.0,
                   "linear RGB single-scattering albedo"),  # fmt: skip
         Parameter("sigma_t", f"{SPECIMEN}.interior_medium.sigma_t.value.value", (50.0,), 0.1, 1e5,
                   "1/m (extinction, world units)", log=True, learning_rate=0.05),  # fmt: skip

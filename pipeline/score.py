@@ -17,6 +17,9 @@ params.json                fit_material     absolute error per parameter (relati
                                             sigma_t)
 heldout/NAME.render.exr    fit_material     PSNR against NAME.reference.exr on views
                                             held out from fitting
+textured/heldout/          fit_texture      the same, with the texture (or the constant
+                                            when fit_texture did not keep one)
+geometry/heldout/          fit_geometry     the same, for the scene the pipeline ends with
 =========================  ===============  ==============================================
 """
 
@@ -205,8 +208,10 @@ def score_capture(capture: Path) -> dict[str, Any]:
     if path := present("params.json", "fit_material"):
         truth = json.loads((truth_dir / "material.json").read_text())
         report["material"] = score_material(json.loads(path.read_text()), truth)
-    if path := present("heldout", "fit_material"):
-        report["heldout"] = score_heldout(path)
+    for folder, stage, part in (("heldout", "fit_material", "heldout"), ("textured/heldout", "fit_texture", "heldout_textured"),
+                                ("geometry/heldout", "fit_geometry", "heldout_geometry")):  # fmt: skip
+        if path := present(folder, stage):
+            report[part] = score_heldout(path)
     return report
 
 

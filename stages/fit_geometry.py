@@ -30,7 +30,10 @@ kept, so a refinement that does not help leaves the mesh as it was.
 
 Outputs, in geometry/ (exported to CAPTURE/output/geometry/): the scene with the
 refined mesh.ply (UVs kept), params.json (loss, start, held-out error before and
-after, best iteration, vertices, seconds), log.jsonl, loss.png.
+after, best iteration, vertices, seconds), log.jsonl, loss.png, and heldout/ as
+fit_material writes it, rendered with the final scene's material over the eroded
+mask (so ``pipeline score`` scores the scene the pipeline ends with; with
+``enabled = false``, fit_texture's heldout/ is passed through).
 
 Limitations: vertices move, connectivity does not (no remeshing), so a start
 far from the truth (the sphere) cannot grow handles or thin limbs. The loss is
@@ -56,7 +59,7 @@ from pipeline.camera import read_views, resize_exact
 from pipeline.config import Range
 from pipeline.errors import PipelineError
 from pipeline.stage import Stage, StageInputs, StageResult
-from stages.fit_material import load_views
+from stages.fit_material import load_views, write_heldout
 from stages.masks import mask_files
 from stages.undistort import photo_files
 
@@ -87,8 +90,10 @@ class Config:
     """Icosphere subdivisions of the sphere start (4: 2562 vertices)."""
     validate_every: Annotated[int, Range(1, None)] = 10
     """Iterations between held-out renders."""
-    validation_spp: Annotated[int, Range(1, None)] = 32
-    """Samples per pixel of held-out renders."""
+    validation_spp: Annotated[int, Range(1, None)] = 64
+    """Samples per pixel of held-out renders (and 4x that for heldout/)."""
+    erode_px: Annotated[int, Range(0, None)] = 2
+    """Mask erosion at full resolution of the pixels heldout/ scores (as fit_material's)."""
     seed: int = 0
     """Seed of the batch order and the renders."""
 
@@ -136,6 +141,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     shutil.copytree(source_dir, geometry, ignore=shutil.ignore_patterns("heldout", "log.jsonl", "loss.png", "params.json"))
     report = {"enabled": conf.enabled, "start": conf.start, "model": description["model"]}
     if not conf.enabled:
+        shutil.copytree(source_dir / "heldout", geometry / "heldout")
         (geometry / "params.json").write_text(json.dumps(report, indent=1))
         return StageResult({"geometry_dir": geometry}, {"enabled": False})
 
@@ -170,6 +176,9 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
     specimen = next(s for s in views[0].scene.shapes() if s.id() == "specimen")
     specimen.write_ply(str(geometry / "mesh.ply"))
+    final = load_views(geometry, description, cameras, linear, masks, conf.max_size, conf.erode_px, conf.validation_spp,
+                       names=held)  # fmt: skip
+    write_heldout([v for v, _ in final], 4 * conf.validation_spp, geometry / "heldout")
     with (geometry / "log.jsonl").open("w") as handle:
         for entry in result.log:
             handle.write(json.dumps(entry) + "\n")
@@ -188,7 +197,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_geometry",
-    version=1,
+    version=2,
     config=Config,
     main=main,
     upstream=("fit_texture", "fit_material", "scene", "sfm", "undistort", "masks"),

@@ -120,14 +120,16 @@ def _window(mask: np.ndarray, max_size: int, margin: int = 8) -> tuple[float, tu
 
 def load_views(scene_dir: Path, description: dict, cameras: dict[str, tuple[Intrinsics, Pose]],
                linear: dict[str, Path], masks: dict[str, Path], max_size: int, erode_px: int,
-               spp: int, sample_border: bool = False) -> list[tuple[fitting.FitView, tuple]]:  # fmt: skip
-    """Every photo as a FitView in its window (longer side at most ``max_size`` px), with
-    the window's scaled camera and crop; weights are the mask eroded by ``erode_px``."""
+               spp: int, sample_border: bool = False,
+               names: set[str] | None = None) -> list[tuple[fitting.FitView, tuple]]:  # fmt: skip
+    """Every photo (or those in ``names``) as a FitView in its window (longer side at most
+    ``max_size`` px), with the window's scaled camera and crop; weights are the mask
+    eroded by ``erode_px``."""
     import mitsuba as mi
 
     shared_scene = mi.load_file(str(scene_dir / "scene.xml")) if description["light_frame"] == "world" else None
     views = []
-    for name in sorted(description["views"]):
+    for name in sorted(description["views"] if names is None else set(description["views"]) & names):
         mask = cv2.imread(str(masks[name]), cv2.IMREAD_GRAYSCALE) > 127
         window = _window(mask, max_size)
         if window is None:
@@ -219,7 +221,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_material",
-    version=2,
+    version=3,
     config=Config,
     main=main,
     upstream=("scene", "sfm", "undistort", "masks"),

@@ -253,7 +253,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_texture",
-    version=1,
+    version=2,
     config=Config,
     main=main,
     upstream=("fit_material", "scene", "sfm", "undistort", "masks"),

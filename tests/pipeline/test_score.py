@@ -51,10 +51,11 @@ def perfect_outputs(capture, transform=None):
     params = {k: material[k] for k in ("base_color_mean", "roughness", "spec_trans", "eta")}
     params["base_color"] = params.pop("base_color_mean")
     (capture / "output" / "params.json").write_text(json.dumps({"model": material["model"], "params": params}))
-    (capture / "output" / "heldout").mkdir()
     image = np.random.default_rng(0).uniform(0, 1, (8, 8, 3))
-    write_exr(capture / "output" / "heldout" / "view_005.render.exr", image)
-    write_exr(capture / "output" / "heldout" / "view_005.reference.exr", image)
+    for folder in ("heldout", "textured/heldout", "geometry/heldout"):
+        (capture / "output" / folder).mkdir(parents=True)
+        write_exr(capture / "output" / folder / "view_005.render.exr", image)
+        write_exr(capture / "output" / folder / "view_005.reference.exr", image)
 
 
 def test_perfect_outputs_score_zero_error(capture):
@@ -68,7 +69,7 @@ def test_perfect_outputs_score_zero_error(capture):
     assert report["mesh"]["chamfer_pct_of_diagonal"] < 1e-6
     assert report["mesh"]["normal_consistency"] > 0.999999
     assert all(v == 0 for k, v in report["material"].items() if k.endswith("_error"))
-    assert report["heldout"]["psnr_db_mean"] == float("inf")
+    assert report["heldout"]["psnr_db_mean"] == report["heldout_geometry"]["psnr_db_mean"] == float("inf")
 
 
 def test_score_is_invariant_to_a_similarity_of_the_whole_reconstruction(capture):
@@ -171,7 +172,7 @@ def test_cli_scores_what_exists_and_lists_what_is_missing(capture, capsys):
     assert "not scored: cameras.json (sfm has not run)" in err
     report = json.loads((capture / "output" / "score.json").read_text())
     assert report["intrinsics"]["focal_error_pct"] == pytest.approx(2.0)
-    assert len(report["missing"]) == 4
+    assert len(report["missing"]) == 6  # cameras, mesh, params and three heldout folders
 
 
 def test_cli_refuses_a_capture_without_ground_truth(tmp_path, capsys):

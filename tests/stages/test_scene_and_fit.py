@@ -126,6 +126,7 @@ def test_fit_geometry_pulls_a_sphere_towards_the_silhouettes(bird_capture):
     # Slow on a CPU (see docs/benchmarks.md): four steps only show the direction.
     assert report["validation_mse"] < report["validation_mse_start"]
     assert report["median_vertex_move_of_diagonal"] > 0
+    assert score_heldout(outputs["fit_geometry"]["geometry_dir"] / "heldout")["views"] == len(report["held_out"])
 
 
 def test_export_writes_gltf_with_the_models_extensions(bird_capture):
