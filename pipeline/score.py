@@ -17,6 +17,10 @@ params.json                fit_material     absolute error per parameter (relati
                                             sigma_t)
 heldout/NAME.render.exr    fit_material     PSNR against NAME.reference.exr on views
                                             held out from fitting
+textured/base_color.exr    fit_texture      a kept base-colour texture against the true
+                                            mesh's vertex colours: mean and 90th percentile
+                                            absolute error per channel at points on the
+                                            true surface (and the constant's, for scale)
 textured/heldout/          fit_texture      the same, with the texture (or the constant
                                             when fit_texture did not keep one)
 geometry/heldout/          fit_geometry     the same, for the scene the pipeline ends with
@@ -148,6 +152,30 @@ def score_material(estimate: dict[str, Any], truth: dict[str, Any]) -> dict[str,
     return errors
 
 
+def score_texture(textured: trimesh.Trimesh, texture: np.ndarray, constant: np.ndarray, truth: trimesh.Trimesh,
+                  samples: int = 20000) -> dict[str, Any]:  # fmt: skip
+    """Per-channel error of a UV texture (linear, row 0 at v = 0, Mitsuba's convention)
+    on ``textured`` (aligned to ``truth``) against ``truth``'s sRGB vertex colours, at
+    points sampled on the true surface; each takes the texel of the nearest point of
+    a dense sampling of the textured mesh."""
+    from pipeline.photo_io import srgb_decode
+
+    points, faces = trimesh.sample.sample_surface(truth, samples, seed=0)
+    weights = trimesh.triangles.points_to_barycentric(truth.triangles[faces], points)
+    colours = truth.visual.vertex_colors[truth.faces[faces]][..., :3].astype(float) / 255
+    true_colour = srgb_decode(np.einsum("ij,ijk->ik", weights, colours))
+    dense, dense_faces = trimesh.sample.sample_surface(textured, 15 * samples, seed=1)
+    dense_weights = trimesh.triangles.points_to_barycentric(textured.triangles[dense_faces], dense)
+    uv = np.einsum("ij,ijk->ik", dense_weights, textured.visual.uv[textured.faces[dense_faces]])
+    _, nearest = cKDTree(dense).query(points)
+    height, width = texture.shape[:2]
+    rows = np.clip((uv[nearest, 1] * height).astype(int), 0, height - 1)
+    cols = np.clip((uv[nearest, 0] * width).astype(int), 0, width - 1)
+    error, constant_error = np.abs(texture[rows, cols, :3] - true_colour), np.abs(constant - true_colour)
+    return {"mean_abs_error": error.mean(axis=0).tolist(), "p90_abs_error": np.percentile(error, 90, axis=0).tolist(),
+            "constant_mean_abs_error": constant_error.mean(axis=0).tolist()}  # fmt: skip
+
+
 def read_linear_image(path: Path) -> np.ndarray:
     image = oiio.ImageBuf(str(path))
     if image.has_error:
@@ -208,6 +236,14 @@ def score_capture(capture: Path) -> dict[str, Any]:
     if path := present("params.json", "fit_material"):
         truth = json.loads((truth_dir / "material.json").read_text())
         report["material"] = score_material(json.loads(path.read_text()), truth)
+        texture = out_dir / "textured" / "params.json"
+        kept = json.loads(texture.read_text()) if texture.is_file() else {}
+        if truth.get("texture") and kept.get("kept") and kept["kind"] == "bitmap":
+            textured = trimesh.load(out_dir / "textured" / "mesh.ply", process=False)
+            textured.apply_transform(similarity.matrix())
+            report["texture"] = score_texture(textured, read_linear_image(out_dir / "textured" / "base_color.exr"),
+                                              np.asarray(json.loads(path.read_text())["params"]["base_color"]),
+                                              trimesh.load(truth_dir / "mesh.ply", process=False))  # fmt: skip
     for folder, stage, part in (("heldout", "fit_material", "heldout"), ("textured/heldout", "fit_texture", "heldout_textured"),
                                 ("geometry/heldout", "fit_geometry", "heldout_geometry")):  # fmt: skip
         if path := present(folder, stage):

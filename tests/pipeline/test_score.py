@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from pipeline import cli
 from pipeline.camera import Intrinsics, Pose, read_cameras, write_cameras
-from pipeline.score import score_cameras, score_capture, score_mesh
+from pipeline.score import score_cameras, score_capture, score_mesh, score_texture
 
 SIMILARITY = (2.3, Rotation.from_euler("xyz", [20, -35, 60], degrees=True).as_matrix(), np.array([1.0, -2.0, 0.5]))
 
@@ -179,3 +179,23 @@ def test_cli_refuses_a_capture_without_ground_truth(tmp_path, capsys):
     (tmp_path / "real").mkdir()
     assert cli.main(["score", str(tmp_path / "real")]) == 1
     assert "only synthetic captures" in capsys.readouterr().err
+
+
+def test_texture_score_reads_rows_from_v_zero_at_the_top():
+    from pipeline.photo_io import srgb_decode, to_uint8
+
+    sphere = trimesh.creation.icosphere(subdivisions=4)
+    red, blue = np.array([0.8, 0.1, 0.1]), np.array([0.1, 0.1, 0.8])
+    truth = sphere.copy()
+    upper = (truth.vertices[:, 2] > 0)[:, None]
+    truth.visual.vertex_colors = np.c_[to_uint8(np.where(upper, red, blue)), np.full(len(upper), 255, np.uint8)]
+    textured = sphere.copy()
+    # v grows downwards from the north pole: the texture's top rows are the upper half
+    uv = np.c_[np.full(len(sphere.vertices), 0.5), (1 - sphere.vertices[:, 2]) / 2]
+    textured.visual = trimesh.visual.TextureVisuals(uv=uv)
+    texture = np.zeros((64, 4, 3))
+    texture[:32], texture[32:] = red, blue
+    texture = srgb_decode(to_uint8(texture) / 255)  # the same 8-bit rounding as the truth
+    report = score_texture(textured, texture, np.array([0.45, 0.1, 0.45]), truth)
+    # only points next to the equator (blended vertex colours) differ
+    assert max(report["mean_abs_error"]) < 0.05 < min(report["constant_mean_abs_error"][0::2])
