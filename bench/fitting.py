@@ -123,6 +123,10 @@ def accuracy_part(work: Path) -> None:
         for parameter, (error, text) in _error_cells(material).items():
             rows.append(f"| {name} ({material['model']}) | {parameter} | {text} | {_target_text(parameter)} | "
                         f"{_met(parameter, error)} |")  # fmt: skip
+        if texture_score := report.get("texture"):
+            mean, p90 = max(texture_score["mean_abs_error"]), max(texture_score["p90_abs_error"])
+            rows.append(f"| {name} | base_color texture, mean abs error (p90) | {mean:.3f} ({p90:.3f}); the constant "
+                        f"{max(texture_score['constant_mean_abs_error']):.3f} | 0.03 | {_met('base_color', mean)} |")  # fmt: skip
         for part, label in (("heldout", "fit_material"), ("heldout_textured", "fit_texture"), ("heldout_geometry", "fit_geometry")):
             psnr = report[part]["psnr_db_mean"]
             rows.append(f"| {name} | held-out PSNR after {label} | {psnr:.1f} dB | {PSNR_TARGET:.0f} dB | "
