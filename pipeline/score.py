@@ -260,6 +260,11 @@ def summary_rows(report: dict[str, Any]) -> list[tuple[str, str, str]]:
         for name, value in metrics.items():
             if name in ("per_image", "per_view", "unregistered"):
                 continue
-            text = f"{value:.4g}" if isinstance(value, float) else str(value)
+            if isinstance(value, float):
+                text = f"{value:.4g}"
+            elif isinstance(value, list) and all(isinstance(v, float) for v in value):
+                text = " / ".join(f"{v:.3g}" for v in value)  # per channel
+            else:
+                text = str(value)
             rows.append((part, name, text))
     return rows
