@@ -17,7 +17,7 @@ Shared by the fit stages and ``pipeline fit``. The loop, per iteration:
 
 It stops at ``iterations``, when the time budget is spent, or when the mean
 training loss over the last ``window`` iterations improved by less than
-``tolerance`` (relative) on the window before; each view's loss counts relative
+``tolerance`` (relative; 0 turns the rule off) on the window before; each view's loss counts relative
 to its first value, so that a batch of bright views does not look like a setback.
 
 Losses: ``l2``, mean((I - R)^2); ``dual``, the dual-buffer estimator of Deng et
@@ -363,7 +363,7 @@ def fit(parameters: list[FitParameter], training: list[FitView], validation: lis
         if on_iteration is not None:
             on_iteration(entry)
         window = settings.window
-        if len(losses) >= 2 * window:
+        if settings.tolerance > 0 and len(losses) >= 2 * window:
             previous, recent = np.mean(losses[-2 * window : -window]), np.mean(losses[-window:])
             if previous > 0 and (previous - recent) / previous < settings.tolerance:
                 stopped = f"loss improved by less than {settings.tolerance:g} over {window} iterations"

@@ -80,7 +80,8 @@ class Config:
     validation_spp: Annotated[int, Range(1, None)] = 64
     """Samples per pixel of validation renders (and 4x that for heldout/)."""
     tolerance: Annotated[float, Range(0.0, None)] = 1e-3
-    """Stop when the mean loss over ``window`` iterations improves by less than this (relative)."""
+    """Stop when the mean loss over ``window`` iterations improves by less than this (relative);
+    0: never (run ``iterations``)."""
     window: Annotated[int, Range(1, None)] = 20
     """Iterations per window of the tolerance test."""
     time_budget_s: Annotated[float, Range(0.0, None)] = 0.0
@@ -221,7 +222,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_material",
-    version=3,
+    version=4,
     config=Config,
     main=main,
     upstream=("scene", "sfm", "undistort", "masks"),

@@ -211,3 +211,10 @@ def test_volumetric_fit_moves_every_parameter_toward_the_truth_within_bounds(mi,
         after = np.abs(np.subtract(result.values[name], truth[name]))
         assert np.all(after < before), (name, result.values)
     assert all(p.lower <= v <= p.upper for e in result.log for p in parameters for v in e["params"][p.name])
+
+
+def test_zero_tolerance_runs_every_iteration(mi, references, tmp_path):
+    views = _views(mi, _scene_file(tmp_path, [0.5, 0.5, 0.5], [0.7]), references / "references")
+    # A window of 2 sees the noise of 4 spp: with any tolerance the rule could fire.
+    settings = fitting.FitSettings(iterations=10, batch=1, spp=4, loss="dual", tolerance=0.0, window=2)
+    assert len(fitting.fit(PARAMETERS, views, [], settings).log) == 10
