@@ -31,7 +31,9 @@ where a highlight too sharp for the samples gives no gradient back.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, Mapping
+
+from pipeline.fitting import FitParameter
 
 MaterialModel = Literal["opaque", "principled", "volumetric"]
 
@@ -127,6 +129,14 @@ def bsdf_and_medium(model: MaterialModel, values: dict[str, tuple[float, ...]]) 
         bsdf["spec_trans"] = values["spec_trans"][0]
         bsdf["eta"] = values["eta"][0]
     return bsdf, None
+
+
+def fit_parameters(model: MaterialModel, bounds: Mapping[str, tuple[float, float]] | None = None) -> list[FitParameter]:
+    """The model's parameters for pipeline.fitting, ``bounds`` overriding the defaults
+    by name (names that are not the model's are ignored: callers check them)."""
+    bounds = bounds or {}
+    return [FitParameter(n, PARAMETERS[n].key, *bounds.get(n, (PARAMETERS[n].lower, PARAMETERS[n].upper)),
+                         PARAMETERS[n].log, PARAMETERS[n].learning_rate) for n in MODEL_PARAMETERS[model]]  # fmt: skip
 
 
 def initial_values(model: MaterialModel) -> dict[str, tuple[float, ...]]:

@@ -101,9 +101,7 @@ def probe(scene_file: Path, reference: list[np.ndarray], model: materials.Materi
     image = np.asarray(dr.detach(rendered))
 
     views = [fitting.FitView(f"view{i}", scene, s, reference[i]) for i, s in enumerate(scene.sensors())]
-    bounds = {n: (p.lower, p.upper) for n, p in materials.PARAMETERS.items()} | (bounds or {})
-    parameters = [fitting.FitParameter(n, materials.PARAMETERS[n].key, *bounds[n], materials.PARAMETERS[n].log,
-                                       materials.PARAMETERS[n].learning_rate) for n in materials.MODEL_PARAMETERS[model]]  # fmt: skip
+    parameters = materials.fit_parameters(model, bounds)
     started = time.perf_counter()
     result = fitting.fit(parameters, views, [], fitting.FitSettings(iterations=steps, batch=1, spp=spp, loss="l2",
                                                                     tolerance=0.0))  # fmt: skip

@@ -95,15 +95,11 @@ class Config:
 def fit_parameters(model: str, bounds: tuple[str, ...]) -> list[fitting.FitParameter]:
     """The model's parameters with their bounds, ``bounds`` overriding them."""
     overrides = fitting.parse_bounds(bounds, "fit_material.bounds")
-    result = []
-    for name in materials.MODEL_PARAMETERS[model]:
-        spec = materials.PARAMETERS[name]
-        lower, upper = overrides.pop(name, (spec.lower, spec.upper))
-        result.append(fitting.FitParameter(name, spec.key, lower, upper, spec.log, spec.learning_rate))
-    if overrides:
-        raise PipelineError(f"fit_material.bounds names {', '.join(overrides)}, not parameters of the {model} "
+    unknown = set(overrides) - set(materials.MODEL_PARAMETERS[model])
+    if unknown:
+        raise PipelineError(f"fit_material.bounds names {', '.join(sorted(unknown))}, not parameters of the {model} "
                             f"model ({', '.join(materials.MODEL_PARAMETERS[model])})")  # fmt: skip
-    return result
+    return materials.fit_parameters(model, overrides)
 
 
 def _window(mask: np.ndarray, max_size: int, margin: int = 8) -> tuple[float, tuple[int, int, int, int]] | None:

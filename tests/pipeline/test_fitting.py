@@ -202,8 +202,7 @@ def test_volumetric_fit_moves_every_parameter_toward_the_truth_within_bounds(mi,
         params[key] = type(params[key])(*value)
     params.update()
     views = [fitting.FitView(f"view{i}", scene, s, reference[i]) for i, s in enumerate(scene.sensors())]
-    parameters = [fitting.FitParameter(n, p.key, p.lower, p.upper, p.log, p.learning_rate)
-                  for n, p in ((n, materials.PARAMETERS[n]) for n in materials.MODEL_PARAMETERS["volumetric"])]  # fmt: skip
+    parameters = materials.fit_parameters("volumetric")
     result = fitting.fit(parameters, views, [], fitting.FitSettings(iterations=40, batch=3, spp=8, loss="dual",
                                                                      tolerance=0.0))  # fmt: skip
     for name in start:
