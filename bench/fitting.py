@@ -125,10 +125,10 @@ def accuracy_part(work: Path, samples: list[str]) -> None:
             continue
         report = score_capture(capture)
         (work / f"{name}.score.json").write_text(json.dumps(report, indent=1))
-        material = report["material"]
-        for parameter, (error, text) in _error_cells(material).items():
-            rows.append(f"| {name} ({material['model']}) | {parameter} | {text} | {_target_text(parameter)} | "
-                        f"{_met(parameter, error)} |")  # fmt: skip
+        for part, stage in (("material", "fit_material"), ("material_textured", "fit_texture")):
+            for parameter, (error, text) in _error_cells(report.get(part, {})).items():
+                rows.append(f"| {name} ({report[part]['model']}) | {parameter} after {stage} | {text} | "
+                            f"{_target_text(parameter)} | {_met(parameter, error)} |")  # fmt: skip
         if texture_score := report.get("texture"):
             mean, p90 = max(texture_score["mean_abs_error"]), max(texture_score["p90_abs_error"])
             rows.append(f"| {name} | base_color texture, mean abs error (p90) | {mean:.3f} ({p90:.3f}); the constant "
@@ -154,8 +154,9 @@ def accuracy_part(work: Path, samples: list[str]) -> None:
         "",
         f"`pipeline run` end to end on copies of {', '.join(samples)}, then",
         "`pipeline score`. Colour errors are the largest over the channels; the principled",
-        "bird's base colour is a texture, and fit_material's constant is scored against the",
-        "texture's mean. Held-out PSNR is over the specimen's (eroded) mask on the photos",
+        "bird's base colour is a texture, and fit_material's constant (and fit_texture's",
+        "texture mean) is scored against the texture's mean. fit_texture refits the other",
+        "constants along with a kept texture. Held-out PSNR is over the specimen's (eroded) mask on the photos",
         "fit_material holds out. Reproduce: `.venv/bin/python bench/fitting.py --parts accuracy`.",
         "",
         "| capture | measurement | result | target | met |",

@@ -93,9 +93,9 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     scene_dir = inputs.upstream["fit_geometry"]["geometry_dir"]
     material = json.loads(inputs.upstream["fit_material"]["params"].read_text())
     texture = json.loads((inputs.upstream["fit_texture"]["textured_dir"] / "params.json").read_text())
-    model, values = material["model"], dict(material["params"])
-    if texture["kept"] and texture["kind"] == "gridvolume":
-        values[texture["parameter"]] = texture["texture_mean"]
+    # A kept texture comes with fit_texture's constants (refitted along with it) and
+    # its mean in the textured parameter's place: a volume's albedo has no glTF texture.
+    model, values = material["model"], dict(texture["params"] if texture["kept"] else material["params"])
 
     mesh = trimesh.load(scene_dir / "mesh.ply", force="mesh", process=False)
     watertight = trimesh.Trimesh(mesh.vertices, mesh.faces)
@@ -131,7 +131,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="export",
-    version=1,
+    version=2,
     config=Config,
     main=main,
     upstream=("fit_geometry", "fit_texture", "fit_material"),

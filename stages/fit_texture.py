@@ -11,9 +11,12 @@ volumetric                  the medium's albedo as a grid volume over the specim
                             (a medium has no surface to carry a UV texture)
 ==========================  ==============================================================
 
-The other parameters stay as fit_material left them. The texture is fitted by
-pipeline.fitting (the same loop, loss, views and held-out photos as
-fit_material) at ``levels`` resolutions, each twice the last, ending at
+With ``refit_constants`` the model's other constants (roughness, spec_trans and
+eta; alpha, eta and sigma_t) are fitted again along with the texture, from
+fit_material's values and within its bounds: fitted next to a constant colour,
+they absorb some of the colour's variation (on the sample bird roughness ended
+0.15 off the truth). The texture is fitted by pipeline.fitting (the same loop,
+loss, views and held-out photos as fit_material) at ``levels`` resolutions, each twice the last, ending at
 ``max_resolution`` texels a side (``max_grid_resolution`` along a grid's longest
 side); every level starts from the last one's best state, resampled. A
 smoothness prior (``smoothness`` times the mean squared difference of
@@ -33,7 +36,9 @@ scene.xml, ...       the scene with the texture in specimen.xml; renders as-is
 base_color.exr/.png  the bitmap, linear EXR (what the scene loads) and sRGB PNG
 albedo.vol/.png      the grid volume (Mitsuba's format) and its z slices as PNG
 params.json          kept or not and why, validation error with and without the
-                     texture, per level: resolution, iterations, best iteration
+                     texture, per level: resolution, iterations, best iteration;
+                     ``params``: the model's values with the texture (its mean
+                     for the textured one), as fit_material's params.json
 log.jsonl            per iteration: level, resolution, loss, validation error,
                      the texture's per-channel mean, seconds
 loss.png             training loss and validation error against iteration
@@ -108,6 +113,9 @@ class Config:
     """Stop a level when its mean loss over ``window`` iterations improves by less than this."""
     window: Annotated[int, Range(1, None)] = 10
     """Iterations per window of the tolerance test."""
+    refit_constants: bool = True
+    """Fit the model's other constants again along with the texture (see the module
+    docstring); off: they stay as fit_material left them."""
     seed: int = 0
     """Seed of the batch order and the renders."""
 
@@ -198,8 +206,11 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     training, validation = [v for v in views if v.name not in held], [v for v in views if v.name in held]
     scenes = {id(v.scene): v.scene for v in views}
     spec = materials.PARAMETERS[slot.parameter]
-    parameter = fitting.FitParameter(slot.parameter, slot.key, spec.lower, spec.upper, False, conf.learning_rate,
-                                     conf.smoothness)  # fmt: skip
+    parameters = [fitting.FitParameter(slot.parameter, slot.key, spec.lower, spec.upper, False, conf.learning_rate,
+                                       conf.smoothness)]  # fmt: skip
+    constants = [n for n in materials.MODEL_PARAMETERS[model] if n != slot.parameter] if conf.refit_constants else []
+    parameters += [fitting.FitParameter(n, materials.PARAMETERS[n].key, *material["bounds"][n], materials.PARAMETERS[n].log,
+                                        materials.PARAMETERS[n].learning_rate) for n in constants]  # fmt: skip
     settings = fitting.FitSettings(iterations=conf.iterations_per_level, batch=conf.batch, spp=conf.spp, loss=conf.loss,
                                    validate_every=conf.validate_every, validation_spp=conf.validation_spp,
                                    tolerance=conf.tolerance, window=conf.window, seed=conf.seed)  # fmt: skip
@@ -210,7 +221,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
             params = mi.traverse(scene)
             params[slot.key] = mi.TensorXf(texture)
             params.update()
-        result = fitting.fit([parameter], training, validation, replace(settings, seed=conf.seed + level))
+        result = fitting.fit(parameters, training, validation, replace(settings, seed=conf.seed + level))
         texture = result.textures[slot.parameter]
         if constant_error is None:
             constant_error = result.start_validation_error
@@ -235,6 +246,9 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     fitting.plot_loss(log, textured / "loss.png")
     if kept:
         write_texture(textured, slot, texture, box)
+        scene_xml.set_values(specimen, {materials.PARAMETERS[n].key: result.values[n] for n in constants}, specimen)
+        report["params"] = {**material["params"], **result.values}
+        report["bounds"] = material["bounds"]
         write_heldout(validation, 4 * conf.validation_spp, textured / "heldout")
     else:
         # The constant scene is what fit_material left: restore its file.
@@ -253,7 +267,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_texture",
-    version=2,
+    version=3,
     config=Config,
     main=main,
     upstream=("fit_material", "scene", "sfm", "undistort", "masks"),

@@ -43,15 +43,15 @@ def synth_capture(tmp_path_factory, name: str, **options) -> Path:
     return synthesize(tmp_path_factory.mktemp("synth") / name, SynthOptions(**options))
 
 
-def run_stages(capture: Path, until: str, *overrides: str) -> dict[str, dict[str, Path]]:
-    """Run the real stage DAG on ``capture`` up to ``until``; outputs per stage."""
+def run_stages(capture: Path, until: str, *overrides: str, force: tuple[str, ...] = ()) -> dict[str, dict[str, Path]]:
+    """Run the real stage DAG on ``capture`` up to ``until`` (rerunning ``force``); outputs per stage."""
     from pipeline.config import load_config
     from pipeline.runner import Runner, Selection
     from pipeline.sections import schema
     from stages import STAGES
 
     config = load_config(schema(STAGES), capture, "standard", list(overrides))
-    plan = Runner(capture, STAGES, config).run(Selection(until=until))
+    plan = Runner(capture, STAGES, config).run(Selection(until=until, force=force))
     return {item.stage.name: item.entry.outputs for item in plan if item.entry is not None}
 
 

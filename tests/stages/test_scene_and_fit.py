@@ -111,8 +111,18 @@ def test_fit_texture_lowers_the_held_out_error_and_the_scene_loads_it(bird_captu
     # The blotchy bird is what a texture is for.
     assert report["validation_mse_texture"] < 0.9 * report["validation_mse_constant"]
     assert {"base_color.exr", "base_color.png"} <= {p.name for p in folder.iterdir()}
-    texture = mi.traverse(mi.load_file(str(folder / "scene.xml")))["specimen.bsdf.base_color.data"]
+    scene = mi.traverse(mi.load_file(str(folder / "scene.xml")))
+    texture = scene["specimen.bsdf.base_color.data"]
     assert texture.shape == (32, 32, 3) and 0.0 <= np.min(texture) and np.max(texture) <= 1.0
+    # The other constants were fitted again along with the texture, within
+    # fit_material's bounds, and the scene carries the new values.
+    constants = json.loads(outputs["fit_material"]["params"].read_text())["params"]
+    for name in ("roughness", "spec_trans", "eta"):
+        value = report["params"][name][0]
+        assert value != constants[name][0], name
+        assert report["bounds"][name][0] <= value <= report["bounds"][name][1], name
+        assert np.ravel(scene[f"specimen.bsdf.{name}" + ("" if name == "eta" else ".value")])[0] == pytest.approx(value, rel=1e-5)
+    np.testing.assert_allclose(report["params"]["base_color"], np.mean(texture, axis=(0, 1)), atol=1e-4)
     assert sorted(p.name for p in (folder / "heldout").glob("*.render.exr")) == [f"{n}.render.exr" for n in report["held_out"]]
 
 
@@ -136,7 +146,8 @@ def test_export_writes_gltf_with_the_models_extensions(bird_capture):
     data = outputs["export"]["glb"].read_bytes()
     tree = json.loads(data[20 : 20 + struct.unpack("<I", data[12:16])[0]])
     material = tree["materials"][0]
-    fitted = json.loads(outputs["fit_material"]["params"].read_text())["params"]
+    textured = json.loads((outputs["fit_texture"]["textured_dir"] / "params.json").read_text())
+    fitted = textured["params"] if textured["kept"] else json.loads(outputs["fit_material"]["params"].read_text())["params"]
     extensions = material["extensions"]
     assert extensions["KHR_materials_transmission"]["transmissionFactor"] == pytest.approx(fitted["spec_trans"][0])
     assert extensions["KHR_materials_ior"]["ior"] == pytest.approx(fitted["eta"][0])
