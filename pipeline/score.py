@@ -15,8 +15,8 @@ mesh.ply                   mesh/cleanup/uv  Chamfer distance (% of the true boun
                                             aligned frame
 params.json                fit_material     absolute error per parameter (relative for
                                             sigma_t)
-textured/params.json       fit_texture      the same for the constants refitted with a
-                                            kept texture (its mean for the texture)
+textured/params.json       fit_texture      the same for the constants fit_texture
+                                            refitted (a kept texture's mean for it)
 heldout/NAME.render.exr    fit_material     PSNR against NAME.reference.exr on views
                                             held out from fitting
 textured/base_color.exr    fit_texture      a kept base-colour texture against the true
@@ -240,8 +240,8 @@ def score_capture(capture: Path) -> dict[str, Any]:
         report["material"] = score_material(json.loads(path.read_text()), truth)
         texture = out_dir / "textured" / "params.json"
         kept = json.loads(texture.read_text()) if texture.is_file() else {}
-        if kept.get("kept") and "params" in kept:
-            report["material_textured"] = score_material(kept, truth)
+        if "params" in kept:
+            report["material_fit_texture"] = score_material(kept, truth)
         if truth.get("texture") and kept.get("kept") and kept["kind"] == "bitmap":
             textured = trimesh.load(out_dir / "textured" / "mesh.ply", process=False)
             textured.apply_transform(similarity.matrix())

@@ -93,9 +93,9 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     scene_dir = inputs.upstream["fit_geometry"]["geometry_dir"]
     material = json.loads(inputs.upstream["fit_material"]["params"].read_text())
     texture = json.loads((inputs.upstream["fit_texture"]["textured_dir"] / "params.json").read_text())
-    # A kept texture comes with fit_texture's constants (refitted along with it) and
-    # its mean in the textured parameter's place: a volume's albedo has no glTF texture.
-    model, values = material["model"], dict(texture["params"] if texture["kept"] else material["params"])
+    # fit_texture's values: its refitted constants, and a kept texture's mean in the
+    # textured parameter's place (a volume's albedo has no glTF texture).
+    model, values = material["model"], dict(texture["params"])
 
     mesh = trimesh.load(scene_dir / "mesh.ply", force="mesh", process=False)
     watertight = trimesh.Trimesh(mesh.vertices, mesh.faces)

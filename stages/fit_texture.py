@@ -12,11 +12,13 @@ volumetric                  the medium's albedo as a grid volume over the specim
 ==========================  ==============================================================
 
 With ``refit_constants`` the model's other constants (roughness, spec_trans and
-eta; alpha, eta and sigma_t) are fitted again along with the texture, from
-fit_material's values and within its bounds: fitted next to a constant colour,
-they absorb some of the colour's variation (on the sample bird roughness ended
-0.15 off the truth). The texture is fitted by pipeline.fitting (the same loop,
-loss, views and held-out photos as fit_material) at ``levels`` resolutions, each twice the last, ending at
+eta; alpha, eta and sigma_t) are fitted again, from fit_material's values and
+within its bounds: first alone (``iterations_per_level`` steps, the colour still
+constant), then along with the texture at every level. Fitted next to a
+constant colour they absorb some of the colour's variation (on the sample bird
+roughness ended 0.15 off the truth). The texture is fitted by pipeline.fitting
+(the same loop, loss, views and held-out photos as fit_material) at ``levels``
+resolutions, each twice the last, ending at
 ``max_resolution`` texels a side (``max_grid_resolution`` along a grid's longest
 side); every level starts from the last one's best state, resampled. A
 smoothness prior (``smoothness`` times the mean squared difference of
@@ -25,7 +27,8 @@ texels no photo sees from their neighbours.
 
 Model only what the scene needs: with ``texture = "auto"`` the texture is kept
 only when it lowers the held-out error by at least ``min_improvement``
-(relative); otherwise the scene keeps fit_material's constant and says why.
+(relative) below that of the refitted constants; otherwise the scene keeps the
+constant colour, with the refitted constants, and says why.
 
 Outputs, all in textured/ (exported to CAPTURE/output/textured/):
 
@@ -36,9 +39,10 @@ scene.xml, ...       the scene with the texture in specimen.xml; renders as-is
 base_color.exr/.png  the bitmap, linear EXR (what the scene loads) and sRGB PNG
 albedo.vol/.png      the grid volume (Mitsuba's format) and its z slices as PNG
 params.json          kept or not and why, validation error with and without the
-                     texture, per level: resolution, iterations, best iteration;
-                     ``params``: the model's values with the texture (its mean
-                     for the textured one), as fit_material's params.json
+                     texture, per level (and for the constants alone):
+                     resolution, iterations, best iteration; ``params`` and
+                     ``bounds``: the scene's values as in fit_material's
+                     params.json (a kept texture's mean for the textured one)
 log.jsonl            per iteration: level, resolution, loss, validation error,
                      the texture's per-channel mean, seconds
 loss.png             training loss and validation error against iteration
@@ -183,7 +187,8 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
               "constant": material["params"][slot.parameter], "held_out": material["held_out"]}  # fmt: skip
     if conf.texture == "off":
         shutil.copytree(material_dir / "heldout", textured / "heldout")
-        (textured / "params.json").write_text(json.dumps({**report, "kept": False, "reason": "texture = off"}, indent=1))
+        report |= {"kept": False, "reason": "texture = off", "params": material["params"], "bounds": material["bounds"]}
+        (textured / "params.json").write_text(json.dumps(report, indent=1))
         return StageResult({"textured_dir": textured}, {"kept": False})
 
     mesh = trimesh.load(textured / "mesh.ply", force="mesh")
@@ -214,21 +219,36 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     settings = fitting.FitSettings(iterations=conf.iterations_per_level, batch=conf.batch, spp=conf.spp, loss=conf.loss,
                                    validate_every=conf.validate_every, validation_spp=conf.validation_spp,
                                    tolerance=conf.tolerance, window=conf.window, seed=conf.seed)  # fmt: skip
-    log, levels, constant_error = [], [], None
+    log, levels = [], []
+
+    def record(result: fitting.FitResult, level: int | str, shape: tuple[int, ...] | None) -> dict:
+        offset = len(log)
+        log.extend({**e, "iteration": e["iteration"] + offset, "level": level, "resolution": shape and list(shape)}
+                   for e in result.log)  # fmt: skip
+        return {"resolution": shape and list(shape), "iterations": len(result.log), "best_iteration": result.best_iteration,
+                "validation_mse": result.validation_error, "stopped": result.stopped}  # fmt: skip
+
+    refitted, constant_error = {}, None
+    if constants:
+        # The constants alone first, the colour still constant: the texture must then
+        # earn its place against the refitted constant model, not against
+        # fit_material's (a texture-free specimen's texture was kept on what the
+        # constants alone gained).
+        result = fitting.fit(parameters[1:], training, validation, settings)
+        refitted, constant_error = {n: result.values[n] for n in constants}, result.validation_error
+        report["constants_fit"] = record(result, "constants", None)
+        logger.info("constants refitted: held-out MSE %s", result.validation_error)
     for level, shape in enumerate(shapes):
         texture = resample(texture, shape)
         for scene in scenes.values():
             params = mi.traverse(scene)
             params[slot.key] = mi.TensorXf(texture)
             params.update()
-        result = fitting.fit(parameters, training, validation, replace(settings, seed=conf.seed + level))
+        result = fitting.fit(parameters, training, validation, replace(settings, seed=conf.seed + level + 1))
         texture = result.textures[slot.parameter]
         if constant_error is None:
             constant_error = result.start_validation_error
-        offset = len(log)
-        log += [{**e, "iteration": e["iteration"] + offset, "level": level, "resolution": list(shape)} for e in result.log]
-        levels.append({"resolution": list(shape), "iterations": len(result.log), "best_iteration": result.best_iteration,
-                       "validation_mse": result.validation_error, "stopped": result.stopped})  # fmt: skip
+        levels.append(record(result, level, shape))
         logger.info("level %d (%s texels): held-out MSE %s", level, "x".join(map(str, shape)), result.validation_error)
     texture_error = levels[-1]["validation_mse"]
     if constant_error is None:
@@ -246,15 +266,21 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     fitting.plot_loss(log, textured / "loss.png")
     if kept:
         write_texture(textured, slot, texture, box)
-        scene_xml.set_values(specimen, {materials.PARAMETERS[n].key: result.values[n] for n in constants}, specimen)
-        report["params"] = {**material["params"], **result.values}
-        report["bounds"] = material["bounds"]
-        write_heldout(validation, 4 * conf.validation_spp, textured / "heldout")
+        values = {n: result.values[n] for n in constants}
     else:
-        # The constant scene is what fit_material left: restore its file.
+        # fit_material's constant scene, with the refitted constants.
         shutil.copy2(material_dir / "specimen.xml", specimen)
         for leftover in textured.glob(f"{slot.parameter}.*"):
             leftover.unlink()
+        values = refitted
+    scene_xml.set_values(specimen, {materials.PARAMETERS[n].key: v for n, v in values.items()}, specimen)
+    report["params"] = {**material["params"], **(result.values if kept else refitted)}
+    report["bounds"] = material["bounds"]
+    if kept or refitted:
+        held_views = [view for view, _ in load_views(textured, description, cameras, linear, masks, conf.max_size,
+                                                     conf.erode_px, conf.spp, names=held)]  # fmt: skip
+        write_heldout(held_views, 4 * conf.validation_spp, textured / "heldout")
+    else:
         shutil.copytree(material_dir / "heldout", textured / "heldout")
     report |= {"kept": kept, "reason": reason, "validation_mse_constant": constant_error,
                "validation_mse_texture": texture_error, "levels": levels,

@@ -126,6 +126,25 @@ def test_fit_texture_lowers_the_held_out_error_and_the_scene_loads_it(bird_captu
     assert sorted(p.name for p in (folder / "heldout").glob("*.render.exr")) == [f"{n}.render.exr" for n in report["held_out"]]
 
 
+def test_a_texture_not_kept_leaves_the_constant_colour_with_the_refitted_constants(bird_capture, mi):
+    """The texture must beat the refitted constants; min_improvement = 1 means it never
+    does. The scene then has fit_material's constant colour and the constants that
+    fit_texture refitted alone, and heldout/ renders that scene."""
+    outputs = run_stages(bird_capture, "fit_texture", *TINY_FIT, *TINY_TEXTURE, "fit_texture.min_improvement=1.0")
+    folder = outputs["fit_texture"]["textured_dir"]
+    report = json.loads((folder / "params.json").read_text())
+    constants = json.loads(outputs["fit_material"]["params"].read_text())["params"]
+    assert not report["kept"] and not list(folder.glob("base_color.*"))
+    assert report["constants_fit"]["iterations"] == 6 and report["params"]["base_color"] == constants["base_color"]
+    scene = mi.traverse(mi.load_file(str(folder / "scene.xml")))
+    np.testing.assert_allclose(np.ravel(scene["specimen.bsdf.base_color.value"]), constants["base_color"], rtol=1e-5)
+    assert np.ravel(scene["specimen.bsdf.roughness.value"])[0] == pytest.approx(report["params"]["roughness"][0], rel=1e-5)
+    assert report["params"]["roughness"] != constants["roughness"]
+    heldout = score_heldout(folder / "heldout")
+    assert heldout["views"] == 2
+    assert heldout["psnr_db_mean"] != score_heldout(outputs["fit_material"]["heldout"])["psnr_db_mean"]
+
+
 def test_fit_geometry_pulls_a_sphere_towards_the_silhouettes(bird_capture):
     outputs = run_stages(bird_capture, "fit_geometry", *TINY_FIT, *TINY_TEXTURE, "fit_geometry.start=sphere",
                          "fit_geometry.loss=silhouette", "fit_geometry.iterations=4", "fit_geometry.max_size=32",
@@ -147,7 +166,7 @@ def test_export_writes_gltf_with_the_models_extensions(bird_capture):
     tree = json.loads(data[20 : 20 + struct.unpack("<I", data[12:16])[0]])
     material = tree["materials"][0]
     textured = json.loads((outputs["fit_texture"]["textured_dir"] / "params.json").read_text())
-    fitted = textured["params"] if textured["kept"] else json.loads(outputs["fit_material"]["params"].read_text())["params"]
+    fitted = textured["params"]
     extensions = material["extensions"]
     assert extensions["KHR_materials_transmission"]["transmissionFactor"] == pytest.approx(fitted["spec_trans"][0])
     assert extensions["KHR_materials_ior"]["ior"] == pytest.approx(fitted["eta"][0])
