@@ -118,8 +118,8 @@ class Config:
     window: Annotated[int, Range(1, None)] = 10
     """Iterations per window of the tolerance test."""
     refit_constants: bool = True
-    """Fit the model's other constants again along with the texture (see the module
-    docstring); off: they stay as fit_material left them."""
+    """Fit the model's other constants again, alone and then along with the texture
+    (see the module docstring); off: they stay as fit_material left them."""
     seed: int = 0
     """Seed of the batch order and the renders."""
 
