@@ -50,9 +50,9 @@ PSNR_TARGET = 30.0
 FRONT_STAGES = ("calibrate", "undistort", "masks", "sfm", "mesh", "cleanup", "uv")
 FIT_STAGES = ("scene", "fit_material", "fit_texture", "fit_geometry", "export")
 # (max_size, spp, loss) of fit_material; the standard preset is (128, 16, dual)
-TRADE = ((64, 4, "dual"), (64, 16, "dual"), (128, 4, "dual"), (128, 16, "dual"), (128, 16, "l2"))
+TRADE = ((64, 4, "dual"), (64, 16, "dual"), (128, 4, "dual"), (128, 16, "dual"), (128, 16, "l2"), (256, 16, "dual"))
 # (max_resolution, smoothness, max_size) of fit_texture; the standard preset is (128, 0.05, 128)
-TEXTURE_TRADE = ((64, 0.05, 128), (128, 0.05, 128), (256, 0.05, 128), (256, 0.01, 128))
+TEXTURE_TRADE = ((64, 0.05, 128), (128, 0.05, 128), (256, 0.05, 128), (256, 0.01, 128), (256, 0.05, 192))
 EXTRA_PROBES = {"principled": [("eta", 1.0, {"eta": (1.0, 3.0)})],
                 "volumetric": [("eta", 1.0, {"eta": (1.0, 3.0)}), ("albedo", 0.0, {"albedo": (0.0, 1.0)}),
                                ("sigma_t", 1e4, None)]}  # fmt: skip

@@ -293,7 +293,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_texture",
-    version=3,
+    version=4,
     config=Config,
     main=main,
     upstream=("fit_material", "scene", "sfm", "undistort", "masks"),
