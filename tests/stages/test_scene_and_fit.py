@@ -129,7 +129,7 @@ def test_fit_texture_lowers_the_held_out_error_and_the_scene_loads_it(bird_captu
 def test_a_texture_not_kept_leaves_the_constant_colour_with_the_refitted_constants(bird_capture, mi):
     """The texture must beat the refitted constants; min_improvement = 1 means it never
     does. The scene then has fit_material's constant colour and the constants that
-    fit_texture refitted alone, and heldout/ renders that scene."""
+    fit_texture refitted alone."""
     outputs = run_stages(bird_capture, "fit_texture", *TINY_FIT, *TINY_TEXTURE, "fit_texture.min_improvement=1.0")
     folder = outputs["fit_texture"]["textured_dir"]
     report = json.loads((folder / "params.json").read_text())
@@ -138,11 +138,12 @@ def test_a_texture_not_kept_leaves_the_constant_colour_with_the_refitted_constan
     assert report["constants_fit"]["iterations"] == 6 and report["params"]["base_color"] == constants["base_color"]
     scene = mi.traverse(mi.load_file(str(folder / "scene.xml")))
     np.testing.assert_allclose(np.ravel(scene["specimen.bsdf.base_color.value"]), constants["base_color"], rtol=1e-5)
-    assert np.ravel(scene["specimen.bsdf.roughness.value"])[0] == pytest.approx(report["params"]["roughness"][0], rel=1e-5)
-    assert report["params"]["roughness"] != constants["roughness"]
-    heldout = score_heldout(folder / "heldout")
-    assert heldout["views"] == 2
-    assert heldout["psnr_db_mean"] != score_heldout(outputs["fit_material"]["heldout"])["psnr_db_mean"]
+    # Six steps may not beat fit_material's values (then the best state is the start):
+    # what counts is that the scene holds what params.json says.
+    for name in ("roughness", "spec_trans"):
+        assert np.ravel(scene[f"specimen.bsdf.{name}.value"])[0] == pytest.approx(report["params"][name][0], rel=1e-5)
+    assert np.ravel(scene["specimen.bsdf.eta"])[0] == pytest.approx(report["params"]["eta"][0], rel=1e-5)
+    assert score_heldout(folder / "heldout")["views"] == 2
 
 
 def test_fit_geometry_pulls_a_sphere_towards_the_silhouettes(bird_capture):
