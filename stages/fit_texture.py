@@ -266,15 +266,17 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     fitting.plot_loss(log, textured / "loss.png")
     if kept:
         write_texture(textured, slot, texture, box)
-        values = {n: result.values[n] for n in constants}
+        constant_values = {n: result.values[n] for n in constants}
     else:
         # fit_material's constant scene, with the refitted constants.
         shutil.copy2(material_dir / "specimen.xml", specimen)
         for leftover in textured.glob(f"{slot.parameter}.*"):
             leftover.unlink()
-        values = refitted
-    scene_xml.set_values(specimen, {materials.PARAMETERS[n].key: v for n, v in values.items()}, specimen)
-    report["params"] = {**material["params"], **(result.values if kept else refitted)}
+        constant_values = refitted
+    scene_xml.set_values(specimen, {materials.PARAMETERS[n].key: v for n, v in constant_values.items()}, specimen)
+    report["params"] = {**material["params"], **constant_values}
+    if kept:
+        report["params"][slot.parameter] = result.values[slot.parameter]  # the texture's mean
     report["bounds"] = material["bounds"]
     if kept or refitted:
         held_views = [view for view, _ in load_views(textured, description, cameras, linear, masks, conf.max_size,

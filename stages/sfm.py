@@ -169,6 +169,7 @@ def _extract_and_match(conf: Config, rig: str, photos: dict[str, dict], cameras:
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.sift.max_num_features = conf.max_features
     extraction.num_threads = -1
+    pycolmap.Database.open(database).close()  # import_images needs the file to exist
     for index, camera in enumerate(cameras):
         names = [Path(p["srgb"]).name for p in photos.values() if p["camera"] == index]
         if not names:
@@ -184,7 +185,6 @@ def _extract_and_match(conf: Config, rig: str, photos: dict[str, dict], cameras:
         # Extraction numbers photos in the order its threads finish, and matching
         # and mapping follow those numbers: importing them first, sorted, makes a
         # rerun give the same model (it gave rotation errors of 0.7 to 164 degrees).
-        pycolmap.Database.open(database).close()
         pycolmap.import_images(database, image_dir, camera_mode=pycolmap.CameraMode.SINGLE,
                                image_names=sorted(names), options=reader)  # fmt: skip
         pycolmap.extract_features(database, image_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
