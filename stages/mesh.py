@@ -13,7 +13,7 @@ CGAL), so the dense shape comes from the masks:
    that no silhouette shows; SfM points inside the hull lie on the true surface
    there. Hull samples near such interior points are dropped, the points join
    the rest with normals estimated from their neighbours and turned towards the
-   cameras that saw them, and a screened Poisson reconstruction (pymeshlab)
+   cameras that saw them, and a screened Poisson reconstruction (COLMAP's)
    makes the surface watertight again. Points outside the hull contradict the
    silhouettes and are discarded as outliers. A refined surface that is not
    watertight or has more handles than the hull (noisy points on a porous
@@ -43,7 +43,6 @@ from typing import Annotated, Literal
 import cv2
 import numpy as np
 import pycolmap
-import pymeshlab
 import trimesh
 from scipy import ndimage
 from scipy.spatial import cKDTree
@@ -63,9 +62,12 @@ class Config:
 
     resolution: Annotated[int, Range(16, 512)] = 128
     """Voxels along the specimen's longest side; time and memory grow with its cube."""
-    carve_tolerance: Annotated[int, Range(0, None)] = 1
-    """Views allowed to disagree before a voxel is carved away: one bad mask then cannot
-    cut a piece off the specimen (at the cost of a slightly fatter hull)."""
+    carve_tolerance: Annotated[int, Range(0, None)] = 0
+    """Views allowed to disagree before a voxel is carved away. 0: every mask carves
+    (on the samples the hull is 2-6 % too large; with 1, 7-14 %: whatever a single
+    view alone carves stays, and with 20-30 views that is much). 1 or more when a
+    mask may have lost part of the specimen (a leg, a pale rim), which would
+    otherwise be cut off."""
     close_voxels: Annotated[int, Range(0, 8)] = 1
     """Tunnels and gaps through the hull up to twice this many voxels wide are filled
     (a stray gap in one mask would otherwise give the hull a handle)."""
@@ -76,6 +78,8 @@ class Config:
     none: the visual hull as it is."""
     poisson_depth: Annotated[int, Range(5, 12)] = 8
     """Octree depth of the Poisson reconstruction (2^depth cells along the longest side)."""
+    poisson_point_weight: Annotated[float, Range(0.0, None)] = 4.0
+    """Screening weight: how closely the surface keeps to the points (0: unscreened)."""
     min_track_length: Annotated[int, Range(2, None)] = 3
     """Sparse points seen in fewer photos are not trusted."""
     max_point_error_px: Annotated[float, Range(0.0, None, exclusive_lo=True)] = 2.0
@@ -115,8 +119,26 @@ def _trusted_points(sparse: Path, conf: Config) -> tuple[np.ndarray, np.ndarray]
     return np.reshape(points, (-1, 3)), np.reshape(towards, (-1, 3))
 
 
+def _screened_poisson(points: np.ndarray, normals: np.ndarray, conf: Config, work_dir: Path) -> trimesh.Trimesh:
+    """COLMAP's screened Poisson reconstruction, untrimmed (so closed) and on one
+    thread. Unlike pymeshlab's, it returns the same mesh, vertex for vertex, on
+    every run: cleanup's decimation and the UV charts depend on that order."""
+    cloud_ply, mesh_ply = work_dir / "poisson_input.ply", work_dir / "poisson_output.ply"
+    oriented = np.hstack([points, normals]).astype("<f4")
+    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(oriented)}\n"
+              + "".join(f"property float {name}\n" for name in ("x", "y", "z", "nx", "ny", "nz")) + "end_header\n")  # fmt: skip
+    cloud_ply.write_bytes(header.encode() + oriented.tobytes())
+    options = pycolmap.PoissonMeshingOptions()
+    options.depth, options.point_weight, options.trim, options.num_threads = conf.poisson_depth, conf.poisson_point_weight, 0.0, 1
+    pycolmap.poisson_meshing(cloud_ply, mesh_ply, options)
+    mesh = trimesh.load(mesh_ply, force="mesh", process=True)
+    cloud_ply.unlink()
+    mesh_ply.unlink()
+    return mesh
+
+
 def _refine_with_points(hull: trimesh.Trimesh, views: list[View], points: np.ndarray, towards: np.ndarray,
-                        conf: Config, voxel: float) -> tuple[trimesh.Trimesh, dict]:  # fmt: skip
+                        conf: Config, voxel: float, work_dir: Path) -> tuple[trimesh.Trimesh, dict]:  # fmt: skip
     depth_in_hull = hull_field(points, views, conf.carve_tolerance)
     consistent = depth_in_hull > -voxel
     # A concavity the hull cannot carve: inside and further than two voxels from its
@@ -138,11 +160,7 @@ def _refine_with_points(hull: trimesh.Trimesh, views: list[View], points: np.nda
     # The smallest-eigenvalue eigenvector of each neighbourhood's scatter, all at once.
     point_normals = np.linalg.eigh(np.einsum("nki,nkj->nij", local, local))[1][:, :, 0]
     point_normals *= np.where(np.sum(point_normals * towards, axis=1) >= 0, 1.0, -1.0)[:, None]
-    meshset = pymeshlab.MeshSet()
-    meshset.add_mesh(pymeshlab.Mesh(vertex_matrix=cloud, v_normals_matrix=np.vstack([normals, point_normals])))
-    meshset.generate_surface_reconstruction_screened_poisson(depth=conf.poisson_depth, preclean=True)
-    result = meshset.current_mesh()
-    mesh = trimesh.Trimesh(result.vertex_matrix(), result.face_matrix(), process=True)
+    mesh = _screened_poisson(cloud, np.vstack([normals, point_normals]), conf, work_dir)
     parts = mesh.split(only_watertight=False)
     mesh = max(parts, key=lambda part: len(part.faces)) if len(parts) > 1 else mesh
     if mesh.volume < 0:
@@ -183,7 +201,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     if conf.refine == "poisson":
         points, towards = _trusted_points(inputs.upstream["sfm"]["sparse"], conf)
         if len(points) >= 10:
-            refined, details = _refine_with_points(mesh, views, points, towards, conf, grid.voxel)
+            refined, details = _refine_with_points(mesh, views, points, towards, conf, grid.voxel, out_dir)
             report.update(details)
             # Noisy points (a porous surface, pores deeper than the hull) can give
             # Poisson handles and holes; the hull is closed by construction.
@@ -209,7 +227,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="mesh",
-    version=4,
+    version=5,
     config=Config,
     main=main,
     upstream=("sfm", "masks"),
