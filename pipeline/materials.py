@@ -139,5 +139,20 @@ def fit_parameters(model: MaterialModel, bounds: Mapping[str, tuple[float, float
                          PARAMETERS[n].log, PARAMETERS[n].learning_rate) for n in MODEL_PARAMETERS[model]]  # fmt: skip
 
 
+def refit_parameters(model: MaterialModel, bounds: Mapping[str, tuple[float, float]],
+                     texture: tuple[float, float] | None, constants: bool = True) -> list[FitParameter]:  # fmt: skip
+    """Parameters of a fit that continues fit_material's, within its ``bounds``: with
+    ``texture`` = (learning rate, smoothness), first the texture slot's data in place
+    of its constant; then, with ``constants``, the model's other parameters."""
+    slot = TEXTURE_SLOTS[model]
+    parameters = []
+    if texture is not None:
+        spec = PARAMETERS[slot.parameter]
+        parameters.append(FitParameter(slot.parameter, slot.key, spec.lower, spec.upper, False, *texture))
+    if constants:
+        parameters += [p for p in fit_parameters(model, bounds) if texture is None or p.name != slot.parameter]
+    return parameters
+
+
 def initial_values(model: MaterialModel) -> dict[str, tuple[float, ...]]:
     return {name: PARAMETERS[name].initial for name in MODEL_PARAMETERS[model]}

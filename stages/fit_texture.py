@@ -42,7 +42,9 @@ params.json          kept or not and why, validation error with and without the
                      texture, per level (and for the constants alone):
                      resolution, iterations, best iteration; ``params`` and
                      ``bounds``: the scene's values as in fit_material's
-                     params.json (a kept texture's mean for the textured one)
+                     params.json (a kept texture's mean for the textured one);
+                     the texture's ``smoothness`` and ``learning_rate``, which
+                     fit_geometry's material passes continue with
 log.jsonl            per iteration: level, resolution, loss, validation error,
                      the texture's per-channel mean, seconds
 loss.png             training loss and validation error against iteration
@@ -146,26 +148,33 @@ def resample(texture: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     return ndimage.zoom(texture, factors, order=1, mode="nearest", grid_mode=True).astype(np.float32)
 
 
-def write_texture(folder: Path, slot: materials.TextureSlot, texture: np.ndarray, box: np.ndarray) -> ET.Element:
-    """Write the texture's files into ``folder``; the XML element that loads them."""
+def write_texture_files(folder: Path, slot: materials.TextureSlot, texture: np.ndarray) -> None:
+    """The texture's data file (what the scene loads) and a PNG to look at, in ``folder``."""
     import mitsuba as mi
 
-    holder = ET.Element("holder")
     name = slot.parameter
     if slot.kind == "bitmap":
         # float32, not write_image's half: the scene loads this file as the
         # starting point of the optimisation, which needs full precision.
         mi.Bitmap(np.ascontiguousarray(texture, dtype=np.float32)).write(str(folder / f"{name}.exr"))
         cv2.imwrite(str(folder / f"{name}.png"), to_uint8(texture)[..., ::-1])
-        element = scene_xml.plugin(holder, "texture", {"type": "bitmap", "id": f"specimen_{name}",
-                                                       "filename": f"{name}.exr"})  # fmt: skip
-        return element
+        return
     mi.VolumeGrid(texture).write(str(folder / f"{name}.vol"))
     columns = int(np.ceil(np.sqrt(texture.shape[0])))
     slices = [texture[z] for z in range(texture.shape[0])]
     slices += [np.zeros_like(slices[0])] * (columns * columns - len(slices))
     rows = [np.concatenate(slices[r * columns : (r + 1) * columns], axis=1) for r in range(columns)]
     cv2.imwrite(str(folder / f"{name}.png"), to_uint8(np.concatenate(rows, axis=0)[::-1])[..., ::-1])
+
+
+def write_texture(folder: Path, slot: materials.TextureSlot, texture: np.ndarray, box: np.ndarray) -> ET.Element:
+    """Write the texture's files into ``folder``; the XML element that loads them."""
+    write_texture_files(folder, slot, texture)
+    holder = ET.Element("holder")
+    name = slot.parameter
+    if slot.kind == "bitmap":
+        return scene_xml.plugin(holder, "texture", {"type": "bitmap", "id": f"specimen_{name}",
+                                                    "filename": f"{name}.exr"})  # fmt: skip
     element = scene_xml.plugin(holder, "volume", {"type": "gridvolume", "id": f"specimen_{name}",
                                                   "filename": f"{name}.vol"})  # fmt: skip
     lower, upper = box
@@ -210,12 +219,9 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     held = set(material["held_out"])
     training, validation = [v for v in views if v.name not in held], [v for v in views if v.name in held]
     scenes = {id(v.scene): v.scene for v in views}
-    spec = materials.PARAMETERS[slot.parameter]
-    parameters = [fitting.FitParameter(slot.parameter, slot.key, spec.lower, spec.upper, False, conf.learning_rate,
-                                       conf.smoothness)]  # fmt: skip
-    constants = [n for n in materials.MODEL_PARAMETERS[model] if n != slot.parameter] if conf.refit_constants else []
-    parameters += [fitting.FitParameter(n, materials.PARAMETERS[n].key, *material["bounds"][n], materials.PARAMETERS[n].log,
-                                        materials.PARAMETERS[n].learning_rate) for n in constants]  # fmt: skip
+    parameters = materials.refit_parameters(model, material["bounds"], (conf.learning_rate, conf.smoothness),
+                                            conf.refit_constants)  # fmt: skip
+    constants = [p.name for p in parameters[1:]]
     settings = fitting.FitSettings(iterations=conf.iterations_per_level, batch=conf.batch, spp=conf.spp, loss=conf.loss,
                                    validate_every=conf.validate_every, validation_spp=conf.validation_spp,
                                    tolerance=conf.tolerance, window=conf.window, seed=conf.seed)  # fmt: skip
@@ -284,7 +290,8 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         write_heldout(held_views, 4 * conf.validation_spp, textured / "heldout")
     else:
         shutil.copytree(material_dir / "heldout", textured / "heldout")
-    report |= {"kept": kept, "reason": reason, "validation_mse_constant": constant_error,
+    report |= {"kept": kept, "reason": reason, "smoothness": conf.smoothness, "learning_rate": conf.learning_rate,
+               "validation_mse_constant": constant_error,
                "validation_mse_texture": texture_error, "levels": levels,
                "texture_mean": [float(v) for v in texture.reshape(-1, 3).mean(axis=0)],
                "files": sorted(p.name for p in textured.glob(f"{slot.parameter}.*"))}  # fmt: skip
@@ -295,7 +302,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_texture",
-    version=4,
+    version=5,
     config=Config,
     main=main,
     upstream=("fit_material", "scene", "sfm", "undistort", "masks"),
