@@ -242,12 +242,18 @@ def score_capture(capture: Path) -> dict[str, Any]:
         kept = json.loads(texture.read_text()) if texture.is_file() else {}
         if "params" in kept:
             report["material_fit_texture"] = score_material(kept, truth)
+        refined = out_dir / "geometry" / "params.json"
+        if refined.is_file() and "params" in (final := json.loads(refined.read_text())):
+            report["material_fit_geometry"] = score_material(final, truth)
         if truth.get("texture") and kept.get("kept") and kept["kind"] == "bitmap":
-            textured = trimesh.load(out_dir / "textured" / "mesh.ply", process=False)
-            textured.apply_transform(similarity.matrix())
-            report["texture"] = score_texture(textured, read_linear_image(out_dir / "textured" / "base_color.exr"),
-                                              np.asarray(json.loads(path.read_text())["params"]["base_color"]),
-                                              trimesh.load(truth_dir / "mesh.ply", process=False))  # fmt: skip
+            # fit_texture's texture, and fit_geometry's after its material passes.
+            for folder, part in (("textured", "texture"), ("geometry", "texture_fit_geometry")):
+                if (out_dir / folder / "base_color.exr").is_file():
+                    textured = trimesh.load(out_dir / folder / "mesh.ply", process=False)
+                    textured.apply_transform(similarity.matrix())
+                    report[part] = score_texture(textured, read_linear_image(out_dir / folder / "base_color.exr"),
+                                                 np.asarray(json.loads(path.read_text())["params"]["base_color"]),
+                                                 trimesh.load(truth_dir / "mesh.ply", process=False))  # fmt: skip
     for folder, stage, part in (("heldout", "fit_material", "heldout"), ("textured/heldout", "fit_texture", "heldout_textured"),
                                 ("geometry/heldout", "fit_geometry", "heldout_geometry")):  # fmt: skip
         if path := present(folder, stage):

@@ -91,11 +91,10 @@ def _image(path: Path, max_size: int) -> Image.Image:
 
 def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     scene_dir = inputs.upstream["fit_geometry"]["geometry_dir"]
-    material = json.loads(inputs.upstream["fit_material"]["params"].read_text())
-    texture = json.loads((inputs.upstream["fit_texture"]["textured_dir"] / "params.json").read_text())
-    # fit_texture's values: its refitted constants, and a kept texture's mean in the
-    # textured parameter's place (a volume's albedo has no glTF texture).
-    model, values = material["model"], dict(texture["params"])
+    # The final scene's values: a kept texture's mean stands in the textured
+    # parameter's place (a volume's albedo has no glTF texture).
+    fitted = json.loads((scene_dir / "params.json").read_text())
+    model, values = fitted["model"], dict(fitted["params"])
 
     mesh = trimesh.load(scene_dir / "mesh.ply", force="mesh", process=False)
     watertight = trimesh.Trimesh(mesh.vertices, mesh.faces)
@@ -131,9 +130,9 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="export",
-    version=2,
+    version=3,
     config=Config,
     main=main,
-    upstream=("fit_geometry", "fit_texture", "fit_material"),
+    upstream=("fit_geometry",),
     exports=("glb",),
 )

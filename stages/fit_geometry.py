@@ -1,12 +1,14 @@
-"""Stage fit_geometry: the specimen's vertices refined by differentiable rendering.
+"""Stage fit_geometry: the specimen's shape refined by differentiable rendering, in
+alternation with its material.
 
-The material is frozen as fit_texture left it; only vertex positions move, by
-pipeline.fitting.fit_shape: Adam on LargeSteps' differential coordinates
-(Nicolet et al. 2021, mi.ad.LargeSteps with cholespy), rendered with a
-projective integrator, the only kind whose gradients include silhouette edges.
-Only primary visibility is differentiated (``sppi = 0``): edges seen through
-reflections, refraction and shadows would need a guiding pass per render that
-costs more than the rest of the step on a CPU.
+Each of ``rounds`` rounds is a geometry pass, then a material pass:
+
+Geometry pass: only vertex positions move, by pipeline.fitting.fit_shape: Adam on
+LargeSteps' differential coordinates (Nicolet et al. 2021, mi.ad.LargeSteps with
+cholespy), rendered with a projective integrator, the only kind whose gradients
+include silhouette edges. Only primary visibility is differentiated (``sppi = 0``):
+edges seen through reflections, refraction and shadows would need a guiding pass
+per render that costs more than the rest of the step on a CPU.
 
 ==============  ===================================================================
 loss            what is compared, with which integrator
@@ -21,31 +23,47 @@ silhouette      the mask against the specimen's coverage (black specimen under a
 one: no Mitsuba integrator differentiates geometry through a participating
 medium, so a volumetric specimen's shape is refined by its outline only.
 
+Material pass (``material_iterations`` > 0): the model's constants, and the
+texture if fit_texture kept one, are fitted again on the refined mesh by
+pipeline.fitting.fit, the geometry frozen: fit_material's loop with the dual
+loss over the eroded masks, its bounds and held-out photos, the texture's
+smoothness prior from fit_texture. A material fitted on the visual hull is biased
+by the hull's shape (flat facets where the specimen is curved spread the
+highlights, which a rougher material matches: on the sample bird, roughness 0.48
+on the hull and 0.43 on the refined mesh, for a true 0.35); the next geometry
+pass starts from the better material. No render differentiates both at once, so
+a volumetric specimen's medium is never differentiated with its geometry.
+
 ``start = "sphere"`` is the original tool's naive start: an icosphere scaled to
 the visual hull's bounding box, refined by the same loop, with fit_material's
 constant material (the texture lives on the hull's UVs, which a sphere lacks).
 
-Held-out photos are fit_material's; the state with the lowest held-out error is
-kept, so a refinement that does not help leaves the mesh as it was.
+Held-out photos are fit_material's; every pass keeps its state with the lowest
+held-out error, so a pass that does not help leaves the scene as it was.
 
 Outputs, in geometry/ (exported to CAPTURE/output/geometry/): the scene with the
-refined mesh.ply (UVs kept), params.json (loss, start, held-out error before and
-after, best iteration, vertices, seconds), log.jsonl, loss.png, and heldout/ as
-fit_material writes it, rendered with the final scene's material over the eroded
+refined mesh.ply (UVs kept) and material; params.json (loss, start, per round each
+pass's held-out error before and after and its best iteration; ``params`` and
+``bounds``, the scene's values as in fit_texture's params.json; vertices,
+seconds), log.jsonl (every iteration, with its round and pass), loss.png, and
+heldout/ as fit_material writes it, rendered with the final scene over the eroded
 mask (so ``pipeline score`` scores the scene the pipeline ends with; with
 ``enabled = false``, fit_texture's heldout/ is passed through).
 
 Limitations: vertices move, connectivity does not (no remeshing), so a start
-far from the truth (the sphere) cannot grow handles or thin limbs. The loss is
-plain L2 (one render per view, half the dual estimator's cost): its Monte Carlo
-variance counts in the loss and may pull the shape slightly towards renders with
-less noise. A render and backward step costs seconds even at 32-96 px on a CPU.
+far from the truth (the sphere) cannot grow handles or thin limbs. The geometry
+loss is plain L2 (one render per view, half the dual estimator's cost): its
+Monte Carlo variance counts in the loss and may pull the shape slightly towards
+renders with less noise. A render and backward step costs seconds even at 32-96
+px on a CPU. The volumetric model's shape moves by its silhouette only, which
+the visual hull already matches: its concavities stay as the hull has them.
 """
 
 from __future__ import annotations
 
 import json
 import shutil
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal
@@ -54,12 +72,13 @@ import cv2
 import numpy as np
 import trimesh
 
-from pipeline import fitting, logger, materials, mitsuba_variant
+from pipeline import fitting, logger, materials, mitsuba_variant, scene_xml
 from pipeline.camera import read_views, resize_exact
 from pipeline.config import Range
 from pipeline.errors import PipelineError
 from pipeline.stage import Stage, StageInputs, StageResult
 from stages.fit_material import load_views, write_heldout
+from stages.fit_texture import write_texture_files
 from stages.masks import mask_files
 from stages.undistort import photo_files
 
@@ -74,22 +93,30 @@ class Config:
     """mesh: the cleaned, unwrapped hull; sphere: an icosphere in the hull's box."""
     loss: Literal["auto", "photometric", "silhouette"] = "auto"
     """What the renders are compared with (see the module docstring)."""
-    iterations: Annotated[int, Range(1, None)] = 40
-    """Adam steps."""
+    rounds: Annotated[int, Range(1, None)] = 2
+    """Geometry passes, each followed by a material pass."""
+    iterations: Annotated[int, Range(1, None)] = 150
+    """Adam steps of each geometry pass."""
     batch: Annotated[int, Range(1, None)] = 2
-    """Views rendered per step."""
+    """Views rendered per step (both passes)."""
     spp: Annotated[int, Range(1, None)] = 8
-    """Samples per pixel of each training render."""
+    """Samples per pixel of each geometry-pass render."""
     max_size: Annotated[int, Range(16, None)] = 96
-    """Longer side, in pixels, of the window each view is rendered in."""
-    step: Annotated[float, Range(0.0, None, exclusive_lo=True)] = 2e-3
+    """Longer side, in pixels, of the window each view is rendered in by the geometry pass."""
+    step: Annotated[float, Range(0.0, None, exclusive_lo=True)] = 4e-3
     """Adam step as a fraction of the specimen's bounding-box diagonal."""
+    material_iterations: Annotated[int, Range(0, None)] = 40
+    """Adam steps of each material pass; 0 freezes the material as fit_texture left it."""
+    material_spp: Annotated[int, Range(1, None)] = 16
+    """Samples per pixel of each material-pass render (two per view: the dual loss)."""
+    material_max_size: Annotated[int, Range(16, None)] = 128
+    """Longer side, in pixels, of the window each view is rendered in by the material pass."""
     smoothing: Annotated[float, Range(0.0, None, exclusive_lo=True)] = 20.0
     """LargeSteps' lambda; larger spreads each gradient further (finer meshes need more)."""
     sphere_subdivisions: Annotated[int, Range(1, 6)] = 4
     """Icosphere subdivisions of the sphere start (4: 2562 vertices)."""
     validate_every: Annotated[int, Range(1, None)] = 10
-    """Iterations between held-out renders."""
+    """Iterations between held-out renders (both passes)."""
     validation_spp: Annotated[int, Range(1, None)] = 64
     """Samples per pixel of held-out renders (and 4x that for heldout/)."""
     erode_px: Annotated[int, Range(0, None)] = 2
@@ -128,33 +155,13 @@ def silhouette_views(views: list[tuple[fitting.FitView, tuple]], mesh_file: Path
     return result
 
 
-def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
-    material = json.loads(inputs.upstream["fit_material"]["params"].read_text())
-    source = inputs.upstream["fit_material" if conf.start == "sphere" else "fit_texture"]
-    source_dir = source["fitted_dir" if conf.start == "sphere" else "textured_dir"]
-    description = json.loads(inputs.upstream["scene"]["description"].read_text())
-    loss = conf.loss if conf.loss != "auto" else ("silhouette" if description["model"] == "volumetric" else "photometric")
-    if loss == "photometric" and description["model"] == "volumetric":
-        raise PipelineError("fit_geometry.loss = photometric: no Mitsuba integrator differentiates geometry through "
-                            "the volumetric model's medium; use loss = silhouette (or auto)")  # fmt: skip
-    geometry = out_dir / "geometry"
-    shutil.copytree(source_dir, geometry, ignore=shutil.ignore_patterns("heldout", "log.jsonl", "loss.png", "params.json"))
-    report = {"enabled": conf.enabled, "start": conf.start, "model": description["model"]}
-    if not conf.enabled:
-        shutil.copytree(source_dir / "heldout", geometry / "heldout")
-        (geometry / "params.json").write_text(json.dumps(report, indent=1))
-        return StageResult({"geometry_dir": geometry}, {"enabled": False})
-
-    hull = trimesh.load(geometry / "mesh.ply", force="mesh", process=False)
-    if conf.start == "sphere":
-        sphere_in_box(hull.bounds, conf.sphere_subdivisions).export(geometry / "mesh.ply")
-
-    mitsuba_variant.activate(inputs.shared["mitsuba"].variant)
+def geometry_pass(conf: Config, geometry: Path, description: dict, loss: str, views_inputs: tuple, held: set[str],
+                  step: float, seed: int) -> fitting.ShapeResult:  # fmt: skip
+    """Vertices of geometry/mesh.ply refined with the scene's material frozen; the
+    mesh written back."""
     import mitsuba as mi
 
-    cameras = read_views(inputs.upstream["sfm"]["cameras"])
-    linear = {n: p["linear"] for n, p in photo_files(inputs.upstream["undistort"]["pinhole"]).items()}
-    masks = mask_files(inputs.upstream["masks"]["masks_json"])
+    cameras, linear, masks = views_inputs
     windowed = load_views(geometry, description, cameras, linear, masks, conf.max_size, 0, conf.spp, sample_border=True)
     if loss == "silhouette":
         views = silhouette_views(windowed, geometry / "mesh.ply", masks, cameras)
@@ -164,40 +171,123 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         views = [fitting.FitView(v.name, v.scene, v.sensor, v.reference) for v, _ in windowed]
         integrator = mi.load_dict({"type": "prb_projective", "max_depth": materials.INTEGRATORS[description["model"]][1],
                                    "sppi": 0})  # fmt: skip
-    start = np.array(mi.traverse(views[0].scene)["specimen.vertex_positions"], dtype=np.float32).reshape(-1, 3)
-    held = set(material["held_out"])
-    diagonal = float(np.linalg.norm(hull.extents))
-    settings = fitting.ShapeSettings(iterations=conf.iterations, batch=conf.batch, spp=conf.spp,
-                                     step=conf.step * diagonal, smoothing=conf.smoothing,
-                                     validate_every=conf.validate_every, validation_spp=conf.validation_spp,
-                                     seed=conf.seed)  # fmt: skip
+    settings = fitting.ShapeSettings(iterations=conf.iterations, batch=conf.batch, spp=conf.spp, step=step,
+                                     smoothing=conf.smoothing, validate_every=conf.validate_every,
+                                     validation_spp=conf.validation_spp, seed=seed)  # fmt: skip
     result = fitting.fit_shape("specimen", [v for v in views if v.name not in held], [v for v in views if v.name in held],
                                settings, integrator)  # fmt: skip
+    next(s for s in views[0].scene.shapes() if s.id() == "specimen").write_ply(str(geometry / "mesh.ply"))
+    return result
 
-    specimen = next(s for s in views[0].scene.shapes() if s.id() == "specimen")
-    specimen.write_ply(str(geometry / "mesh.ply"))
+
+def material_pass(conf: Config, geometry: Path, description: dict, views_inputs: tuple, held: set[str],
+                  parameters: list[fitting.FitParameter], seed: int) -> fitting.FitResult:  # fmt: skip
+    """The material ``parameters`` fitted again on geometry/'s mesh, written back into
+    specimen.xml (and the texture's files)."""
+    cameras, linear, masks = views_inputs
+    views = [v for v, _ in load_views(geometry, description, cameras, linear, masks, conf.material_max_size,
+                                      conf.erode_px, conf.material_spp)]  # fmt: skip
+    settings = fitting.FitSettings(iterations=conf.material_iterations, batch=conf.batch, spp=conf.material_spp,
+                                   loss="dual", validate_every=conf.validate_every, validation_spp=conf.validation_spp,
+                                   tolerance=0.0, seed=seed)  # fmt: skip
+    result = fitting.fit(parameters, [v for v in views if v.name not in held], [v for v in views if v.name in held],
+                         settings)  # fmt: skip
+    slot = materials.TEXTURE_SLOTS[description["model"]]
+    constants = {p.name: result.values[p.name] for p in parameters if p.key != slot.key}
+    specimen = geometry / "specimen.xml"
+    scene_xml.set_values(specimen, {materials.PARAMETERS[n].key: v for n, v in constants.items()}, specimen)
+    if slot.parameter in result.textures:
+        write_texture_files(geometry, slot, result.textures[slot.parameter])
+    return result
+
+
+def _pass_summary(result: fitting.ShapeResult | fitting.FitResult) -> dict:
+    return {"iterations": len(result.log), "best_iteration": result.best_iteration,
+            "validation_start": result.start_validation_error, "validation": result.validation_error}  # fmt: skip
+
+
+def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
+    material = json.loads(inputs.upstream["fit_material"]["params"].read_text())
+    if conf.start == "sphere":
+        source_dir, source = inputs.upstream["fit_material"]["fitted_dir"], material
+    else:
+        source_dir = inputs.upstream["fit_texture"]["textured_dir"]
+        source = json.loads((source_dir / "params.json").read_text())
+    description = json.loads(inputs.upstream["scene"]["description"].read_text())
+    model = description["model"]
+    loss = conf.loss if conf.loss != "auto" else ("silhouette" if model == "volumetric" else "photometric")
+    if loss == "photometric" and model == "volumetric":
+        raise PipelineError("fit_geometry.loss = photometric: no Mitsuba integrator differentiates geometry through "
+                            "the volumetric model's medium; use loss = silhouette (or auto)")  # fmt: skip
+    geometry = out_dir / "geometry"
+    shutil.copytree(source_dir, geometry, ignore=shutil.ignore_patterns("heldout", "log.jsonl", "loss.png", "params.json"))
+    report = {"enabled": conf.enabled, "start": conf.start, "model": model}
+    values, bounds = dict(source["params"]), source["bounds"]
+    if not conf.enabled:
+        shutil.copytree(source_dir / "heldout", geometry / "heldout")
+        (geometry / "params.json").write_text(json.dumps(report | {"params": values, "bounds": bounds}, indent=1))
+        return StageResult({"geometry_dir": geometry}, {"enabled": False})
+
+    hull = trimesh.load(geometry / "mesh.ply", force="mesh", process=False)
+    if conf.start == "sphere":
+        sphere_in_box(hull.bounds, conf.sphere_subdivisions).export(geometry / "mesh.ply")
+
+    mitsuba_variant.activate(inputs.shared["mitsuba"].variant)
+
+    views_inputs = (read_views(inputs.upstream["sfm"]["cameras"]),
+                    {n: p["linear"] for n, p in photo_files(inputs.upstream["undistort"]["pinhole"]).items()},
+                    mask_files(inputs.upstream["masks"]["masks_json"]))  # fmt: skip
+    held = set(material["held_out"])
+    diagonal = float(np.linalg.norm(hull.extents))
+    start = trimesh.load(geometry / "mesh.ply", force="mesh", process=False).vertices.copy()
+    texture = (source["learning_rate"], source["smoothness"]) if source.get("kept") else None
+    parameters = materials.refit_parameters(model, bounds, texture)
+    rounds, log = [], []
+    started = time.perf_counter()
+
+    def record(result, round_index: int, name: str) -> None:
+        offset = len(log)
+        log.extend({"iteration": e["iteration"] + offset, "round": round_index, "pass": name,
+                    **{k: v for k, v in e.items() if k != "iteration"}} for e in result.log)  # fmt: skip
+
+    for round_index in range(conf.rounds):
+        seed = conf.seed + round_index
+        shape = geometry_pass(conf, geometry, description, loss, views_inputs, held, conf.step * diagonal, seed)
+        record(shape, round_index, "geometry")
+        rounds.append({"geometry": _pass_summary(shape)})
+        logger.info("round %d, geometry: held-out MSE %s -> %s", round_index + 1, shape.start_validation_error,
+                    shape.validation_error)  # fmt: skip
+        if conf.material_iterations:
+            refit = material_pass(conf, geometry, description, views_inputs, held, parameters, seed)
+            record(refit, round_index, "material")
+            rounds[-1]["material"] = _pass_summary(refit)
+            values |= refit.values
+            logger.info("round %d, material: held-out error %s -> %s", round_index + 1, refit.start_validation_error,
+                        refit.validation_error)  # fmt: skip
+
+    cameras, linear, masks = views_inputs
     final = load_views(geometry, description, cameras, linear, masks, conf.max_size, conf.erode_px, conf.validation_spp,
                        names=held)  # fmt: skip
     write_heldout([v for v, _ in final], 4 * conf.validation_spp, geometry / "heldout")
     with (geometry / "log.jsonl").open("w") as handle:
-        for entry in result.log:
+        for entry in log:
             handle.write(json.dumps(entry) + "\n")
-    fitting.plot_loss(result.log, geometry / "loss.png")
-    moved = np.linalg.norm(result.positions - start, axis=1)
-    report |= {"loss": loss, "iterations": len(result.log), "best_iteration": result.best_iteration,
-               "validation_mse_start": result.start_validation_error, "validation_mse": result.validation_error,
-               "vertices": int(len(result.positions)), "seconds": result.log[-1]["seconds"] if result.log else 0.0,
+    fitting.plot_loss(log, geometry / "loss.png")
+    positions = trimesh.load(geometry / "mesh.ply", force="mesh", process=False).vertices
+    moved = np.linalg.norm(positions - start, axis=1)
+    first, last = rounds[0]["geometry"], rounds[-1]["geometry"]
+    report |= {"loss": loss, "rounds": rounds, "validation_mse_start": first["validation_start"],
+               "validation_mse": last["validation"], "params": values, "bounds": bounds,
+               "vertices": int(len(positions)), "seconds": time.perf_counter() - started,
                "held_out": sorted(held), "median_vertex_move_of_diagonal": float(np.median(moved)) / diagonal}  # fmt: skip
     (geometry / "params.json").write_text(json.dumps(report, indent=1))
-    logger.info("geometry (%s loss, %s start): held-out MSE %s -> %s", loss, conf.start, result.start_validation_error,
-                result.validation_error)  # fmt: skip
-    return StageResult({"geometry_dir": geometry}, {"validation_mse_start": result.start_validation_error,
-                                                    "validation_mse": result.validation_error})  # fmt: skip
+    return StageResult({"geometry_dir": geometry}, {"validation_mse_start": first["validation_start"],
+                                                    "validation_mse": last["validation"]})  # fmt: skip
 
 
 STAGE = Stage(
     name="fit_geometry",
-    version=2,
+    version=3,
     config=Config,
     main=main,
     upstream=("fit_texture", "fit_material", "scene", "sfm", "undistort", "masks"),

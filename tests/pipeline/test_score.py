@@ -56,6 +56,7 @@ def perfect_outputs(capture, transform=None):
         (capture / "output" / folder).mkdir(parents=True)
         write_exr(capture / "output" / folder / "view_005.render.exr", image)
         write_exr(capture / "output" / folder / "view_005.reference.exr", image)
+    (capture / "output" / "geometry" / "params.json").write_text(json.dumps({"model": material["model"], "params": params}))
 
 
 def test_perfect_outputs_score_zero_error(capture):
@@ -68,7 +69,8 @@ def test_perfect_outputs_score_zero_error(capture):
     assert report["cameras"]["centre_error_pct_max"] < 1e-6
     assert report["mesh"]["chamfer_pct_of_diagonal"] < 1e-6
     assert report["mesh"]["normal_consistency"] > 0.999999
-    assert all(v == 0 for k, v in report["material"].items() if k.endswith("_error"))
+    for part in ("material", "material_fit_geometry"):
+        assert all(v == 0 for k, v in report[part].items() if k.endswith("_error")), part
     assert report["heldout"]["psnr_db_mean"] == report["heldout_geometry"]["psnr_db_mean"] == float("inf")
 
 
