@@ -46,6 +46,9 @@ def grabcut(image: np.ndarray, seeds: np.ndarray, iterations: int) -> np.ndarray
     if foreground.all() or not foreground.any():  # GrabCut needs samples of both
         return foreground
     background_model, foreground_model = np.zeros((1, 65)), np.zeros((1, 65))
+    # GrabCut seeds its colour models by k-means from OpenCV's global random state:
+    # without a fixed seed a mask depends on what the process did before.
+    cv2.setRNGSeed(0)
     cv2.grabCut(image, labels, None, background_model, foreground_model, iterations, cv2.GC_INIT_WITH_MASK)
     return (labels == cv2.GC_FGD) | (labels == cv2.GC_PR_FGD)
 

@@ -27,6 +27,7 @@ from __future__ import annotations
 import json
 import math
 from collections import defaultdict
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal
@@ -88,6 +89,18 @@ def _distortion_flags(model: str) -> int:
     }[model]
 
 
+@contextmanager
+def _one_opencv_thread():
+    """Threaded calibration adds up in a varying order: the intrinsics then differ in
+    the 11th digit from run to run, and every later stage inherits the difference."""
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(threads)
+
+
 def calibrate_from_board(
     detections: dict[str, BoardDetection], size: tuple[int, int], conf: Config
 ) -> BoardCalibration:
@@ -98,9 +111,10 @@ def calibrate_from_board(
         names = sorted(kept)
         object_points = [kept[n].object_points.astype(np.float32) for n in names]
         image_points = [kept[n].image_points.astype(np.float32) for n in names]
-        rms, K, dist, rvecs, tvecs, std_intrinsics, _, per_view = cv2.calibrateCameraExtended(
-            object_points, image_points, size, None, None, flags=_distortion_flags(conf.distortion)
-        )
+        with _one_opencv_thread():
+            rms, K, dist, rvecs, tvecs, std_intrinsics, _, per_view = cv2.calibrateCameraExtended(
+                object_points, image_points, size, None, None, flags=_distortion_flags(conf.distortion)
+            )
         shot_rms = dict(zip(names, per_view.ravel().tolist()))
         limit = max(conf.outlier_factor * float(np.median(per_view)), conf.outlier_floor_px)
         worst = max(shot_rms, key=shot_rms.get)
@@ -235,7 +249,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="calibrate",
-    version=2,
+    version=3,
     config=Config,
     main=main,
     reads=("images/*", "calibration/*"),

@@ -203,7 +203,7 @@ def mask_files(masks_json: Path) -> dict[str, Path]:
 
 STAGE = Stage(
     name="masks",
-    version=2,
+    version=3,
     config=Config,
     main=main,
     upstream=("undistort",),
