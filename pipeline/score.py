@@ -247,13 +247,14 @@ def score_capture(capture: Path) -> dict[str, Any]:
             report["material_fit_geometry"] = score_material(final, truth)
         if truth.get("texture") and kept.get("kept") and kept["kind"] == "bitmap":
             # fit_texture's texture, and fit_geometry's after its material passes.
+            true_mesh = trimesh.load(truth_dir / "mesh.ply", process=False)
+            constant = np.asarray(json.loads(path.read_text())["params"]["base_color"])
             for folder, part in (("textured", "texture"), ("geometry", "texture_fit_geometry")):
                 if (out_dir / folder / "base_color.exr").is_file():
                     textured = trimesh.load(out_dir / folder / "mesh.ply", process=False)
                     textured.apply_transform(similarity.matrix())
                     report[part] = score_texture(textured, read_linear_image(out_dir / folder / "base_color.exr"),
-                                                 np.asarray(json.loads(path.read_text())["params"]["base_color"]),
-                                                 trimesh.load(truth_dir / "mesh.ply", process=False))  # fmt: skip
+                                                 constant, true_mesh)  # fmt: skip
     for folder, stage, part in (("heldout", "fit_material", "heldout"), ("textured/heldout", "fit_texture", "heldout_textured"),
                                 ("geometry/heldout", "fit_geometry", "heldout_geometry")):  # fmt: skip
         if path := present(folder, stage):
