@@ -178,6 +178,8 @@ def test_fit_geometry_alternates_shape_and_material_and_the_scene_holds_the_resu
     for done in report["rounds"]:
         for name in ("geometry", "material"):
             assert done[name]["validation"] <= done[name]["validation_start"], name
+        material = done["material"]
+        assert material["kept"] == (material["validation"] <= 0.98 * material["validation_start"])
     log = [json.loads(line) for line in (folder / "log.jsonl").read_text().splitlines()]
     assert [(e["round"], e["pass"]) for e in log] == [(r, p) for r in (0, 1) for p in ("geometry", "material") for _ in range(4)]
     scene = mi.traverse(mi.load_file(str(folder / "scene.xml")))
@@ -196,6 +198,23 @@ def test_fit_geometry_alternates_shape_and_material_and_the_scene_holds_the_resu
     vertices = np.asarray(scene["specimen.vertex_positions"]).reshape(-1, 3)
     hull = trimesh.load(outputs["fit_texture"]["textured_dir"] / "mesh.ply", process=False).vertices
     assert vertices.shape == hull.shape and report["median_vertex_move_of_diagonal"] > 0
+
+
+def test_a_material_pass_below_the_minimum_gain_leaves_the_material_as_it_was(bird_capture, mi):
+    outputs = run_stages(bird_capture, "fit_geometry", *TINY_FIT, *TINY_TEXTURE, *TINY_GEOMETRY, "fit_texture.texture=on",
+                         "fit_geometry.rounds=1", "fit_geometry.material_iterations=4",
+                         "fit_geometry.material_min_improvement=1")  # fmt: skip
+    folder, textured = outputs["fit_geometry"]["geometry_dir"], outputs["fit_texture"]["textured_dir"]
+    report = json.loads((folder / "params.json").read_text())
+    assert report["rounds"][0]["material"]["kept"] is False
+    log = [json.loads(line) for line in (folder / "log.jsonl").read_text().splitlines()]
+    steps = [e["params"] for e in log if e["pass"] == "material"]
+    before = json.loads((textured / "params.json").read_text())["params"]
+    assert steps[-1]["roughness"] != before["roughness"]  # the pass did move it
+    assert report["params"] == before
+    scene = mi.traverse(mi.load_file(str(folder / "scene.xml")))
+    assert np.ravel(scene["specimen.bsdf.roughness.value"])[0] == pytest.approx(before["roughness"][0], rel=1e-5)
+    assert (folder / "base_color.exr").read_bytes() == (textured / "base_color.exr").read_bytes()
 
 
 def test_export_writes_gltf_with_the_models_extensions(bird_capture):
