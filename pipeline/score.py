@@ -22,7 +22,10 @@ heldout/NAME.render.exr    fit_material     PSNR against NAME.reference.exr on v
 textured/base_color.exr    fit_texture      a kept base-colour texture against the true
                                             mesh's vertex colours: mean and 90th percentile
                                             absolute error per channel at points on the
-                                            true surface (and the constant's, for scale)
+                                            true surface; for scale, the constant's and
+                                            the truth baked into the same atlas; and all
+                                            over the surface the training photos see
+geometry/base_color.exr    fit_geometry     the same, after its material passes
 textured/heldout/          fit_texture      the same, with the texture (or the constant
                                             when fit_texture did not keep one)
 geometry/heldout/          fit_geometry     the same, for the scene the pipeline ends with
@@ -38,10 +41,12 @@ from typing import Any
 import numpy as np
 import OpenImageIO as oiio
 import trimesh
+from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from pipeline.camera import Intrinsics, Pose, Similarity, read_cameras, rotation_angle_deg, similarity_umeyama
 from pipeline.errors import PipelineError
+from pipeline.mitsuba_variant import activate as activate_mitsuba
 
 MESH_SAMPLES = 30000
 RELATIVE_PARAMETERS = {"sigma_t"}
@@ -155,27 +160,123 @@ def score_material(estimate: dict[str, Any], truth: dict[str, Any]) -> dict[str,
 
 
 def score_texture(textured: trimesh.Trimesh, texture: np.ndarray, constant: np.ndarray, truth: trimesh.Trimesh,
-                  samples: int = 20000) -> dict[str, Any]:  # fmt: skip
+                  views: list[tuple[Intrinsics, Pose]] = (), samples: int = 20000) -> dict[str, Any]:  # fmt: skip
     """Per-channel error of a UV texture (linear, row 0 at v = 0, Mitsuba's convention)
     on ``textured`` (aligned to ``truth``) against ``truth``'s sRGB vertex colours, at
-    points sampled on the true surface; each takes the texel of the nearest point of
-    a dense sampling of the textured mesh."""
+    points sampled on the true surface. Each point takes the UV of the nearest point
+    of a dense sampling of the textured mesh and reads the texture there as Mitsuba's
+    bitmap does (bilinear, repeating).
+
+    For scale: ``constant``'s error; the ``bake``, the truth written into the same
+    atlas at the same resolution (what a perfect fit on this mesh and these UVs
+    would score: mesh error and texel size set it); and, with the true cameras of
+    the training ``views``, the same errors over the points some view sees (a
+    texture cannot be recovered where no photo looks)."""
     from pipeline.photo_io import srgb_decode
 
+    def colours_at(mesh: trimesh.Trimesh, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
+        weights = trimesh.triangles.points_to_barycentric(mesh.triangles[faces], points)
+        return srgb_decode(np.einsum("ij,ijk->ik", weights, mesh.visual.vertex_colors[mesh.faces[faces]][..., :3] / 255))
+
     points, faces = trimesh.sample.sample_surface(truth, samples, seed=0)
-    weights = trimesh.triangles.points_to_barycentric(truth.triangles[faces], points)
-    colours = truth.visual.vertex_colors[truth.faces[faces]][..., :3].astype(float) / 255
-    true_colour = srgb_decode(np.einsum("ij,ijk->ik", weights, colours))
+    true_colour = colours_at(truth, faces, points)
     dense, dense_faces = trimesh.sample.sample_surface(textured, 15 * samples, seed=1)
     dense_weights = trimesh.triangles.points_to_barycentric(textured.triangles[dense_faces], dense)
     uv = np.einsum("ij,ijk->ik", dense_weights, textured.visual.uv[textured.faces[dense_faces]])
     _, nearest = cKDTree(dense).query(points)
+    truth_dense, truth_dense_faces = trimesh.sample.sample_surface(truth, 30 * samples, seed=2)
+    bake = bake_into_atlas(textured, texture.shape[:2], cKDTree(truth_dense),
+                           colours_at(truth, truth_dense_faces, truth_dense))  # fmt: skip
+    errors = {"": np.abs(bilinear(texture[..., :3], uv[nearest]) - true_colour),
+              "bake_": np.abs(bilinear(bake, uv[nearest]) - true_colour)}  # fmt: skip
+    report = {"mean_abs_error": errors[""].mean(axis=0).tolist(),
+              "p90_abs_error": np.percentile(errors[""], 90, axis=0).tolist(),
+              "constant_mean_abs_error": np.abs(constant - true_colour).mean(axis=0).tolist(),
+              "bake_mean_abs_error": errors["bake_"].mean(axis=0).tolist()}  # fmt: skip
+    if views:
+        seen = seen_by_any(truth, points, truth.face_normals[faces], views)
+        report["seen_fraction"] = float(seen.mean())
+        for prefix, error in errors.items():
+            report[f"{prefix}seen_mean_abs_error"] = error[seen].mean(axis=0).tolist()
+    return report
+
+
+def bilinear(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Mitsuba's bitmap lookup: bilinear between texel centres, wrapping around
+    (``wrap_mode = repeat``, its default); row 0 at v = 0."""
     height, width = texture.shape[:2]
-    rows = np.clip((uv[nearest, 1] * height).astype(int), 0, height - 1)
-    cols = np.clip((uv[nearest, 0] * width).astype(int), 0, width - 1)
-    error, constant_error = np.abs(texture[rows, cols, :3] - true_colour), np.abs(constant - true_colour)
-    return {"mean_abs_error": error.mean(axis=0).tolist(), "p90_abs_error": np.percentile(error, 90, axis=0).tolist(),
-            "constant_mean_abs_error": constant_error.mean(axis=0).tolist()}  # fmt: skip
+    x, y = uv[:, 0] * width - 0.5, uv[:, 1] * height - 0.5
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+
+    def at(row: np.ndarray, col: np.ndarray) -> np.ndarray:
+        return texture[row % height, col % width]
+
+    return (at(y0, x0) * (1 - fx) * (1 - fy) + at(y0, x0 + 1) * fx * (1 - fy)
+            + at(y0 + 1, x0) * (1 - fx) * fy + at(y0 + 1, x0 + 1) * fx * fy)  # fmt: skip
+
+
+def bake_into_atlas(textured: trimesh.Trimesh, shape: tuple[int, int], truth_points: cKDTree,
+                    truth_colours: np.ndarray) -> np.ndarray:  # fmt: skip
+    """An (h, w, 3) texture on ``textured``'s UVs holding, at each texel centre inside
+    a chart, the colour of the nearest of ``truth_points``; texels between charts
+    copy the nearest chart texel (so bilinear reads at chart edges see no gap)."""
+    height, width = shape
+    positions = np.full((height * width, 3), np.nan)
+    for face in textured.faces:
+        corners = textured.visual.uv[face] * (width, height) - 0.5  # texel-centre coordinates
+        lo = np.maximum(np.ceil(corners.min(axis=0)).astype(int), 0)
+        hi = np.minimum(np.floor(corners.max(axis=0)).astype(int), (width - 1, height - 1))
+        if np.any(hi < lo):
+            continue
+        cols, rows = np.meshgrid(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1))
+        edges = np.array([corners[1] - corners[0], corners[2] - corners[0]]).T
+        if abs(np.linalg.det(edges)) < 1e-12:
+            continue
+        weights = np.linalg.solve(edges, (np.c_[cols.ravel(), rows.ravel()] - corners[0]).T).T
+        inside = (weights >= -1e-9).all(axis=1) & (weights.sum(axis=1) <= 1 + 1e-9)
+        vertices = textured.vertices[face]
+        positions[rows.ravel()[inside] * width + cols.ravel()[inside]] = (
+            vertices[0] + weights[inside] @ (vertices[1:] - vertices[0]))  # fmt: skip
+    covered = ~np.isnan(positions[:, 0])
+    colours = np.zeros((height * width, 3))
+    colours[covered] = truth_colours[truth_points.query(positions[covered])[1]]
+    colours = colours.reshape(height, width, 3)
+    _, (rows, cols) = ndimage.distance_transform_edt(~covered.reshape(height, width), return_indices=True)
+    return colours[rows, cols]
+
+
+def seen_by_any(mesh: trimesh.Trimesh, points: np.ndarray, normals: np.ndarray,
+                views: list[tuple[Intrinsics, Pose]]) -> np.ndarray:  # fmt: skip
+    """Whether each of ``points`` (on ``mesh``, facing ``normals``) is inside some
+    view's image, faces its camera and is not hidden by ``mesh``."""
+    import mitsuba as mi
+
+    shape = mi.Mesh("truth", len(mesh.vertices), len(mesh.faces))
+    params = mi.traverse(shape)
+    params["vertex_positions"] = mi.Float(mesh.vertices.astype(np.float32).ravel())
+    params["faces"] = mi.UInt32(mesh.faces.astype(np.uint32).ravel())
+    params.update()
+    scene = mi.load_dict({"type": "scene", "truth": shape})
+    seen = np.zeros(len(points), dtype=bool)
+    for intrinsics, pose in views:
+        in_camera = points @ pose.R.T + pose.t
+        pixels = in_camera @ intrinsics.K.T
+        pixels = pixels[:, :2] / np.maximum(pixels[:, 2:], 1e-12)
+        in_image = ((in_camera[:, 2] > 0) & (pixels[:, 0] >= 0) & (pixels[:, 0] < intrinsics.width)
+                    & (pixels[:, 1] >= 0) & (pixels[:, 1] < intrinsics.height))  # fmt: skip
+        to_camera = pose.center - points
+        distance = np.linalg.norm(to_camera, axis=1)
+        to_camera /= distance[:, None]
+        # leave the surface before testing, and stop short of the camera
+        offset = 1e-4 * float(np.linalg.norm(mesh.extents))
+        origins = points + offset * to_camera
+        rays = mi.Ray3f(mi.Ray3f(mi.Point3f(*map(mi.Float, np.array(origins.T, dtype=np.float32))),
+                                 mi.Vector3f(*map(mi.Float, np.array(to_camera.T, dtype=np.float32)))),
+                        mi.Float(np.array(distance - offset, dtype=np.float32)))  # fmt: skip
+        hidden = np.array(scene.ray_test(rays), dtype=bool)
+        seen |= in_image & ((to_camera * normals).sum(axis=1) > 0) & ~hidden
+    return seen
 
 
 def read_linear_image(path: Path) -> np.ndarray:
@@ -248,13 +349,17 @@ def score_capture(capture: Path) -> dict[str, Any]:
         if truth.get("texture") and kept.get("kept") and kept["kind"] == "bitmap":
             # fit_texture's texture, and fit_geometry's after its material passes.
             true_mesh = trimesh.load(truth_dir / "mesh.ply", process=False)
-            constant = np.asarray(json.loads(path.read_text())["params"]["base_color"])
+            fitted = json.loads(path.read_text())
+            constant = np.asarray(fitted["params"]["base_color"])
+            activate_mitsuba()
+            training = [(true_intrinsics, pose) for name, pose in sorted(true_poses.items())
+                        if name not in fitted["held_out"]]  # fmt: skip
             for folder, part in (("textured", "texture"), ("geometry", "texture_fit_geometry")):
                 if (out_dir / folder / "base_color.exr").is_file():
                     textured = trimesh.load(out_dir / folder / "mesh.ply", process=False)
                     textured.apply_transform(similarity.matrix())
                     report[part] = score_texture(textured, read_linear_image(out_dir / folder / "base_color.exr"),
-                                                 constant, true_mesh)  # fmt: skip
+                                                 constant, true_mesh, training)  # fmt: skip
     for folder, stage, part in (("heldout", "fit_material", "heldout"), ("textured/heldout", "fit_texture", "heldout_textured"),
                                 ("geometry/heldout", "fit_geometry", "heldout_geometry")):  # fmt: skip
         if path := present(folder, stage):

@@ -6,6 +6,17 @@ import pytest
 sys.path.insert(0, str(Path(__file__).parent / "pipeline"))
 
 
+@pytest.fixture(scope="session")
+def mi():
+    """Mitsuba with the variant the pipeline would pick."""
+    from pipeline.mitsuba_variant import activate
+
+    activate("auto")
+    import mitsuba
+
+    return mitsuba
+
+
 @pytest.fixture
 def presets_dir(tmp_path: Path) -> Path:
     """A presets folder for test-only stage graphs (the real presets name real stages)."""

@@ -11,20 +11,11 @@ from pipeline import fitting, scene_xml
 from pipeline.camera import Intrinsics, Pose
 from pipeline.cli import main as cli_main
 from pipeline.errors import PipelineError
-from pipeline.mitsuba_variant import activate
 from pipeline.photo_io import write_image
 
 pytestmark = pytest.mark.slow
 K = Intrinsics(40, 30, 45.0, 45.0, 21.3, 13.6)
 TRUTH = {"base_color": [0.7, 0.4, 0.2], "roughness": [0.3]}
-
-
-@pytest.fixture(scope="module")
-def mi():
-    activate("auto")
-    import mitsuba
-
-    return mitsuba
 
 
 def _scene_file(folder, base_color, roughness, spp=16):

@@ -183,6 +183,12 @@ def test_cli_refuses_a_capture_without_ground_truth(tmp_path, capsys):
     assert "only synthetic captures" in capsys.readouterr().err
 
 
+def side_view_uv(sphere: trimesh.Trimesh) -> np.ndarray:
+    """UVs of the unit sphere seen from the side: u from x, v from z (0 at the north
+    pole); front and back share texels, which suits colours that vary with z only."""
+    return np.c_[0.5 + 0.45 * sphere.vertices[:, 0], (1 - sphere.vertices[:, 2]) / 2]
+
+
 def test_texture_score_reads_rows_from_v_zero_at_the_top():
     from pipeline.photo_io import srgb_decode, to_uint8
 
@@ -193,11 +199,32 @@ def test_texture_score_reads_rows_from_v_zero_at_the_top():
     truth.visual.vertex_colors = np.c_[to_uint8(np.where(upper, red, blue)), np.full(len(upper), 255, np.uint8)]
     textured = sphere.copy()
     # v grows downwards from the north pole: the texture's top rows are the upper half
-    uv = np.c_[np.full(len(sphere.vertices), 0.5), (1 - sphere.vertices[:, 2]) / 2]
-    textured.visual = trimesh.visual.TextureVisuals(uv=uv)
-    texture = np.zeros((64, 4, 3))
+    textured.visual = trimesh.visual.TextureVisuals(uv=side_view_uv(sphere))
+    texture = np.zeros((64, 64, 3))
     texture[:32], texture[32:] = red, blue
     texture = srgb_decode(to_uint8(texture) / 255)  # the same 8-bit rounding as the truth
     report = score_texture(textured, texture, np.array([0.45, 0.1, 0.45]), truth)
     # only points next to the equator (blended vertex colours) differ
     assert max(report["mean_abs_error"]) < 0.05 < min(report["constant_mean_abs_error"][0::2])
+    # the truth baked into the same atlas scores as well as the right texture
+    np.testing.assert_allclose(report["bake_mean_abs_error"], report["mean_abs_error"], atol=0.01)
+    assert "seen_fraction" not in report  # no views given
+
+
+def test_texture_score_splits_off_what_no_view_sees(mi):
+    """A camera above the north pole sees only the upper half: the texture's wrong
+    lower half counts in the whole surface's error, not in the seen surface's."""
+    from pipeline.photo_io import srgb_decode, to_uint8
+
+    sphere = trimesh.creation.icosphere(subdivisions=4)
+    truth = sphere.copy()
+    truth.visual.vertex_colors = np.c_[to_uint8(np.full((len(sphere.vertices), 3), 0.8)), np.full(len(sphere.vertices), 255, np.uint8)]
+    textured = sphere.copy()
+    textured.visual = trimesh.visual.TextureVisuals(uv=side_view_uv(sphere))
+    texture = np.full((64, 64, 3), srgb_decode(np.array([to_uint8(np.array([0.8]))[0] / 255]))[0])
+    texture[40:] = 0.0  # wrong below z = -0.25
+    looking_down = Pose(R=np.diag([1.0, -1.0, -1.0]), t=np.array([0.0, 0.0, 5.0]))
+    camera = Intrinsics(width=200, height=200, fx=300, fy=300, cx=100, cy=100)
+    report = score_texture(textured, texture, np.array([0.5, 0.5, 0.5]), truth, [(camera, looking_down)])
+    assert 0.4 < report["seen_fraction"] < 0.55  # the upper half, less its grazing rim
+    assert max(report["seen_mean_abs_error"]) < 0.01 < min(report["mean_abs_error"])

@@ -11,21 +11,12 @@ import trimesh
 from conftest import run_stages
 
 from pipeline.camera import read_views
-from pipeline.mitsuba_variant import activate
 from pipeline.score import score_heldout, score_material
 
 pytestmark = pytest.mark.slow
 # A fit small enough for a test: windows of 48 px, 4 spp, a few steps.
 TINY_FIT = ("fit_material.iterations=8", "fit_material.batch=2", "fit_material.spp=4", "fit_material.max_size=48",
             "fit_material.validate_every=4", "fit_material.validation_spp=8", "fit_material.loss=l2")  # fmt: skip
-
-
-@pytest.fixture(scope="module")
-def mi():
-    activate("auto")
-    import mitsuba
-
-    return mitsuba
 
 
 def test_scene_loads_renders_and_lines_up_with_the_photos(bird_capture, mi):
