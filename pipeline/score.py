@@ -35,6 +35,7 @@ geometry/heldout/          fit_geometry     the same, for the scene the pipeline
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -159,45 +160,60 @@ def score_material(estimate: dict[str, Any], truth: dict[str, Any]) -> dict[str,
     return errors
 
 
-def score_texture(textured: trimesh.Trimesh, texture: np.ndarray, constant: np.ndarray, truth: trimesh.Trimesh,
-                  views: list[tuple[Intrinsics, Pose]] = (), samples: int = 20000) -> dict[str, Any]:  # fmt: skip
+@dataclass(frozen=True)
+class TrueSurface:
+    """A textured specimen's true surface, sampled once for every texture scored
+    against it: ``points`` and their ``colours`` (linear), a denser sampling to
+    bake from, and which points the training photos see (None without views)."""
+
+    points: np.ndarray
+    colours: np.ndarray
+    dense: cKDTree
+    dense_colours: np.ndarray
+    seen: np.ndarray | None
+
+
+def true_surface(truth: trimesh.Trimesh, views: list[tuple[Intrinsics, Pose]] = (), samples: int = 20000) -> TrueSurface:
+    """Sample ``truth`` (sRGB vertex colours); with the true cameras of the training
+    ``views``, also mark the samples some view sees (needs Mitsuba's variant set)."""
+    from pipeline.photo_io import srgb_decode
+
+    def colours_at(faces: np.ndarray, points: np.ndarray) -> np.ndarray:
+        weights = trimesh.triangles.points_to_barycentric(truth.triangles[faces], points)
+        return srgb_decode(np.einsum("ij,ijk->ik", weights, truth.visual.vertex_colors[truth.faces[faces]][..., :3] / 255))
+
+    points, faces = trimesh.sample.sample_surface(truth, samples, seed=0)
+    dense, dense_faces = trimesh.sample.sample_surface(truth, 30 * samples, seed=2)
+    seen = seen_by_any(truth, points, truth.face_normals[faces], views) if views else None
+    return TrueSurface(points, colours_at(faces, points), cKDTree(dense), colours_at(dense_faces, dense), seen)
+
+
+def score_texture(textured: trimesh.Trimesh, texture: np.ndarray, constant: np.ndarray, truth: TrueSurface) -> dict[str, Any]:
     """Per-channel error of a UV texture (linear, row 0 at v = 0, Mitsuba's convention)
-    on ``textured`` (aligned to ``truth``) against ``truth``'s sRGB vertex colours, at
-    points sampled on the true surface. Each point takes the UV of the nearest point
-    of a dense sampling of the textured mesh and reads the texture there as Mitsuba's
-    bitmap does (bilinear, repeating).
+    on ``textured`` (aligned to the truth) at the true surface's points. Each point
+    takes the UV of the nearest point of a dense sampling of the textured mesh and
+    reads the texture there as Mitsuba's bitmap does (bilinear, repeating).
 
     For scale: ``constant``'s error; the ``bake``, the truth written into the same
     atlas at the same resolution (what a perfect fit on this mesh and these UVs
-    would score: mesh error and texel size set it); and, with the true cameras of
-    the training ``views``, the same errors over the points some view sees (a
-    texture cannot be recovered where no photo looks)."""
-    from pipeline.photo_io import srgb_decode
-
-    def colours_at(mesh: trimesh.Trimesh, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
-        weights = trimesh.triangles.points_to_barycentric(mesh.triangles[faces], points)
-        return srgb_decode(np.einsum("ij,ijk->ik", weights, mesh.visual.vertex_colors[mesh.faces[faces]][..., :3] / 255))
-
-    points, faces = trimesh.sample.sample_surface(truth, samples, seed=0)
-    true_colour = colours_at(truth, faces, points)
-    dense, dense_faces = trimesh.sample.sample_surface(textured, 15 * samples, seed=1)
+    would score: mesh error and texel size set it); and, when the truth knows which
+    points the training photos see, the same errors over those (a texture cannot be
+    recovered where no photo looks)."""
+    dense, dense_faces = trimesh.sample.sample_surface(textured, 15 * len(truth.points), seed=1)
     dense_weights = trimesh.triangles.points_to_barycentric(textured.triangles[dense_faces], dense)
     uv = np.einsum("ij,ijk->ik", dense_weights, textured.visual.uv[textured.faces[dense_faces]])
-    _, nearest = cKDTree(dense).query(points)
-    truth_dense, truth_dense_faces = trimesh.sample.sample_surface(truth, 30 * samples, seed=2)
-    bake = bake_into_atlas(textured, texture.shape[:2], cKDTree(truth_dense),
-                           colours_at(truth, truth_dense_faces, truth_dense))  # fmt: skip
-    errors = {"": np.abs(bilinear(texture[..., :3], uv[nearest]) - true_colour),
-              "bake_": np.abs(bilinear(bake, uv[nearest]) - true_colour)}  # fmt: skip
+    uv = uv[cKDTree(dense).query(truth.points)[1]]
+    bake = bake_into_atlas(textured, texture.shape[:2], truth.dense, truth.dense_colours)
+    errors = {"": np.abs(bilinear(texture[..., :3], uv) - truth.colours),
+              "bake_": np.abs(bilinear(bake, uv) - truth.colours)}  # fmt: skip
     report = {"mean_abs_error": errors[""].mean(axis=0).tolist(),
               "p90_abs_error": np.percentile(errors[""], 90, axis=0).tolist(),
-              "constant_mean_abs_error": np.abs(constant - true_colour).mean(axis=0).tolist(),
+              "constant_mean_abs_error": np.abs(constant - truth.colours).mean(axis=0).tolist(),
               "bake_mean_abs_error": errors["bake_"].mean(axis=0).tolist()}  # fmt: skip
-    if views:
-        seen = seen_by_any(truth, points, truth.face_normals[faces], views)
-        report["seen_fraction"] = float(seen.mean())
+    if truth.seen is not None:
+        report["seen_fraction"] = float(truth.seen.mean())
         for prefix, error in errors.items():
-            report[f"{prefix}seen_mean_abs_error"] = error[seen].mean(axis=0).tolist()
+            report[f"{prefix}seen_mean_abs_error"] = error[truth.seen].mean(axis=0).tolist()
     return report
 
 
@@ -205,15 +221,9 @@ def bilinear(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Mitsuba's bitmap lookup: bilinear between texel centres, wrapping around
     (``wrap_mode = repeat``, its default); row 0 at v = 0."""
     height, width = texture.shape[:2]
-    x, y = uv[:, 0] * width - 0.5, uv[:, 1] * height - 0.5
-    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
-    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
-
-    def at(row: np.ndarray, col: np.ndarray) -> np.ndarray:
-        return texture[row % height, col % width]
-
-    return (at(y0, x0) * (1 - fx) * (1 - fy) + at(y0, x0 + 1) * fx * (1 - fy)
-            + at(y0 + 1, x0) * (1 - fx) * fy + at(y0 + 1, x0 + 1) * fx * fy)  # fmt: skip
+    coordinates = [uv[:, 1] * height - 0.5, uv[:, 0] * width - 0.5]
+    return np.stack([ndimage.map_coordinates(texture[..., channel], coordinates, order=1, mode="grid-wrap")
+                     for channel in range(texture.shape[2])], axis=-1)  # fmt: skip
 
 
 def bake_into_atlas(textured: trimesh.Trimesh, shape: tuple[int, int], truth_points: cKDTree,
@@ -348,18 +358,18 @@ def score_capture(capture: Path) -> dict[str, Any]:
             report["material_fit_geometry"] = score_material(final, truth)
         if truth.get("texture") and kept.get("kept") and kept["kind"] == "bitmap":
             # fit_texture's texture, and fit_geometry's after its material passes.
-            true_mesh = trimesh.load(truth_dir / "mesh.ply", process=False)
             fitted = json.loads(path.read_text())
             constant = np.asarray(fitted["params"]["base_color"])
             activate_mitsuba()
             training = [(true_intrinsics, pose) for name, pose in sorted(true_poses.items())
                         if name not in fitted["held_out"]]  # fmt: skip
+            surface = true_surface(trimesh.load(truth_dir / "mesh.ply", process=False), training)
             for folder, part in (("textured", "texture"), ("geometry", "texture_fit_geometry")):
                 if (out_dir / folder / "base_color.exr").is_file():
                     textured = trimesh.load(out_dir / folder / "mesh.ply", process=False)
                     textured.apply_transform(similarity.matrix())
                     report[part] = score_texture(textured, read_linear_image(out_dir / folder / "base_color.exr"),
-                                                 constant, true_mesh, training)  # fmt: skip
+                                                 constant, surface)  # fmt: skip
     for folder, stage, part in (("heldout", "fit_material", "heldout"), ("textured/heldout", "fit_texture", "heldout_textured"),
                                 ("geometry/heldout", "fit_geometry", "heldout_geometry")):  # fmt: skip
         if path := present(folder, stage):

@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from pipeline import cli
 from pipeline.camera import Intrinsics, Pose, read_cameras, write_cameras
-from pipeline.score import score_cameras, score_capture, score_mesh, score_texture
+from pipeline.score import score_cameras, score_capture, score_mesh, score_texture, true_surface
 
 SIMILARITY = (2.3, Rotation.from_euler("xyz", [20, -35, 60], degrees=True).as_matrix(), np.array([1.0, -2.0, 0.5]))
 
@@ -203,7 +203,7 @@ def test_texture_score_reads_rows_from_v_zero_at_the_top():
     texture = np.zeros((64, 64, 3))
     texture[:32], texture[32:] = red, blue
     texture = srgb_decode(to_uint8(texture) / 255)  # the same 8-bit rounding as the truth
-    report = score_texture(textured, texture, np.array([0.45, 0.1, 0.45]), truth)
+    report = score_texture(textured, texture, np.array([0.45, 0.1, 0.45]), true_surface(truth))
     # only points next to the equator (blended vertex colours) differ
     assert max(report["mean_abs_error"]) < 0.05 < min(report["constant_mean_abs_error"][0::2])
     # the truth baked into the same atlas scores as well as the right texture
@@ -225,6 +225,6 @@ def test_texture_score_splits_off_what_no_view_sees(mi):
     texture[40:] = 0.0  # wrong below z = -0.25
     looking_down = Pose(R=np.diag([1.0, -1.0, -1.0]), t=np.array([0.0, 0.0, 5.0]))
     camera = Intrinsics(width=200, height=200, fx=300, fy=300, cx=100, cy=100)
-    report = score_texture(textured, texture, np.array([0.5, 0.5, 0.5]), truth, [(camera, looking_down)])
+    report = score_texture(textured, texture, np.array([0.5, 0.5, 0.5]), true_surface(truth, [(camera, looking_down)]))
     assert 0.4 < report["seen_fraction"] < 0.55  # the upper half, less its grazing rim
     assert max(report["seen_mean_abs_error"]) < 0.01 < min(report["mean_abs_error"])
