@@ -402,6 +402,10 @@ class ShapeSettings:
     validate_every: int = 10
     validation_spp: int = 32
     seed: int = 0
+    symbolic_loops: bool = True
+    """False renders with evaluated loops: Dr.Jit 1.5's LLVM backend cannot compile
+    ``prbvolpath``'s symbolic loop once vertex positions carry gradients ("module could
+    not be verified"); evaluated loops compile and give finite gradients."""
 
 
 @dataclass
@@ -418,9 +422,20 @@ def fit_shape(shape_id: str, training: list[FitView], validation: list[FitView],
               integrator) -> ShapeResult:  # fmt: skip
     """Vertex positions of the mesh ``shape_id`` in every view's scene, everything else
     frozen: Adam on LargeSteps' differential coordinates (Nicolet et al. 2021, seams
-    welded), L2 loss, rendered with ``integrator`` (a projective one, the only kind
-    whose gradients include silhouette edges). Batches, seeds and the best-validation
-    rule are ``fit``'s; the scenes end in the best state."""
+    welded), L2 loss, rendered with ``integrator``. Only a projective integrator's
+    gradients include silhouette edges; another one (``prbvolpath``) gives the interior
+    terms alone: how the surface refracts, reflects and bounds the medium where it
+    is seen. Batches, seeds and the best-validation rule are ``fit``'s; the scenes end
+    in the best state."""
+    import drjit as dr
+    import mitsuba as mi
+
+    with dr.scoped_set_flag(dr.JitFlag.SymbolicLoops, settings.symbolic_loops):
+        return _fit_shape(shape_id, training, validation, settings, integrator)
+
+
+def _fit_shape(shape_id: str, training: list[FitView], validation: list[FitView], settings: ShapeSettings,
+               integrator) -> ShapeResult:  # fmt: skip
     import drjit as dr
     import mitsuba as mi
 

@@ -47,8 +47,9 @@ class ProbeResult:
     seconds_per_step: float
 
 
-def sphere_scene(folder: Path, model: materials.MaterialModel, width: int, spp: int) -> Path:
-    """scene.xml: a sphere of the model at its initial values, three sensors."""
+def sphere_scene(folder: Path, model: materials.MaterialModel, width: int, spp: int, mesh: str | None = None) -> Path:
+    """scene.xml: a sphere of the model at its initial values, three sensors; ``mesh``,
+    a PLY file name relative to ``folder``, in place of the analytic sphere."""
     root = scene_xml.new_scene()
     integrator, depth = materials.INTEGRATORS[model]
     scene_xml.plugin(root, "integrator", {"type": integrator, "id": "integrator", "max_depth": depth})
@@ -58,7 +59,8 @@ def sphere_scene(folder: Path, model: materials.MaterialModel, width: int, spp: 
         scene_xml.sensor(root, f"view{index}", scene_xml.sensor_properties(intrinsics, pose, spp, 0.01))
     scene_xml.plugin(root, "emitter", {"type": "constant", "id": "sky", "radiance": (0.3, 0.3, 0.3)})
     scene_xml.area_light(root, "softbox", [0.2, 0.25, 0.35], [0, 0, 0], [0, 0, 1], 0.2, (10.0, 10.0, 10.0))
-    shape = scene_xml.plugin(root, "shape", {"type": "sphere", "id": materials.SPECIMEN, "radius": RADIUS})
+    surface = {"type": "sphere", "radius": RADIUS} if mesh is None else {"type": "ply", "filename": mesh}
+    shape = scene_xml.plugin(root, "shape", surface | {"id": materials.SPECIMEN})
     bsdf, medium = materials.bsdf_and_medium(model, materials.initial_values(model))
     scene_xml.plugin(shape, "bsdf", bsdf)
     if medium is not None:

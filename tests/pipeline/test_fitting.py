@@ -208,3 +208,25 @@ def test_zero_tolerance_runs_every_iteration(mi, references, tmp_path):
     # A window of 2 sees the noise of 4 spp: with any tolerance the rule could fire.
     settings = fitting.FitSettings(iterations=10, batch=1, spp=4, loss="dual", tolerance=0.0, window=2)
     assert len(fitting.fit(PARAMETERS, views, [], settings).log) == 10
+
+
+
+def test_vertices_differentiate_through_the_medium_with_evaluated_loops(mi, tmp_path):
+    """prbvolpath with vertex gradients: Dr.Jit 1.5 aborts the process compiling the
+    symbolic loop's adjoint; ShapeSettings.symbolic_loops = False must get through
+    with finite gradients that move the vertices."""
+    import trimesh
+
+    from pipeline import stability
+
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=stability.RADIUS)
+    sphere.export(tmp_path / "truth.ply")
+    reference = stability.references(stability.sphere_scene(tmp_path, "volumetric", 16, 4, mesh="truth.ply"), 16)
+    sphere.apply_scale(0.9)
+    sphere.export(tmp_path / "start.ply")
+    scene = mi.load_file(str(stability.sphere_scene(tmp_path / "start", "volumetric", 16, 4, mesh="../start.ply")))
+    views = [fitting.FitView(f"view{i}", scene, s, reference[i]) for i, s in enumerate(scene.sensors())]
+    settings = fitting.ShapeSettings(iterations=2, batch=1, spp=4, step=1e-3, symbolic_loops=False)
+    result = fitting.fit_shape("specimen", views, [], settings, mi.load_dict({"type": "prbvolpath", "max_depth": 32}))
+    assert np.isfinite(result.positions).all() and all(np.isfinite(e["loss"]) for e in result.log)
+    assert np.abs(result.positions - sphere.vertices).max() > 1e-5
