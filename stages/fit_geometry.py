@@ -30,9 +30,10 @@ terms it does not descend reliably. On a flattened icosphere (3 views, 32 px) it
 loss rose over 20 steps; on bird_volumetric, from the visual hull, the window's
 held-out error fell 0.2 % by step 40 and rose after, yet that state lowered the
 specimen's own held-out error (eroded mask, what the material pass and the
-PSNR score) by 7.7 %. The silhouette pass, from the hull, changes nothing: the
-hull already matches the masks. Either way the medium is frozen while the
-geometry moves.
+PSNR score) by 7.7 %: held-out PSNR 28.6 dB against 28.4 dB with the silhouette
+pass, which from the hull changes nothing (the hull already matches the masks),
+alpha no closer, in 1735 s against 744 s for the stage. Either way the medium is
+frozen while the geometry moves.
 
 Material pass (``material_iterations`` > 0): the model's constants, and the
 texture if fit_texture kept one, are fitted again on the refined mesh by
@@ -71,8 +72,8 @@ loss is plain L2 (one render per view, half the dual estimator's cost): its
 Monte Carlo variance counts in the loss and may pull the shape slightly towards
 renders with less noise. A render and backward step costs seconds even at 32-96
 px on a CPU. The volumetric model's photometric gradients miss the silhouette
-terms, so its outline moves only as the interior pixels pull it; its passes cost
-about twice a surface model's per step.
+terms, so its outline moves only as the interior pixels pull it, and a step costs
+about 4.8 s (96 px, 8 spp, two views, 2 cores: evaluated loops at depth 32).
 """
 
 from __future__ import annotations
