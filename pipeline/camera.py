@@ -126,6 +126,16 @@ class Similarity:
         return M
 
 
+def project(points: np.ndarray, intrinsics: Intrinsics, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates (N, 2) and depths (N,) of world points in an undistorted
+    pinhole view; points at or behind the camera get finite pixels (check the depth)."""
+    cam = points @ pose.R.T + pose.t
+    z = cam[:, 2]
+    safe = np.where(z > 1e-9, z, 1e-9)
+    return np.stack([intrinsics.fx * cam[:, 0] / safe + intrinsics.cx,
+                     intrinsics.fy * cam[:, 1] / safe + intrinsics.cy], axis=-1), z  # fmt: skip
+
+
 def write_cameras(
     path: Path,
     intrinsics: Intrinsics | dict[str, Intrinsics],

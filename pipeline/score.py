@@ -45,7 +45,7 @@ import trimesh
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from pipeline.camera import Intrinsics, Pose, Similarity, read_cameras, rotation_angle_deg, similarity_umeyama
+from pipeline.camera import Intrinsics, Pose, Similarity, project, read_cameras, rotation_angle_deg, similarity_umeyama
 from pipeline.errors import PipelineError
 from pipeline.mitsuba_variant import activate as activate_mitsuba
 
@@ -270,10 +270,8 @@ def seen_by_any(mesh: trimesh.Trimesh, points: np.ndarray, normals: np.ndarray,
     scene = mi.load_dict({"type": "scene", "truth": shape})
     seen = np.zeros(len(points), dtype=bool)
     for intrinsics, pose in views:
-        in_camera = points @ pose.R.T + pose.t
-        pixels = in_camera @ intrinsics.K.T
-        pixels = pixels[:, :2] / np.maximum(pixels[:, 2:], 1e-12)
-        in_image = ((in_camera[:, 2] > 0) & (pixels[:, 0] >= 0) & (pixels[:, 0] < intrinsics.width)
+        pixels, depth = project(points, intrinsics, pose)
+        in_image = ((depth > 0) & (pixels[:, 0] >= 0) & (pixels[:, 0] < intrinsics.width)
                     & (pixels[:, 1] >= 0) & (pixels[:, 1] < intrinsics.height))  # fmt: skip
         to_camera = pose.center - points
         distance = np.linalg.norm(to_camera, axis=1)

@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from pipeline.camera import Intrinsics, Pose, rotation_angle_deg
+from pipeline.camera import Intrinsics, Pose, project, rotation_angle_deg
 
 
 def _turn(axis: np.ndarray, angle: float) -> np.ndarray:
@@ -202,10 +202,8 @@ def angle_from_matches(
 
 def splat(points: np.ndarray, radius_px: int, pose: Pose, intrinsics: Intrinsics, shape: tuple[int, int]) -> np.ndarray:
     """The silhouette of hull points seen from ``pose``: each a disc of ``radius_px``."""
-    cam = points @ pose.R.T + pose.t
-    front = cam[:, 2] > 1e-6
-    u = np.round(intrinsics.fx * cam[front, 0] / cam[front, 2] + intrinsics.cx).astype(int)
-    v = np.round(intrinsics.fy * cam[front, 1] / cam[front, 2] + intrinsics.cy).astype(int)
+    pixels, depth = project(points, intrinsics, pose)
+    u, v = np.round(pixels[depth > 1e-6]).astype(int).T
     h, w = shape
     keep = (u >= 0) & (u < w) & (v >= 0) & (v < h)
     rendered = np.zeros((h, w), np.uint8)

@@ -29,7 +29,7 @@ import trimesh
 from scipy.ndimage import map_coordinates
 from skimage.measure import marching_cubes
 
-from pipeline.camera import Intrinsics, Pose
+from pipeline.camera import Intrinsics, Pose, project
 
 _CHUNK = 400_000
 """Points per batch: bounds memory at about views x 3 MB."""
@@ -56,11 +56,7 @@ class View:
 
     def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pixel coordinates (N, 2) and depths (N,) of world points."""
-        cam = points @ self.pose.R.T + self.pose.t
-        z = cam[:, 2]
-        safe = np.where(z > 1e-9, z, 1e-9)
-        K = self.intrinsics
-        return np.stack([K.fx * cam[:, 0] / safe + K.cx, K.fy * cam[:, 1] / safe + K.cy], axis=-1), z
+        return project(points, self.intrinsics, self.pose)
 
 
 @dataclass

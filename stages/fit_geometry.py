@@ -182,21 +182,21 @@ def geometry_pass(conf: Config, geometry: Path, description: dict, loss: str, vi
 
     cameras, linear, masks = views_inputs
     windowed = load_views(geometry, description, cameras, linear, masks, conf.max_size, 0, conf.spp, sample_border=True)
-    kind, depth = materials.INTEGRATORS[description["model"]]
     if loss == "silhouette":
         views = silhouette_views(windowed, geometry / "mesh.ply", masks, cameras)
-        integrator = mi.load_dict({"type": "direct_projective", "sppi": 0})
+        integrator = {"type": "direct_projective", "sppi": 0}
     else:
         # The silhouette and its surroundings carry the shape: every window pixel counts.
         views = [fitting.FitView(v.name, v.scene, v.sensor, v.reference) for v, _ in windowed]
-        integrator = mi.load_dict({"type": "prb_projective", "max_depth": depth, "sppi": 0} if kind == "prb"
-                                  else {"type": kind, "max_depth": depth})  # fmt: skip
+        kind, depth = materials.INTEGRATORS[description["model"]]
+        integrator = ({"type": "prb_projective", "max_depth": depth, "sppi": 0} if kind == "prb"
+                      else {"type": kind, "max_depth": depth})  # fmt: skip
     settings = fitting.ShapeSettings(iterations=conf.iterations, batch=conf.batch, spp=conf.spp, step=step,
                                      smoothing=conf.smoothing, validate_every=conf.validate_every,
                                      validation_spp=conf.validation_spp, seed=seed,
-                                     symbolic_loops=loss == "silhouette" or kind != "prbvolpath")  # fmt: skip
+                                     symbolic_loops=integrator["type"] != "prbvolpath")  # fmt: skip
     result = fitting.fit_shape("specimen", [v for v in views if v.name not in held], [v for v in views if v.name in held],
-                               settings, integrator)  # fmt: skip
+                               settings, mi.load_dict(integrator))  # fmt: skip
     next(s for s in views[0].scene.shapes() if s.id() == "specimen").write_ply(str(geometry / "mesh.ply"))
     return result
 
