@@ -460,14 +460,16 @@ def _fit_shape(shape_id: str, training: list[FitView], validation: list[FitView]
             return np.array(steps.from_differential(optimizer["u"]), dtype=np.float32).reshape(-1, 3)
 
     def validate() -> float:
+        """Held-out error by the dual estimator, as ``fit``'s: plain MSE would add the
+        renders' variance, which a change of shape changes too."""
         errors = []
         with dr.suspend_grad():
             for scene_key in {id(view.scene) for view in validation}:
                 apply(scene_key)
             for index, view in enumerate(validation):
-                image = mi.render(view.scene, sensor=view.sensor, integrator=integrator,
-                                  spp=settings.validation_spp, seed=index)  # fmt: skip
-                errors.append(float(targets[view.name].mse(image, dr).array[0]))
+                first, second = (mi.render(view.scene, sensor=view.sensor, integrator=integrator,
+                                           spp=settings.validation_spp, seed=2 * index + k) for k in (0, 1))  # fmt: skip
+                errors.append(float(targets[view.name].dual(first, second, dr).array[0]))
         return float(np.mean(errors))
 
     batches = _Batches(training, settings.batch, settings.seed)

@@ -310,7 +310,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_geometry",
-    version=4,
+    version=5,
     config=Config,
     main=main,
     upstream=("fit_texture", "fit_material", "scene", "sfm", "undistort", "masks"),

@@ -230,3 +230,24 @@ def test_vertices_differentiate_through_the_medium_with_evaluated_loops(mi, tmp_
     result = fitting.fit_shape("specimen", views, [], settings, mi.load_dict({"type": "prbvolpath", "max_depth": 32}))
     assert np.isfinite(result.positions).all() and all(np.isfinite(e["loss"]) for e in result.log)
     assert np.abs(result.positions - sphere.vertices).max() > 1e-5
+
+
+def test_shape_validation_does_not_count_the_renders_noise(mi, tmp_path):
+    """Held-out views whose references are the scene's own converged renders: the
+    shape fit's held-out error must be the error of the expected image (about 0), not
+    the noise of its few-sample renders, or a shape that renders with less noise
+    would look better."""
+    import trimesh
+
+    from pipeline import stability
+
+    trimesh.creation.icosphere(subdivisions=2, radius=stability.RADIUS).export(tmp_path / "sphere.ply")
+    scene_file = stability.sphere_scene(tmp_path, "principled", 24, 2, mesh="sphere.ply")
+    converged = stability.references(scene_file, 1024)
+    scene = mi.load_file(str(scene_file))
+    views = [fitting.FitView(f"view{i}", scene, s, converged[i]) for i, s in enumerate(scene.sensors())]
+    noise = np.mean([np.mean((np.asarray(mi.render(scene, sensor=v.sensor, spp=2, seed=7)) - v.reference) ** 2)
+                     for v in views[1:]])  # fmt: skip
+    settings = fitting.ShapeSettings(iterations=1, batch=1, spp=2, validation_spp=2, validate_every=1)
+    result = fitting.fit_shape("specimen", views[:1], views[1:], settings, mi.load_dict({"type": "prb", "max_depth": 8}))
+    assert noise > 0 and abs(result.start_validation_error) < 0.25 * noise, (result.start_validation_error, noise)
