@@ -10,14 +10,18 @@ accuracy   ``pipeline run`` end to end on the standard preset on copies of
            sample_captures/bird (principled, blotchy base colour) and
            bird_volumetric; ``pipeline score`` per parameter against the issue's
            targets; held-out PSNR after each fit stage; wall time per stage
-oracle     fit_material again on bird_volumetric with the true mesh in place of the
-           visual hull (same photos, poses and settings): the mesh's share of the error
+oracle     fit_material again on bird_volumetric with the true surface's normals on
+           the visual hull, and with the true mesh in its place (same photos, poses
+           and settings): the mesh's share of the error, and its normals' share
+texture-oracle
+           uv, scene, fit_material and fit_texture on the bird's true mesh: whether the
+           texture's error is the mesh's or the fit's
 trade      fit_material on the bird for a grid of window size, spp and loss; fit_texture
            for a grid of texture resolution, smoothness prior and window size
 
-Usage: ``.venv/bin/python bench/fitting.py [--parts extremes,accuracy,oracle,trade]
+Usage: ``.venv/bin/python bench/fitting.py [--parts extremes,accuracy,oracle,texture-oracle,trade]
 [--workdir DIR] [--samples bird,bird_volumetric]`` (after bin/bootstrap). About 50
-minutes on 2 cores; a ``--workdir`` keeps the stage caches, so an interrupted run
+minutes on 2 cores (the oracles about 20 more); a ``--workdir`` keeps the stage caches, so an interrupted run
 resumes where it stopped. A sample whose pipeline run fails is reported as failed.
 """
 
@@ -38,10 +42,11 @@ from pipeline import mitsuba_variant, stability  # noqa: E402
 from pipeline.camera import read_cameras, read_views  # noqa: E402
 from pipeline.config import load_config  # noqa: E402
 from pipeline.errors import PipelineError  # noqa: E402
-from pipeline.score import score_cameras, score_capture, score_heldout, score_material  # noqa: E402
+from pipeline.score import (read_linear_image, score_cameras, score_capture, score_heldout, score_material,  # noqa: E402
+                            score_texture, true_surface)
 from pipeline.sections import schema  # noqa: E402
 from pipeline.stage import StageInputs  # noqa: E402
-from stages import STAGES, fit_material  # noqa: E402
+from stages import STAGES, fit_material, fit_texture, scene, uv  # noqa: E402
 
 # (kind, target) per scored parameter, from issue 6's point 7
 TARGETS = {"base_color": ("abs", 0.03), "albedo": ("abs", 0.03), "roughness": ("abs", 0.05), "alpha": ("abs", 0.05),
@@ -84,6 +89,13 @@ def _target_text(name: str) -> str:
 def _met(name: str, error: float) -> str:
     target = TARGETS[name][1]
     return "-" if target is None else ("yes" if error <= target else "**no**")
+
+
+def _texture_cells(texture: dict, constants: dict, psnr_db: float) -> tuple[str, str]:
+    """Table cells of a fit_texture result: its texture error (mean, p90; largest
+    channel), and the refitted constants' errors with the held-out PSNR."""
+    return (f"{max(texture['mean_abs_error']):.3f} ({max(texture['p90_abs_error']):.3f})",
+            " | ".join(constants[n][1] for n in ("roughness", "spec_trans", "eta")) + f" | {psnr_db:.1f} dB")
 
 
 def extremes_part() -> None:
@@ -190,43 +202,121 @@ def accuracy_part(work: Path, samples: list[str]) -> None:
     ]))  # fmt: skip
 
 
+def _with_true_normals(mesh_ply: Path, truth: trimesh.Trimesh) -> None:
+    """Give ``mesh_ply``'s vertices (positions kept) the normal of the true surface's
+    nearest point, as shading normals Mitsuba interpolates."""
+    import mitsuba as mi
+    from scipy.spatial import cKDTree
+
+    mesh = mi.load_dict({"type": "ply", "filename": str(mesh_ply)})
+    params = mi.traverse(mesh)
+    vertices = np.array(params["vertex_positions"]).reshape(-1, 3)
+    points, faces = trimesh.sample.sample_surface_even(truth, 600000, seed=0)
+    normals = truth.face_normals[faces[cKDTree(points).query(vertices)[1]]]
+    params["vertex_normals"] = mi.Float(normals.astype(np.float32).ravel())
+    params.update()
+    mesh.write_ply(str(mesh_ply))
+
+
 def oracle_part(work: Path) -> None:
-    """fit_material on the true mesh, placed in the reconstruction's frame."""
+    """fit_material on the true mesh, and on the hull with the true surface's normals,
+    placed in the reconstruction's frame."""
     capture = _copy_sample("bird_volumetric", work)
     outputs, _ = run_stages(capture, "fit_material")
     _, true_poses = read_cameras(capture / "ground_truth" / "cameras.json")
     _, similarity = score_cameras({n: p for n, (_, p) in read_views(outputs["sfm"]["cameras"]).items()}, true_poses)
-    scene_dir = work / "oracle" / "scene"
-    shutil.rmtree(work / "oracle", ignore_errors=True)
-    shutil.copytree(outputs["scene"]["scene_dir"], scene_dir)
     truth = trimesh.load(capture / "ground_truth" / "mesh.ply", force="mesh")
     truth.apply_transform(np.linalg.inv(similarity.matrix()))
-    truth.export(scene_dir / "mesh.ply")
     config = load_config(schema(STAGES), capture, "standard", [])
-    inputs = StageInputs(capture, (), {**outputs, "scene": {**outputs["scene"], "scene_dir": scene_dir}},
-                         {"mitsuba": config["mitsuba"]})  # fmt: skip
-    (work / "oracle" / "out").mkdir()
-    result = fit_material.main(config["fit_material"], inputs, work / "oracle" / "out")
-    fitted = json.loads(result.outputs["params"].read_text())
+    mitsuba_variant.activate(config["mitsuba"].variant)
     truth_material = json.loads((capture / "ground_truth" / "material.json").read_text())
     hull = json.loads((capture / "output" / "params.json").read_text())
-    rows = []
-    for label, params, heldout in (("visual hull (the pipeline)", hull, capture / "output" / "heldout"),
-                                   ("true mesh", fitted, result.outputs["heldout"])):  # fmt: skip
+    rows = [("visual hull (the pipeline)", hull, capture / "output" / "heldout")]
+    shutil.rmtree(work / "oracle", ignore_errors=True)
+    for label, name in (("visual hull, the true surface's normals", "normals"), ("true mesh", "mesh")):
+        scene_dir = work / "oracle" / name / "scene"
+        shutil.copytree(outputs["scene"]["scene_dir"], scene_dir)
+        if name == "mesh":
+            truth.export(scene_dir / "mesh.ply")
+        else:
+            _with_true_normals(scene_dir / "mesh.ply", truth)
+        inputs = StageInputs(capture, (), {**outputs, "scene": {**outputs["scene"], "scene_dir": scene_dir}},
+                             {"mitsuba": config["mitsuba"]})  # fmt: skip
+        (work / "oracle" / name / "out").mkdir()
+        result = fit_material.main(config["fit_material"], inputs, work / "oracle" / name / "out")
+        rows.append((label, json.loads(result.outputs["params"].read_text()), result.outputs["heldout"]))
+    lines = []
+    for label, params, heldout in rows:
         cells = _error_cells(score_material(params, truth_material))
-        rows.append(f"| {label} | " + " | ".join(cells[n][1] for n in ("alpha", "eta", "albedo", "sigma_t"))
-                    + f" | {score_heldout(heldout)['psnr_db_mean']:.1f} dB | {params['iterations']} |")  # fmt: skip
+        lines.append(f"| {label} | " + " | ".join(cells[n][1] for n in ("alpha", "eta", "albedo", "sigma_t"))
+                     + f" | {score_heldout(heldout)['psnr_db_mean']:.1f} dB | {params['iterations']} |")  # fmt: skip
     print(write_section("fitting-oracle", [
         "### The mesh's share of the volumetric error",
         "",
-        "fit_material (standard preset) on bird_volumetric twice: on the pipeline's mesh",
-        "(visual hull, cleaned), and on the true mesh moved into the reconstruction's frame by",
-        "the camera alignment; same photos, poses, masks, held-out views and settings.",
-        "Reproduce: `.venv/bin/python bench/fitting.py --parts accuracy,oracle` (the oracle",
-        "reuses the accuracy part's stages).",
+        "fit_material (standard preset) on bird_volumetric three times: on the pipeline's",
+        "mesh (visual hull, cleaned); on the same mesh with each vertex given the normal of",
+        "the true surface's nearest point (positions unchanged; Mitsuba interpolates these",
+        "shading normals); and on the true mesh. The truth is moved into the",
+        "reconstruction's frame by the camera alignment; same photos, poses, masks, held-out",
+        "views and settings. Reproduce: `.venv/bin/python bench/fitting.py --parts",
+        "accuracy,oracle` (the oracle reuses the accuracy part's stages).",
         "",
         "| mesh | alpha error | eta error | albedo error | sigma_t error | held-out PSNR | iterations |",
         "|---|---|---|---|---|---|---|",
+        *lines,
+    ]))  # fmt: skip
+
+
+def texture_oracle_part(work: Path) -> None:
+    """uv, scene, fit_material and fit_texture on the bird's true mesh, placed in the
+    reconstruction's frame; its texture scored as the pipeline's is."""
+    capture = _copy_sample("bird", work)
+    outputs, _ = run_stages(capture, "fit_texture")
+    true_intrinsics, true_poses = read_cameras(capture / "ground_truth" / "cameras.json")
+    _, similarity = score_cameras({n: p for n, (_, p) in read_views(outputs["sfm"]["cameras"]).items()}, true_poses)
+    folder = work / "oracle-texture"
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir()
+    truth = trimesh.load(capture / "ground_truth" / "mesh.ply", force="mesh", process=False)
+    bare = trimesh.Trimesh(truth.vertices, truth.faces, process=False)
+    bare.apply_transform(np.linalg.inv(similarity.matrix()))
+    bare.export(folder / "true_mesh.ply")
+    config = load_config(schema(STAGES), capture, "standard", [])
+    upstream = {**outputs, "cleanup": {**outputs["cleanup"], "mesh": folder / "true_mesh.ply"}}
+    for module in (uv, scene, fit_material, fit_texture):
+        name = module.STAGE.name
+        (folder / name).mkdir()
+        inputs = StageInputs(capture, (), upstream, {s: config[s] for s in module.STAGE.shared})
+        upstream[name] = module.main(config[name], inputs, folder / name).outputs
+    material = json.loads(outputs["fit_material"]["params"].read_text())
+    truth_material = json.loads((capture / "ground_truth" / "material.json").read_text())
+    training = [(true_intrinsics, pose) for name, pose in sorted(true_poses.items()) if name not in material["held_out"]]
+    surface = true_surface(trimesh.load(capture / "ground_truth" / "mesh.ply", process=False), training)
+    rows = []
+    for label, textured_dir, fitted in (
+        ("visual hull (the pipeline)", outputs["fit_texture"]["textured_dir"], material),
+        ("true mesh", upstream["fit_texture"]["textured_dir"], json.loads(upstream["fit_material"]["params"].read_text())),
+    ):  # fmt: skip
+        textured = trimesh.load(textured_dir / "mesh.ply", process=False)
+        textured.apply_transform(similarity.matrix())
+        score = score_texture(textured, read_linear_image(textured_dir / "base_color.exr"),
+                              np.asarray(fitted["params"]["base_color"]), surface)  # fmt: skip
+        errors = _error_cells(score_material(json.loads((textured_dir / "params.json").read_text()), truth_material))
+        texture_cell, other_cells = _texture_cells(score, errors, score_heldout(textured_dir / "heldout")["psnr_db_mean"])
+        rows.append(f"| {label} | {texture_cell} | {max(score['seen_mean_abs_error']):.3f} | "
+                    f"{max(score['bake_mean_abs_error']):.3f} | {other_cells} |")  # fmt: skip
+    print(write_section("fitting-texture-oracle", [
+        "### The mesh's share of the texture error",
+        "",
+        "fit_texture (standard preset, after the stages before it) on the bird, on the",
+        "pipeline's mesh and on the true mesh moved into the reconstruction's frame by the",
+        "camera alignment (unwrapped by the uv stage like the hull; same photos, poses, masks,",
+        "held-out views and settings). Texture errors as in the accuracy table (largest",
+        "channel), then the constants fit_texture refitted. Reproduce:",
+        "`.venv/bin/python bench/fitting.py --parts texture-oracle`.",
+        "",
+        "| mesh | texture error (p90) | over the seen surface | truth baked into the atlas | roughness | spec_trans | eta | held-out PSNR |",
+        "|---|---|---|---|---|---|---|---|",
         *rows,
     ]))  # fmt: skip
 
@@ -252,10 +342,9 @@ def trade_part(work: Path) -> None:
         iterations = " + ".join(str(level["iterations"]) for level in [fitted["constants_fit"], *fitted["levels"]])
         report = score_capture(capture)
         texture, constants = report["texture"], _error_cells(report["material_fit_texture"])
+        texture_cell, other_cells = _texture_cells(texture, constants, report["heldout_textured"]["psnr_db_mean"])
         texture_rows.append(f"| {resolution} | {smoothness:g} | {max_size} | {seconds['fit_texture']:.0f} s | {iterations} | "
-                            f"{max(texture['mean_abs_error']):.3f} ({max(texture['p90_abs_error']):.3f}) | "
-                            + " | ".join(constants[n][1] for n in ("roughness", "spec_trans", "eta"))
-                            + f" | {report['heldout_textured']['psnr_db_mean']:.1f} dB |")  # fmt: skip
+                            f"{texture_cell} | {other_cells} |")  # fmt: skip
     print(write_section("fitting-trade", [
         "### Speed against accuracy (fit_material)",
         "",
@@ -285,7 +374,7 @@ def trade_part(work: Path) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--parts", default="extremes,accuracy,oracle,trade")
+    parser.add_argument("--parts", default="extremes,accuracy,oracle,texture-oracle,trade")
     parser.add_argument("--workdir", type=Path, help="keep captures and caches here (default: a temporary folder)")
     parser.add_argument("--samples", default="bird,bird_volumetric", help="sample captures of the accuracy part")
     args = parser.parse_args()
@@ -299,6 +388,8 @@ def main() -> None:
             accuracy_part(work, args.samples.split(","))
         if "oracle" in parts:
             oracle_part(work)
+        if "texture-oracle" in parts:
+            texture_oracle_part(work)
         if "trade" in parts:
             trade_part(work)
 
