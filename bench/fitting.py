@@ -39,7 +39,7 @@ import trimesh
 from report import ROOT, run_stages, write_section
 
 from pipeline import mitsuba_variant, stability  # noqa: E402
-from pipeline.camera import read_cameras, read_views  # noqa: E402
+from pipeline.camera import Similarity, read_cameras, read_views  # noqa: E402
 from pipeline.config import load_config  # noqa: E402
 from pipeline.errors import PipelineError  # noqa: E402
 from pipeline.score import (read_linear_image, score_cameras, score_capture, score_heldout, score_material,  # noqa: E402
@@ -202,6 +202,17 @@ def accuracy_part(work: Path, samples: list[str]) -> None:
     ]))  # fmt: skip
 
 
+def _truth_in_reconstruction(capture: Path, outputs: dict) -> tuple[Similarity, trimesh.Trimesh]:
+    """The camera alignment (reconstruction to truth) and the true mesh, geometry only,
+    moved into the reconstruction's frame by its inverse."""
+    _, true_poses = read_cameras(capture / "ground_truth" / "cameras.json")
+    _, similarity = score_cameras({n: p for n, (_, p) in read_views(outputs["sfm"]["cameras"]).items()}, true_poses)
+    truth = trimesh.load(capture / "ground_truth" / "mesh.ply", force="mesh", process=False)
+    bare = trimesh.Trimesh(truth.vertices, truth.faces, process=False)
+    bare.apply_transform(np.linalg.inv(similarity.matrix()))
+    return similarity, bare
+
+
 def _with_true_normals(mesh_ply: Path, truth: trimesh.Trimesh) -> None:
     """Give ``mesh_ply``'s vertices (positions kept) the normal of the true surface's
     nearest point, as shading normals Mitsuba interpolates."""
@@ -223,10 +234,7 @@ def oracle_part(work: Path) -> None:
     placed in the reconstruction's frame."""
     capture = _copy_sample("bird_volumetric", work)
     outputs, _ = run_stages(capture, "fit_material")
-    _, true_poses = read_cameras(capture / "ground_truth" / "cameras.json")
-    _, similarity = score_cameras({n: p for n, (_, p) in read_views(outputs["sfm"]["cameras"]).items()}, true_poses)
-    truth = trimesh.load(capture / "ground_truth" / "mesh.ply", force="mesh")
-    truth.apply_transform(np.linalg.inv(similarity.matrix()))
+    _, truth = _truth_in_reconstruction(capture, outputs)
     config = load_config(schema(STAGES), capture, "standard", [])
     mitsuba_variant.activate(config["mitsuba"].variant)
     truth_material = json.loads((capture / "ground_truth" / "material.json").read_text())
@@ -273,14 +281,11 @@ def texture_oracle_part(work: Path) -> None:
     capture = _copy_sample("bird", work)
     outputs, _ = run_stages(capture, "fit_texture")
     true_intrinsics, true_poses = read_cameras(capture / "ground_truth" / "cameras.json")
-    _, similarity = score_cameras({n: p for n, (_, p) in read_views(outputs["sfm"]["cameras"]).items()}, true_poses)
+    similarity, truth = _truth_in_reconstruction(capture, outputs)
     folder = work / "oracle-texture"
     shutil.rmtree(folder, ignore_errors=True)
     folder.mkdir()
-    truth = trimesh.load(capture / "ground_truth" / "mesh.ply", force="mesh", process=False)
-    bare = trimesh.Trimesh(truth.vertices, truth.faces, process=False)
-    bare.apply_transform(np.linalg.inv(similarity.matrix()))
-    bare.export(folder / "true_mesh.ply")
+    truth.export(folder / "true_mesh.ply")
     config = load_config(schema(STAGES), capture, "standard", [])
     upstream = {**outputs, "cleanup": {**outputs["cleanup"], "mesh": folder / "true_mesh.ply"}}
     for module in (uv, scene, fit_material, fit_texture):

@@ -428,7 +428,6 @@ def fit_shape(shape_id: str, training: list[FitView], validation: list[FitView],
     is seen. Batches, seeds and the best-validation rule are ``fit``'s; the scenes end
     in the best state."""
     import drjit as dr
-    import mitsuba as mi
 
     with dr.scoped_set_flag(dr.JitFlag.SymbolicLoops, settings.symbolic_loops):
         return _fit_shape(shape_id, training, validation, settings, integrator)
