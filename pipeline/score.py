@@ -45,6 +45,7 @@ import trimesh
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from pipeline.atlas import chart_texels, occluder, unoccluded
 from pipeline.camera import Intrinsics, Pose, Similarity, project, read_cameras, rotation_angle_deg, similarity_umeyama
 from pipeline.errors import PipelineError
 from pipeline.mitsuba_variant import activate as activate_mitsuba
@@ -230,60 +231,23 @@ def bake_into_atlas(textured: trimesh.Trimesh, shape: tuple[int, int], truth_poi
                     truth_colours: np.ndarray) -> np.ndarray:  # fmt: skip
     """An (h, w, 3) texture on ``textured``'s UVs holding, at each texel centre inside
     a chart, the colour of the nearest of ``truth_points``; texels between charts
-    copy the nearest chart texel (so bilinear reads at chart edges see no gap)."""
-    height, width = shape
-    positions = np.full((height * width, 3), np.nan)
-    for face in textured.faces:
-        corners = textured.visual.uv[face] * (width, height) - 0.5  # texel-centre coordinates
-        lo = np.maximum(np.ceil(corners.min(axis=0)).astype(int), 0)
-        hi = np.minimum(np.floor(corners.max(axis=0)).astype(int), (width - 1, height - 1))
-        if np.any(hi < lo):
-            continue
-        cols, rows = np.meshgrid(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1))
-        edges = np.array([corners[1] - corners[0], corners[2] - corners[0]]).T
-        if abs(np.linalg.det(edges)) < 1e-12:
-            continue
-        weights = np.linalg.solve(edges, (np.c_[cols.ravel(), rows.ravel()] - corners[0]).T).T
-        inside = (weights >= -1e-9).all(axis=1) & (weights.sum(axis=1) <= 1 + 1e-9)
-        vertices = textured.vertices[face]
-        positions[rows.ravel()[inside] * width + cols.ravel()[inside]] = (
-            vertices[0] + weights[inside] @ (vertices[1:] - vertices[0]))  # fmt: skip
-    covered = ~np.isnan(positions[:, 0])
-    colours = np.zeros((height * width, 3))
-    colours[covered] = truth_colours[truth_points.query(positions[covered])[1]]
-    colours = colours.reshape(height, width, 3)
-    _, (rows, cols) = ndimage.distance_transform_edt(~covered.reshape(height, width), return_indices=True)
-    return colours[rows, cols]
+    copy the nearest chart texel."""
+    texels = chart_texels(textured, shape)
+    return texels.fill_between_charts(truth_colours[truth_points.query(texels.points)[1]])
 
 
 def seen_by_any(mesh: trimesh.Trimesh, points: np.ndarray, normals: np.ndarray,
                 views: list[tuple[Intrinsics, Pose]]) -> np.ndarray:  # fmt: skip
     """Whether each of ``points`` (on ``mesh``, facing ``normals``) is inside some
     view's image, faces its camera and is not hidden by ``mesh``."""
-    import mitsuba as mi
-
-    shape = mi.Mesh("truth", len(mesh.vertices), len(mesh.faces))
-    params = mi.traverse(shape)
-    params["vertex_positions"] = mi.Float(mesh.vertices.astype(np.float32).ravel())
-    params["faces"] = mi.UInt32(mesh.faces.astype(np.uint32).ravel())
-    params.update()
-    scene = mi.load_dict({"type": "scene", "truth": shape})
+    scene = occluder(mesh)
+    offset = 1e-4 * float(np.linalg.norm(mesh.extents))
     seen = np.zeros(len(points), dtype=bool)
     for intrinsics, pose in views:
         pixels, depth = project(points, intrinsics, pose)
         in_image = ((depth > 0) & (pixels[:, 0] >= 0) & (pixels[:, 0] < intrinsics.width)
                     & (pixels[:, 1] >= 0) & (pixels[:, 1] < intrinsics.height))  # fmt: skip
-        to_camera = pose.center - points
-        distance = np.linalg.norm(to_camera, axis=1)
-        to_camera /= distance[:, None]
-        # leave the surface before testing, and stop short of the camera
-        offset = 1e-4 * float(np.linalg.norm(mesh.extents))
-        origins = points + offset * to_camera
-        rays = mi.Ray3f(mi.Ray3f(mi.Point3f(*map(mi.Float, np.array(origins.T, dtype=np.float32))),
-                                 mi.Vector3f(*map(mi.Float, np.array(to_camera.T, dtype=np.float32)))),
-                        mi.Float(np.array(distance - offset, dtype=np.float32)))  # fmt: skip
-        hidden = np.array(scene.ray_test(rays), dtype=bool)
-        seen |= in_image & ((to_camera * normals).sum(axis=1) > 0) & ~hidden
+        seen |= in_image & unoccluded(scene, points, normals, pose.center, offset)
     return seen
 
 

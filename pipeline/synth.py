@@ -27,6 +27,7 @@ import numpy as np
 import trimesh
 
 from pipeline import logger, mitsuba_variant, progress
+from pipeline.atlas import mitsuba_mesh
 from pipeline.board import board_image, board_to_world
 from pipeline.camera import Intrinsics, Pose, distortion_maps, pinhole_render_size, write_cameras
 from pipeline.errors import PipelineError
@@ -179,11 +180,7 @@ class _Studio:
             props["interior"] = mi.load_dict(medium)
         if emitter is not None:
             props["emitter"] = mi.load_dict(emitter)
-        shape = mi.Mesh("specimen", len(mesh.vertices), len(mesh.faces), props, has_vertex_normals=False)
-        params = mi.traverse(shape)
-        params["vertex_positions"] = mi.Float(mesh.vertices.astype(np.float32).ravel())
-        params["faces"] = mi.UInt32(mesh.faces.astype(np.uint32).ravel())
-        params.update()
+        shape = mitsuba_mesh(mesh, "specimen", props)
         if albedo is not None:
             # Float attribute, not PLY colours: no 8-bit quantisation or colour-space guess.
             shape.add_attribute("vertex_color", 3, mi.Float(albedo.astype(np.float32).ravel()))

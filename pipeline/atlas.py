@@ -1,0 +1,105 @@
+"""Where a mesh's UV atlas lies on its surface, and which surface points a camera sees.
+
+Used by ``pipeline score`` (the truth baked into a fitted atlas; the surface the
+photos see) and by the synthetic studio (the specimen as a Mitsuba mesh). Texels
+follow Mitsuba's bitmap lookup: texel (row, col) has its centre at
+uv = ((col + 0.5) / width, (row + 0.5) / height), row 0 at v = 0.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+from scipy import ndimage
+
+
+@dataclass(frozen=True)
+class Texels:
+    """The texels of an atlas whose centre lies inside a chart, on the surface."""
+
+    shape: tuple[int, int]
+    """(height, width) of the atlas."""
+    index: np.ndarray
+    """(n,) flat indices (row * width + col) into the atlas."""
+    points: np.ndarray
+    """(n, 3) the texel centres on the surface."""
+
+    def fill_between_charts(self, values: np.ndarray) -> np.ndarray:
+        """An (h, w, channels) atlas holding ``values`` (n, channels) at the chart texels
+        and, between charts, the nearest chart texel's value (so that bilinear reads at
+        a chart's edge see no gap)."""
+        height, width = self.shape
+        atlas = np.zeros((height * width, values.shape[1]), dtype=values.dtype)
+        atlas[self.index] = values
+        outside = np.ones(height * width, dtype=bool)
+        outside[self.index] = False
+        _, (rows, cols) = ndimage.distance_transform_edt(outside.reshape(height, width), return_indices=True)
+        return atlas.reshape(height, width, -1)[rows, cols]
+
+
+def chart_texels(textured: trimesh.Trimesh, shape: tuple[int, int]) -> Texels:
+    """Rasterise ``textured``'s UV triangles at the texel centres of an atlas of ``shape``."""
+    height, width = shape
+    index, points = [], []
+    for face in textured.faces:
+        corners = textured.visual.uv[face] * (width, height) - 0.5  # texel-centre coordinates
+        lo = np.maximum(np.ceil(corners.min(axis=0)).astype(int), 0)
+        hi = np.minimum(np.floor(corners.max(axis=0)).astype(int), (width - 1, height - 1))
+        if np.any(hi < lo):
+            continue
+        edges = np.array([corners[1] - corners[0], corners[2] - corners[0]]).T
+        if abs(np.linalg.det(edges)) < 1e-12:
+            continue
+        cols, rows = np.meshgrid(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1))
+        weights = np.linalg.solve(edges, (np.c_[cols.ravel(), rows.ravel()] - corners[0]).T).T
+        inside = (weights >= -1e-9).all(axis=1) & (weights.sum(axis=1) <= 1 + 1e-9)
+        vertices = textured.vertices[face]
+        index.append(rows.ravel()[inside] * width + cols.ravel()[inside])
+        points.append(vertices[0] + weights[inside] @ (vertices[1:] - vertices[0]))
+    # A texel centre on an edge shared by two faces is rasterised twice: keep the
+    # later face's.
+    if not index:
+        return Texels((height, width), np.zeros(0, dtype=int), np.zeros((0, 3)))
+    index, last = np.unique(np.concatenate(index)[::-1], return_index=True)
+    return Texels((height, width), index, np.concatenate(points)[::-1][last])
+
+
+def mitsuba_mesh(mesh: trimesh.Trimesh, name: str, props=None):
+    """``mesh`` as a Mitsuba mesh (positions and faces only), with plugin ``props``
+    (BSDF, medium, emitter) bound at construction; needs Mitsuba's variant set."""
+    import mitsuba as mi
+
+    shape = mi.Mesh(name, len(mesh.vertices), len(mesh.faces), props if props is not None else mi.Properties(),
+                    has_vertex_normals=False)  # fmt: skip
+    params = mi.traverse(shape)
+    params["vertex_positions"] = mi.Float(mesh.vertices.astype(np.float32).ravel())
+    params["faces"] = mi.UInt32(mesh.faces.astype(np.uint32).ravel())
+    params.update()
+    return shape
+
+
+def occluder(mesh: trimesh.Trimesh):
+    """A Mitsuba scene of ``mesh`` alone, to test visibility against."""
+    import mitsuba as mi
+
+    return mi.load_dict({"type": "scene", "occluder": mitsuba_mesh(mesh, "occluder")})
+
+
+def unoccluded(scene, points: np.ndarray, normals: np.ndarray, center: np.ndarray, offset: float) -> np.ndarray:
+    """Whether each of ``points`` (on the surface of ``scene``'s mesh, facing ``normals``)
+    faces ``center`` and nothing in ``scene`` lies between them. The ray leaves the
+    surface by ``offset`` and stops as far short of the camera."""
+    import mitsuba as mi
+
+    to_camera = center - points
+    distance = np.linalg.norm(to_camera, axis=1)
+    to_camera = to_camera / distance[:, None]
+    origins = np.asarray(points + offset * to_camera, dtype=np.float32)
+    directions = np.asarray(to_camera, dtype=np.float32)
+    # Ray3f(ray, maxt): the three-argument constructor reads its third as a time.
+    rays = mi.Ray3f(mi.Ray3f(mi.Point3f(*map(mi.Float, origins.T)), mi.Vector3f(*map(mi.Float, directions.T))),
+                    mi.Float(np.asarray(distance - 2 * offset, dtype=np.float32)))  # fmt: skip
+    hidden = np.array(scene.ray_test(rays), dtype=bool)
+    return ((to_camera * normals).sum(axis=1) > 0) & ~hidden
