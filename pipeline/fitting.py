@@ -213,6 +213,16 @@ class _Target:
         """Deng et al.'s dual-buffer estimator of the squared error of the expected image."""
         return self.mean((image - self.reference) * (second - self.reference), dr)
 
+    def heldout_error(self, view: FitView, index: int, spp: int, dual: bool, mi, dr, integrator=None) -> float:
+        """The error of ``view`` (this target's) rendered with fixed seeds (2 * index, and
+        2 * index + 1 for the second render): the dual estimator, or with ``dual`` off
+        plain MSE. ``integrator`` None renders with the scene's own."""
+        image = mi.render(view.scene, sensor=view.sensor, integrator=integrator, spp=spp, seed=2 * index)
+        if not dual:
+            return float(self.mse(image, dr).array[0])
+        second = mi.render(view.scene, sensor=view.sensor, integrator=integrator, spp=spp, seed=2 * index + 1)
+        return float(self.dual(image, second, dr).array[0])
+
 
 def fit(parameters: list[FitParameter], training: list[FitView], validation: list[FitView],
         settings: FitSettings, on_iteration=None) -> FitResult:  # fmt: skip
@@ -304,13 +314,8 @@ def fit(parameters: list[FitParameter], training: list[FitView], validation: lis
         for index, view in enumerate(validation):
             with dr.suspend_grad():
                 apply(id(view.scene))
-                image = mi.render(view.scene, sensor=view.sensor, spp=settings.validation_spp, seed=2 * index)
-                if settings.loss == "dual":
-                    second = mi.render(view.scene, sensor=view.sensor, spp=settings.validation_spp, seed=2 * index + 1)
-                    error = targets[view.name].dual(image, second, dr)
-                else:
-                    error = targets[view.name].mse(image, dr)
-                errors.append(float(error.array[0]))
+                errors.append(targets[view.name].heldout_error(view, index, settings.validation_spp,
+                                                               settings.loss == "dual", mi, dr))  # fmt: skip
         return float(np.mean(errors))
 
     clamp()
@@ -466,9 +471,8 @@ def _fit_shape(shape_id: str, training: list[FitView], validation: list[FitView]
             for scene_key in {id(view.scene) for view in validation}:
                 apply(scene_key)
             for index, view in enumerate(validation):
-                first, second = (mi.render(view.scene, sensor=view.sensor, integrator=integrator,
-                                           spp=settings.validation_spp, seed=2 * index + k) for k in (0, 1))  # fmt: skip
-                errors.append(float(targets[view.name].dual(first, second, dr).array[0]))
+                errors.append(targets[view.name].heldout_error(view, index, settings.validation_spp, True, mi, dr,
+                                                               integrator))  # fmt: skip
         return float(np.mean(errors))
 
     batches = _Batches(training, settings.batch, settings.seed)

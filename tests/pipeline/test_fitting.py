@@ -210,7 +210,6 @@ def test_zero_tolerance_runs_every_iteration(mi, references, tmp_path):
     assert len(fitting.fit(PARAMETERS, views, [], settings).log) == 10
 
 
-
 def test_vertices_differentiate_through_the_medium_with_evaluated_loops(mi, tmp_path):
     """prbvolpath with vertex gradients: Dr.Jit 1.5 aborts the process compiling the
     symbolic loop's adjoint; ShapeSettings.symbolic_loops = False must get through
