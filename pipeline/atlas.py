@@ -39,11 +39,12 @@ class Texels:
         return atlas.reshape(height, width, -1)[rows, cols]
 
 
-def chart_texels(textured: trimesh.Trimesh, shape: tuple[int, int]) -> Texels:
-    """Rasterise ``textured``'s UV triangles at the texel centres of an atlas of ``shape``."""
+def _face_texels(textured: trimesh.Trimesh, shape: tuple[int, int]):
+    """Per face of ``textured``: (face, flat indices of the texels of an atlas of
+    ``shape`` whose centre lies in the face's UV triangle, edges included, and the
+    centres' barycentric weights (n, 3))."""
     height, width = shape
-    index, points = [], []
-    for face in textured.faces:
+    for face_index, face in enumerate(textured.faces):
         corners = textured.visual.uv[face] * (width, height) - 0.5  # texel-centre coordinates
         lo = np.maximum(np.ceil(corners.min(axis=0)).astype(int), 0)
         hi = np.minimum(np.floor(corners.max(axis=0)).astype(int), (width - 1, height - 1))
@@ -54,16 +55,33 @@ def chart_texels(textured: trimesh.Trimesh, shape: tuple[int, int]) -> Texels:
             continue
         cols, rows = np.meshgrid(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1))
         weights = np.linalg.solve(edges, (np.c_[cols.ravel(), rows.ravel()] - corners[0]).T).T
-        inside = (weights >= -1e-9).all(axis=1) & (weights.sum(axis=1) <= 1 + 1e-9)
-        vertices = textured.vertices[face]
-        index.append(rows.ravel()[inside] * width + cols.ravel()[inside])
-        points.append(vertices[0] + weights[inside] @ (vertices[1:] - vertices[0]))
+        weights = np.c_[1 - weights.sum(axis=1), weights]
+        inside = (weights >= -1e-9).all(axis=1)
+        yield face_index, rows.ravel()[inside] * width + cols.ravel()[inside], weights[inside]
+
+
+def chart_texels(textured: trimesh.Trimesh, shape: tuple[int, int]) -> Texels:
+    """Rasterise ``textured``'s UV triangles at the texel centres of an atlas of ``shape``."""
+    index, points = [], []
+    for face_index, texels, weights in _face_texels(textured, shape):
+        index.append(texels)
+        points.append(weights @ textured.vertices[textured.faces[face_index]])
     # A texel centre on an edge shared by two faces is rasterised twice: keep the
     # later face's.
     if not index:
-        return Texels((height, width), np.zeros(0, dtype=int), np.zeros((0, 3)))
+        return Texels(shape, np.zeros(0, dtype=int), np.zeros((0, 3)))
     index, last = np.unique(np.concatenate(index)[::-1], return_index=True)
-    return Texels((height, width), index, np.concatenate(points)[::-1][last])
+    return Texels(shape, index, np.concatenate(points)[::-1][last])
+
+
+def overlapping_texels(textured: trimesh.Trimesh, shape: tuple[int, int]) -> int:
+    """How many texel centres of an atlas of ``shape`` lie strictly inside two or more
+    UV triangles of ``textured``: surface points that would share one texel. A valid
+    atlas has none."""
+    covered = np.zeros(shape[0] * shape[1], dtype=int)
+    for _, texels, weights in _face_texels(textured, shape):
+        np.add.at(covered, texels[(weights > 1e-6).all(axis=1)], 1)
+    return int(np.count_nonzero(covered > 1))
 
 
 def mitsuba_mesh(mesh: trimesh.Trimesh, name: str, props=None):

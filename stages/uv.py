@@ -2,7 +2,11 @@
 
 xatlas cuts the mesh into charts and packs them into a square atlas of
 ``texture_size`` texels: at ``texel_density`` texels per world unit when given
-(metres in a board-scaled frame), else at whatever density fills the atlas.
+(metres in a board-scaled frame), else at the highest density (tried in steps
+of 15 % in area) at which every chart fits the one atlas. Charts must never
+overflow onto a second atlas: its UVs cover the same square, so two parts of
+the surface would share texels and no texture could match both (stage version
+1 let this happen to ~10 % of the texels of the sample bird).
 Vertices on chart seams are split, so the UV mesh has more vertices than the
 cleaned mesh but the same surface.
 
@@ -15,7 +19,8 @@ checker.png         a checker texture of texture_size, 16 texels per square
 uv_layout.png       the charts drawn in UV space
 preview.png         the checker-textured mesh rendered by Mitsuba from the first
                     registered camera: squares should look square and even
-uv.json             charts, atlas utilisation, texel density, area distortion
+uv.json             charts, atlas utilisation, texel density, area distortion,
+                    overlapping texels (surface points sharing a texel: 0)
 ==================  =============================================================
 
 Area distortion is, per face, its share of the UV area over its share of the
@@ -38,8 +43,10 @@ import trimesh
 import xatlas
 
 from pipeline import mitsuba_variant
+from pipeline.atlas import overlapping_texels
 from pipeline.camera import read_views
 from pipeline.config import Range
+from pipeline.errors import PipelineError
 from pipeline.photo_io import to_uint8
 from pipeline.stage import Stage, StageInputs, StageResult
 
@@ -60,16 +67,31 @@ class Config:
 
 
 def unwrap(mesh: trimesh.Trimesh, conf: Config) -> tuple[trimesh.Trimesh, dict]:
-    atlas = xatlas.Atlas()
-    atlas.add_mesh(mesh.vertices.astype(np.float32), mesh.faces.astype(np.uint32))
     pack = xatlas.PackOptions()
     pack.resolution = conf.texture_size
-    # xatlas' own estimate for density 0 fills a fraction of the atlas; aim for ~70 %
-    # of it, what packing typically reaches.
-    pack.texels_per_unit = conf.texel_density or conf.texture_size * float(np.sqrt(0.7 / mesh.area))
     pack.padding = conf.padding
     pack.bilinear = True
-    atlas.generate(xatlas.ChartOptions(), pack)
+    # Aim for ~70 % of the atlas, what packing typically reaches. Charts that do not
+    # fit spill onto further pages with the same UV range, which the single bitmap
+    # of a Mitsuba scene would share between unrelated parts of the surface: pack
+    # again, denser, until one page holds every chart.
+    fill = 0.7
+    while True:
+        atlas = xatlas.Atlas()
+        atlas.add_mesh(mesh.vertices.astype(np.float32), mesh.faces.astype(np.uint32))
+        pack.texels_per_unit = conf.texel_density or conf.texture_size * float(np.sqrt(fill / mesh.area))
+        atlas.generate(xatlas.ChartOptions(), pack)
+        if atlas.atlas_count == 1:
+            break
+        if conf.texel_density:
+            raise PipelineError(f"uv.texel_density = {conf.texel_density:g} puts the charts on {atlas.atlas_count} "
+                                f"atlases of {conf.texture_size} texels: lower it, raise uv.texture_size, or set it "
+                                "to 0 to choose the density that fits")  # fmt: skip
+        fill *= 0.85
+        if fill < 0.01:
+            raise PipelineError(f"the mesh's {atlas.chart_count} UV charts do not fit one atlas of "
+                                f"uv.texture_size = {conf.texture_size} texels with uv.padding = {conf.padding}: "
+                                "raise texture_size or lower padding")  # fmt: skip
     mapping, faces, uvs = atlas[0]
     visual = trimesh.visual.TextureVisuals(uv=uvs)
     unwrapped = trimesh.Trimesh(mesh.vertices[mapping], faces, visual=visual, process=False)
@@ -83,6 +105,7 @@ def unwrap(mesh: trimesh.Trimesh, conf: Config) -> tuple[trimesh.Trimesh, dict]:
         "atlas_size": [int(atlas.width), int(atlas.height)],
         "utilisation": float(np.mean(atlas.utilization)),
         "texel_density": float(atlas.texels_per_unit),
+        "overlapping_texels": overlapping_texels(unwrapped, (int(atlas.height), int(atlas.width))),
         "area_distortion_median": float(np.median(spread)),
         "area_distortion_p95": float(np.percentile(spread, 95)),
         "vertices": int(len(unwrapped.vertices)),
@@ -164,7 +187,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="uv",
-    version=1,
+    version=2,
     config=Config,
     main=main,
     upstream=("cleanup", "sfm"),

@@ -1,7 +1,7 @@
 import numpy as np
 import trimesh
 
-from pipeline.atlas import chart_texels
+from pipeline.atlas import chart_texels, overlapping_texels
 
 
 def _square(uv_scale: float = 1.0) -> trimesh.Trimesh:
@@ -33,3 +33,11 @@ def test_texels_between_charts_copy_the_nearest_chart_texel():
 def test_a_mesh_without_charts_has_no_texels():
     texels = chart_texels(_square(uv_scale=0.01), (4, 4))  # too small to hold a texel centre
     assert texels.index.size == 0 and texels.points.shape == (0, 3)
+
+
+def test_uv_triangles_that_share_texels_are_counted():
+    square = _square(uv_scale=0.5)
+    assert overlapping_texels(square, (8, 8)) == 0  # two triangles meet on an edge only
+    doubled = trimesh.util.concatenate([square, square])
+    doubled.visual = trimesh.visual.TextureVisuals(uv=np.vstack([square.visual.uv] * 2))
+    assert overlapping_texels(doubled, (8, 8)) > 0

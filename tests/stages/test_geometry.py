@@ -67,6 +67,7 @@ def test_uv_covers_the_mesh_with_little_area_distortion(bird):
     _, outputs = bird
     report = json.loads(outputs["uv"]["report"].read_text())
     assert report["area_distortion_median"] < 1.2 and report["utilisation"] > 0.5
+    assert report["overlapping_texels"] == 0
     obj = trimesh.load(outputs["uv"]["obj"], force="mesh", process=False)
     ply = trimesh.load(outputs["uv"]["mesh"], force="mesh", process=False)
     for mesh in (obj, ply):

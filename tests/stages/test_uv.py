@@ -1,0 +1,29 @@
+import numpy as np
+import pytest
+import trimesh
+
+from pipeline.atlas import overlapping_texels
+from pipeline.errors import PipelineError
+from stages.uv import Config, unwrap
+
+
+def _lumpy_sphere() -> trimesh.Trimesh:
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    sphere.vertices += 0.05 * np.sin(7 * sphere.vertices)  # uneven: xatlas cuts several charts
+    return sphere
+
+
+@pytest.mark.parametrize("texture_size", [64, 256])
+def test_every_chart_lands_on_one_atlas_without_overlap(texture_size):
+    # xatlas' first density estimate overflows onto extra atlases at both sizes.
+    unwrapped, report = unwrap(_lumpy_sphere(), Config(texture_size=texture_size, padding=2))
+    assert report["charts"] > 1 and report["atlas_size"] == [texture_size, texture_size]
+    assert report["overlapping_texels"] == 0
+    assert overlapping_texels(unwrapped, (texture_size, texture_size)) == 0
+    assert unwrapped.visual.uv.min() >= 0 and unwrapped.visual.uv.max() <= 1
+    np.testing.assert_allclose(unwrapped.area, _lumpy_sphere().area)
+
+
+def test_a_texel_density_too_high_for_the_atlas_names_the_key():
+    with pytest.raises(PipelineError, match="uv.texel_density"):
+        unwrap(_lumpy_sphere(), Config(texture_size=64, texel_density=500.0))
