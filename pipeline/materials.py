@@ -15,14 +15,18 @@ Mitsuba's principled BSDF derives ``specular`` from ``eta`` when it transmits
 (specular = ((eta - 1) / (eta + 1))^2 / 0.08) and rejects both at once, so the
 translucent model fits eta and the opaque one specular.
 
-Bounds (physically sensible, overridable in the fit stages' config): colours in
-[0, 1], albedo in [0.001, 1]; roughness and alpha in [0.001, 1] (a perfectly
-smooth surface is a different plugin); eta in [1.001, 3]; sigma_t in [0.1, 1e5]
-per metre. Two lower bounds sit a hair above the physical edge, because the
-plugins degenerate there (measured by pipeline.stability, docs/benchmarks.md):
-at eta = 1 exactly the dielectric interface vanishes and roughdielectric's
-gradients are NaN; at albedo = 0 prbvolpath's gradient with respect to the
-albedo is exactly 0, so a channel clamped there could never come back. sigma_t,
+Bounds (physically sensible, overridable in the fit stages' config): base_color
+and albedo in [0.001, 1], specular and spec_trans in [0, 1]; roughness and alpha
+in [0.001, 1] (a perfectly smooth surface is a different plugin); eta in
+[1.001, 3]; sigma_t in [0.1, 1e5] per metre. Three lower bounds sit a hair above
+the physical edge, because the plugins degenerate there (measured by
+pipeline.stability, docs/benchmarks.md, and on the bird): at eta = 1 exactly the
+dielectric interface vanishes and roughdielectric's gradients are NaN; at
+albedo = 0 prbvolpath's gradient with respect to the albedo is exactly 0, so a
+channel clamped there could never come back; a base_color texel at exactly 0
+gets infinite or NaN gradients from prb (on the sample bird ~80 steps of
+fit_texture and fit_geometry dropped them, dark blue texels stuck at 0), though
+the constant at 0 on a sphere does not (the stability probe). sigma_t,
 roughness and alpha are optimised as logarithms: they span decades, and a
 fixed step in the value overshoots a small roughness into the lower bound,
 where a highlight too sharp for the samples gives no gradient back.
@@ -62,7 +66,7 @@ SPECIMEN = "specimen"
 PARAMETERS: dict[str, Parameter] = {
     p.name: p
     for p in (
-        Parameter("base_color", f"{SPECIMEN}.bsdf.base_color.value", (0.5, 0.5, 0.5), 0.0, 1.0, "linear RGB reflectance"),
+        Parameter("base_color", f"{SPECIMEN}.bsdf.base_color.value", (0.5, 0.5, 0.5), 0.001, 1.0, "linear RGB reflectance"),
         Parameter("roughness", f"{SPECIMEN}.bsdf.roughness.value", (0.5,), 0.001, 1.0, "1 (GGX, Disney)", log=True,
                   learning_rate=0.05),  # fmt: skip
         Parameter("specular", f"{SPECIMEN}.bsdf.specular", (0.5,), 0.0, 1.0, "1 (F0 / 0.08)"),

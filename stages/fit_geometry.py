@@ -311,7 +311,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_geometry",
-    version=5,
+    version=6,
     config=Config,
     main=main,
     upstream=("fit_texture", "fit_material", "scene", "sfm", "undistort", "masks"),

@@ -218,7 +218,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_material",
-    version=4,
+    version=5,
     config=Config,
     main=main,
     upstream=("scene", "sfm", "undistort", "masks"),

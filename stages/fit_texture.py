@@ -302,7 +302,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_texture",
-    version=5,
+    version=6,
     config=Config,
     main=main,
     upstream=("fit_material", "scene", "sfm", "undistort", "masks"),
