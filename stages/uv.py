@@ -74,7 +74,7 @@ def unwrap(mesh: trimesh.Trimesh, conf: Config) -> tuple[trimesh.Trimesh, dict]:
     # Aim for ~70 % of the atlas, what packing typically reaches. Charts that do not
     # fit spill onto further pages with the same UV range, which the single bitmap
     # of a Mitsuba scene would share between unrelated parts of the surface: pack
-    # again, denser, until one page holds every chart.
+    # again, at a lower density, until one page holds every chart.
     fill = 0.7
     while True:
         atlas = xatlas.Atlas()

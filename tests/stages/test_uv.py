@@ -27,3 +27,8 @@ def test_every_chart_lands_on_one_atlas_without_overlap(texture_size):
 def test_a_texel_density_too_high_for_the_atlas_names_the_key():
     with pytest.raises(PipelineError, match="uv.texel_density"):
         unwrap(_lumpy_sphere(), Config(texture_size=64, texel_density=500.0))
+
+
+def test_charts_that_fit_no_atlas_name_the_keys_to_change():
+    with pytest.raises(PipelineError, match="uv.texture_size = 64 .* uv.padding = 16"):
+        unwrap(_lumpy_sphere(), Config(texture_size=64, padding=16))
