@@ -22,15 +22,10 @@ photometric     the photo over each view's window (specimen, its silhouette and 
                 needs to compile its adjoint with vertex gradients
 silhouette      the mask against the specimen's coverage (black specimen under a
                 white sky), ``direct_projective``; needs no material at all
-stand_in        the volumetric model only: the photo, as photometric for a surface
-                model, with the specimen rendered as a stand-in surface, the
-                principled model (spec_trans: light through the surface, no medium),
-                whose constants are fitted on the current mesh first (a material
-                pass, the geometry frozen) and carried from round to round
 ==============  ===================================================================
 
-``auto`` picks photometric for surface models and stand_in for the volumetric
-one (see below for what was measured). The volumetric model's photometric pass is opt-in: without the silhouette
+``auto`` picks photometric for surface models and silhouette for the volumetric
+one. The volumetric model's photometric pass is opt-in: without the silhouette
 terms it does not descend reliably (measured by version 4, whose held-out error
 was plain MSE; version 5 uses the dual estimator). On a flattened icosphere (3 views, 32 px) its
 loss rose over 20 steps; on bird_volumetric, from the visual hull, the window's
@@ -39,7 +34,13 @@ specimen's own held-out error (eroded mask, what the material pass and the
 PSNR score) by 7.7 %: held-out PSNR 28.6 dB against 28.4 dB with the silhouette
 pass, which from the hull changes nothing (the hull already matches the masks),
 alpha no closer, in 1735 s against 744 s for the stage. Either way the medium is
-frozen while the geometry moves.
+frozen while the geometry moves. A third way was tried and dropped (2026-11-22): a
+principled surface standing in for the medium (its constants fitted first on the
+mesh, then the photometric pass with ``prb_projective``). On bird_volumetric it moved
+the vertices by a median 0.17 % of the diagonal, raised the held-out PSNR from 28.2 to
+28.5 dB, left alpha 0.154 off, and took 603 s: the stand-in matches the photos
+less well than the medium does (held-out error 0.0017 against 0.0011), so its
+gradients chase the model's error more than the shape's.
 
 Material pass (``material_iterations`` > 0): the model's constants, and the
 texture if fit_texture kept one, are fitted again on the refined mesh by
@@ -87,7 +88,6 @@ from __future__ import annotations
 import json
 import shutil
 import time
-import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal
@@ -99,7 +99,6 @@ import trimesh
 from pipeline import fitting, logger, materials, mitsuba_variant, scene_xml
 from pipeline.camera import read_views, resize_exact
 from pipeline.config import Range
-from pipeline.errors import PipelineError
 from pipeline.stage import Stage, StageInputs, StageResult
 from stages.fit_material import load_views, write_heldout
 from stages.fit_texture import write_texture_files
@@ -115,7 +114,7 @@ class Config:
     """False: pass fit_texture's scene through unchanged (the draft preset)."""
     start: Literal["mesh", "sphere"] = "mesh"
     """mesh: the cleaned, unwrapped hull; sphere: an icosphere in the hull's box."""
-    loss: Literal["auto", "photometric", "silhouette", "stand_in"] = "auto"
+    loss: Literal["auto", "photometric", "silhouette"] = "auto"
     """What the renders are compared with (see the module docstring)."""
     rounds: Annotated[int, Range(1, None)] = 2
     """Geometry passes, each followed by a material pass."""
@@ -209,29 +208,6 @@ def geometry_pass(conf: Config, geometry: Path, description: dict, loss: str, vi
     return result
 
 
-def stand_in_scene(geometry: Path, folder: Path, description: dict, values: dict) -> dict:
-    """A copy of geometry/'s scene in ``folder`` with the specimen's BSDF and medium
-    replaced by a principled surface with ``values`` and the principled model's
-    integrator; its scene description."""
-    model = "principled"
-    shutil.rmtree(folder, ignore_errors=True)
-    shutil.copytree(geometry, folder, ignore=shutil.ignore_patterns("heldout", "albedo.*"))
-    specimen = ET.parse(folder / "specimen.xml")
-    shape = next(e for e in specimen.iter("shape") if e.get("id") == materials.SPECIMEN)
-    for child in [c for c in shape if c.tag in ("bsdf", "medium")]:
-        shape.remove(child)
-    scene_xml.plugin(shape, "bsdf", materials.bsdf_and_medium(model, values)[0])
-    scene_xml.write(specimen.getroot(), folder / "specimen.xml", "a surface standing in for the specimen's medium")
-    kind, depth = materials.INTEGRATORS[model]
-    for scene_file in [folder / "scene.xml", *(folder / v["xml"] for v in description["views"].values())]:
-        tree = ET.parse(scene_file)
-        integrator = next(e for e in tree.iter("integrator") if e.get("id") == "integrator")
-        integrator.set("type", kind)
-        next(e for e in integrator if e.get("name") == "max_depth").set("value", str(depth))
-        tree.write(scene_file, encoding="unicode", xml_declaration=True)
-    return {**description, "model": model, "integrator": {"type": kind, "max_depth": depth}}
-
-
 def material_pass(conf: Config, geometry: Path, description: dict, views_inputs: tuple, held: set[str],
                   parameters: list[fitting.FitParameter], seed: int) -> tuple[fitting.FitResult, bool]:  # fmt: skip
     """The material ``parameters`` fitted again on geometry/'s mesh; written back into
@@ -270,10 +246,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         source = json.loads((source_dir / "params.json").read_text())
     description = json.loads(inputs.upstream["scene"]["description"].read_text())
     model = description["model"]
-    loss = conf.loss if conf.loss != "auto" else ("stand_in" if model == "volumetric" else "photometric")
-    if loss == "stand_in" and model != "volumetric":
-        raise PipelineError(f"fit_geometry.loss = \"stand_in\" is for the volumetric model; this scene's model is "
-                            f"{model}: use \"photometric\" (or \"auto\")")  # fmt: skip
+    loss = conf.loss if conf.loss != "auto" else ("silhouette" if model == "volumetric" else "photometric")
     geometry = out_dir / "geometry"
     shutil.copytree(source_dir, geometry, ignore=shutil.ignore_patterns("heldout", "log.jsonl", "loss.png", "params.json"))
     report = {"enabled": conf.enabled, "start": conf.start, "model": model}
@@ -305,25 +278,9 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         log.extend({"iteration": e["iteration"] + offset, "round": round_index, "pass": name,
                     **{k: v for k, v in e.items() if k != "iteration"}} for e in result.log)  # fmt: skip
 
-    stand_in_values = {**materials.initial_values("principled"), "roughness": values["alpha"], "eta": values["eta"]}
     for round_index in range(conf.rounds):
         seed = conf.seed + round_index
-        if loss == "stand_in":
-            stand_in = out_dir / "stand_in"
-            stand_in_description = stand_in_scene(geometry, stand_in, description, stand_in_values)
-            surface, kept = material_pass(conf, stand_in, stand_in_description, views_inputs, held,
-                                          materials.fit_parameters("principled"), seed)  # fmt: skip
-            record(surface, round_index, "stand-in material")
-            if kept:
-                stand_in_values |= surface.values
-            logger.info("round %d, stand-in surface: held-out error %s -> %s, %s", round_index + 1,
-                        surface.start_validation_error, surface.validation_error, surface.values)  # fmt: skip
-            shape = geometry_pass(conf, stand_in, stand_in_description, "photometric", views_inputs, held,
-                                  conf.step * diagonal, seed)  # fmt: skip
-            shutil.copy2(stand_in / "mesh.ply", geometry / "mesh.ply")
-            shutil.rmtree(stand_in)
-        else:
-            shape = geometry_pass(conf, geometry, description, loss, views_inputs, held, conf.step * diagonal, seed)
+        shape = geometry_pass(conf, geometry, description, loss, views_inputs, held, conf.step * diagonal, seed)
         record(shape, round_index, "geometry")
         rounds.append({"geometry": _pass_summary(shape)})
         logger.info("round %d, geometry: held-out MSE %s -> %s", round_index + 1, shape.start_validation_error,

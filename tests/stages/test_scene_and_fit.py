@@ -11,7 +11,6 @@ import trimesh
 from conftest import run_stages
 
 from pipeline.camera import read_views
-from pipeline.errors import PipelineError
 from pipeline.score import score_heldout, score_material
 
 pytestmark = pytest.mark.slow
@@ -190,36 +189,6 @@ def test_fit_geometry_alternates_shape_and_material_and_the_scene_holds_the_resu
     vertices = np.asarray(scene["specimen.vertex_positions"]).reshape(-1, 3)
     hull = trimesh.load(outputs["fit_texture"]["textured_dir"] / "mesh.ply", process=False).vertices
     assert vertices.shape == hull.shape and report["median_vertex_move_of_diagonal"] > 0
-
-
-def test_fit_geometry_moves_a_volumetric_specimen_through_a_stand_in_surface(bird_capture, mi):
-    """The volumetric model's geometry pass renders a principled stand-in (fitted
-    first), and the scene it ends with is the volumetric one on the moved mesh."""
-    outputs = run_stages(bird_capture, "fit_geometry", "scene.model=volumetric", *TINY_FIT, "fit_texture.texture=off",
-                         *TINY_GEOMETRY, "fit_geometry.rounds=1", "fit_geometry.material_iterations=4",
-                         "fit_geometry.step=0.01")  # fmt: skip
-    folder = outputs["fit_geometry"]["geometry_dir"]
-    report = json.loads((folder / "params.json").read_text())
-    assert report["loss"] == "stand_in"
-    log = [json.loads(line) for line in (folder / "log.jsonl").read_text().splitlines()]
-    assert [e["pass"] for e in log] == ["stand-in material"] * 4 + ["geometry"] * 4 + ["material"] * 4
-    stand_in = [e["params"] for e in log if e["pass"] == "stand-in material"]
-    assert set(stand_in[0]) == {"base_color", "roughness", "spec_trans", "eta"} and stand_in[-1] != stand_in[0]
-    geometry = report["rounds"][0]["geometry"]
-    assert geometry["validation"] <= geometry["validation_start"]
-    specimen = ET.parse(folder / "specimen.xml").getroot()
-    assert specimen.find(".//bsdf").get("type") == "roughdielectric" and specimen.find(".//medium") is not None
-    assert json.loads((folder / "scene.json").read_text())["integrator"]["type"] == "prbvolpath"
-    assert not (folder.parent / "stand_in").exists()
-    vertices = np.asarray(mi.traverse(mi.load_file(str(folder / "scene.xml")))["specimen.vertex_positions"]).reshape(-1, 3)
-    hull = trimesh.load(outputs["fit_texture"]["textured_dir"] / "mesh.ply", process=False).vertices
-    assert vertices.shape == hull.shape and report["median_vertex_move_of_diagonal"] > 0
-
-
-def test_a_stand_in_surface_is_refused_for_a_surface_model(bird_capture):
-    with pytest.raises(PipelineError, match="fit_geometry.loss"):
-        run_stages(bird_capture, "fit_geometry", *TINY_FIT, "fit_texture.texture=off", *TINY_GEOMETRY,
-                   "fit_geometry.loss=stand_in", "fit_geometry.material_iterations=0")  # fmt: skip
 
 
 def test_a_material_pass_below_the_minimum_gain_leaves_the_material_as_it_was(bird_capture, mi):
