@@ -165,18 +165,21 @@ def score_material(estimate: dict[str, Any], truth: dict[str, Any]) -> dict[str,
 class TrueSurface:
     """A textured specimen's true surface, sampled once for every texture scored
     against it: ``points`` and their ``colours`` (linear), a denser sampling to
-    bake from, and which points the training photos see (None without views)."""
+    bake from, and how many of the training photos see each point (None without
+    views)."""
 
     points: np.ndarray
     colours: np.ndarray
     dense: cKDTree
     dense_colours: np.ndarray
-    seen: np.ndarray | None
+    views_seeing: np.ndarray | None
+    view_count: int = 0
+    """Number of training views counted in ``views_seeing``."""
 
 
 def true_surface(truth: trimesh.Trimesh, views: list[tuple[Intrinsics, Pose]] = (), samples: int = 20000) -> TrueSurface:
     """Sample ``truth`` (sRGB vertex colours); with the true cameras of the training
-    ``views``, also mark the samples some view sees (needs Mitsuba's variant set)."""
+    ``views``, also count the views that see each sample (needs Mitsuba's variant set)."""
     from pipeline.photo_io import srgb_decode
 
     def colours_at(faces: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -185,8 +188,8 @@ def true_surface(truth: trimesh.Trimesh, views: list[tuple[Intrinsics, Pose]] = 
 
     points, faces = trimesh.sample.sample_surface(truth, samples, seed=0)
     dense, dense_faces = trimesh.sample.sample_surface(truth, 30 * samples, seed=2)
-    seen = seen_by_any(truth, points, truth.face_normals[faces], views) if views else None
-    return TrueSurface(points, colours_at(faces, points), cKDTree(dense), colours_at(dense_faces, dense), seen)
+    seeing = views_seeing(truth, points, truth.face_normals[faces], views) if views else None
+    return TrueSurface(points, colours_at(faces, points), cKDTree(dense), colours_at(dense_faces, dense), seeing, len(views))
 
 
 def score_texture(textured: trimesh.Trimesh, texture: np.ndarray, constant: np.ndarray, truth: TrueSurface) -> dict[str, Any]:
@@ -199,7 +202,8 @@ def score_texture(textured: trimesh.Trimesh, texture: np.ndarray, constant: np.n
     atlas at the same resolution (what a perfect fit on this mesh and these UVs
     would score: mesh error and texel size set it); and, when the truth knows which
     points the training photos see, the same errors over those (a texture cannot be
-    recovered where no photo looks)."""
+    recovered where no photo looks) and over the points at least a third of them
+    see (``well_seen_``): seen once, at a grazing angle, a texel is barely fixed."""
     dense, dense_faces = trimesh.sample.sample_surface(textured, 15 * len(truth.points), seed=1)
     dense_weights = trimesh.triangles.points_to_barycentric(textured.triangles[dense_faces], dense)
     uv = np.einsum("ij,ijk->ik", dense_weights, textured.visual.uv[textured.faces[dense_faces]])
@@ -211,10 +215,13 @@ def score_texture(textured: trimesh.Trimesh, texture: np.ndarray, constant: np.n
               "p90_abs_error": np.percentile(errors[""], 90, axis=0).tolist(),
               "constant_mean_abs_error": np.abs(constant - truth.colours).mean(axis=0).tolist(),
               "bake_mean_abs_error": errors["bake_"].mean(axis=0).tolist()}  # fmt: skip
-    if truth.seen is not None:
-        report["seen_fraction"] = float(truth.seen.mean())
-        for prefix, error in errors.items():
-            report[f"{prefix}seen_mean_abs_error"] = error[truth.seen].mean(axis=0).tolist()
+    if truth.views_seeing is not None:
+        well_seen = max(1, int(np.ceil(truth.view_count / 3)))
+        for subset, selected in (("seen", truth.views_seeing >= 1), ("well_seen", truth.views_seeing >= well_seen)):
+            report[f"{subset}_fraction"] = float(selected.mean())
+            for prefix, error in errors.items():
+                report[f"{prefix}{subset}_mean_abs_error"] = error[selected].mean(axis=0).tolist()
+        report["well_seen_views"] = well_seen
     return report
 
 
@@ -236,18 +243,18 @@ def bake_into_atlas(textured: trimesh.Trimesh, shape: tuple[int, int], truth_poi
     return texels.fill_between_charts(truth_colours[truth_points.query(texels.points)[1]])
 
 
-def seen_by_any(mesh: trimesh.Trimesh, points: np.ndarray, normals: np.ndarray,
-                views: list[tuple[Intrinsics, Pose]]) -> np.ndarray:  # fmt: skip
-    """Whether each of ``points`` (on ``mesh``, facing ``normals``) is inside some
-    view's image, faces its camera and is not hidden by ``mesh``."""
+def views_seeing(mesh: trimesh.Trimesh, points: np.ndarray, normals: np.ndarray,
+                 views: list[tuple[Intrinsics, Pose]]) -> np.ndarray:  # fmt: skip
+    """How many of ``views`` have each of ``points`` (on ``mesh``, facing ``normals``)
+    inside the image, facing the camera and not hidden by ``mesh``."""
     scene = occluder(mesh)
     offset = 1e-4 * float(np.linalg.norm(mesh.extents))
-    seen = np.zeros(len(points), dtype=bool)
+    seen = np.zeros(len(points), dtype=int)
     for intrinsics, pose in views:
         pixels, depth = project(points, intrinsics, pose)
         in_image = ((depth > 0) & (pixels[:, 0] >= 0) & (pixels[:, 0] < intrinsics.width)
                     & (pixels[:, 1] >= 0) & (pixels[:, 1] < intrinsics.height))  # fmt: skip
-        seen |= in_image & unoccluded(scene, points, normals, pose.center, offset)
+        seen += in_image & unoccluded(scene, points, normals, pose.center, offset)
     return seen
 
 

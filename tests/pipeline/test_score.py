@@ -228,3 +228,11 @@ def test_texture_score_splits_off_what_no_view_sees(mi):
     report = score_texture(textured, texture, np.array([0.5, 0.5, 0.5]), true_surface(truth, [(camera, looking_down)]))
     assert 0.4 < report["seen_fraction"] < 0.55  # the upper half, less its grazing rim
     assert max(report["seen_mean_abs_error"]) < 0.01 < min(report["mean_abs_error"])
+    # Two more views from above and one from below: the lower half is seen, by one
+    # view of four, and counts in the seen error but not in the well-seen one (a third).
+    looking_up = Pose(R=np.diag([1.0, 1.0, 1.0]), t=np.array([0.0, 0.0, 5.0]))
+    above = [(camera, Pose(R=looking_down.R, t=looking_down.t + [dx, 0.0, 0.0])) for dx in (-0.2, 0.0, 0.2)]
+    report = score_texture(textured, texture, np.array([0.5, 0.5, 0.5]), true_surface(truth, [*above, (camera, looking_up)]))
+    assert report["well_seen_views"] == 2 and report["seen_fraction"] > 0.75  # both halves, less their rims
+    assert 0.4 < report["well_seen_fraction"] < 0.55
+    assert max(report["well_seen_mean_abs_error"]) < 0.01 < min(report["seen_mean_abs_error"])
