@@ -1,7 +1,8 @@
 """Where a mesh's UV atlas lies on its surface, and which surface points a camera sees.
 
 Used by ``pipeline score`` (the truth baked into a fitted atlas; the surface the
-photos see) and by the synthetic studio (the specimen as a Mitsuba mesh). Texels
+photos see), by the uv stage (texels two charts share) and by the synthetic
+studio (the specimen as a Mitsuba mesh). Texels
 follow Mitsuba's bitmap lookup: texel (row, col) has its centre at
 uv = ((col + 0.5) / width, (row + 0.5) / height), row 0 at v = 0.
 """

@@ -173,8 +173,8 @@ class TrueSurface:
     dense: cKDTree
     dense_colours: np.ndarray
     views_seeing: np.ndarray | None
-    view_count: int = 0
-    """Number of training views counted in ``views_seeing``."""
+    view_count: int
+    """Number of training views counted in ``views_seeing`` (0 without views)."""
 
 
 def true_surface(truth: trimesh.Trimesh, views: list[tuple[Intrinsics, Pose]] = (), samples: int = 20000) -> TrueSurface:

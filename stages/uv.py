@@ -76,9 +76,10 @@ def unwrap(mesh: trimesh.Trimesh, conf: Config) -> tuple[trimesh.Trimesh, dict]:
     # of a Mitsuba scene would share between unrelated parts of the surface: pack
     # again, at a lower density, until one page holds every chart.
     fill = 0.7
+    positions, triangles = mesh.vertices.astype(np.float32), mesh.faces.astype(np.uint32)
     while True:
         atlas = xatlas.Atlas()
-        atlas.add_mesh(mesh.vertices.astype(np.float32), mesh.faces.astype(np.uint32))
+        atlas.add_mesh(positions, triangles)
         pack.texels_per_unit = conf.texel_density or conf.texture_size * float(np.sqrt(fill / mesh.area))
         atlas.generate(xatlas.ChartOptions(), pack)
         if atlas.atlas_count == 1:
