@@ -10,9 +10,10 @@ accuracy   ``pipeline run`` end to end on the standard preset on copies of
            sample_captures/bird (principled, blotchy base colour) and
            bird_volumetric; ``pipeline score`` per parameter against the issue's
            targets; held-out PSNR after each fit stage; wall time per stage
-oracle     fit_material again on bird_volumetric with the true surface's normals on
-           the visual hull, and with the true mesh in its place (same photos, poses
-           and settings): the mesh's share of the error, and its normals' share
+oracle     fit_material again on bird_volumetric with the visual hull's shading normals
+           moved part or all of the way to the true surface's, and with the true mesh
+           in its place (same photos, poses and settings): the mesh's share of the
+           error, and how close the normals must be for the targets
 texture-oracle
            uv, scene, fit_material and fit_texture on the bird's true mesh: whether the
            texture's error is the mesh's or the fit's
@@ -36,14 +37,14 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from report import ROOT, run_stages, write_section
+from report import ROOT, run_stages, truth_in_reconstruction, write_section
 
 from pipeline import mitsuba_variant, stability  # noqa: E402
-from pipeline.camera import Similarity, read_cameras, read_views  # noqa: E402
+from pipeline.camera import read_cameras  # noqa: E402
 from pipeline.config import load_config  # noqa: E402
 from pipeline.errors import PipelineError  # noqa: E402
-from pipeline.score import (read_linear_image, score_cameras, score_capture, score_heldout, score_material,  # noqa: E402
-                            score_texture, true_surface)
+from pipeline.score import (read_linear_image, score_capture, score_heldout, score_material,  # noqa: E402
+                            score_mesh, score_texture, shading_normals, true_surface)
 from pipeline.sections import schema  # noqa: E402
 from pipeline.stage import StageInputs  # noqa: E402
 from stages import STAGES, fit_material, fit_texture, scene, uv  # noqa: E402
@@ -204,75 +205,76 @@ def accuracy_part(work: Path, samples: list[str]) -> None:
     ]))  # fmt: skip
 
 
-def _truth_in_reconstruction(capture: Path, outputs: dict) -> tuple[Similarity, trimesh.Trimesh]:
-    """The camera alignment (reconstruction to truth) and the true mesh, geometry only,
-    moved into the reconstruction's frame by its inverse."""
-    _, true_poses = read_cameras(capture / "ground_truth" / "cameras.json")
-    _, similarity = score_cameras({n: p for n, (_, p) in read_views(outputs["sfm"]["cameras"]).items()}, true_poses)
-    truth = trimesh.load(capture / "ground_truth" / "mesh.ply", force="mesh", process=False)
-    bare = trimesh.Trimesh(truth.vertices, truth.faces, process=False)
-    bare.apply_transform(np.linalg.inv(similarity.matrix()))
-    return similarity, bare
+def _normal_error(mesh_ply: Path, truth: trimesh.Trimesh) -> float:
+    return score_mesh(_scene_mesh(mesh_ply), truth)["shading_normal_error_deg"]
 
 
-def _with_true_normals(mesh_ply: Path, truth: trimesh.Trimesh) -> None:
-    """Give ``mesh_ply``'s vertices (positions kept) the normal of the true surface's
-    nearest point, as shading normals Mitsuba interpolates."""
+def _shading_normals_towards_truth(mesh_ply: Path, truth: trimesh.Trimesh, weight: float) -> None:
+    """Give ``mesh_ply``'s vertices (positions kept) shading normals ``weight`` of the
+    way from their own to the true surface's at its nearest point (1: the true normals)."""
     import mitsuba as mi
     from scipy.spatial import cKDTree
 
     mesh = mi.load_dict({"type": "ply", "filename": str(mesh_ply)})
     params = mi.traverse(mesh)
     vertices = np.array(params["vertex_positions"]).reshape(-1, 3)
-    points, faces = trimesh.sample.sample_surface_even(truth, 600000, seed=0)
-    normals = truth.face_normals[faces[cKDTree(points).query(vertices)[1]]]
-    params["vertex_normals"] = mi.Float(normals.astype(np.float32).ravel())
+    samples, faces = trimesh.sample.sample_surface_even(truth, 600000, seed=0)
+    nearest = cKDTree(samples).query(vertices)[1]
+    true_normals = shading_normals(truth, samples[nearest], faces[nearest])
+    normals = (1 - weight) * np.array(params["vertex_normals"]).reshape(-1, 3) + weight * true_normals
+    params["vertex_normals"] = mi.Float((normals / np.linalg.norm(normals, axis=1, keepdims=True)).astype(np.float32).ravel())
     params.update()
     mesh.write_ply(str(mesh_ply))
 
 
 def oracle_part(work: Path) -> None:
-    """fit_material on the true mesh, and on the hull with the true surface's normals,
-    placed in the reconstruction's frame."""
+    """fit_material on the true mesh, and on the hull with shading normals moved part or
+    all of the way to the true surface's, placed in the reconstruction's frame."""
     capture = _copy_sample("bird_volumetric", work)
     outputs, _ = run_stages(capture, "fit_material")
-    _, truth = _truth_in_reconstruction(capture, outputs)
+    _, truth = truth_in_reconstruction(capture, outputs)
     config = load_config(schema(STAGES), capture, "standard", [])
     mitsuba_variant.activate(config["mitsuba"].variant)
     truth_material = json.loads((capture / "ground_truth" / "material.json").read_text())
-    hull = json.loads((capture / "output" / "params.json").read_text())
-    rows = [("visual hull (the pipeline)", hull, capture / "output" / "heldout")]
+    hull = json.loads(outputs["fit_material"]["params"].read_text())
+    hull_ply = outputs["scene"]["scene_dir"] / "mesh.ply"
+    rows = [("visual hull (the pipeline)", _normal_error(hull_ply, truth), hull, outputs["fit_material"]["heldout"])]
     shutil.rmtree(work / "oracle", ignore_errors=True)
-    for label, name in (("visual hull, the true surface's normals", "normals"), ("true mesh", "mesh")):
+    for label, name, weight in (("visual hull, normals halfway to the true surface's", "normals-half", 0.5),
+                                ("visual hull, normals three quarters of the way", "normals-three-quarters", 0.75),
+                                ("visual hull, the true surface's normals", "normals", 1.0), ("true mesh", "mesh", None)):  # fmt: skip
         scene_dir = work / "oracle" / name / "scene"
         shutil.copytree(outputs["scene"]["scene_dir"], scene_dir)
-        if name == "mesh":
+        if weight is None:
             truth.export(scene_dir / "mesh.ply")
         else:
-            _with_true_normals(scene_dir / "mesh.ply", truth)
+            _shading_normals_towards_truth(scene_dir / "mesh.ply", truth, weight)
+        normal_error = _normal_error(scene_dir / "mesh.ply", truth)
         inputs = StageInputs(capture, (), {**outputs, "scene": {**outputs["scene"], "scene_dir": scene_dir}},
                              {"mitsuba": config["mitsuba"]})  # fmt: skip
         (work / "oracle" / name / "out").mkdir()
         result = fit_material.main(config["fit_material"], inputs, work / "oracle" / name / "out")
-        rows.append((label, json.loads(result.outputs["params"].read_text()), result.outputs["heldout"]))
+        rows.append((label, normal_error, json.loads(result.outputs["params"].read_text()), result.outputs["heldout"]))
     lines = []
-    for label, params, heldout in rows:
+    for label, normal_error, params, heldout in rows:
         cells = _error_cells(score_material(params, truth_material))
-        lines.append(f"| {label} | " + " | ".join(cells[n][1] for n in ("alpha", "eta", "albedo", "sigma_t"))
+        lines.append(f"| {label} | {normal_error:.1f} deg | " + " | ".join(cells[n][1] for n in ("alpha", "eta", "albedo", "sigma_t"))
                      + f" | {score_heldout(heldout)['psnr_db_mean']:.1f} dB | {params['iterations']} |")  # fmt: skip
     print(write_section("fitting-oracle", [
         "### The mesh's share of the volumetric error",
         "",
-        "fit_material (standard preset) on bird_volumetric three times: on the pipeline's",
-        "mesh (visual hull, cleaned); on the same mesh with each vertex given the normal of",
-        "the true surface's nearest point (positions unchanged; Mitsuba interpolates these",
-        "shading normals); and on the true mesh. The truth is moved into the",
-        "reconstruction's frame by the camera alignment; same photos, poses, masks, held-out",
-        "views and settings. Reproduce: `.venv/bin/python bench/fitting.py --parts",
-        "accuracy,oracle` (the oracle reuses the accuracy part's stages).",
+        "fit_material (standard preset) on bird_volumetric five times: on the pipeline's",
+        "mesh (visual hull, cleaned); on the same mesh with each vertex's shading normal",
+        "moved half, three quarters and all of the way to the normal of the true surface's",
+        "nearest point (positions unchanged; Mitsuba interpolates these normals); and on the",
+        "true mesh. Normal error: `pipeline score`'s shading normal error, the mean angle",
+        "between the normal Mitsuba shades with and the true surface's. The truth is moved into the reconstruction's frame by the camera",
+        "alignment; same photos, poses, masks, held-out views and settings. Reproduce:",
+        "`.venv/bin/python bench/fitting.py --parts accuracy,oracle` (the oracle reuses the",
+        "accuracy part's stages).",
         "",
-        "| mesh | alpha error | eta error | albedo error | sigma_t error | held-out PSNR | iterations |",
-        "|---|---|---|---|---|---|---|",
+        "| mesh | normal error | alpha error | eta error | albedo error | sigma_t error | held-out PSNR | iterations |",
+        "|---|---|---|---|---|---|---|---|",
         *lines,
     ]))  # fmt: skip
 
@@ -283,7 +285,7 @@ def texture_oracle_part(work: Path) -> None:
     capture = _copy_sample("bird", work)
     outputs, _ = run_stages(capture, "fit_texture")
     true_intrinsics, true_poses = read_cameras(capture / "ground_truth" / "cameras.json")
-    similarity, truth = _truth_in_reconstruction(capture, outputs)
+    similarity, truth = truth_in_reconstruction(capture, outputs)
     folder = work / "oracle-texture"
     shutil.rmtree(folder, ignore_errors=True)
     folder.mkdir()

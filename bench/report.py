@@ -25,6 +25,23 @@ def run_stages(capture: Path, until: str, *overrides: str, force: tuple[str, ...
     return {i.stage.name: i.entry.outputs for i in plan}, {i.stage.name: i.seconds for i in plan}
 
 
+def truth_in_reconstruction(capture: Path, outputs: dict):
+    """The camera alignment (reconstruction to truth) and the true mesh, geometry only,
+    moved into the reconstruction's frame by its inverse."""
+    import numpy as np
+    import trimesh
+
+    from pipeline.camera import read_cameras, read_views
+    from pipeline.score import score_cameras
+
+    _, true_poses = read_cameras(capture / "ground_truth" / "cameras.json")
+    _, similarity = score_cameras({n: p for n, (_, p) in read_views(outputs["sfm"]["cameras"]).items()}, true_poses)
+    truth = trimesh.load(capture / "ground_truth" / "mesh.ply", force="mesh", process=False)
+    bare = trimesh.Trimesh(truth.vertices, truth.faces, process=False)
+    bare.apply_transform(np.linalg.inv(similarity.matrix()))
+    return similarity, bare
+
+
 def write_section(name: str, lines: list[str]) -> str:
     """Replace the section between ``<!-- NAME:begin -->`` and ``<!-- NAME:end -->``
     (new sections go before "## Test suite"); returns the section's text."""

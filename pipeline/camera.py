@@ -136,6 +136,20 @@ def project(points: np.ndarray, intrinsics: Intrinsics, pose: Pose) -> tuple[np.
                      intrinsics.fy * cam[:, 1] / safe + intrinsics.cy], axis=-1), z  # fmt: skip
 
 
+def mesh_coverage(vertices: np.ndarray, faces: np.ndarray, intrinsics: Intrinsics, pose: Pose,
+                  factor: int = 4) -> np.ndarray:  # fmt: skip
+    """Fraction of each pixel a mesh covers in the (distorted) view, rasterised at
+    ``factor`` times the resolution: a mask from known geometry and cameras."""
+    projected, _ = cv2.projectPoints(vertices, cv2.Rodrigues(pose.R)[0], pose.t, intrinsics.K, np.array(intrinsics.dist))
+    # pixel centres at integers: the fine grid's sample for coarse x is (x + 0.5) * factor - 0.5
+    fine = (projected[:, 0] + 0.5) * factor - 0.5
+    canvas = np.zeros((intrinsics.height * factor, intrinsics.width * factor), np.float32)
+    # one call per triangle: fillPoly would treat overlapping triangles as one even-odd shape
+    for triangle in np.round(fine[faces] * 16).astype(np.int32):
+        cv2.fillConvexPoly(canvas, triangle, 1.0, shift=4)
+    return cv2.resize(canvas, (intrinsics.width, intrinsics.height), interpolation=cv2.INTER_AREA)
+
+
 def write_cameras(
     path: Path,
     intrinsics: Intrinsics | dict[str, Intrinsics],

@@ -11,7 +11,8 @@ intrinsics.json            calibrate        focal and principal point error, dis
 cameras.json               sfm              registered fraction; rotation and centre error
                                             after a similarity alignment to the truth
 mesh.ply                   mesh/cleanup/uv  Chamfer distance (% of the true bounding-box
-                                            diagonal) and normal consistency, in the
+                                            diagonal), normal consistency and the shading
+                                            normals' mean angle from the truth's, in the
                                             aligned frame
 params.json                fit_material     absolute error per parameter (relative for
                                             sigma_t)
@@ -99,7 +100,12 @@ def score_cameras(estimate: dict[str, Pose], truth: dict[str, Pose]) -> tuple[di
 
 
 def score_mesh(estimate: trimesh.Trimesh, truth: trimesh.Trimesh, seed: int = 0) -> dict[str, float]:
-    """Symmetric Chamfer distance and normal consistency from surface samples."""
+    """Symmetric Chamfer distance and normal consistency from surface samples, and the
+    shading normals' error: at each sample of ``estimate``, the angle between its
+    normal interpolated from the vertex normals (as a renderer shades it) and the
+    truth's at the nearest sample of the true surface. A material fitted on the mesh
+    sees the shading normals: a rough dielectric's alpha is as far off as their error
+    spreads its highlights."""
     # The same seed for both: identical surfaces then give identical samples, so a
     # perfect mesh scores exactly zero instead of the sampling noise floor.
     est_points, est_faces = trimesh.sample.sample_surface(estimate, MESH_SAMPLES, seed=seed)
@@ -113,12 +119,25 @@ def score_mesh(estimate: trimesh.Trimesh, truth: trimesh.Trimesh, seed: int = 0)
         np.abs(np.sum(est_normals * true_normals[nearest_true], axis=1)).mean()
         + np.abs(np.sum(true_normals * est_normals[nearest_est], axis=1)).mean()
     ) / 2
+    cosines = np.sum(shading_normals(estimate, est_points, est_faces)
+                     * shading_normals(truth, true_points, true_faces)[nearest_true], axis=1)  # fmt: skip
+    angles = np.degrees(np.arccos(np.clip(cosines, -1.0, 1.0)))
     return {
         "chamfer_pct_of_diagonal": float(100 * chamfer / diagonal),
         "normal_consistency": float(consistency),
+        "shading_normal_error_deg": float(angles.mean()),
+        "shading_normal_error_deg_median": float(np.median(angles)),
         "faces": int(len(estimate.faces)),
         "watertight": bool(estimate.is_watertight),
     }
+
+
+def shading_normals(mesh: trimesh.Trimesh, points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Unit normals at ``points`` on ``faces`` of ``mesh``, interpolated from its vertex
+    normals as a renderer interpolates them."""
+    barycentric = trimesh.triangles.points_to_barycentric(mesh.triangles[faces], points)
+    normals = np.einsum("nk,nkj->nj", barycentric, mesh.vertex_normals[mesh.faces[faces]])
+    return normals / np.linalg.norm(normals, axis=1, keepdims=True)
 
 
 def score_masks(truth_dir: Path, pinhole_json: Path, masks_json: Path) -> dict[str, float]:

@@ -65,7 +65,8 @@ VOLUMETRIC_TRUTH = {
 """(k1, k2, p1, p2, k3) of the synthetic lens: mild barrel, slight decentring."""
 
 
-def _intrinsics(options: SynthOptions) -> Intrinsics:
+def lens_intrinsics(options: SynthOptions) -> Intrinsics:
+    """The synthetic camera: ``options``' size and field of view, its lens distortion."""
     f = options.width / 2 / math.tan(math.radians(options.hfov) / 2)
     # Principal point a little off centre, as in real cameras.
     return Intrinsics(
@@ -79,7 +80,10 @@ def _intrinsics(options: SynthOptions) -> Intrinsics:
     )
 
 
-def _specimen_poses(options: SynthOptions, rng: np.random.Generator) -> list[Pose]:
+def specimen_poses(options: SynthOptions, rng: np.random.Generator) -> list[Pose]:
+    """The cameras of ``options``' views: on its rings (jittered) or, for a turntable,
+    one ring in the object's frame. ``synthesize`` draws them first from
+    ``np.random.default_rng(options.seed)``."""
     if options.rig == "turntable":
         steps = 1.0 + options.turn_jitter * rng.uniform(-1, 1, options.views)
         azimuths = np.concatenate([[0.0], np.cumsum(steps[:-1])]) * 2 * np.pi / steps.sum()
@@ -157,7 +161,7 @@ class _Studio:
         self.mi = mi
         self.options = options
         self.light = light
-        self.intrinsics = _intrinsics(options)
+        self.intrinsics = lens_intrinsics(options)
         self.render_size = pinhole_render_size(self.intrinsics)
         self.maps = distortion_maps(self.intrinsics, self.render_size)
         self.noise_rng = np.random.default_rng(options.seed + 1)
@@ -319,7 +323,7 @@ def synthesize(out_dir: Path, options: SynthOptions, board: BoardSection = Board
     albedo = blotch_colours(mesh.vertices, np.array(material["base_color"]), options.seed) if textured else None
     if albedo is not None:
         material["base_color_mean"] = albedo.mean(axis=0).tolist()
-    poses = _specimen_poses(options, rng)
+    poses = specimen_poses(options, rng)
     studio = _Studio(options, board, light)
 
     images, calibration, truth = out_dir / "images", out_dir / "calibration", out_dir / "ground_truth"

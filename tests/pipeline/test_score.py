@@ -69,6 +69,7 @@ def test_perfect_outputs_score_zero_error(capture):
     assert report["cameras"]["centre_error_pct_max"] < 1e-6
     assert report["mesh"]["chamfer_pct_of_diagonal"] < 1e-6
     assert report["mesh"]["normal_consistency"] > 0.999999
+    assert report["mesh"]["shading_normal_error_deg"] < 1e-3
     for part in ("material", "material_fit_geometry"):
         assert all(v == 0 for k, v in report[part].items() if k.endswith("_error")), part
     assert report["heldout"]["psnr_db_mean"] == report["heldout_geometry"]["psnr_db_mean"] == float("inf")
@@ -132,6 +133,23 @@ def test_scaled_mesh_gives_the_expected_chamfer_distance():
     diagonal = np.linalg.norm(sphere.bounds[1] - sphere.bounds[0])
     assert metrics["chamfer_pct_of_diagonal"] == pytest.approx(100 * 0.05 / diagonal, rel=0.03)
     assert metrics["normal_consistency"] > 0.999
+    assert metrics["shading_normal_error_deg"] < 0.5
+
+
+def test_shading_normal_error_is_the_tilt_of_the_vertex_normals():
+    """A mesh whose vertex normals are all tilted by 10 degrees (positions exact) scores
+    10 degrees, and its Chamfer distance stays zero: the error a fitted material sees."""
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
+    tilt = trimesh.transformations.rotation_matrix(np.radians(10.0), [0, 0, 1])[:3, :3]
+    tilted = trimesh.Trimesh(sphere.vertices, sphere.faces, vertex_normals=sphere.vertex_normals @ tilt.T,
+                             process=False)  # fmt: skip
+    metrics = score_mesh(tilted, sphere)
+    assert metrics["chamfer_pct_of_diagonal"] < 1e-6
+    # rotating about z tilts a normal by 10 degrees times its distance from the z axis
+    horizontal = np.linalg.norm(sphere.vertex_normals[:, :2], axis=1)
+    expected = np.degrees(np.arccos(np.cos(np.radians(10.0)) * horizontal**2 + (1 - horizontal**2)))
+    assert metrics["shading_normal_error_deg"] == pytest.approx(expected.mean(), rel=0.05)
+    assert metrics["shading_normal_error_deg"] > 5
 
 
 def test_offset_parameters_give_their_errors(capture):
