@@ -15,8 +15,7 @@ shading-normal error:
 
 Rewrites the "hull-normals" section of docs/benchmarks.md. Usage:
 ``.venv/bin/python bench/hull_normals.py [--workdir DIR]`` (after bin/bootstrap; about
-5 minutes on 2 cores, or 20 when the pipeline's stages of bird_volumetric are not
-cached in DIR).
+5 minutes on 2 cores alone, 10 when it shared them with two other runs).
 """
 
 from __future__ import annotations
