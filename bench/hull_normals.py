@@ -47,11 +47,10 @@ DESIGNS = ((20, (18.0, 42.0)), (30, (18.0, 42.0)), (60, (10.0, 25.0, 40.0, 55.0,
            (120, (10.0, 25.0, 40.0, 55.0, 75.0)))  # fmt: skip
 
 
-def _cleaned_hull(capture: Path, folder: Path, cameras_json: Path, masks: dict[str, np.ndarray],
+def _cleaned_hull(capture: Path, config: dict, folder: Path, cameras_json: Path, masks: dict[str, np.ndarray],
                   sparse: Path | None) -> trimesh.Trimesh:  # fmt: skip
-    """The mesh and cleanup stages, as configured for ``capture``, on these cameras
-    and masks (no sparse points when ``sparse`` is None)."""
-    config = load_config(schema(STAGES), capture, "standard", [])
+    """The mesh and cleanup stages, configured by ``config`` (``capture``'s), on these
+    cameras and masks (no sparse points when ``sparse`` is None)."""
     (folder / "masks").mkdir(parents=True)
     for name, mask in masks.items():
         cv2.imwrite(str(folder / "masks" / f"{Path(name).stem}.png"), mask.astype(np.uint8) * 255)
@@ -96,6 +95,7 @@ def main() -> None:
             shutil.copytree(ROOT / "sample_captures" / "bird_volumetric", capture,
                             ignore=shutil.ignore_patterns(".pipeline", "output"))  # fmt: skip
         outputs, _ = run_stages(capture, "cleanup")
+        config = load_config(schema(STAGES), capture, "standard", [])
         _, truth_here = truth_in_reconstruction(capture, outputs)
         rows = [_row("the pipeline: its masks and poses (mesh, cleanup)",
                      trimesh.load(outputs["cleanup"]["mesh"], force="mesh"), truth_here)]  # fmt: skip
@@ -104,7 +104,7 @@ def main() -> None:
         true_masks = _true_masks(capture, outputs["undistort"]["pinhole"])
         registered = set(json.loads(outputs["sfm"]["cameras"].read_text())["images"])
         rows.append(_row("the pipeline's poses, the true masks",
-                         _cleaned_hull(capture, hulls / "true-masks", outputs["sfm"]["cameras"],
+                         _cleaned_hull(capture, config, hulls / "true-masks", outputs["sfm"]["cameras"],
                                        {n: m for n, m in true_masks.items() if n in registered},
                                        outputs["sfm"]["sparse"]), truth_here))  # fmt: skip
         truth = trimesh.load(capture / "ground_truth" / "mesh.ply", force="mesh")
@@ -123,7 +123,7 @@ def main() -> None:
             masks = {n: mesh_coverage(truth.vertices, truth.faces, pinhole, p) > 0.5 for n, p in poses.items()}
             rings_text = ", ".join(f"{r:.0f}" for r in rings)
             rows.append(_row(f"exact silhouettes, true cameras: {views} views on rings at {rings_text} deg",
-                             _cleaned_hull(capture, folder, folder / "cameras.json", masks, None), truth))  # fmt: skip
+                             _cleaned_hull(capture, config, folder, folder / "cameras.json", masks, None), truth))  # fmt: skip
     print(write_section("hull-normals", [
         "### What silhouettes give: the visual hull's shading normals",
         "",
