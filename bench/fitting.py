@@ -3,7 +3,7 @@ and numerical stability at the extremes.
 
 Parts (``--parts``, all by default; each rewrites its own section of docs/benchmarks.md):
 
-extremes   pipeline.stability on a sphere 64 px wide: every model parameter at each
+extremes   pipeline.render.stability on a sphere 64 px wide: every model parameter at each
            bound, the degenerate edges the bounds keep away from (eta = 1, albedo =
            0), and the issue's alpha 0.001 and sigma_t 1e4 /m
 accuracy   ``pipeline run`` end to end on the standard preset on copies of
@@ -40,13 +40,13 @@ import trimesh
 from report import ROOT, run_stages, truth_in_reconstruction, write_section
 
 from pipeline import mitsuba_variant, stability  # noqa: E402
-from pipeline.camera import read_cameras  # noqa: E402
-from pipeline.config import load_config  # noqa: E402
-from pipeline.errors import PipelineError  # noqa: E402
-from pipeline.score import (read_linear_image, score_capture, score_heldout, score_material,  # noqa: E402
+from pipeline.camera.model import read_cameras  # noqa: E402
+from pipeline.core.config import load_config  # noqa: E402
+from pipeline.core.errors import PipelineError  # noqa: E402
+from pipeline.synthetic.score import (read_linear_image, score_capture, score_heldout, score_material,  # noqa: E402
                             score_mesh, score_texture, shading_normals, true_surface)
-from pipeline.sections import schema  # noqa: E402
-from pipeline.stage import StageInputs  # noqa: E402
+from pipeline.core.sections import schema  # noqa: E402
+from pipeline.core.stage import StageInputs  # noqa: E402
 from stages import STAGES, fit_material, fit_texture, scene, uv  # noqa: E402
 
 # (kind, target) per scored parameter, from issue 6's point 7
@@ -117,10 +117,10 @@ def extremes_part() -> None:
     print(write_section("fitting-extremes", [
         "### Numerical stability at the extremes",
         "",
-        "`pipeline.stability` on a sphere 10 cm across (64x48 px, 16 spp, the model's own",
+        "`pipeline.render.stability` on a sphere 10 cm across (64x48 px, 16 spp, the model's own",
         "integrator): one parameter at the value shown, the others at their initial values;",
         "the gradient of an L2 loss against a render at the initial values; then 10 Adam",
-        "steps of `pipeline.fitting` with every parameter free. Reproduce:",
+        "steps of `pipeline.fit.engine` with every parameter free. Reproduce:",
         "`.venv/bin/python bench/fitting.py --parts extremes`.",
         "",
         "| model | start | render finite | gradient | value after 10 steps | steps finite | in bounds "

@@ -19,13 +19,13 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pipeline.board import BoardDetector, homography_residual_px, straightness_px  # noqa: E402
-from pipeline.camera import Intrinsics, read_cameras, undistort  # noqa: E402
-from pipeline.check import check_capture  # noqa: E402
-from pipeline.config import load_config  # noqa: E402
-from pipeline.photo_io import gray_uint8, read_photo  # noqa: E402
-from pipeline.score import score_masks  # noqa: E402
-from pipeline.sections import BoardSection, schema  # noqa: E402
+from pipeline.camera.board import BoardDetector, homography_residual_px, straightness_px  # noqa: E402
+from pipeline.camera.model import Intrinsics, read_cameras, undistort  # noqa: E402
+from pipeline.capture.check import check_capture  # noqa: E402
+from pipeline.core.config import load_config  # noqa: E402
+from pipeline.imaging.photo_io import gray_uint8, read_photo  # noqa: E402
+from pipeline.synthetic.score import score_masks  # noqa: E402
+from pipeline.core.sections import BoardSection, schema  # noqa: E402
 from stages import STAGES  # noqa: E402
 
 from report import run_stages, write_section  # noqa: E402

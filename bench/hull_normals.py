@@ -33,13 +33,13 @@ import trimesh
 
 from report import ROOT, run_stages, truth_in_reconstruction, write_section
 
-from pipeline.camera import Intrinsics, Pose, mesh_coverage, undistort, write_cameras  # noqa: E402
-from pipeline.config import load_config  # noqa: E402
-from pipeline.score import score_mesh  # noqa: E402
-from pipeline.sections import schema  # noqa: E402
-from pipeline.stage import StageInputs  # noqa: E402
-from pipeline.synth import lens_intrinsics, specimen_poses  # noqa: E402
-from pipeline.synth_options import SynthOptions  # noqa: E402
+from pipeline.camera.model import Intrinsics, Pose, mesh_coverage, undistort, write_cameras  # noqa: E402
+from pipeline.core.config import load_config  # noqa: E402
+from pipeline.synthetic.score import score_mesh  # noqa: E402
+from pipeline.core.sections import schema  # noqa: E402
+from pipeline.core.stage import StageInputs  # noqa: E402
+from pipeline.synthetic.synth import lens_intrinsics, specimen_poses  # noqa: E402
+from pipeline.synthetic.options import SynthOptions  # noqa: E402
 from stages import STAGES, cleanup, mesh  # noqa: E402
 
 # (views, rings in degrees) of the exact-silhouette rows; the first is bird_volumetric's

@@ -15,9 +15,9 @@ def run_stages(capture: Path, until: str, *overrides: str, force: tuple[str, ...
                preset: str = "standard") -> tuple[dict, dict]:  # fmt: skip
     """The stage DAG on ``capture`` up to ``until``: (outputs, seconds) per stage; a
     cached stage's seconds are those of the run that computed it."""
-    from pipeline.config import load_config
-    from pipeline.runner import Runner, Selection
-    from pipeline.sections import schema
+    from pipeline.core.config import load_config
+    from pipeline.core.runner import Runner, Selection
+    from pipeline.core.sections import schema
     from stages import STAGES
 
     config = load_config(schema(STAGES), capture, preset, list(overrides))
@@ -31,8 +31,8 @@ def truth_in_reconstruction(capture: Path, outputs: dict):
     import numpy as np
     import trimesh
 
-    from pipeline.camera import read_cameras, read_views
-    from pipeline.score import score_cameras
+    from pipeline.camera.model import read_cameras, read_views
+    from pipeline.synthetic.score import score_cameras
 
     _, true_poses = read_cameras(capture / "ground_truth" / "cameras.json")
     _, similarity = score_cameras({n: p for n, (_, p) in read_views(outputs["sfm"]["cameras"]).items()}, true_poses)

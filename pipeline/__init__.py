@@ -1,4 +1,4 @@
-"""Photogrammetry-to-material pipeline: runner, cache, config and CLI."""
+"""Photogrammetry-to-material pipeline: the library (domain packages and the framework).
 
 import logging
 

@@ -1,10 +1,10 @@
 """The pipeline's stages, one module each, listed here in DAG order.
 
-A module joins the pipeline by defining ``STAGE`` (see pipeline.stage) and being
+A module joins the pipeline by defining ``STAGE`` (see pipeline.core.stage) and being
 added to ``STAGES``.
 """
 
-from pipeline.stage import Stage
+from pipeline.core.stage import Stage
 from stages import calibrate, cleanup, export, fit_geometry, fit_material, fit_texture, masks, mesh, scene, sfm, undistort, uv
 
 STAGES: tuple[Stage, ...] = (calibrate.STAGE, undistort.STAGE, masks.STAGE, sfm.STAGE, mesh.STAGE, cleanup.STAGE, uv.STAGE,

@@ -35,14 +35,15 @@ from typing import Annotated, Literal
 import cv2
 import numpy as np
 
-from pipeline import logger, progress
-from pipeline.board import BoardDetection, BoardDetector
-from pipeline.camera import Intrinsics
-from pipeline.config import Range
-from pipeline.errors import PipelineError
-from pipeline.photo_io import PHOTO_SUFFIXES, camera_setting, gray_uint8, read_metadata, read_photo
-from pipeline.sections import BoardSection
-from pipeline.stage import Stage, StageInputs, StageResult
+from pipeline import logger
+from pipeline.core import progress
+from pipeline.camera.board import BoardDetection, BoardDetector
+from pipeline.camera.model import Intrinsics
+from pipeline.core.config import Range
+from pipeline.core.errors import PipelineError
+from pipeline.imaging.photo_io import PHOTO_SUFFIXES, camera_setting, gray_uint8, read_metadata, read_photo
+from pipeline.core.sections import BoardSection
+from pipeline.core.stage import Stage, StageInputs, StageResult
 
 COLMAP_FOCAL_PRIOR = 1.2
 """COLMAP's default focal length guess, as a multiple of the longer image side."""

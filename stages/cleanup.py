@@ -31,8 +31,8 @@ from typing import Annotated
 import pymeshlab
 
 from pipeline import logger
-from pipeline.config import Range
-from pipeline.stage import Stage, StageInputs, StageResult
+from pipeline.core.config import Range
+from pipeline.core.stage import Stage, StageInputs, StageResult
 
 
 @dataclass(frozen=True)

@@ -36,8 +36,8 @@ import trimesh
 from PIL import Image
 
 from pipeline import logger
-from pipeline.config import Range
-from pipeline.stage import Stage, StageInputs, StageResult
+from pipeline.core.config import Range
+from pipeline.core.stage import Stage, StageInputs, StageResult
 
 # glTF is y up: x stays, y becomes z, z becomes -y.
 Z_UP_TO_Y_UP = np.array([[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]], dtype=float)

@@ -3,7 +3,7 @@ alternation with its material.
 
 Each of ``rounds`` rounds is a geometry pass, then a material pass:
 
-Geometry pass: only vertex positions move, by pipeline.fitting.fit_shape: Adam on
+Geometry pass: only vertex positions move, by pipeline.fit.engine.fit_shape: Adam on
 LargeSteps' differential coordinates (Nicolet et al. 2021, mi.ad.LargeSteps with
 cholespy). Only primary visibility is differentiated (``sppi = 0``): edges seen
 through reflections, refraction and shadows would need a guiding pass per render
@@ -44,7 +44,7 @@ gradients chase the model's error more than the shape's.
 
 Material pass (``material_iterations`` > 0): the model's constants, and the
 texture if fit_texture kept one, are fitted again on the refined mesh by
-pipeline.fitting.fit, the geometry frozen: fit_material's loop with the dual
+pipeline.fit.engine.fit, the geometry frozen: fit_material's loop with the dual
 loss over the eroded masks, its bounds and held-out photos, the texture's
 smoothness prior from fit_texture. A material fitted on the visual hull is biased
 by the hull's shape (flat facets where the specimen is curved spread the
@@ -96,10 +96,14 @@ import cv2
 import numpy as np
 import trimesh
 
-from pipeline import fitting, logger, materials, mitsuba_variant, scene_xml
-from pipeline.camera import read_views, resize_exact
-from pipeline.config import Range
-from pipeline.stage import Stage, StageInputs, StageResult
+from pipeline import logger
+from pipeline.fit import engine
+from pipeline.render import materials
+from pipeline.render import mitsuba_variant
+from pipeline.render import scene_xml
+from pipeline.camera.model import read_views, resize_exact
+from pipeline.core.config import Range
+from pipeline.core.stage import Stage, StageInputs, StageResult
 from stages.fit_material import load_views, write_heldout
 from stages.fit_texture import write_texture_files
 from stages.masks import mask_files
@@ -159,8 +163,8 @@ def sphere_in_box(bounds: np.ndarray, subdivisions: int) -> trimesh.Trimesh:
     return sphere
 
 
-def silhouette_views(views: list[tuple[fitting.FitView, tuple]], mesh_file: Path, masks: dict[str, Path],
-                     cameras: dict) -> list[fitting.FitView]:  # fmt: skip
+def silhouette_views(views: list[tuple[engine.FitView, tuple]], mesh_file: Path, masks: dict[str, Path],
+                     cameras: dict) -> list[engine.FitView]:  # fmt: skip
     """The same windows, with a scene holding only the specimen (black, under a white
     sky) and the mask's complement as reference: coverage, material-free."""
     import mitsuba as mi
@@ -177,12 +181,12 @@ def silhouette_views(views: list[tuple[fitting.FitView, tuple]], mesh_file: Path
         x, y, w, h = crop
         coverage = resize_exact(mask, small.fx / cameras[view.name][0].fx)[y : y + h, x : x + w]
         reference = np.repeat(1.0 - coverage[..., None], 3, axis=2).astype(np.float32)
-        result.append(fitting.FitView(view.name, scene, view.sensor, reference))
+        result.append(engine.FitView(view.name, scene, view.sensor, reference))
     return result
 
 
 def geometry_pass(conf: Config, geometry: Path, description: dict, loss: str, views_inputs: tuple, held: set[str],
-                  step: float, seed: int) -> fitting.ShapeResult:  # fmt: skip
+                  step: float, seed: int) -> engine.ShapeResult:  # fmt: skip
     """Vertices of geometry/mesh.ply refined with the scene's material frozen; the
     mesh written back."""
     import mitsuba as mi
@@ -194,32 +198,32 @@ def geometry_pass(conf: Config, geometry: Path, description: dict, loss: str, vi
         integrator = {"type": "direct_projective", "sppi": 0}
     else:
         # The silhouette and its surroundings carry the shape: every window pixel counts.
-        views = [fitting.FitView(v.name, v.scene, v.sensor, v.reference) for v, _ in windowed]
+        views = [engine.FitView(v.name, v.scene, v.sensor, v.reference) for v, _ in windowed]
         kind, depth = materials.INTEGRATORS[description["model"]]
         integrator = ({"type": "prb_projective", "max_depth": depth, "sppi": 0} if kind == "prb"
                       else {"type": kind, "max_depth": depth})  # fmt: skip
-    settings = fitting.ShapeSettings(iterations=conf.iterations, batch=conf.batch, spp=conf.spp, step=step,
+    settings = engine.ShapeSettings(iterations=conf.iterations, batch=conf.batch, spp=conf.spp, step=step,
                                      smoothing=conf.smoothing, validate_every=conf.validate_every,
                                      validation_spp=conf.validation_spp, seed=seed,
                                      symbolic_loops=integrator["type"] != "prbvolpath")  # fmt: skip
-    result = fitting.fit_shape("specimen", [v for v in views if v.name not in held], [v for v in views if v.name in held],
+    result = engine.fit_shape("specimen", [v for v in views if v.name not in held], [v for v in views if v.name in held],
                                settings, mi.load_dict(integrator))  # fmt: skip
     next(s for s in views[0].scene.shapes() if s.id() == "specimen").write_ply(str(geometry / "mesh.ply"))
     return result
 
 
 def material_pass(conf: Config, geometry: Path, description: dict, views_inputs: tuple, held: set[str],
-                  parameters: list[fitting.FitParameter], seed: int) -> tuple[fitting.FitResult, bool]:  # fmt: skip
+                  parameters: list[engine.FitParameter], seed: int) -> tuple[engine.FitResult, bool]:  # fmt: skip
     """The material ``parameters`` fitted again on geometry/'s mesh; written back into
     specimen.xml (and the texture's files) when the held-out error drops by
     ``material_min_improvement``. Returns the fit and whether it was kept."""
     cameras, linear, masks = views_inputs
     views = [v for v, _ in load_views(geometry, description, cameras, linear, masks, conf.material_max_size,
                                       conf.erode_px, conf.material_spp)]  # fmt: skip
-    settings = fitting.FitSettings(iterations=conf.material_iterations, batch=conf.batch, spp=conf.material_spp,
+    settings = engine.FitSettings(iterations=conf.material_iterations, batch=conf.batch, spp=conf.material_spp,
                                    loss="dual", validate_every=conf.validate_every, validation_spp=conf.validation_spp,
                                    tolerance=0.0, seed=seed)  # fmt: skip
-    result = fitting.fit(parameters, [v for v in views if v.name not in held], [v for v in views if v.name in held],
+    result = engine.fit(parameters, [v for v in views if v.name not in held], [v for v in views if v.name in held],
                          settings)  # fmt: skip
     if result.validation_error > (1 - conf.material_min_improvement) * result.start_validation_error:
         return result, False
@@ -232,7 +236,7 @@ def material_pass(conf: Config, geometry: Path, description: dict, views_inputs:
     return result, True
 
 
-def _pass_summary(result: fitting.ShapeResult | fitting.FitResult) -> dict:
+def _pass_summary(result: engine.ShapeResult | engine.FitResult) -> dict:
     return {"iterations": len(result.log), "best_iteration": result.best_iteration,
             "validation_start": result.start_validation_error, "validation": result.validation_error}  # fmt: skip
 
@@ -302,7 +306,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     with (geometry / "log.jsonl").open("w") as handle:
         for entry in log:
             handle.write(json.dumps(entry) + "\n")
-    fitting.plot_loss(log, geometry / "loss.png")
+    engine.plot_loss(log, geometry / "loss.png")
     positions = trimesh.load(geometry / "mesh.ply", force="mesh", process=False).vertices
     moved = np.linalg.norm(positions - start, axis=1)
     first, last = rounds[0]["geometry"], rounds[-1]["geometry"]

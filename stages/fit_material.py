@@ -1,6 +1,6 @@
 """Stage fit_material: the specimen's material constants, fitted to the photos.
 
-The scene stage's model (pipeline.materials) is fitted by pipeline.fitting: Adam
+The scene stage's model (pipeline.render.materials) is fitted by pipeline.fit.engine: Adam
 over its parameters with per-parameter learning rates and box constraints, a
 loss on the photos' linear radiance (undistort's EXRs) over each photo's
 specimen mask, eroded by ``erode_px`` so that silhouette pixels, where the
@@ -42,12 +42,16 @@ from typing import Annotated, Literal
 import cv2
 import numpy as np
 
-from pipeline import fitting, logger, materials, mitsuba_variant, scene_xml
-from pipeline.camera import Intrinsics, Pose, read_views, resize_exact, scaled
-from pipeline.config import Range
-from pipeline.errors import PipelineError
-from pipeline.photo_io import read_photo, write_image
-from pipeline.stage import Stage, StageInputs, StageResult
+from pipeline import logger
+from pipeline.fit import engine
+from pipeline.render import materials
+from pipeline.render import mitsuba_variant
+from pipeline.render import scene_xml
+from pipeline.camera.model import Intrinsics, Pose, read_views, resize_exact, scaled
+from pipeline.core.config import Range
+from pipeline.core.errors import PipelineError
+from pipeline.imaging.photo_io import read_photo, write_image
+from pipeline.core.stage import Stage, StageInputs, StageResult
 from stages.masks import mask_files
 from stages.undistort import photo_files
 
@@ -66,9 +70,9 @@ class Config:
     """l2: mean squared error; dual: Deng et al.'s dual-buffer estimator (two renders,
     unbiased by Monte Carlo noise; twice the cost per view)."""
     learning_rate_scale: Annotated[float, Range(0.0, None, exclusive_lo=True)] = 1.0
-    """Multiplies every parameter's learning rate (pipeline.materials)."""
+    """Multiplies every parameter's learning rate (pipeline.render.materials)."""
     bounds: tuple[str, ...] = ()
-    """Bounds overriding pipeline.materials' defaults, as "name=lower:upper" (e.g. "eta=1.3:1.6")."""
+    """Bounds overriding pipeline.render.materials' defaults, as "name=lower:upper" (e.g. "eta=1.3:1.6")."""
     max_size: Annotated[int, Range(16, None)] = 128
     """Longer side, in pixels, of the window each view is rendered in."""
     erode_px: Annotated[int, Range(0, None)] = 2
@@ -92,9 +96,9 @@ class Config:
     """Seed of the batch order and the renders."""
 
 
-def fit_parameters(model: str, bounds: tuple[str, ...]) -> list[fitting.FitParameter]:
+def fit_parameters(model: str, bounds: tuple[str, ...]) -> list[engine.FitParameter]:
     """The model's parameters with their bounds, ``bounds`` overriding them."""
-    overrides = fitting.parse_bounds(bounds, "fit_material.bounds")
+    overrides = engine.parse_bounds(bounds, "fit_material.bounds")
     unknown = set(overrides) - set(materials.MODEL_PARAMETERS[model])
     if unknown:
         raise PipelineError(f"fit_material.bounds names {', '.join(sorted(unknown))}, not parameters of the {model} "
@@ -118,7 +122,7 @@ def _window(mask: np.ndarray, max_size: int, margin: int = 8) -> tuple[float, tu
 def load_views(scene_dir: Path, description: dict, cameras: dict[str, tuple[Intrinsics, Pose]],
                linear: dict[str, Path], masks: dict[str, Path], max_size: int, erode_px: int,
                spp: int, sample_border: bool = False,
-               names: set[str] | None = None) -> list[tuple[fitting.FitView, tuple]]:  # fmt: skip
+               names: set[str] | None = None) -> list[tuple[engine.FitView, tuple]]:  # fmt: skip
     """Every photo (or those in ``names``) as a FitView in its window (longer side at most
     ``max_size`` px), with the window's scaled camera and crop; weights are the mask
     eroded by ``erode_px``."""
@@ -147,7 +151,7 @@ def load_views(scene_dir: Path, description: dict, cameras: dict[str, tuple[Intr
         scene = shared_scene or mi.load_file(str(scene_dir / description["views"][name]["xml"]))
         sensor = scene_xml.load_sensor(scene_xml.sensor_properties(small, pose, spp,
                                                                    description["near_clip"], crop, sample_border))  # fmt: skip
-        views.append((fitting.FitView(name, scene, sensor, np.ascontiguousarray(reference), weight), (small, crop)))
+        views.append((engine.FitView(name, scene, sensor, np.ascontiguousarray(reference), weight), (small, crop)))
     return views
 
 
@@ -159,7 +163,7 @@ def held_out_names(names: list[str], count: int) -> list[str]:
     return [sorted(names)[i] for i in np.linspace(0, len(names) - 1, count + 2)[1:-1].round().astype(int)]
 
 
-def write_heldout(views: list[fitting.FitView], spp: int, folder: Path) -> None:
+def write_heldout(views: list[engine.FitView], spp: int, folder: Path) -> None:
     import mitsuba as mi
 
     folder.mkdir()
@@ -185,8 +189,8 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     views = [view for view, _ in load_views(fitted, description, cameras, linear, masks, conf.max_size,
                                                      conf.erode_px, conf.spp)]
     held = set(held_out_names([v.name for v in views], conf.held_out))
-    settings = fitting.FitSettings(**{f: getattr(conf, f) for f in fitting.FitSettings.__dataclass_fields__})
-    result = fitting.fit(parameters, [v for v in views if v.name not in held], [v for v in views if v.name in held],
+    settings = engine.FitSettings(**{f: getattr(conf, f) for f in engine.FitSettings.__dataclass_fields__})
+    result = engine.fit(parameters, [v for v in views if v.name not in held], [v for v in views if v.name in held],
                          settings)  # fmt: skip
 
     keys = {p.name: p.key for p in parameters}
@@ -194,7 +198,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     with (fitted / "log.jsonl").open("w") as log:
         for entry in result.log:
             log.write(json.dumps(entry) + "\n")
-    fitting.plot_loss(result.log, fitted / "loss.png")
+    engine.plot_loss(result.log, fitted / "loss.png")
     write_heldout([v for v in views if v.name in held], 4 * conf.validation_spp, fitted / "heldout")
     params = {
         "model": model,

@@ -1,7 +1,7 @@
 """Stage fit_texture: a colour that varies over the specimen, fitted coarse to fine.
 
 Starts from fit_material's scene and replaces one constant of the model by a
-texture initialised to that constant (pipeline.materials.TEXTURE_SLOTS):
+texture initialised to that constant (pipeline.render.materials.TEXTURE_SLOTS):
 
 ==========================  ==============================================================
 model                       texture
@@ -16,7 +16,7 @@ eta; alpha, eta and sigma_t) are fitted again, from fit_material's values and
 within its bounds: first alone (``iterations_per_level`` steps, the colour still
 constant), then along with the texture at every level. Fitted next to a
 constant colour they absorb some of the colour's variation (on the sample bird
-roughness ended 0.15 off the truth). The texture is fitted by pipeline.fitting
+roughness ended 0.15 off the truth). The texture is fitted by pipeline.fit.engine
 (the same loop, loss, views and held-out photos as fit_material) at ``levels``
 resolutions, each twice the last, ending at
 ``max_resolution`` texels a side (``max_grid_resolution`` along a grid's longest
@@ -70,11 +70,15 @@ import numpy as np
 import trimesh
 from scipy import ndimage
 
-from pipeline import fitting, logger, materials, mitsuba_variant, scene_xml
-from pipeline.camera import read_views
-from pipeline.config import Range
-from pipeline.photo_io import to_uint8
-from pipeline.stage import Stage, StageInputs, StageResult
+from pipeline import logger
+from pipeline.fit import engine
+from pipeline.render import materials
+from pipeline.render import mitsuba_variant
+from pipeline.render import scene_xml
+from pipeline.camera.model import read_views
+from pipeline.core.config import Range
+from pipeline.imaging.photo_io import to_uint8
+from pipeline.core.stage import Stage, StageInputs, StageResult
 from stages.fit_material import load_views, write_heldout
 from stages.masks import mask_files
 from stages.undistort import photo_files
@@ -222,12 +226,12 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     parameters = materials.refit_parameters(model, material["bounds"], (conf.learning_rate, conf.smoothness),
                                             conf.refit_constants)  # fmt: skip
     constants = [p.name for p in parameters[1:]]
-    settings = fitting.FitSettings(iterations=conf.iterations_per_level, batch=conf.batch, spp=conf.spp, loss=conf.loss,
+    settings = engine.FitSettings(iterations=conf.iterations_per_level, batch=conf.batch, spp=conf.spp, loss=conf.loss,
                                    validate_every=conf.validate_every, validation_spp=conf.validation_spp,
                                    tolerance=conf.tolerance, window=conf.window, seed=conf.seed)  # fmt: skip
     log, levels = [], []
 
-    def record(result: fitting.FitResult, level: int | str, shape: tuple[int, ...] | None) -> dict:
+    def record(result: engine.FitResult, level: int | str, shape: tuple[int, ...] | None) -> dict:
         offset = len(log)
         log.extend({**e, "iteration": e["iteration"] + offset, "level": level, "resolution": shape and list(shape)}
                    for e in result.log)  # fmt: skip
@@ -240,7 +244,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         # earn its place against the refitted constant model, not against
         # fit_material's (a texture-free specimen's texture was kept on what the
         # constants alone gained).
-        result = fitting.fit(parameters[1:], training, validation, settings)
+        result = engine.fit(parameters[1:], training, validation, settings)
         refitted, constant_error = {n: result.values[n] for n in constants}, result.validation_error
         report["constants_fit"] = record(result, "constants", None)
         logger.info("constants refitted: held-out MSE %s", result.validation_error)
@@ -250,7 +254,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
             params = mi.traverse(scene)
             params[slot.key] = mi.TensorXf(texture)
             params.update()
-        result = fitting.fit(parameters, training, validation, replace(settings, seed=conf.seed + level + 1))
+        result = engine.fit(parameters, training, validation, replace(settings, seed=conf.seed + level + 1))
         texture = result.textures[slot.parameter]
         if constant_error is None:
             constant_error = result.start_validation_error
@@ -269,7 +273,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     with (textured / "log.jsonl").open("w") as handle:
         for entry in log:
             handle.write(json.dumps(entry) + "\n")
-    fitting.plot_loss(log, textured / "loss.png")
+    engine.plot_loss(log, textured / "loss.png")
     if kept:
         write_texture(textured, slot, texture, box)
         constant_values = {n: result.values[n] for n in constants}

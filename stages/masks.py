@@ -43,13 +43,14 @@ from typing import Annotated, Literal
 import cv2
 import numpy as np
 
-from pipeline import logger, progress
-from pipeline.camera import Intrinsics, undistort
-from pipeline.config import Range
-from pipeline.errors import PipelineError
-from pipeline.photo_io import read_photo
-from pipeline.segmentation import clean, segment_centre_prior, segment_neutral_backdrop, segment_plate_difference
-from pipeline.stage import Stage, StageInputs, StageResult
+from pipeline import logger
+from pipeline.core import progress
+from pipeline.camera.model import Intrinsics, undistort
+from pipeline.core.config import Range
+from pipeline.core.errors import PipelineError
+from pipeline.imaging.photo_io import read_photo
+from pipeline.imaging.segmentation import clean, segment_centre_prior, segment_neutral_backdrop, segment_plate_difference
+from pipeline.core.stage import Stage, StageInputs, StageResult
 from stages.undistort import photo_files
 
 

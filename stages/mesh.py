@@ -3,7 +3,7 @@
 The pycolmap wheel has no dense stereo and no Delaunay meshing (both need CUDA or
 CGAL), so the dense shape comes from the masks:
 
-1. **Visual hull** (pipeline.visual_hull): a box around the specimen is found by a
+1. **Visual hull** (pipeline.geometry.visual_hull): a box around the specimen is found by a
    coarse carve, then a grid of ``resolution`` voxels along its longest side holds
    each voxel's distance to the nearest silhouette edge; marching cubes at 0 gives
    a closed surface. Voxels below the ground plane (the table, when the sfm stage
@@ -48,11 +48,11 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from pipeline import logger
-from pipeline.camera import read_views
-from pipeline.config import Range
-from pipeline.errors import PipelineError
-from pipeline.stage import Stage, StageInputs, StageResult
-from pipeline.visual_hull import Grid, View, bounds, hull_field, surface
+from pipeline.camera.model import read_views
+from pipeline.core.config import Range
+from pipeline.core.errors import PipelineError
+from pipeline.core.stage import Stage, StageInputs, StageResult
+from pipeline.geometry.visual_hull import Grid, View, bounds, hull_field, surface
 from stages.masks import mask_files
 
 

@@ -2,7 +2,7 @@
 
 The scene holds one perspective sensor per registered photo (its pinhole
 intrinsics, principal point included, and pose from sfm), the UV-mapped mesh
-from uv with the chosen material model (pipeline.materials: only what that
+from uv with the chosen material model (pipeline.render.materials: only what that
 model needs), the light rig from capture.toml's ``[light]``, and, when the world
 frame is the board's, the printed board under the specimen, and the table
 around it (they light the specimen from below and show through a translucent
@@ -56,14 +56,17 @@ import cv2
 import numpy as np
 import trimesh
 
-from pipeline import logger, materials, mitsuba_variant, scene_xml
-from pipeline.board import board_image
-from pipeline.camera import Intrinsics, Pose, read_views, resize_exact, scaled
-from pipeline.config import Range
-from pipeline.errors import PipelineError
-from pipeline.photo_io import read_photo, to_uint8
-from pipeline.sections import BoardSection, CaptureSection, LightSection
-from pipeline.stage import Stage, StageInputs, StageResult
+from pipeline import logger
+from pipeline.render import materials
+from pipeline.render import mitsuba_variant
+from pipeline.render import scene_xml
+from pipeline.camera.board import board_image
+from pipeline.camera.model import Intrinsics, Pose, read_views, resize_exact, scaled
+from pipeline.core.config import Range
+from pipeline.core.errors import PipelineError
+from pipeline.imaging.photo_io import read_photo, to_uint8
+from pipeline.core.sections import BoardSection, CaptureSection, LightSection
+from pipeline.core.stage import Stage, StageInputs, StageResult
 from stages.masks import mask_files
 from stages.undistort import photo_files
 
@@ -75,7 +78,7 @@ class Config:
     """The Mitsuba scene."""
 
     model: Literal["auto", "opaque", "principled", "volumetric"] = "auto"
-    """Material model (pipeline.materials); auto takes capture.material, and principled
+    """Material model (pipeline.render.materials); auto takes capture.material, and principled
     when that is auto too (it covers opaque surfaces, with spec_trans at 0)."""
     max_depth: Annotated[int, Range(0, 1024)] = 0
     """Longest light path; 0 takes the model's (opaque 4, principled 8, volumetric 32)."""
@@ -240,7 +243,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     board = inputs.shared["board"] if conf.board_plane and frame.get("source") == "board" else None
     if board is not None:
         # Rows flipped: Mitsuba's rectangle puts the bitmap's first row at local -y,
-        # and the board's top edge is at +y (pipeline.board.board_to_world).
+        # and the board's top edge is at +y (pipeline.camera.board.board_to_world).
         reflectance = TONER + (PAPER - TONER) * board_image(board)[::-1].astype(np.float32) / 255.0
         cv2.imwrite(str(out_dir / "board.png"), np.round(reflectance * 255).astype(np.uint8))
     environment = None

@@ -15,7 +15,7 @@
    are seeded, and bundle adjustment runs on one thread (COLMAP's defaults gave
    bird_volumetric rotation errors anywhere from 0.7 to 164 degrees).
 4. **Turntable** (``capture.rig = "turntable"``): the poses are explained by one
-   circle about one axis (pipeline.turntable), fitted to each photo's board pose
+   circle about one axis (pipeline.geometry.turntable), fitted to each photo's board pose
    (the board turns with the specimen) or else its SfM pose, poses off the circle
    dropped. SfM poses that disagree with the board's are not used at all: a plain
    specimen on a repetitive set makes COLMAP join photos wrongly. Photos without a
@@ -24,7 +24,7 @@
 5. **World frame** (``frame``): from the ChArUco board when it is seen in at least
    three registered photos whose SfM centres agree with it (PnP per photo,
    similarity to the SfM centres; on a turntable the board poses alone do; metres,
-   z up, origin at the board's centre as pipeline.board.board_to_world); else from
+   z up, origin at the board's centre as pipeline.camera.board.board_to_world); else from
    the turntable axis (up) and the table plane if one is found; else from a ground
    plane (the sparse points' dominant plane, lowered to where the points near the
    specimen end); else centred on where the cameras look, scaled to
@@ -39,7 +39,7 @@ output              content
 ==================  =============================================================
 sparse/             the model in COLMAP's binary format (cameras.bin, images.bin,
                     points3D.bin, frames.bin, rigs.bin), in the world frame
-cameras.json        pinhole intrinsics and pose per photo (pipeline.camera), with
+cameras.json        pinhole intrinsics and pose per photo (pipeline.camera.model), with
                     the world frame's description; keyed by the original photo name
 sfm.json            registered and unregistered photos (with causes), metrics,
                     board and turntable residuals
@@ -64,14 +64,15 @@ import cv2
 import numpy as np
 import pycolmap
 
-from pipeline import logger, turntable
-from pipeline.board import BoardDetector, board_to_world
-from pipeline.camera import Intrinsics, Pose, Similarity, rotation_angle_deg, similarity_umeyama, write_cameras
-from pipeline.config import Range
-from pipeline.errors import PipelineError
-from pipeline.sections import BoardSection, CaptureSection
-from pipeline.stage import Stage, StageInputs, StageResult
-from pipeline.visual_hull import Grid, View, bounds, convergence_point, hull_field
+from pipeline import logger
+from pipeline.geometry import turntable
+from pipeline.camera.board import BoardDetector, board_to_world
+from pipeline.camera.model import Intrinsics, Pose, Similarity, rotation_angle_deg, similarity_umeyama, write_cameras
+from pipeline.core.config import Range
+from pipeline.core.errors import PipelineError
+from pipeline.core.sections import BoardSection, CaptureSection
+from pipeline.core.stage import Stage, StageInputs, StageResult
+from pipeline.geometry.visual_hull import Grid, View, bounds, convergence_point, hull_field
 from stages.masks import mask_files
 from stages.undistort import photo_files
 
@@ -261,7 +262,7 @@ def _unregistered_causes(database: Path, unregistered: list[str], stem_of: dict[
 
 
 def _board_poses(conf: Config, board: BoardSection, photos: dict[str, dict], intrinsics: dict[str, Intrinsics]):
-    """World pose of every photo in which the board is found (pipeline.board's frame)."""
+    """World pose of every photo in which the board is found (pipeline.camera.board's frame)."""
     if board.kind == "none":
         return {}, {}
     detector = BoardDetector(board, conf.board_min_corners)

@@ -29,11 +29,12 @@ from typing import Annotated
 
 import numpy as np
 
-from pipeline import logger, progress
-from pipeline.camera import Intrinsics, ideal_pinhole, undistort
-from pipeline.config import Range
-from pipeline.errors import PipelineError
-from pipeline.photo_io import (
+from pipeline import logger
+from pipeline.core import progress
+from pipeline.camera.model import Intrinsics, ideal_pinhole, undistort
+from pipeline.core.config import Range
+from pipeline.core.errors import PipelineError
+from pipeline.imaging.photo_io import (
     PHOTO_SUFFIXES,
     Encoding,
     camera_setting,
@@ -41,7 +42,7 @@ from pipeline.photo_io import (
     to_uint8,
     write_image,
 )
-from pipeline.stage import Stage, StageInputs, StageResult
+from pipeline.core.stage import Stage, StageInputs, StageResult
 
 
 @dataclass(frozen=True)

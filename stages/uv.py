@@ -42,13 +42,13 @@ import numpy as np
 import trimesh
 import xatlas
 
-from pipeline import mitsuba_variant
-from pipeline.atlas import overlapping_texels
-from pipeline.camera import read_views
-from pipeline.config import Range
-from pipeline.errors import PipelineError
-from pipeline.photo_io import to_uint8
-from pipeline.stage import Stage, StageInputs, StageResult
+from pipeline.render import mitsuba_variant
+from pipeline.geometry.atlas import overlapping_texels
+from pipeline.camera.model import read_views
+from pipeline.core.config import Range
+from pipeline.core.errors import PipelineError
+from pipeline.imaging.photo_io import to_uint8
+from pipeline.core.stage import Stage, StageInputs, StageResult
 
 CHECKER_TEXELS = 16
 

@@ -9,7 +9,7 @@ sys.path.insert(0, str(Path(__file__).parent / "pipeline"))
 @pytest.fixture(scope="session")
 def mi():
     """Mitsuba with the variant the pipeline would pick."""
-    from pipeline.mitsuba_variant import activate
+    from pipeline.render.mitsuba_variant import activate
 
     activate("auto")
     import mitsuba
@@ -30,7 +30,7 @@ def presets_dir(tmp_path: Path) -> Path:
 @pytest.fixture(scope="session")
 def tiny_capture(tmp_path_factory) -> Path:
     """A synthetic capture small enough for tests: 6 views of 96x72 px, 4 spp."""
-    from pipeline.synth import SynthOptions, synthesize
+    from pipeline.synthetic.synth import SynthOptions, synthesize
 
     out = tmp_path_factory.mktemp("synth") / "bird"
     options = SynthOptions(views=6, width=96, height=72, spp=4, calibration_shots=3, seed=3)
@@ -49,16 +49,16 @@ def bird_capture(tmp_path_factory) -> Path:
 
 
 def synth_capture(tmp_path_factory, name: str, **options) -> Path:
-    from pipeline.synth import SynthOptions, synthesize
+    from pipeline.synthetic.synth import SynthOptions, synthesize
 
     return synthesize(tmp_path_factory.mktemp("synth") / name, SynthOptions(**options))
 
 
 def run_stages(capture: Path, until: str, *overrides: str, force: tuple[str, ...] = ()) -> dict[str, dict[str, Path]]:
     """Run the real stage DAG on ``capture`` up to ``until`` (rerunning ``force``); outputs per stage."""
-    from pipeline.config import load_config
-    from pipeline.runner import Runner, Selection
-    from pipeline.sections import schema
+    from pipeline.core.config import load_config
+    from pipeline.core.runner import Runner, Selection
+    from pipeline.core.sections import schema
     from stages import STAGES
 
     config = load_config(schema(STAGES), capture, "standard", list(overrides))

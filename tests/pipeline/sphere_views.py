@@ -3,8 +3,8 @@ whose visual hull is known, for the hull and the pose checks built on it."""
 
 import numpy as np
 
-from pipeline.camera import Intrinsics, Pose
-from pipeline.visual_hull import View
+from pipeline.camera.model import Intrinsics, Pose
+from pipeline.geometry.visual_hull import View
 
 RADIUS = 0.05
 K = Intrinsics(120, 90, 150.0, 150.0, 59.5, 44.5)

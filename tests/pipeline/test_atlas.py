@@ -1,7 +1,7 @@
 import numpy as np
 import trimesh
 
-from pipeline.atlas import chart_texels, overlapping_texels
+from pipeline.geometry.atlas import chart_texels, overlapping_texels
 
 
 def _square(uv_scale: float = 1.0) -> trimesh.Trimesh:

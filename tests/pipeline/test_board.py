@@ -5,9 +5,9 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
-from pipeline.board import BoardDetector, page_layout
+from pipeline.camera.board import BoardDetector, page_layout
 from pipeline.cli import main
-from pipeline.sections import BoardSection
+from pipeline.core.sections import BoardSection
 
 
 @pytest.mark.parametrize("kind", ["charuco", "checkerboard"])

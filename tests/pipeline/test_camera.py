@@ -2,7 +2,7 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline.camera import Intrinsics, Pose, distortion_maps, pinhole_render_size, similarity_umeyama
+from pipeline.camera.model import Intrinsics, Pose, distortion_maps, pinhole_render_size, similarity_umeyama
 
 INTRINSICS = Intrinsics(160, 120, 150.0, 150.0, 82.3, 57.1, [-0.09, 0.035, 0.0008, -0.0005, 0.0])
 
@@ -51,7 +51,7 @@ def test_umeyama_recovers_a_similarity():
 
 @pytest.mark.slow
 def test_mitsuba_sensor_at_a_pose_sees_what_opencv_projects():
-    from pipeline import mitsuba_variant
+    from pipeline.render import mitsuba_variant
 
     mitsuba_variant.activate()
     import mitsuba as mi

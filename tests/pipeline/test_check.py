@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import skimage.data
 
-from pipeline.check import check_capture
+from pipeline.capture.check import check_capture
 from pipeline.cli import main
-from pipeline.config import load_config
-from pipeline.sections import schema
+from pipeline.core.config import load_config
+from pipeline.core.sections import schema
 from stages import STAGES
 
 pytestmark = pytest.mark.slow

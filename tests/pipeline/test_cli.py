@@ -3,7 +3,8 @@ import json
 import pytest
 from toy_stages import RUNS, make_capture, make_stages
 
-from pipeline import cli, config
+from pipeline import cli
+from pipeline.core import config
 
 
 @pytest.fixture

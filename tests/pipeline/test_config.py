@@ -4,9 +4,9 @@ import re
 import pytest
 from toy_stages import make_stages
 
-from pipeline.config import field_docs, load_config, parse_override
-from pipeline.errors import ConfigError
-from pipeline.sections import SHARED_SECTIONS, schema
+from pipeline.core.config import field_docs, load_config, parse_override
+from pipeline.core.errors import ConfigError
+from pipeline.core.sections import SHARED_SECTIONS, schema
 from stages import STAGES
 
 SCHEMA = schema(make_stages())

@@ -1,4 +1,4 @@
-"""pipeline.fitting, pipeline.scene_xml and `pipeline fit` on a tiny scene: a sphere
+"""pipeline.fit.engine, pipeline.render.scene_xml and `pipeline fit` on a tiny scene: a sphere
 under a constant sky and one softbox, seen by three 40x30 sensors."""
 
 import json
@@ -7,11 +7,12 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 
-from pipeline import fitting, scene_xml
-from pipeline.camera import Intrinsics, Pose
+from pipeline.fit import engine
+from pipeline.render import scene_xml
+from pipeline.camera.model import Intrinsics, Pose
 from pipeline.cli import main as cli_main
-from pipeline.errors import PipelineError
-from pipeline.photo_io import write_image
+from pipeline.core.errors import PipelineError
+from pipeline.imaging.photo_io import write_image
 
 pytestmark = pytest.mark.slow
 K = Intrinsics(40, 30, 45.0, 45.0, 21.3, 13.6)
@@ -47,15 +48,15 @@ def references(mi, tmp_path_factory):
 
 def _views(mi, path, references):
     scene = mi.load_file(str(path))
-    from pipeline.photo_io import read_photo
+    from pipeline.imaging.photo_io import read_photo
 
-    return [fitting.FitView(f"ref_{i}", scene, sensor, read_photo(references / f"ref_{i}.exr").pixels)
+    return [engine.FitView(f"ref_{i}", scene, sensor, read_photo(references / f"ref_{i}.exr").pixels)
             for i, sensor in enumerate(scene.sensors())]  # fmt: skip
 
 
 PARAMETERS = [
-    fitting.FitParameter("base_color", "specimen.bsdf.base_color.value", 0.0, 1.0, learning_rate=0.05),
-    fitting.FitParameter("roughness", "specimen.bsdf.roughness.value", 0.001, 1.0, log=True, learning_rate=0.05),
+    engine.FitParameter("base_color", "specimen.bsdf.base_color.value", 0.0, 1.0, learning_rate=0.05),
+    engine.FitParameter("roughness", "specimen.bsdf.roughness.value", 0.001, 1.0, log=True, learning_rate=0.05),
 ]
 
 
@@ -80,7 +81,7 @@ def test_sensor_matches_the_pinhole_projection(mi):
 def test_fit_moves_every_parameter_toward_the_truth_within_bounds(mi, references, tmp_path):
     start = {"base_color": [0.5, 0.5, 0.5], "roughness": [0.7]}
     views = _views(mi, _scene_file(tmp_path, start["base_color"], start["roughness"]), references / "references")
-    result = fitting.fit(PARAMETERS, views, [], fitting.FitSettings(iterations=40, batch=3, spp=8, loss="dual",
+    result = engine.fit(PARAMETERS, views, [], engine.FitSettings(iterations=40, batch=3, spp=8, loss="dual",
                                                                      tolerance=0.0))  # fmt: skip
     for name, truth in TRUTH.items():
         before = np.abs(np.subtract(start[name], truth))
@@ -92,11 +93,11 @@ def test_fit_moves_every_parameter_toward_the_truth_within_bounds(mi, references
 
 def test_bounds_hold_and_order_of_views_does_not_matter(mi, references, tmp_path):
     scene = _scene_file(tmp_path, [0.5, 0.5, 0.5], [0.7])
-    tight = [PARAMETERS[0], fitting.FitParameter("roughness", PARAMETERS[1].key, 0.6, 0.9, log=True, learning_rate=0.05)]
-    settings = fitting.FitSettings(iterations=6, batch=2, spp=4, loss="l2", tolerance=0.0)
+    tight = [PARAMETERS[0], engine.FitParameter("roughness", PARAMETERS[1].key, 0.6, 0.9, log=True, learning_rate=0.05)]
+    settings = engine.FitSettings(iterations=6, batch=2, spp=4, loss="l2", tolerance=0.0)
     # Fresh scenes for each run: a fit leaves its scene in the fitted state.
-    forward = fitting.fit(tight, _views(mi, scene, references / "references"), [], settings)
-    backward = fitting.fit(tight, list(reversed(_views(mi, scene, references / "references"))), [], settings)
+    forward = engine.fit(tight, _views(mi, scene, references / "references"), [], settings)
+    backward = engine.fit(tight, list(reversed(_views(mi, scene, references / "references"))), [], settings)
     # Equal up to float32 rounding: Dr.Jit adds gradients with parallel atomics.
     for name in forward.values:
         np.testing.assert_allclose(forward.values[name], backward.values[name], rtol=1e-5)
@@ -105,8 +106,8 @@ def test_bounds_hold_and_order_of_views_does_not_matter(mi, references, tmp_path
 
 def test_validation_keeps_the_best_state(mi, references, tmp_path):
     views = _views(mi, _scene_file(tmp_path, [0.5, 0.5, 0.5], [0.7]), references / "references")
-    settings = fitting.FitSettings(iterations=8, batch=2, spp=4, validate_every=2, validation_spp=16, tolerance=0.0)
-    result = fitting.fit(PARAMETERS, views[:2], views[2:], settings)
+    settings = engine.FitSettings(iterations=8, batch=2, spp=4, validate_every=2, validation_spp=16, tolerance=0.0)
+    result = engine.fit(PARAMETERS, views[:2], views[2:], settings)
     validated = [e for e in result.log if "validation_error" in e]
     best = min(validated, key=lambda e: e["validation_error"])
     assert result.best_iteration == best["iteration"] and result.values == best["params"]
@@ -163,7 +164,7 @@ def test_pipeline_fit_needs_one_reference_per_sensor(mi, references, tmp_path):
 
 
 def test_neighbour_pairs_link_each_texel_to_its_right_and_lower_neighbour_per_channel():
-    from pipeline.fitting import _neighbour_pairs
+    from pipeline.fit.engine import _neighbour_pairs
 
     first, second = _neighbour_pairs((2, 3, 1))
     pairs = set(zip(first.tolist(), second.tolist()))
@@ -174,13 +175,14 @@ def test_neighbour_pairs_link_each_texel_to_its_right_and_lower_neighbour_per_ch
 
 
 def test_volumetric_fit_moves_every_parameter_toward_the_truth_within_bounds(mi, tmp_path):
-    """The medium model on pipeline.stability's sphere: references at the model's initial
+    """The medium model on pipeline.render.stability's sphere: references at the model's initial
     values (the truth here), the fit started away from them on every parameter.
     Started on the other side (alpha 0.5, eta 1.3) the fit slides away along a valley
     where a rougher interface and a lower eta look alike at 32 px (alpha 0.65, eta 1.25
     after 60 iterations): alpha and eta are not separable on this sphere, which is
     why this start is below alpha and above eta."""
-    from pipeline import materials, stability
+    from pipeline.render import materials
+    from pipeline.render import stability
 
     scene_file = stability.sphere_scene(tmp_path, "volumetric", 32, 8)
     reference = stability.references(scene_file, 128)
@@ -192,9 +194,9 @@ def test_volumetric_fit_moves_every_parameter_toward_the_truth_within_bounds(mi,
         key = materials.PARAMETERS[name].key
         params[key] = type(params[key])(*value)
     params.update()
-    views = [fitting.FitView(f"view{i}", scene, s, reference[i]) for i, s in enumerate(scene.sensors())]
+    views = [engine.FitView(f"view{i}", scene, s, reference[i]) for i, s in enumerate(scene.sensors())]
     parameters = materials.fit_parameters("volumetric")
-    result = fitting.fit(parameters, views, [], fitting.FitSettings(iterations=40, batch=3, spp=8, loss="dual",
+    result = engine.fit(parameters, views, [], engine.FitSettings(iterations=40, batch=3, spp=8, loss="dual",
                                                                      tolerance=0.0))  # fmt: skip
     for name in start:
         before = np.abs(np.subtract(start[name], truth[name]))
@@ -206,8 +208,8 @@ def test_volumetric_fit_moves_every_parameter_toward_the_truth_within_bounds(mi,
 def test_zero_tolerance_runs_every_iteration(mi, references, tmp_path):
     views = _views(mi, _scene_file(tmp_path, [0.5, 0.5, 0.5], [0.7]), references / "references")
     # A window of 2 sees the noise of 4 spp: with any tolerance the rule could fire.
-    settings = fitting.FitSettings(iterations=10, batch=1, spp=4, loss="dual", tolerance=0.0, window=2)
-    assert len(fitting.fit(PARAMETERS, views, [], settings).log) == 10
+    settings = engine.FitSettings(iterations=10, batch=1, spp=4, loss="dual", tolerance=0.0, window=2)
+    assert len(engine.fit(PARAMETERS, views, [], settings).log) == 10
 
 
 def test_vertices_differentiate_through_the_medium_with_evaluated_loops(mi, tmp_path):
@@ -216,7 +218,7 @@ def test_vertices_differentiate_through_the_medium_with_evaluated_loops(mi, tmp_
     with finite gradients that move the vertices."""
     import trimesh
 
-    from pipeline import stability
+    from pipeline.render import stability
 
     sphere = trimesh.creation.icosphere(subdivisions=2, radius=stability.RADIUS)
     sphere.export(tmp_path / "truth.ply")
@@ -224,9 +226,9 @@ def test_vertices_differentiate_through_the_medium_with_evaluated_loops(mi, tmp_
     sphere.apply_scale(0.9)
     sphere.export(tmp_path / "start.ply")
     scene = mi.load_file(str(stability.sphere_scene(tmp_path / "start", "volumetric", 16, 4, mesh="../start.ply")))
-    views = [fitting.FitView(f"view{i}", scene, s, reference[i]) for i, s in enumerate(scene.sensors())]
-    settings = fitting.ShapeSettings(iterations=2, batch=1, spp=4, step=1e-3, symbolic_loops=False)
-    result = fitting.fit_shape("specimen", views, [], settings, mi.load_dict({"type": "prbvolpath", "max_depth": 32}))
+    views = [engine.FitView(f"view{i}", scene, s, reference[i]) for i, s in enumerate(scene.sensors())]
+    settings = engine.ShapeSettings(iterations=2, batch=1, spp=4, step=1e-3, symbolic_loops=False)
+    result = engine.fit_shape("specimen", views, [], settings, mi.load_dict({"type": "prbvolpath", "max_depth": 32}))
     assert np.isfinite(result.positions).all() and all(np.isfinite(e["loss"]) for e in result.log)
     assert np.abs(result.positions - sphere.vertices).max() > 1e-5
 
@@ -238,15 +240,15 @@ def test_shape_validation_does_not_count_the_renders_noise(mi, tmp_path):
     would look better."""
     import trimesh
 
-    from pipeline import stability
+    from pipeline.render import stability
 
     trimesh.creation.icosphere(subdivisions=2, radius=stability.RADIUS).export(tmp_path / "sphere.ply")
     scene_file = stability.sphere_scene(tmp_path, "principled", 24, 2, mesh="sphere.ply")
     converged = stability.references(scene_file, 1024)
     scene = mi.load_file(str(scene_file))
-    views = [fitting.FitView(f"view{i}", scene, s, converged[i]) for i, s in enumerate(scene.sensors())]
+    views = [engine.FitView(f"view{i}", scene, s, converged[i]) for i, s in enumerate(scene.sensors())]
     noise = np.mean([np.mean((np.asarray(mi.render(scene, sensor=v.sensor, spp=2, seed=7)) - v.reference) ** 2)
                      for v in views[1:]])  # fmt: skip
-    settings = fitting.ShapeSettings(iterations=1, batch=1, spp=2, validation_spp=2, validate_every=1)
-    result = fitting.fit_shape("specimen", views[:1], views[1:], settings, mi.load_dict({"type": "prb", "max_depth": 8}))
+    settings = engine.ShapeSettings(iterations=1, batch=1, spp=2, validation_spp=2, validate_every=1)
+    result = engine.fit_shape("specimen", views[:1], views[1:], settings, mi.load_dict({"type": "prb", "max_depth": 8}))
     assert noise > 0 and abs(result.start_validation_error) < 0.25 * noise, (result.start_validation_error, noise)

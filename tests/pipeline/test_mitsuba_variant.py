@@ -1,7 +1,7 @@
 import pytest
 
-from pipeline import mitsuba_variant
-from pipeline.errors import PipelineError
+from pipeline.render import mitsuba_variant
+from pipeline.core.errors import PipelineError
 
 
 @pytest.fixture

@@ -9,10 +9,10 @@ import pytest
 import toy_stages
 from toy_stages import RUNS, make_capture, make_stages
 
-from pipeline.config import load_config
-from pipeline.errors import ConfigError
-from pipeline.runner import Runner, Selection
-from pipeline.sections import schema
+from pipeline.core.config import load_config
+from pipeline.core.errors import ConfigError
+from pipeline.core.runner import Runner, Selection
+from pipeline.core.sections import schema
 
 
 @pytest.fixture(autouse=True)
@@ -186,9 +186,9 @@ def test_sigkilled_stage_leaves_no_entry_and_is_redone(tmp_path, presets_dir):
         sys.path.insert(0, {str(Path(toy_stages.__file__).parent)!r})
         from pathlib import Path
         from toy_stages import make_stages
-        from pipeline.config import load_config
-        from pipeline.runner import Runner
-        from pipeline.sections import schema
+        from pipeline.core.config import load_config
+        from pipeline.core.runner import Runner
+        from pipeline.core.sections import schema
         stages = make_stages()
         config = load_config(schema(stages), Path({str(capture)!r}), "standard",
                              ["ingest.fail='sigkill'", "ingest.scale=3"], Path({str(presets_dir)!r}))

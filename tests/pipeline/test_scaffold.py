@@ -1,8 +1,8 @@
 import tomllib
 
 from pipeline.cli import main
-from pipeline.config import load_config
-from pipeline.sections import schema
+from pipeline.core.config import load_config
+from pipeline.core.sections import schema
 from stages import STAGES
 
 

@@ -10,8 +10,8 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from pipeline import cli
-from pipeline.camera import Intrinsics, Pose, read_cameras, write_cameras
-from pipeline.score import score_cameras, score_capture, score_mesh, score_texture, true_surface
+from pipeline.camera.model import Intrinsics, Pose, read_cameras, write_cameras
+from pipeline.synthetic.score import score_cameras, score_capture, score_mesh, score_texture, true_surface
 
 SIMILARITY = (2.3, Rotation.from_euler("xyz", [20, -35, 60], degrees=True).as_matrix(), np.array([1.0, -2.0, 0.5]))
 
@@ -166,7 +166,7 @@ def test_offset_parameters_give_their_errors(capture):
 
 
 def test_sigma_t_error_is_relative():
-    from pipeline.score import score_material
+    from pipeline.synthetic.score import score_material
 
     truth = {"model": "volumetric", "sigma_t": 180.0, "alpha": 0.12}
     errors = score_material({"model": "volumetric", "params": {"sigma_t": 216.0, "alpha": 0.1}}, truth)
@@ -208,7 +208,7 @@ def side_view_uv(sphere: trimesh.Trimesh) -> np.ndarray:
 
 
 def test_texture_score_reads_rows_from_v_zero_at_the_top():
-    from pipeline.photo_io import srgb_decode, to_uint8
+    from pipeline.imaging.photo_io import srgb_decode, to_uint8
 
     sphere = trimesh.creation.icosphere(subdivisions=4)
     red, blue = np.array([0.8, 0.1, 0.1]), np.array([0.1, 0.1, 0.8])
@@ -232,7 +232,7 @@ def test_texture_score_reads_rows_from_v_zero_at_the_top():
 def test_texture_score_splits_off_what_no_view_sees(mi):
     """A camera above the north pole sees only the upper half: the texture's wrong
     lower half counts in the whole surface's error, not in the seen surface's."""
-    from pipeline.photo_io import srgb_decode, to_uint8
+    from pipeline.imaging.photo_io import srgb_decode, to_uint8
 
     sphere = trimesh.creation.icosphere(subdivisions=4)
     truth = sphere.copy()

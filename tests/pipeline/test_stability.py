@@ -1,12 +1,13 @@
-"""pipeline.stability: each material model at the edges of its bounds, on a tiny
+"""pipeline.render.stability: each material model at the edges of its bounds, on a tiny
 sphere (32x24 px, 4 spp): finite renders and gradients, Adam steps that stay finite
 and inside the bounds."""
 
 import numpy as np
 import pytest
 
-from pipeline import materials, stability
-from pipeline.mitsuba_variant import activate
+from pipeline.render import materials
+from pipeline.render import stability
+from pipeline.render.mitsuba_variant import activate
 
 pytestmark = pytest.mark.slow
 

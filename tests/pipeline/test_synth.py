@@ -7,12 +7,12 @@ import OpenImageIO as oiio
 import pytest
 import trimesh
 
-from pipeline.camera import mesh_coverage, read_cameras
-from pipeline.config import load_config
-from pipeline.errors import PipelineError
-from pipeline.sections import BoardSection, schema
-from pipeline.board import board_to_world, make_charuco_board
-from pipeline.synth import SENSOR_WIDTH_MM, SynthOptions, synthesize
+from pipeline.camera.model import mesh_coverage, read_cameras
+from pipeline.core.config import load_config
+from pipeline.core.errors import PipelineError
+from pipeline.core.sections import BoardSection, schema
+from pipeline.camera.board import board_to_world, make_charuco_board
+from pipeline.synthetic.synth import SENSOR_WIDTH_MM, SynthOptions, synthesize
 from stages import STAGES
 
 pytestmark = pytest.mark.slow

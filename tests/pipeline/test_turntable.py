@@ -1,8 +1,8 @@
 import numpy as np
 
-from pipeline import turntable
-from pipeline.camera import Intrinsics, Pose
-from pipeline.turntable import Turntable, angle_from_silhouette, fit, fit_robust, splat
+from pipeline.geometry import turntable
+from pipeline.camera.model import Intrinsics, Pose
+from pipeline.geometry.turntable import Turntable, angle_from_silhouette, fit, fit_robust, splat
 
 K = Intrinsics(160, 120, 200.0, 200.0, 79.5, 59.5)
 NAMES = [f"view_{i:02d}.jpg" for i in range(16)]

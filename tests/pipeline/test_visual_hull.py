@@ -3,7 +3,7 @@ import pytest
 
 from sphere_views import K, RADIUS, sphere_views
 
-from pipeline.visual_hull import Grid, bounds, convergence_point, hull_field, surface
+from pipeline.geometry.visual_hull import Grid, bounds, convergence_point, hull_field, surface
 
 
 def _hull(views, tolerance=0, resolution=48):

@@ -15,9 +15,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pipeline.config import Range
-from pipeline.errors import PipelineError
-from pipeline.stage import Stage, StageInputs, StageResult
+from pipeline.core.config import Range
+from pipeline.core.errors import PipelineError
+from pipeline.core.stage import Stage, StageInputs, StageResult
 
 RUNS: list[str] = []
 

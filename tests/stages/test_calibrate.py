@@ -7,11 +7,11 @@ import OpenImageIO as oiio
 import pytest
 from conftest import run_stages
 
-from pipeline.board import BoardDetector, homography_residual_px, straightness_px
-from pipeline.camera import Intrinsics, ideal_pinhole, read_cameras, undistort
-from pipeline.errors import PipelineError
-from pipeline.photo_io import gray_uint8, read_photo, write_image
-from pipeline.sections import BoardSection
+from pipeline.camera.board import BoardDetector, homography_residual_px, straightness_px
+from pipeline.camera.model import Intrinsics, ideal_pinhole, read_cameras, undistort
+from pipeline.core.errors import PipelineError
+from pipeline.imaging.photo_io import gray_uint8, read_photo, write_image
+from pipeline.core.sections import BoardSection
 from stages.calibrate import Config, calibrate_from_board, exif_focal_px
 
 pytestmark = pytest.mark.slow

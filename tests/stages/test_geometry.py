@@ -11,9 +11,9 @@ import pytest
 import trimesh
 from conftest import run_stages
 
-from pipeline.camera import read_cameras, read_views
-from pipeline.errors import PipelineError
-from pipeline.score import score_cameras, score_mesh
+from pipeline.camera.model import read_cameras, read_views
+from pipeline.core.errors import PipelineError
+from pipeline.synthetic.score import score_cameras, score_mesh
 
 pytestmark = pytest.mark.slow
 SAMPLE = Path(__file__).parents[2] / "sample_captures" / "bird"

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from conftest import run_stages
 
-from pipeline.errors import PipelineError
-from pipeline.score import score_masks
-from pipeline.segmentation import clean
+from pipeline.core.errors import PipelineError
+from pipeline.synthetic.score import score_masks
+from pipeline.imaging.segmentation import clean
 
 pytestmark = pytest.mark.slow
 

@@ -10,8 +10,8 @@ import pytest
 import trimesh
 from conftest import run_stages
 
-from pipeline.camera import read_views
-from pipeline.score import score_heldout, score_material
+from pipeline.camera.model import read_views
+from pipeline.synthetic.score import score_heldout, score_material
 
 pytestmark = pytest.mark.slow
 # A fit small enough for a test: windows of 48 px, 4 spp, a few steps.
@@ -83,7 +83,7 @@ def test_fit_material_moves_base_colour_toward_the_truth_within_bounds(bird_capt
 
 
 def test_fit_material_rejects_bounds_of_unknown_parameters(bird_capture):
-    from pipeline.errors import PipelineError
+    from pipeline.core.errors import PipelineError
 
     with pytest.raises(PipelineError, match="alpha, not parameters of the principled model"):
         run_stages(bird_capture, "fit_material", *TINY_FIT, 'fit_material.bounds=["alpha=0.1:0.5"]')

@@ -3,7 +3,7 @@ test_geometry on the sample bird)."""
 
 from sphere_views import sphere_views
 
-from pipeline.camera import Pose
+from pipeline.camera.model import Pose
 from stages.sfm import Config, silhouette_check
 
 

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from conftest import run_stages
 
-from pipeline.camera import Intrinsics
-from pipeline.photo_io import read_photo, srgb_decode, srgb_encode, write_image
+from pipeline.camera.model import Intrinsics
+from pipeline.imaging.photo_io import read_photo, srgb_decode, srgb_encode, write_image
 from stages.undistort import photo_files
 
 pytestmark = pytest.mark.slow

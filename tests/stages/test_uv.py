@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from pipeline.atlas import overlapping_texels
-from pipeline.errors import PipelineError
+from pipeline.geometry.atlas import overlapping_texels
+from pipeline.core.errors import PipelineError
 from stages.uv import Config, unwrap
 
 

@@ -4,10 +4,10 @@ Given a scene XML with N sensors and a folder of N reference images (EXR as
 linear radiance, 8-bit images as sRGB; matched to the sensors in the order the
 scene declares them by the sorted file names; each the size of its sensor's
 film), fit the ``mi.traverse`` parameters whose keys match the given regular
-expressions with pipeline.fitting (the same loop as the fit stages), and write
+expressions with pipeline.fit.engine (the same loop as the fit stages), and write
 the optimised scene, params.json, log.jsonl and loss.png.
 
-Bounds come from pipeline.materials by the property's name (base_color, eta,
+Bounds come from pipeline.render.materials by the property's name (base_color, eta,
 sigma_t, ...; the last part of the key that is not "value"), else ``--bound``
 must give them. Only plain values can be fitted (a float or an RGB colour, not
 a bitmap).
@@ -19,9 +19,13 @@ import json
 import re
 from pathlib import Path
 
-from pipeline import fitting, logger, materials, mitsuba_variant, scene_xml
-from pipeline.errors import PipelineError
-from pipeline.photo_io import list_photos, read_photo
+from pipeline import logger
+from pipeline.fit import engine
+from pipeline.render import materials
+from pipeline.render import mitsuba_variant
+from pipeline.render import scene_xml
+from pipeline.core.errors import PipelineError
+from pipeline.imaging.photo_io import list_photos, read_photo
 
 EXR_SUFFIXES = (".exr",)
 
@@ -32,7 +36,7 @@ def property_name(key: str) -> str:
 
 
 def select_parameters(params, patterns: list[str], bounds: dict[str, tuple[float, float]],
-                      learning_rate: float | None) -> list[fitting.FitParameter]:  # fmt: skip
+                      learning_rate: float | None) -> list[engine.FitParameter]:  # fmt: skip
     import mitsuba as mi
 
     selected = []
@@ -51,7 +55,7 @@ def select_parameters(params, patterns: list[str], bounds: dict[str, tuple[float
         lower, upper = span if span is not None else (spec.lower, spec.upper)
         log = spec.log if spec is not None else False
         rate = learning_rate if learning_rate is not None else (spec.learning_rate if spec is not None else 0.02)
-        selected.append(fitting.FitParameter(key, key, lower, upper, log, rate))
+        selected.append(engine.FitParameter(key, key, lower, upper, log, rate))
     if not selected:
         raise PipelineError(f"no fittable parameter matches {' '.join(patterns)}; `pipeline fit SCENE --list` "
                             "shows the scene's keys")  # fmt: skip
@@ -77,7 +81,7 @@ def _load(scene_path: Path):
         raise PipelineError(f"Mitsuba cannot load {scene_path}: {error}") from error
 
 
-def fit_scene(scene_path: Path, references: Path, patterns: list[str], settings: fitting.FitSettings,
+def fit_scene(scene_path: Path, references: Path, patterns: list[str], settings: engine.FitSettings,
               bound_entries: list[str], learning_rate: float | None, out_dir: Path, variant: str = "auto") -> Path:  # fmt: skip
     """Fit and write the results into ``out_dir``; returns its params.json."""
     mitsuba_variant.activate(variant)
@@ -96,17 +100,17 @@ def fit_scene(scene_path: Path, references: Path, patterns: list[str], settings:
         if pixels.shape[:2] != size[::-1]:
             raise PipelineError(f"{path} is {pixels.shape[1]}x{pixels.shape[0]} but sensor {index} renders "
                                 f"{size[0]}x{size[1]}: resize it or fix the film")  # fmt: skip
-        views.append(fitting.FitView(path.stem, scene, sensor, pixels))
-    parameters = select_parameters(mi.traverse(scene), patterns, fitting.parse_bounds(bound_entries, "--bound"), learning_rate)
+        views.append(engine.FitView(path.stem, scene, sensor, pixels))
+    parameters = select_parameters(mi.traverse(scene), patterns, engine.parse_bounds(bound_entries, "--bound"), learning_rate)
     logger.info("fitting %s on %d views", ", ".join(p.key for p in parameters), len(views))
-    result = fitting.fit(parameters, views, [], settings)
+    result = engine.fit(parameters, views, [], settings)
 
     out_dir.mkdir(parents=True, exist_ok=True)
     scene_xml.set_values(scene_path, result.values, out_dir / scene_path.name)
     with (out_dir / "log.jsonl").open("w") as log:
         for entry in result.log:
             log.write(json.dumps(entry) + "\n")
-    fitting.plot_loss(result.log, out_dir / "loss.png")
+    engine.plot_loss(result.log, out_dir / "loss.png")
     params_json = out_dir / "params.json"
     params_json.write_text(json.dumps({
         "scene": str(scene_path),

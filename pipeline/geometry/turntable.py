@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from pipeline.camera import Intrinsics, Pose, project, rotation_angle_deg
+from pipeline.camera.model import Intrinsics, Pose, project, rotation_angle_deg
 
 
 def _turn(axis: np.ndarray, angle: float) -> np.ndarray:

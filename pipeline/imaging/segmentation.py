@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from pipeline.photo_io import srgb_encode
+from pipeline.imaging.photo_io import srgb_encode
 
 SHADOW_CHROMA_CHANGE = 0.03
 """A shadow darkens the set without changing its colour by more than this (chroma units)."""

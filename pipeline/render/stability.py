@@ -4,9 +4,9 @@ A fit that starts at, or is clamped to, a bound must not turn into NaN: a GGX
 lobe at alpha = 0.001 is nearly a delta, a medium with sigma_t = 1e5 /m is a
 random walk cut off by the path depth, eta = 1 makes the interface vanish.
 ``probe`` puts one parameter of a model at such a value on a small sphere (the
-model's own plugins and integrator, pipeline.materials), and reports whether the
+model's own plugins and integrator, pipeline.render.materials), and reports whether the
 render and the gradient of an L2 loss are finite, then whether a few Adam steps
-of pipeline.fitting (every parameter of the model free) stay finite and inside
+of pipeline.fit.engine (every parameter of the model free) stay finite and inside
 the bounds, and whether the parameter moved toward the reference's value.
 
 Used by tests/pipeline/test_stability.py (tiny renders) and bench/fitting.py.
@@ -22,8 +22,10 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline import fitting, materials, scene_xml
-from pipeline.camera import Intrinsics, Pose
+from pipeline.fit import engine
+from pipeline.render import materials
+from pipeline.render import scene_xml
+from pipeline.camera.model import Intrinsics, Pose
 
 RADIUS = 0.05
 EYES = ([0.3, 0.0, 0.12], [0.0, 0.3, 0.15], [-0.25, -0.15, 0.18])
@@ -80,7 +82,7 @@ def references(scene_file: Path, spp: int) -> list[np.ndarray]:
 def probe(scene_file: Path, reference: list[np.ndarray], model: materials.MaterialModel, name: str, value: float,
           spp: int, steps: int, bounds: dict[str, tuple[float, float]] | None = None) -> ProbeResult:  # fmt: skip
     """``name`` set to ``value`` (all channels), the rest at their initial values;
-    ``bounds`` overrides pipeline.materials' bounds of the Adam steps (to probe a value
+    ``bounds`` overrides pipeline.render.materials' bounds of the Adam steps (to probe a value
     outside the defaults)."""
     import drjit as dr
     import mitsuba as mi
@@ -88,7 +90,7 @@ def probe(scene_file: Path, reference: list[np.ndarray], model: materials.Materi
     spec = materials.PARAMETERS[name]
     scene = mi.load_file(str(scene_file))
     params = mi.traverse(scene)
-    # A fresh variable, as fitting.fit does: the traversed value itself may be
+    # A fresh variable, as engine.fit does: the traversed value itself may be
     # replaced by the plugin on update (principled recomputes specular from eta).
     variable = type(params[spec.key])(value)
     dr.enable_grad(variable)
@@ -102,10 +104,10 @@ def probe(scene_file: Path, reference: list[np.ndarray], model: materials.Materi
     gradient = float(np.ravel(dr.grad(variable))[0])
     image = np.asarray(dr.detach(rendered))
 
-    views = [fitting.FitView(f"view{i}", scene, s, reference[i]) for i, s in enumerate(scene.sensors())]
+    views = [engine.FitView(f"view{i}", scene, s, reference[i]) for i, s in enumerate(scene.sensors())]
     parameters = materials.fit_parameters(model, bounds)
     started = time.perf_counter()
-    result = fitting.fit(parameters, views, [], fitting.FitSettings(iterations=steps, batch=1, spp=spp, loss="l2",
+    result = engine.fit(parameters, views, [], engine.FitSettings(iterations=steps, batch=1, spp=spp, loss="l2",
                                                                     tolerance=0.0))  # fmt: skip
     seconds = (time.perf_counter() - started) / steps
     trajectory = [e["params"] for e in result.log]

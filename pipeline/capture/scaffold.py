@@ -10,10 +10,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pipeline.config import load_config, toml_section
-from pipeline.errors import ConfigError
-from pipeline.sections import SHARED_SECTIONS, CaptureSection, schema
-from pipeline.stage import Stage
+from pipeline.core.config import load_config, toml_section
+from pipeline.core.errors import ConfigError
+from pipeline.core.sections import SHARED_SECTIONS, CaptureSection, schema
+from pipeline.core.stage import Stage
 
 FOLDERS = {
     "images": "the specimen photos (JPEG, PNG, TIFF or EXR), any names, sorted order = turntable order",

@@ -17,7 +17,7 @@ import subprocess
 import sys
 
 from pipeline import logger
-from pipeline.errors import PipelineError
+from pipeline.core.errors import PipelineError
 
 ENV_VAR = "PIPELINE_MITSUBA_VARIANT"
 LLVM_FIX = (

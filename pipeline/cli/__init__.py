@@ -17,9 +17,10 @@ from typing import Callable, Sequence
 
 from rich.table import Table
 
-from pipeline import logger, progress
-from pipeline.cache import StageCache
-from pipeline.config import (
+from pipeline import logger
+from pipeline.core import progress
+from pipeline.core.cache import StageCache
+from pipeline.core.config import (
     DEFAULT_PRESET,
     add_dataclass_arguments,
     dataclass_from_arguments,
@@ -27,12 +28,12 @@ from pipeline.config import (
     load_config,
     preset_names,
 )
-from pipeline.errors import ConfigError, PipelineError
-from pipeline.hashing import tree_size
-from pipeline.runner import PlannedStage, Runner, Selection, summary
-from pipeline.sections import schema
-from pipeline.stage import Stage
-from pipeline.synth_options import SynthOptions
+from pipeline.core.errors import ConfigError, PipelineError
+from pipeline.core.hashing import tree_size
+from pipeline.core.runner import PlannedStage, Runner, Selection, summary
+from pipeline.core.sections import schema
+from pipeline.core.stage import Stage
+from pipeline.synthetic.options import SynthOptions
 
 COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {}
 
@@ -165,7 +166,7 @@ def cmd_config(args: argparse.Namespace) -> int:
 
 @command
 def cmd_synth(args: argparse.Namespace) -> int:
-    from pipeline.synth import synthesize
+    from pipeline.synthetic.synth import synthesize
 
     options = dataclass_from_arguments(SynthOptions, args, "synth")
     synthesize(Path(args.out_dir), options)
@@ -174,8 +175,8 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
 @command
 def cmd_fit(args: argparse.Namespace) -> int:
-    from pipeline.fit_scene import fit_scene, list_keys
-    from pipeline.fitting import FitSettings
+    from pipeline.fit.scene_fit import fit_scene, list_keys
+    from pipeline.fit.engine import FitSettings
 
     if args.list:
         print("\n".join(list_keys(Path(args.scene), args.variant)))
@@ -192,7 +193,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
 @command
 def cmd_score(args: argparse.Namespace) -> int:
-    from pipeline.score import score_capture, summary_rows
+    from pipeline.synthetic.score import score_capture, summary_rows
 
     capture = _capture_dir(args.capture)
     report = score_capture(capture)
@@ -212,7 +213,7 @@ def cmd_score(args: argparse.Namespace) -> int:
 
 @command
 def cmd_new(args: argparse.Namespace) -> int:
-    from pipeline.scaffold import create_capture
+    from pipeline.capture.scaffold import create_capture
 
     path = create_capture(Path(args.capture), args.description, args.rig, registered_stages())
     print(f"created {path}: read {path / 'README.md'} before the photo session")
@@ -221,7 +222,7 @@ def cmd_new(args: argparse.Namespace) -> int:
 
 @command
 def cmd_board(args: argparse.Namespace) -> int:
-    from pipeline.board import write_printable
+    from pipeline.camera.board import write_printable
 
     capture = _capture_dir(args.capture) if args.capture else None
     config = load_config(schema(registered_stages()), capture, args.preset, args.set or [])
@@ -237,7 +238,7 @@ def cmd_board(args: argparse.Namespace) -> int:
 
 @command
 def cmd_check(args: argparse.Namespace) -> int:
-    from pipeline.check import as_json, check_capture
+    from pipeline.capture.check import as_json, check_capture
 
     capture = _capture_dir(args.capture)
     config = load_config(schema(registered_stages()), capture, args.preset, args.set or [])
@@ -311,7 +312,7 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--iterations", type=int, default=100, help="most Adam steps")
     fit.add_argument("--batch", type=int, default=1, help="views per step (their gradients add up)")
     fit.add_argument("--lr", type=float, default=None,
-                     help="one learning rate for every parameter (default: per parameter, pipeline.materials)")
+                     help="one learning rate for every parameter (default: per parameter, pipeline.render.materials)")
     fit.add_argument("--bound", action="append", metavar="NAME=LO:HI",
                      help="bounds of a parameter, by property name or full key (repeatable)")
     fit.add_argument("--tolerance", type=float, default=1e-3, help="stop when the loss improves less than this")

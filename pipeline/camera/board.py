@@ -18,7 +18,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipeline.sections import BoardSection
+from pipeline.core.sections import BoardSection
 
 
 @dataclass
@@ -168,7 +168,7 @@ def write_printable(board: BoardSection, stem: Path, paper: str = "A4", dpi: int
     matplotlib.use("Agg")
     from matplotlib import pyplot as plt
 
-    from pipeline.photo_io import write_image
+    from pipeline.imaging.photo_io import write_image
 
     (page_w, page_h), (left, bottom) = page_layout(board, paper)
     pixels_per_square = round(board.square_mm / 25.4 * dpi)

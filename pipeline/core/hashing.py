@@ -12,7 +12,7 @@ import json
 import os
 from pathlib import Path
 
-from pipeline.fsutil import atomic_write_text
+from pipeline.core.fsutil import atomic_write_text
 
 
 class FileHasher:

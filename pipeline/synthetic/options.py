@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Annotated, Literal
 
-from pipeline.config import Range
+from pipeline.core.config import Range
 
 
 @dataclass(frozen=True)

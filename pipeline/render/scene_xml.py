@@ -16,8 +16,8 @@ from typing import Sequence
 
 import numpy as np
 
-from pipeline.camera import Intrinsics, Pose
-from pipeline.errors import PipelineError
+from pipeline.camera.model import Intrinsics, Pose
+from pipeline.core.errors import PipelineError
 
 
 def _number(value: float) -> str:

@@ -36,12 +36,12 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from pipeline import progress
-from pipeline.board import BoardDetector
-from pipeline.config import Config
-from pipeline.errors import PipelineError
-from pipeline.photo_io import camera_setting, gray_uint8, list_photos, read_photo, to_uint8
-from pipeline.segmentation import clean
+from pipeline.core import progress
+from pipeline.camera.board import BoardDetector
+from pipeline.core.config import Config
+from pipeline.core.errors import PipelineError
+from pipeline.imaging.photo_io import camera_setting, gray_uint8, list_photos, read_photo, to_uint8
+from pipeline.imaging.segmentation import clean
 from stages.masks import read_user_mask, segment
 
 MIN_PHOTOS = 3

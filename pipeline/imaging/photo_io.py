@@ -14,7 +14,7 @@ from typing import Literal
 import numpy as np
 import OpenImageIO as oiio
 
-from pipeline.errors import PipelineError
+from pipeline.core.errors import PipelineError
 
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr")
 Encoding = Literal["auto", "srgb", "linear"]

@@ -21,12 +21,12 @@ from pathlib import Path
 from typing import Any, Literal, Sequence
 
 from pipeline import logger
-from pipeline.cache import LOG_FILE, Entry, StageCache
-from pipeline.config import Config, section_dict
-from pipeline.errors import ConfigError, PipelineError
-from pipeline.fsutil import atomic_write_text
-from pipeline.hashing import FileHasher, glob_capture_files
-from pipeline.stage import Stage, StageInputs
+from pipeline.core.cache import LOG_FILE, Entry, StageCache
+from pipeline.core.config import Config, section_dict
+from pipeline.core.errors import ConfigError, PipelineError
+from pipeline.core.fsutil import atomic_write_text
+from pipeline.core.hashing import FileHasher, glob_capture_files
+from pipeline.core.stage import Stage, StageInputs
 
 Action = Literal["run", "cached", "disabled"]
 

@@ -10,8 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Annotated, Literal, Sequence
 
-from pipeline.config import Range
-from pipeline.stage import Stage
+from pipeline.core.config import Range
+from pipeline.core.stage import Stage
 
 Vec3 = tuple[float, float, float]
 ArucoDictionary = Literal["DICT_4X4_50", "DICT_4X4_100", "DICT_5X5_100", "DICT_6X6_250"]
@@ -50,7 +50,7 @@ class BoardSection:
     """ArUco dictionary the markers come from (ChArUco only)."""
 
     def validate(self, name: str) -> None:
-        from pipeline.errors import ConfigError
+        from pipeline.core.errors import ConfigError
 
         if self.kind == "charuco" and self.marker_mm >= self.square_mm:
             raise ConfigError(

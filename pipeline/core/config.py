@@ -29,9 +29,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Annotated, Literal, Mapping
 
-from pipeline.errors import ConfigError
+from pipeline.core.errors import ConfigError
 
-PRESETS_DIR = Path(__file__).resolve().parent.parent / "configs"
+PRESETS_DIR = Path(__file__).resolve().parents[2] / "configs"
 DEFAULT_PRESET = "standard"
 
 

@@ -5,7 +5,7 @@ Layout under ``CAPTURE/.pipeline/``::
     cache/<stage>/<key>/          a committed result: outputs, status.json, log.txt
     cache/<stage>/.tmp-<key>-<pid>/   a run in progress (or one that was killed)
     failed/<stage>/<timestamp>/   the folder of a run that raised, kept for its log
-    file_hashes.json              content hashes memo (see pipeline.hashing)
+    file_hashes.json              content hashes memo (see pipeline.core.hashing)
     runs/<timestamp>.json         effective config and summary of each `pipeline run`
 
 A result is visible only once its folder has been renamed to ``<key>``, which
@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from pipeline.fsutil import atomic_write_text
+from pipeline.core.fsutil import atomic_write_text
 
 STATUS_FILE = "status.json"
 LOG_FILE = "log.txt"

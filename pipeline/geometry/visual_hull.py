@@ -29,7 +29,7 @@ import trimesh
 from scipy.ndimage import map_coordinates
 from skimage.measure import marching_cubes
 
-from pipeline.camera import Intrinsics, Pose, project
+from pipeline.camera.model import Intrinsics, Pose, project
 
 _CHUNK = 400_000
 """Points per batch: bounds memory at about views x 3 MB."""

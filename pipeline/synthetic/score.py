@@ -46,10 +46,10 @@ import trimesh
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from pipeline.atlas import chart_texels, occluder, unoccluded
-from pipeline.camera import Intrinsics, Pose, Similarity, project, read_cameras, rotation_angle_deg, similarity_umeyama
-from pipeline.errors import PipelineError
-from pipeline.mitsuba_variant import activate as activate_mitsuba
+from pipeline.geometry.atlas import chart_texels, occluder, unoccluded
+from pipeline.camera.model import Intrinsics, Pose, Similarity, project, read_cameras, rotation_angle_deg, similarity_umeyama
+from pipeline.core.errors import PipelineError
+from pipeline.render.mitsuba_variant import activate as activate_mitsuba
 
 MESH_SAMPLES = 30000
 RELATIVE_PARAMETERS = {"sigma_t"}
@@ -146,8 +146,8 @@ def score_masks(truth_dir: Path, pinhole_json: Path, masks_json: Path) -> dict[s
     are not exported)."""
     import cv2
 
-    from pipeline.camera import undistort
-    from pipeline.segmentation import iou
+    from pipeline.camera.model import undistort
+    from pipeline.imaging.segmentation import iou
 
     cameras = json.loads(pinhole_json.read_text())["cameras"]
     photos = json.loads(pinhole_json.read_text())["images"]
@@ -199,7 +199,7 @@ class TrueSurface:
 def true_surface(truth: trimesh.Trimesh, views: list[tuple[Intrinsics, Pose]] = (), samples: int = 20000) -> TrueSurface:
     """Sample ``truth`` (sRGB vertex colours); with the true cameras of the training
     ``views``, also count the views that see each sample (needs Mitsuba's variant set)."""
-    from pipeline.photo_io import srgb_decode
+    from pipeline.imaging.photo_io import srgb_decode
 
     def colours_at(faces: np.ndarray, points: np.ndarray) -> np.ndarray:
         weights = trimesh.triangles.points_to_barycentric(truth.triangles[faces], points)

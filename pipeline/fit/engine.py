@@ -47,7 +47,7 @@ from typing import Any, Literal
 import numpy as np
 
 from pipeline import logger
-from pipeline.errors import PipelineError
+from pipeline.core.errors import PipelineError
 
 
 @dataclass(frozen=True)

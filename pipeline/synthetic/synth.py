@@ -1,6 +1,6 @@
 """``pipeline synth``: render a capture whose every unknown is known.
 
-A procedural bird (pipeline.specimen) stands on a turntable plate printed with
+A procedural bird (pipeline.synthetic.specimen) stands on a turntable plate printed with
 the capture's ChArUco board, under an environment plus one area light. Views sit
 on elevation rings around it. Each view is rendered as an ideal pinhole image
 with Mitsuba, then bent by OpenCV radial-tangential distortion, given shot and
@@ -26,16 +26,18 @@ import cv2
 import numpy as np
 import trimesh
 
-from pipeline import logger, mitsuba_variant, progress
-from pipeline.atlas import mitsuba_mesh
-from pipeline.board import board_image, board_to_world
-from pipeline.camera import Intrinsics, Pose, distortion_maps, pinhole_render_size, write_cameras
-from pipeline.errors import PipelineError
-from pipeline.photo_io import to_uint8, write_image
-from pipeline.config import toml_section
-from pipeline.sections import BoardSection, CaptureSection, LightSection
-from pipeline.synth_options import SynthOptions
-from pipeline.specimen import bird_mesh, blotch_colours
+from pipeline import logger
+from pipeline.render import mitsuba_variant
+from pipeline.core import progress
+from pipeline.geometry.atlas import mitsuba_mesh
+from pipeline.camera.board import board_image, board_to_world
+from pipeline.camera.model import Intrinsics, Pose, distortion_maps, pinhole_render_size, write_cameras
+from pipeline.core.errors import PipelineError
+from pipeline.imaging.photo_io import to_uint8, write_image
+from pipeline.core.config import toml_section
+from pipeline.core.sections import BoardSection, CaptureSection, LightSection
+from pipeline.synthetic.options import SynthOptions
+from pipeline.synthetic.specimen import bird_mesh, blotch_colours
 
 SENSOR_WIDTH_MM = 6.4
 """Sensor width written to EXIF, so that focal length in mm is meaningful."""
