@@ -1,4 +1,9 @@
-"""Photogrammetry-to-material pipeline: the library (domain packages and the framework).
+"""Photogrammetry-to-material pipeline: the library.
+
+Domain packages (camera, geometry, imaging, render, fit, synthetic, capture), the
+framework that runs stages (core), the command line (cli) and the formats of the
+files stages exchange (formats). The library never imports ``stages``.
+"""
 
 import logging
 
