@@ -39,8 +39,8 @@ import trimesh
 
 from report import ROOT, run_stages, truth_in_reconstruction, write_section
 
-from pipeline import mitsuba_variant, stability  # noqa: E402
-from pipeline.camera.model import read_cameras  # noqa: E402
+from pipeline.render import mitsuba_variant, stability  # noqa: E402
+from pipeline.formats.cameras import read_cameras  # noqa: E402
 from pipeline.core.config import load_config  # noqa: E402
 from pipeline.core.errors import PipelineError  # noqa: E402
 from pipeline.synthetic.score import (read_linear_image, score_capture, score_heldout, score_material,  # noqa: E402
@@ -206,7 +206,7 @@ def accuracy_part(work: Path, samples: list[str]) -> None:
 
 
 def _normal_error(mesh_ply: Path, truth: trimesh.Trimesh) -> float:
-    return score_mesh(_scene_mesh(mesh_ply), truth)["shading_normal_error_deg"]
+    return score_mesh(trimesh.load(mesh_ply, force="mesh", process=False), truth)["shading_normal_error_deg"]
 
 
 def _shading_normals_towards_truth(mesh_ply: Path, truth: trimesh.Trimesh, weight: float) -> None:

@@ -20,7 +20,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from pipeline.camera.board import BoardDetector, homography_residual_px, straightness_px  # noqa: E402
-from pipeline.camera.model import Intrinsics, read_cameras, undistort  # noqa: E402
+from pipeline.camera.model import Intrinsics, undistort  # noqa: E402
+from pipeline.formats.cameras import read_cameras
 from pipeline.capture.check import check_capture  # noqa: E402
 from pipeline.core.config import load_config  # noqa: E402
 from pipeline.imaging.photo_io import gray_uint8, read_photo  # noqa: E402

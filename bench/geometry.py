@@ -22,7 +22,8 @@ import trimesh
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pipeline.camera.model import read_cameras, read_views  # noqa: E402
+from pipeline.camera.model import read_views  # noqa: E402
+from pipeline.formats.cameras import read_cameras
 from pipeline.synthetic.score import score_cameras, score_mesh  # noqa: E402
 from pipeline.synthetic.synth import SynthOptions, synthesize  # noqa: E402
 

@@ -33,7 +33,8 @@ import trimesh
 
 from report import ROOT, run_stages, truth_in_reconstruction, write_section
 
-from pipeline.camera.model import Intrinsics, Pose, mesh_coverage, undistort, write_cameras  # noqa: E402
+from pipeline.camera.model import Intrinsics, Pose, mesh_coverage, undistort  # noqa: E402
+from pipeline.formats.cameras import write_cameras  # noqa: E402
 from pipeline.core.config import load_config  # noqa: E402
 from pipeline.synthetic.score import score_mesh  # noqa: E402
 from pipeline.core.sections import schema  # noqa: E402

@@ -31,7 +31,7 @@ def truth_in_reconstruction(capture: Path, outputs: dict):
     import numpy as np
     import trimesh
 
-    from pipeline.camera.model import read_cameras, read_views
+    from pipeline.formats.cameras import read_cameras, read_views
     from pipeline.synthetic.score import score_cameras
 
     _, true_poses = read_cameras(capture / "ground_truth" / "cameras.json")

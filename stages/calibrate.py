@@ -253,6 +253,7 @@ STAGE = Stage(
     version=3,
     config=Config,
     main=main,
+    outputs=("calibration", "intrinsics"),
     reads=("images/*", "calibration/*"),
     shared=("board",),
     exports=("calibration", "intrinsics"),

@@ -106,6 +106,7 @@ STAGE = Stage(
     version=1,
     config=Config,
     main=main,
-    upstream=("mesh",),
+    needs=("mesh.mesh",),
+    outputs=("mesh", "report"),
     exports=("mesh",),
 )

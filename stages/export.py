@@ -25,8 +25,6 @@ kept; a grid-volume albedo texture is exported as its mean.
 
 from __future__ import annotations
 
-import json
-import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated
@@ -38,6 +36,7 @@ from PIL import Image
 from pipeline import logger
 from pipeline.core.config import Range
 from pipeline.core.stage import Stage, StageInputs, StageResult
+from pipeline.formats.scene_folder import MESH_PLY, read_json, texture_png
 
 # glTF is y up: x stays, y becomes z, z becomes -y.
 Z_UP_TO_Y_UP = np.array([[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]], dtype=float)
@@ -74,14 +73,6 @@ def gltf_material(model: str, values: dict[str, list[float]], thickness: float) 
                  "KHR_materials_ior": {"ior": values["eta"][0]}}  # fmt: skip
 
 
-def texture_image(scene_dir: Path, parameter: str) -> Path | None:
-    """The PNG of the bitmap the scene's specimen.xml loads for ``parameter``, if any."""
-    for element in ET.parse(scene_dir / "specimen.xml").getroot().iter("texture"):
-        if element.get("name") == parameter and element.get("type") == "bitmap":
-            filename = next(e.get("value") for e in element.iter("string") if e.get("name") == "filename")
-            return (scene_dir / filename).with_suffix(".png")
-    return None
-
 
 def _image(path: Path, max_size: int) -> Image.Image:
     image = Image.open(path)
@@ -93,15 +84,15 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     scene_dir = inputs.upstream["fit_geometry"]["geometry_dir"]
     # The final scene's values: a kept texture's mean stands in the textured
     # parameter's place (a volume's albedo has no glTF texture).
-    fitted = json.loads((scene_dir / "params.json").read_text())
+    fitted = read_json(inputs.upstream["fit_geometry"]["params"])
     model, values = fitted["model"], dict(fitted["params"])
 
-    mesh = trimesh.load(scene_dir / "mesh.ply", force="mesh", process=False)
+    mesh = trimesh.load(scene_dir / MESH_PLY, force="mesh", process=False)
     watertight = trimesh.Trimesh(mesh.vertices, mesh.faces)
     watertight.merge_vertices()
     thickness = float(4 * abs(watertight.volume) / watertight.area)
     pbr, extensions = gltf_material(model, values, thickness)
-    image_path = texture_image(scene_dir, "base_color")
+    image_path = texture_png(scene_dir, "base_color")
     uv = getattr(mesh.visual, "uv", None)
     if image_path is not None and uv is not None:
         pbr["baseColorFactor"] = [1.0, 1.0, 1.0, 1.0]  # glTF multiplies the texture by it
@@ -133,6 +124,7 @@ STAGE = Stage(
     version=3,
     config=Config,
     main=main,
-    upstream=("fit_geometry",),
+    needs=("fit_geometry.geometry_dir", "fit_geometry.params"),
+    outputs=("glb",),
     exports=("glb",),
 )

@@ -3,89 +3,70 @@ alternation with its material.
 
 Each of ``rounds`` rounds is a geometry pass, then a material pass:
 
-Geometry pass: only vertex positions move, by pipeline.fit.engine.fit_shape: Adam on
-LargeSteps' differential coordinates (Nicolet et al. 2021, mi.ad.LargeSteps with
-cholespy). Only primary visibility is differentiated (``sppi = 0``): edges seen
-through reflections, refraction and shadows would need a guiding pass per render
-that costs more than the rest of the step on a CPU.
+- Geometry pass: only vertex positions move, by pipeline.fit.engine.fit_shape:
+  Adam on LargeSteps' differential coordinates (Nicolet et al. 2021,
+  ``mi.ad.LargeSteps`` with cholespy), the material frozen. Only primary
+  visibility is differentiated (``sppi = 0``): edges seen through reflections,
+  refraction and shadows would need a guiding pass per render that costs more
+  than the rest of the step on a CPU.
+- Material pass (``material_iterations`` > 0): the model's constants, and the
+  texture if fit_texture kept one, fitted again on the refined mesh by
+  pipeline.fit.engine.fit, the geometry frozen (fit_material's loop: dual loss
+  over the eroded masks, its bounds and held-out photos, fit_texture's
+  smoothness prior). A pass whose best held-out error is not
+  ``material_min_improvement`` (relative) below where it started changes
+  nothing: smaller gains are within the held-out renders' noise.
 
 ==============  ===================================================================
 loss            what is compared, with which integrator
 ==============  ===================================================================
-photometric     the photo over each view's window (specimen, its silhouette and the
+photometric     the photo over each view's window (specimen, silhouette and the
                 board and table around it). Surface models: ``prb_projective`` at
                 the model's depth, silhouette edges included. The volumetric
                 model: ``prbvolpath`` (no projective integrator handles a medium),
-                whose gradients hold the interior terms only (how the surface
-                refracts, reflects and bounds the medium where it is seen), not
-                the silhouette's; rendered with evaluated loops, which Dr.Jit 1.5
+                whose gradients hold the interior terms only, not the
+                silhouette's; rendered with evaluated loops, which Dr.Jit 1.5
                 needs to compile its adjoint with vertex gradients
 silhouette      the mask against the specimen's coverage (black specimen under a
                 white sky), ``direct_projective``; needs no material at all
+auto            photometric for surface models, silhouette for the volumetric one
+                (its photometric pass, lacking the silhouette terms, does not
+                descend reliably)
 ==============  ===================================================================
-
-``auto`` picks photometric for surface models and silhouette for the volumetric
-one. The volumetric model's photometric pass is opt-in: without the silhouette
-terms it does not descend reliably (measured by version 4, whose held-out error
-was plain MSE; version 5 uses the dual estimator). On a flattened icosphere (3 views, 32 px) its
-loss rose over 20 steps; on bird_volumetric, from the visual hull, the window's
-held-out error fell 0.2 % by step 40 and rose after, yet that state lowered the
-specimen's own held-out error (eroded mask, what the material pass and the
-PSNR score) by 7.7 %: held-out PSNR 28.6 dB against 28.4 dB with the silhouette
-pass, which from the hull changes nothing (the hull already matches the masks),
-alpha no closer, in 1735 s against 744 s for the stage. Either way the medium is
-frozen while the geometry moves. A third way was tried and dropped (2026-11-22): a
-principled surface standing in for the medium (its constants fitted first on the
-mesh, then the photometric pass with ``prb_projective``). On bird_volumetric it moved
-the vertices by a median 0.17 % of the diagonal, raised the held-out PSNR from 28.2 to
-28.5 dB, left alpha 0.154 off, and took 603 s: the stand-in matches the photos
-less well than the medium does (held-out error 0.0017 against 0.0011), so its
-gradients chase the model's error more than the shape's.
-
-Material pass (``material_iterations`` > 0): the model's constants, and the
-texture if fit_texture kept one, are fitted again on the refined mesh by
-pipeline.fit.engine.fit, the geometry frozen: fit_material's loop with the dual
-loss over the eroded masks, its bounds and held-out photos, the texture's
-smoothness prior from fit_texture. A material fitted on the visual hull is biased
-by the hull's shape (flat facets where the specimen is curved spread the
-highlights, which a rougher material matches: on the sample bird, roughness 0.48
-on the hull and 0.43 on the refined mesh, for a true 0.35); the next geometry
-pass starts from the better material. A pass whose best held-out error is not
-``material_min_improvement`` (relative) below where it started changes nothing:
-on bird_volumetric a 0.5 % gain, within the noise of the held-out renders, had
-moved sigma_t from 1.8 % to 9.8 % off the truth. No render differentiates both at once, so
-a volumetric specimen's medium is never differentiated with its geometry.
 
 ``start = "sphere"`` is the original tool's naive start: an icosphere scaled to
 the visual hull's bounding box, refined by the same loop, with fit_material's
 constant material (the texture lives on the hull's UVs, which a sphere lacks).
-
 Held-out photos are fit_material's; every pass keeps its state with the lowest
-held-out error, so a pass that does not help leaves the scene as it was.
+held-out error, so a pass that does not help leaves the scene as it was. The
+measurements behind these choices are in docs/fit_geometry.md.
 
-Outputs, in geometry/ (exported to CAPTURE/output/geometry/): the scene with the
-refined mesh.ply (UVs kept) and material; params.json (loss, start, per round each
-pass's held-out error before and after and its best iteration, and whether a
-material pass was kept; ``params`` and
-``bounds``, the scene's values as in fit_texture's params.json; vertices,
-seconds), log.jsonl (every iteration, with its round and pass), loss.png, and
-heldout/ as fit_material writes it, rendered with the final scene over the eroded
-mask (so ``pipeline score`` scores the scene the pipeline ends with; with
-``enabled = false``, fit_texture's heldout/ is passed through).
+Outputs, in geometry/ (exported to CAPTURE/output/geometry/):
+
+==============  ===================================================================
+file            content
+==============  ===================================================================
+scene.xml, ...  the scene with the refined mesh.ply (UVs kept) and material
+params.json     loss, start, per round each pass's held-out error before and
+                after, its best iteration and whether a material pass was kept;
+                ``params`` and ``bounds`` as in fit_texture's params.json;
+                vertices, seconds
+log.jsonl       every iteration, with its round and pass
+loss.png        loss and held-out error against iteration
+heldout/        as fit_material writes it, rendered with the final scene (with
+                ``enabled = false``, fit_texture's heldout/ passed through)
+==============  ===================================================================
 
 Limitations: vertices move, connectivity does not (no remeshing), so a start
 far from the truth (the sphere) cannot grow handles or thin limbs. The geometry
-loss is plain L2 (one render per view, half the dual estimator's cost): its
-Monte Carlo variance counts in the loss and may pull the shape slightly towards
-renders with less noise. A render and backward step costs seconds even at 32-96
-px on a CPU. The volumetric model's photometric gradients miss the silhouette
-terms, so its outline moves only as the interior pixels pull it, and a step costs
-about 4.8 s (96 px, 8 spp, two views, 2 cores: evaluated loops at depth 32).
+loss is plain L2 (one render per view): its Monte Carlo variance counts in the
+loss. No render differentiates geometry and a medium at once, so a volumetric
+specimen's medium is frozen while its geometry moves. A render and backward
+step costs seconds even at 32-96 px on a CPU (the volumetric photometric pass
+about 4.8 s at 96 px, 8 spp, two views, 2 cores).
 """
-
 from __future__ import annotations
 
-import json
 import shutil
 import time
 from dataclasses import dataclass
@@ -97,18 +78,25 @@ import numpy as np
 import trimesh
 
 from pipeline import logger
-from pipeline.fit import engine
-from pipeline.render import materials
-from pipeline.render import mitsuba_variant
-from pipeline.render import scene_xml
-from pipeline.camera.model import read_views, resize_exact
+from pipeline.camera.model import resize_exact
 from pipeline.core.config import Range
 from pipeline.core.stage import Stage, StageInputs, StageResult
-from stages.fit_material import load_views, write_heldout
-from stages.fit_texture import write_texture_files
-from stages.masks import mask_files
-from stages.undistort import photo_files
-
+from pipeline.fit import engine
+from pipeline.fit.outputs import write_fit_log, write_heldout, write_texture_files
+from pipeline.fit.views import load_views
+from pipeline.formats.cameras import read_views
+from pipeline.formats.masks import read_masks
+from pipeline.formats.pinhole import linear_photos
+from pipeline.formats.scene_folder import (
+    HELDOUT,
+    MESH_PLY,
+    PARAMS_JSON,
+    SPECIMEN_XML,
+    copy_scene,
+    read_json,
+    write_json,
+)
+from pipeline.render import materials, mitsuba_variant, scene_xml
 
 @dataclass(frozen=True)
 class Config:
@@ -194,7 +182,7 @@ def geometry_pass(conf: Config, geometry: Path, description: dict, loss: str, vi
     cameras, linear, masks = views_inputs
     windowed = load_views(geometry, description, cameras, linear, masks, conf.max_size, 0, conf.spp, sample_border=True)
     if loss == "silhouette":
-        views = silhouette_views(windowed, geometry / "mesh.ply", masks, cameras)
+        views = silhouette_views(windowed, geometry / MESH_PLY, masks, cameras)
         integrator = {"type": "direct_projective", "sppi": 0}
     else:
         # The silhouette and its surroundings carry the shape: every window pixel counts.
@@ -208,7 +196,7 @@ def geometry_pass(conf: Config, geometry: Path, description: dict, loss: str, vi
                                      symbolic_loops=integrator["type"] != "prbvolpath")  # fmt: skip
     result = engine.fit_shape("specimen", [v for v in views if v.name not in held], [v for v in views if v.name in held],
                                settings, mi.load_dict(integrator))  # fmt: skip
-    next(s for s in views[0].scene.shapes() if s.id() == "specimen").write_ply(str(geometry / "mesh.ply"))
+    next(s for s in views[0].scene.shapes() if s.id() == "specimen").write_ply(str(geometry / MESH_PLY))
     return result
 
 
@@ -229,7 +217,7 @@ def material_pass(conf: Config, geometry: Path, description: dict, views_inputs:
         return result, False
     slot = materials.TEXTURE_SLOTS[description["model"]]
     constants = {p.name: result.values[p.name] for p in parameters if p.key != slot.key}
-    specimen = geometry / "specimen.xml"
+    specimen = geometry / SPECIMEN_XML
     scene_xml.set_values(specimen, {materials.PARAMETERS[n].key: v for n, v in constants.items()}, specimen)
     if slot.parameter in result.textures:
         write_texture_files(geometry, slot, result.textures[slot.parameter])
@@ -241,46 +229,16 @@ def _pass_summary(result: engine.ShapeResult | engine.FitResult) -> dict:
             "validation_start": result.start_validation_error, "validation": result.validation_error}  # fmt: skip
 
 
-def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
-    material = json.loads(inputs.upstream["fit_material"]["params"].read_text())
-    if conf.start == "sphere":
-        source_dir, source = inputs.upstream["fit_material"]["fitted_dir"], material
-    else:
-        source_dir = inputs.upstream["fit_texture"]["textured_dir"]
-        source = json.loads((source_dir / "params.json").read_text())
-    description = json.loads(inputs.upstream["scene"]["description"].read_text())
-    model = description["model"]
-    loss = conf.loss if conf.loss != "auto" else ("silhouette" if model == "volumetric" else "photometric")
-    geometry = out_dir / "geometry"
-    shutil.copytree(source_dir, geometry, ignore=shutil.ignore_patterns("heldout", "log.jsonl", "loss.png", "params.json"))
-    report = {"enabled": conf.enabled, "start": conf.start, "model": model}
-    values, bounds = dict(source["params"]), source["bounds"]
-    if not conf.enabled:
-        shutil.copytree(source_dir / "heldout", geometry / "heldout")
-        (geometry / "params.json").write_text(json.dumps(report | {"params": values, "bounds": bounds}, indent=1))
-        return StageResult({"geometry_dir": geometry}, {"enabled": False})
-
-    hull = trimesh.load(geometry / "mesh.ply", force="mesh", process=False)
-    if conf.start == "sphere":
-        sphere_in_box(hull.bounds, conf.sphere_subdivisions).export(geometry / "mesh.ply")
-
-    mitsuba_variant.activate(inputs.shared["mitsuba"].variant)
-
-    views_inputs = (read_views(inputs.upstream["sfm"]["cameras"]),
-                    {n: p["linear"] for n, p in photo_files(inputs.upstream["undistort"]["pinhole"]).items()},
-                    mask_files(inputs.upstream["masks"]["masks_json"]))  # fmt: skip
-    held = set(material["held_out"])
-    diagonal = float(np.linalg.norm(hull.extents))
-    start = trimesh.load(geometry / "mesh.ply", force="mesh", process=False).vertices.copy()
-    texture = (source["learning_rate"], source["smoothness"]) if source.get("kept") else None
-    parameters = materials.refit_parameters(model, bounds, texture)
+def _rounds(conf: Config, geometry: Path, description: dict, loss: str, views_inputs: tuple, held: set[str],
+            parameters: list[engine.FitParameter], diagonal: float, values: dict) -> tuple[list[dict], list[dict]]:
+    """``rounds`` alternations of a geometry and a material pass on geometry/;
+    ``values`` takes a kept material pass's values. Returns (per round summary, log)."""
     rounds, log = [], []
-    started = time.perf_counter()
 
     def record(result, round_index: int, name: str) -> None:
         offset = len(log)
         log.extend({"iteration": e["iteration"] + offset, "round": round_index, "pass": name,
-                    **{k: v for k, v in e.items() if k != "iteration"}} for e in result.log)  # fmt: skip
+                    **{k: v for k, v in e.items() if k != "iteration"}} for e in result.log)
 
     for round_index in range(conf.rounds):
         seed = conf.seed + round_index
@@ -288,7 +246,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         record(shape, round_index, "geometry")
         rounds.append({"geometry": _pass_summary(shape)})
         logger.info("round %d, geometry: held-out MSE %s -> %s", round_index + 1, shape.start_validation_error,
-                    shape.validation_error)  # fmt: skip
+                    shape.validation_error)
         if conf.material_iterations:
             refit, kept = material_pass(conf, geometry, description, views_inputs, held, parameters, seed)
             record(refit, round_index, "material")
@@ -297,26 +255,58 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
                 values |= refit.values
             logger.info("round %d, material: held-out error %s -> %s (%s)", round_index + 1,
                         refit.start_validation_error, refit.validation_error,
-                        "kept" if kept else f"gain below {conf.material_min_improvement:.0%}, not kept")  # fmt: skip
+                        "kept" if kept else f"gain below {conf.material_min_improvement:.0%}, not kept")
+    return rounds, log
 
+
+def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
+    # 1. The scene to start from: fit_texture's, or fit_material's for the sphere.
+    material = read_json(inputs.upstream["fit_material"]["params"])
+    source = "fit_material" if conf.start == "sphere" else "fit_texture"
+    source_dir = inputs.upstream[source]["fitted_dir" if source == "fit_material" else "textured_dir"]
+    source_params = material if source == "fit_material" else read_json(inputs.upstream["fit_texture"]["params"])
+    description = read_json(inputs.upstream["scene"]["description"])
+    model = description["model"]
+    loss = conf.loss if conf.loss != "auto" else ("silhouette" if model == "volumetric" else "photometric")
+    geometry = copy_scene(source_dir, out_dir / "geometry")
+    outputs = {"geometry_dir": geometry, "params": geometry / PARAMS_JSON, "heldout": geometry / HELDOUT}
+    report = {"enabled": conf.enabled, "start": conf.start, "model": model}
+    values, bounds = dict(source_params["params"]), source_params["bounds"]
+    if not conf.enabled:
+        shutil.copytree(inputs.upstream[source]["heldout"], geometry / HELDOUT)
+        write_json(geometry / PARAMS_JSON, report | {"params": values, "bounds": bounds})
+        return StageResult(outputs, {"enabled": False})
+    hull = trimesh.load(geometry / MESH_PLY, force="mesh", process=False)
+    if conf.start == "sphere":
+        sphere_in_box(hull.bounds, conf.sphere_subdivisions).export(geometry / MESH_PLY)
+
+    # 2. The rounds of geometry and material passes.
+    mitsuba_variant.activate(inputs.shared["mitsuba"].variant)
+    views_inputs = (read_views(inputs.upstream["sfm"]["cameras"]), linear_photos(inputs.upstream["undistort"]["pinhole"]),
+                    read_masks(inputs.upstream["masks"]["masks_json"]))
+    held = set(material["held_out"])
+    diagonal = float(np.linalg.norm(hull.extents))
+    start = trimesh.load(geometry / MESH_PLY, force="mesh", process=False).vertices.copy()
+    texture = (source_params["learning_rate"], source_params["smoothness"]) if source_params.get("kept") else None
+    parameters = materials.refit_parameters(model, bounds, texture)
+    started = time.perf_counter()
+    rounds, log = _rounds(conf, geometry, description, loss, views_inputs, held, parameters, diagonal, values)
+
+    # 3. Held-out renders of the final scene, the log and params.json.
     cameras, linear, masks = views_inputs
     final = load_views(geometry, description, cameras, linear, masks, conf.max_size, conf.erode_px, conf.validation_spp,
-                       names=held)  # fmt: skip
-    write_heldout([v for v, _ in final], 4 * conf.validation_spp, geometry / "heldout")
-    with (geometry / "log.jsonl").open("w") as handle:
-        for entry in log:
-            handle.write(json.dumps(entry) + "\n")
-    engine.plot_loss(log, geometry / "loss.png")
-    positions = trimesh.load(geometry / "mesh.ply", force="mesh", process=False).vertices
+                       names=held)
+    write_heldout([v for v, _ in final], 4 * conf.validation_spp, geometry / HELDOUT)
+    write_fit_log(geometry, log)
+    positions = trimesh.load(geometry / MESH_PLY, force="mesh", process=False).vertices
     moved = np.linalg.norm(positions - start, axis=1)
     first, last = rounds[0]["geometry"], rounds[-1]["geometry"]
     report |= {"loss": loss, "rounds": rounds, "validation_mse_start": first["validation_start"],
                "validation_mse": last["validation"], "params": values, "bounds": bounds,
                "vertices": int(len(positions)), "seconds": time.perf_counter() - started,
-               "held_out": sorted(held), "median_vertex_move_of_diagonal": float(np.median(moved)) / diagonal}  # fmt: skip
-    (geometry / "params.json").write_text(json.dumps(report, indent=1))
-    return StageResult({"geometry_dir": geometry}, {"validation_mse_start": first["validation_start"],
-                                                    "validation_mse": last["validation"]})  # fmt: skip
+               "held_out": sorted(held), "median_vertex_move_of_diagonal": float(np.median(moved)) / diagonal}
+    write_json(geometry / PARAMS_JSON, report)
+    return StageResult(outputs, {"validation_mse_start": first["validation_start"], "validation_mse": last["validation"]})
 
 
 STAGE = Stage(
@@ -324,7 +314,10 @@ STAGE = Stage(
     version=6,
     config=Config,
     main=main,
-    upstream=("fit_texture", "fit_material", "scene", "sfm", "undistort", "masks"),
+    needs=("fit_texture.textured_dir", "fit_texture.params", "fit_texture.heldout", "fit_material.fitted_dir",
+           "fit_material.params", "fit_material.heldout", "scene.description", "sfm.cameras", "undistort.pinhole",
+           "masks.masks_json"),
+    outputs=("geometry_dir", "params", "heldout"),
     shared=("mitsuba",),
     exports=("geometry_dir",),
 )

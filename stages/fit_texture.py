@@ -58,31 +58,35 @@ the prior sets. Held-out photos are fit_material's.
 
 from __future__ import annotations
 
-import json
 import shutil
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Annotated, Literal
 
-import cv2
 import numpy as np
 import trimesh
 from scipy import ndimage
 
 from pipeline import logger
-from pipeline.fit import engine
-from pipeline.render import materials
-from pipeline.render import mitsuba_variant
-from pipeline.render import scene_xml
-from pipeline.camera.model import read_views
 from pipeline.core.config import Range
-from pipeline.imaging.photo_io import to_uint8
 from pipeline.core.stage import Stage, StageInputs, StageResult
-from stages.fit_material import load_views, write_heldout
-from stages.masks import mask_files
-from stages.undistort import photo_files
-
+from pipeline.fit import engine
+from pipeline.fit.outputs import write_fit_log, write_heldout, write_texture_files
+from pipeline.fit.views import load_views
+from pipeline.formats.cameras import read_views
+from pipeline.formats.masks import read_masks
+from pipeline.formats.pinhole import linear_photos
+from pipeline.formats.scene_folder import (
+    HELDOUT,
+    MESH_PLY,
+    PARAMS_JSON,
+    SPECIMEN_XML,
+    copy_scene,
+    read_json,
+    write_json,
+)
+from pipeline.render import materials, mitsuba_variant, scene_xml
 
 @dataclass(frozen=True)
 class Config:
@@ -152,24 +156,6 @@ def resample(texture: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     return ndimage.zoom(texture, factors, order=1, mode="nearest", grid_mode=True).astype(np.float32)
 
 
-def write_texture_files(folder: Path, slot: materials.TextureSlot, texture: np.ndarray) -> None:
-    """The texture's data file (what the scene loads) and a PNG to look at, in ``folder``."""
-    import mitsuba as mi
-
-    name = slot.parameter
-    if slot.kind == "bitmap":
-        # float32, not write_image's half: the scene loads this file as the
-        # starting point of the optimisation, which needs full precision.
-        mi.Bitmap(np.ascontiguousarray(texture, dtype=np.float32)).write(str(folder / f"{name}.exr"))
-        cv2.imwrite(str(folder / f"{name}.png"), to_uint8(texture)[..., ::-1])
-        return
-    mi.VolumeGrid(texture).write(str(folder / f"{name}.vol"))
-    columns = int(np.ceil(np.sqrt(texture.shape[0])))
-    slices = [texture[z] for z in range(texture.shape[0])]
-    slices += [np.zeros_like(slices[0])] * (columns * columns - len(slices))
-    rows = [np.concatenate(slices[r * columns : (r + 1) * columns], axis=1) for r in range(columns)]
-    cv2.imwrite(str(folder / f"{name}.png"), to_uint8(np.concatenate(rows, axis=0)[::-1])[..., ::-1])
-
 
 def write_texture(folder: Path, slot: materials.TextureSlot, texture: np.ndarray, box: np.ndarray) -> ET.Element:
     """Write the texture's files into ``folder``; the XML element that loads them."""
@@ -188,120 +174,156 @@ def write_texture(folder: Path, slot: materials.TextureSlot, texture: np.ndarray
     return element
 
 
-def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
-    material_dir = inputs.upstream["fit_material"]["fitted_dir"]
-    material = json.loads(inputs.upstream["fit_material"]["params"].read_text())
-    description = json.loads(inputs.upstream["scene"]["description"].read_text())
-    model = description["model"]
-    slot = materials.TEXTURE_SLOTS[model]
-    textured = out_dir / "textured"
-    shutil.copytree(material_dir, textured, ignore=shutil.ignore_patterns("heldout", "log.jsonl", "loss.png", "params.json"))
-    report = {"model": model, "parameter": slot.parameter, "kind": slot.kind, "mode": conf.texture,
-              "constant": material["params"][slot.parameter], "held_out": material["held_out"]}  # fmt: skip
-    if conf.texture == "off":
-        shutil.copytree(material_dir / "heldout", textured / "heldout")
-        report |= {"kept": False, "reason": "texture = off", "params": material["params"], "bounds": material["bounds"]}
-        (textured / "params.json").write_text(json.dumps(report, indent=1))
-        return StageResult({"textured_dir": textured}, {"kept": False})
+@dataclass
+class _Training:
+    """What the levels are fitted on."""
 
-    mesh = trimesh.load(textured / "mesh.ply", force="mesh")
-    box = np.array([mesh.bounds[0] - 0.02 * mesh.extents, mesh.bounds[1] + 0.02 * mesh.extents])
-    shapes = level_shapes(conf, slot.kind, box[1] - box[0])
-    texture = np.broadcast_to(np.float32(material["params"][slot.parameter]), (*shapes[0], 3)).copy()
-    specimen = textured / "specimen.xml"
-    parameter_key = materials.PARAMETERS[slot.parameter].key
-    scene_xml.set_values(specimen, {}, specimen, textures={parameter_key: write_texture(textured, slot, texture, box)})
+    training: list[engine.FitView]
+    validation: list[engine.FitView]
+    parameters: list[engine.FitParameter]
+    """The texture first, then the constants refitted with it."""
+    settings: engine.FitSettings
 
-    mitsuba_variant.activate(inputs.shared["mitsuba"].variant)
+
+def _fit_constants_then_levels(conf: Config, slot: materials.TextureSlot, texture: np.ndarray,
+                               shapes: list[tuple[int, ...]], fit: _Training, report: dict) -> dict:
+    """The constants alone (texture constant), then the texture level by level; fills
+    ``report`` and returns the last level's result with the texture, the refitted
+    constants, the constant model's held-out error and the joined log."""
     import mitsuba as mi
 
-    cameras = read_views(inputs.upstream["sfm"]["cameras"])
-    linear = {n: p["linear"] for n, p in photo_files(inputs.upstream["undistort"]["pinhole"]).items()}
-    masks = mask_files(inputs.upstream["masks"]["masks_json"])
-    views = [view for view, _ in load_views(textured, description, cameras, linear, masks, conf.max_size,
-                                                     conf.erode_px, conf.spp)]
-    held = set(material["held_out"])
-    training, validation = [v for v in views if v.name not in held], [v for v in views if v.name in held]
-    scenes = {id(v.scene): v.scene for v in views}
-    parameters = materials.refit_parameters(model, material["bounds"], (conf.learning_rate, conf.smoothness),
-                                            conf.refit_constants)  # fmt: skip
-    constants = [p.name for p in parameters[1:]]
-    settings = engine.FitSettings(iterations=conf.iterations_per_level, batch=conf.batch, spp=conf.spp, loss=conf.loss,
-                                   validate_every=conf.validate_every, validation_spp=conf.validation_spp,
-                                   tolerance=conf.tolerance, window=conf.window, seed=conf.seed)  # fmt: skip
     log, levels = [], []
 
     def record(result: engine.FitResult, level: int | str, shape: tuple[int, ...] | None) -> dict:
         offset = len(log)
         log.extend({**e, "iteration": e["iteration"] + offset, "level": level, "resolution": shape and list(shape)}
-                   for e in result.log)  # fmt: skip
-        return {"resolution": shape and list(shape), "iterations": len(result.log), "best_iteration": result.best_iteration,
-                "validation_mse": result.validation_error, "stopped": result.stopped}  # fmt: skip
+                   for e in result.log)
+        return {"resolution": shape and list(shape), "iterations": len(result.log),
+                "best_iteration": result.best_iteration, "validation_mse": result.validation_error,
+                "stopped": result.stopped}
 
+    constants = [p.name for p in fit.parameters[1:]]
     refitted, constant_error = {}, None
     if constants:
         # The constants alone first, the colour still constant: the texture must then
         # earn its place against the refitted constant model, not against
         # fit_material's (a texture-free specimen's texture was kept on what the
         # constants alone gained).
-        result = engine.fit(parameters[1:], training, validation, settings)
+        result = engine.fit(fit.parameters[1:], fit.training, fit.validation, fit.settings)
         refitted, constant_error = {n: result.values[n] for n in constants}, result.validation_error
         report["constants_fit"] = record(result, "constants", None)
         logger.info("constants refitted: held-out MSE %s", result.validation_error)
+    scenes = {id(v.scene): v.scene for v in fit.training + fit.validation}
     for level, shape in enumerate(shapes):
         texture = resample(texture, shape)
         for scene in scenes.values():
             params = mi.traverse(scene)
             params[slot.key] = mi.TensorXf(texture)
             params.update()
-        result = engine.fit(parameters, training, validation, replace(settings, seed=conf.seed + level + 1))
+        result = engine.fit(fit.parameters, fit.training, fit.validation,
+                            replace(fit.settings, seed=conf.seed + level + 1))
         texture = result.textures[slot.parameter]
         if constant_error is None:
             constant_error = result.start_validation_error
         levels.append(record(result, level, shape))
         logger.info("level %d (%s texels): held-out MSE %s", level, "x".join(map(str, shape)), result.validation_error)
-    texture_error = levels[-1]["validation_mse"]
-    if constant_error is None:
-        kept, reason = True, "no held-out photos to decide with: kept"
-    else:
-        improvement = (constant_error - texture_error) / constant_error
-        kept = conf.texture == "on" or improvement >= conf.min_improvement
-        reason = (f"held-out MSE {constant_error:.4g} with the constant, {texture_error:.4g} with the texture "
-                  f"({100 * improvement:+.1f} %, threshold {100 * conf.min_improvement:g} %)")  # fmt: skip
-    logger.info("texture %s: %s", "kept" if kept else "not kept", reason)
+    report["levels"] = levels
+    return {"result": result, "texture": texture, "constants": constants, "refitted": refitted,
+            "constant_error": constant_error, "log": log}
 
-    with (textured / "log.jsonl").open("w") as handle:
-        for entry in log:
-            handle.write(json.dumps(entry) + "\n")
-    engine.plot_loss(log, textured / "loss.png")
+
+def _keep_texture(conf: Config, constant_error: float | None, texture_error: float) -> tuple[bool, str]:
+    """Whether the texture earns its place, and why (``texture``, ``min_improvement``)."""
+    if constant_error is None:
+        return True, "no held-out photos to decide with: kept"
+    improvement = (constant_error - texture_error) / constant_error
+    kept = conf.texture == "on" or improvement >= conf.min_improvement
+    return kept, (f"held-out MSE {constant_error:.4g} with the constant, {texture_error:.4g} with the texture "
+                  f"({100 * improvement:+.1f} %, threshold {100 * conf.min_improvement:g} %)")
+
+
+def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
+    # 1. fit_material's scene, without its fit results.
+    material_dir = inputs.upstream["fit_material"]["fitted_dir"]
+    material = read_json(inputs.upstream["fit_material"]["params"])
+    description = read_json(inputs.upstream["scene"]["description"])
+    model = description["model"]
+    slot = materials.TEXTURE_SLOTS[model]
+    textured = copy_scene(material_dir, out_dir / "textured")
+    outputs = {"textured_dir": textured, "params": textured / PARAMS_JSON, "heldout": textured / HELDOUT}
+    report = {"model": model, "parameter": slot.parameter, "kind": slot.kind, "mode": conf.texture,
+              "constant": material["params"][slot.parameter], "held_out": material["held_out"]}
+    if conf.texture == "off":
+        shutil.copytree(inputs.upstream["fit_material"]["heldout"], textured / HELDOUT)
+        report |= {"kept": False, "reason": "texture = off", "params": material["params"], "bounds": material["bounds"]}
+        write_json(textured / PARAMS_JSON, report)
+        return StageResult(outputs, {"kept": False})
+
+    # 2. The texture at the coarsest level, set to fit_material's constant.
+    mesh = trimesh.load(textured / MESH_PLY, force="mesh")
+    box = np.array([mesh.bounds[0] - 0.02 * mesh.extents, mesh.bounds[1] + 0.02 * mesh.extents])
+    shapes = level_shapes(conf, slot.kind, box[1] - box[0])
+    texture = np.broadcast_to(np.float32(material["params"][slot.parameter]), (*shapes[0], 3)).copy()
+    specimen = textured / SPECIMEN_XML
+    parameter_key = materials.PARAMETERS[slot.parameter].key
+    scene_xml.set_values(specimen, {}, specimen, textures={parameter_key: write_texture(textured, slot, texture, box)})
+
+    # 3. The views, fit_material's held-out photos, and the fit: constants, then levels.
+    mitsuba_variant.activate(inputs.shared["mitsuba"].variant)
+    cameras = read_views(inputs.upstream["sfm"]["cameras"])
+    linear = linear_photos(inputs.upstream["undistort"]["pinhole"])
+    masks = read_masks(inputs.upstream["masks"]["masks_json"])
+    views = [view for view, _ in load_views(textured, description, cameras, linear, masks, conf.max_size,
+                                            conf.erode_px, conf.spp)]
+    held = set(material["held_out"])
+    fit = _Training(
+        training=[v for v in views if v.name not in held], validation=[v for v in views if v.name in held],
+        parameters=materials.refit_parameters(model, material["bounds"], (conf.learning_rate, conf.smoothness),
+                                              conf.refit_constants),
+        settings=engine.FitSettings(iterations=conf.iterations_per_level, batch=conf.batch, spp=conf.spp,
+                                    loss=conf.loss, validate_every=conf.validate_every,
+                                    validation_spp=conf.validation_spp, tolerance=conf.tolerance, window=conf.window,
+                                    seed=conf.seed),
+    )
+    fitted = _fit_constants_then_levels(conf, slot, texture, shapes, fit, report)
+    result, texture, constants = fitted["result"], fitted["texture"], fitted["constants"]
+    constant_error, texture_error = fitted["constant_error"], report["levels"][-1]["validation_mse"]
+
+    # 4. Keep the texture only if it earns its place.
+    kept, reason = _keep_texture(conf, constant_error, texture_error)
+    logger.info("texture %s: %s", "kept" if kept else "not kept", reason)
+    write_fit_log(textured, fitted["log"])
     if kept:
         write_texture(textured, slot, texture, box)
         constant_values = {n: result.values[n] for n in constants}
     else:
         # fit_material's constant scene, with the refitted constants.
-        shutil.copy2(material_dir / "specimen.xml", specimen)
+        shutil.copy2(material_dir / SPECIMEN_XML, specimen)
         for leftover in textured.glob(f"{slot.parameter}.*"):
             leftover.unlink()
-        constant_values = refitted
+        constant_values = fitted["refitted"]
     scene_xml.set_values(specimen, {materials.PARAMETERS[n].key: v for n, v in constant_values.items()}, specimen)
+
+    # 5. Held-out renders of the scene kept, and params.json.
+    if kept or fitted["refitted"]:
+        held_views = [view for view, _ in load_views(textured, description, cameras, linear, masks, conf.max_size,
+                                                     conf.erode_px, conf.spp, names=held)]
+        write_heldout(held_views, 4 * conf.validation_spp, textured / HELDOUT)
+    else:
+        shutil.copytree(inputs.upstream["fit_material"]["heldout"], textured / HELDOUT)
     report["params"] = {**material["params"], **constant_values}
     if kept:
         report["params"][slot.parameter] = result.values[slot.parameter]  # the texture's mean
     report["bounds"] = material["bounds"]
-    if kept or refitted:
-        held_views = [view for view, _ in load_views(textured, description, cameras, linear, masks, conf.max_size,
-                                                     conf.erode_px, conf.spp, names=held)]  # fmt: skip
-        write_heldout(held_views, 4 * conf.validation_spp, textured / "heldout")
-    else:
-        shutil.copytree(material_dir / "heldout", textured / "heldout")
+    levels = report.pop("levels")
     report |= {"kept": kept, "reason": reason, "smoothness": conf.smoothness, "learning_rate": conf.learning_rate,
-               "validation_mse_constant": constant_error,
-               "validation_mse_texture": texture_error, "levels": levels,
+               "validation_mse_constant": constant_error, "validation_mse_texture": texture_error, "levels": levels,
                "texture_mean": [float(v) for v in texture.reshape(-1, 3).mean(axis=0)],
-               "files": sorted(p.name for p in textured.glob(f"{slot.parameter}.*"))}  # fmt: skip
-    (textured / "params.json").write_text(json.dumps(report, indent=1))
-    return StageResult({"textured_dir": textured}, {"kept": kept, "validation_mse_constant": constant_error,
-                                                    "validation_mse_texture": texture_error})  # fmt: skip
+               "files": sorted(p.name for p in textured.glob(f"{slot.parameter}.*"))}
+    write_json(textured / PARAMS_JSON, report)
+    return StageResult(outputs, {"kept": kept, "validation_mse_constant": constant_error,
+                                 "validation_mse_texture": texture_error})
+
 
 
 STAGE = Stage(
@@ -309,7 +331,9 @@ STAGE = Stage(
     version=6,
     config=Config,
     main=main,
-    upstream=("fit_material", "scene", "sfm", "undistort", "masks"),
+    needs=("fit_material.fitted_dir", "fit_material.params", "fit_material.heldout", "scene.description",
+           "sfm.cameras", "undistort.pinhole", "masks.masks_json"),
+    outputs=("textured_dir", "params", "heldout"),
     shared=("mitsuba",),
     exports=("textured_dir",),
 )

@@ -34,7 +34,6 @@ table (or a grey one on a grey board) needs a background plate or user masks;
 
 from __future__ import annotations
 
-import json
 from collections import defaultdict
 from dataclasses import dataclass
 from pathlib import Path
@@ -49,9 +48,10 @@ from pipeline.camera.model import Intrinsics, undistort
 from pipeline.core.config import Range
 from pipeline.core.errors import PipelineError
 from pipeline.imaging.photo_io import read_photo
-from pipeline.imaging.segmentation import clean, segment_centre_prior, segment_neutral_backdrop, segment_plate_difference
+from pipeline.imaging.segmentation import clean, read_user_mask, segment, segment_plate_difference
 from pipeline.core.stage import Stage, StageInputs, StageResult
-from stages.undistort import photo_files
+from pipeline.formats.masks import write_masks
+from pipeline.formats.pinhole import read_camera_settings, read_photos
 
 
 @dataclass(frozen=True)
@@ -83,21 +83,6 @@ class Config:
     """Components smaller than this fraction of the largest are dropped (dust, board bits)."""
     fill_holes: bool = True
     """Fill holes inside the silhouette."""
-
-
-def read_user_mask(path: Path) -> np.ndarray:
-    """A user's mask as booleans: any nonzero value is specimen (read as linear so that
-    8-bit 255 is 1.0 and label images with small values count too)."""
-    return read_photo(path, "linear").pixels[..., 0] > 0.5 / 255
-
-
-def segment(srgb: np.ndarray, conf: Config, working_size: int) -> np.ndarray:
-    """The configured automatic segmenter on an 8-bit RGB photo (before cleaning)."""
-    if conf.segmenter == "neutral_backdrop":
-        return segment_neutral_backdrop(
-            srgb, conf.backdrop_chroma, conf.centre_fraction, conf.grabcut_iterations, working_size
-        )
-    return segment_centre_prior(srgb, conf.centre_fraction, conf.grabcut_iterations, working_size)
 
 
 def _user_masks(capture_dir: Path, files: tuple[Path, ...], photos: dict[str, dict]) -> dict[str, Path]:
@@ -140,40 +125,46 @@ def _choose_source(conf: Config, user_masks: bool, plates: bool) -> str:
     return "user" if user_masks else "background" if plates else "segment"
 
 
+def _mask(conf: Config, source: str, name: str, photo: dict, camera: dict, user_mask: Path | None,
+          plate: dict | None) -> np.ndarray:
+    """One photo's mask from the chosen source, cleaned."""
+    target = Intrinsics.from_json(camera["intrinsics"])
+    if source == "user":
+        drawn = read_user_mask(user_mask)
+        source_camera = Intrinsics.from_json(camera["source"])
+        if drawn.shape != (source_camera.height, source_camera.width):
+            raise PipelineError(
+                f"{user_mask} is {drawn.shape[1]}x{drawn.shape[0]} but {name} is "
+                f"{source_camera.width}x{source_camera.height}: draw the mask on the original photo"
+            )
+        mask = undistort(drawn.astype(np.float32), source_camera, target) >= 0.5
+    elif source == "background":
+        linear = read_photo(photo["linear"]).pixels
+        mask = segment_plate_difference(linear, read_photo(plate["linear"]).pixels, conf.background_threshold,
+                                        conf.grabcut_iterations, conf.working_size)
+    else:
+        srgb = cv2.cvtColor(cv2.imread(str(photo["srgb"])), cv2.COLOR_BGR2RGB)  # undistort's 8-bit copy
+        mask = segment(srgb, conf.segmenter, conf.backdrop_chroma, conf.centre_fraction, conf.grabcut_iterations,
+                       conf.working_size)
+    return clean(mask, conf.min_component_fraction, conf.fill_holes)
+
+
 def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
+    # 1. Which source the masks come from.
     pinhole_json = inputs.upstream["undistort"]["pinhole"]
-    photos, plates = photo_files(pinhole_json, "images"), photo_files(pinhole_json, "background")
-    cameras = json.loads(pinhole_json.read_text())["cameras"]
+    photos, plates = read_photos(pinhole_json, "images"), read_photos(pinhole_json, "background")
+    cameras = read_camera_settings(pinhole_json)
     has_user_masks = any(p.parent == inputs.capture_dir / "masks" for p in inputs.files)
     source = _choose_source(conf, has_user_masks, bool(plates))
     user_masks = _user_masks(inputs.capture_dir, inputs.files, photos) if source == "user" else {}
     plate_of = _plates_for(photos, plates) if source == "background" else {}
     logger.info("masks from %s", {"user": "masks/", "background": "background plates"}.get(source, conf.segmenter))
 
+    # 2. One mask per photo, with its coverage and whether it touches the border.
     (out_dir / "masks").mkdir()
     report = {}
     for name, photo in progress.track(photos.items(), "masking"):
-        camera = cameras[photo["camera"]]
-        target = Intrinsics.from_json(camera["intrinsics"])
-        if source == "user":
-            drawn = read_user_mask(user_masks[name])
-            source_camera = Intrinsics.from_json(camera["source"])
-            if drawn.shape != (source_camera.height, source_camera.width):
-                raise PipelineError(
-                    f"{user_masks[name]} is {drawn.shape[1]}x{drawn.shape[0]} but {name} is "
-                    f"{source_camera.width}x{source_camera.height}: draw the mask on the original photo"
-                )
-            mask = undistort(drawn.astype(np.float32), source_camera, target) >= 0.5
-        elif source == "background":
-            linear = read_photo(photo["linear"]).pixels
-            plate = read_photo(plate_of[name]["linear"]).pixels
-            mask = segment_plate_difference(
-                linear, plate, conf.background_threshold, conf.grabcut_iterations, conf.working_size
-            )
-        else:
-            srgb = cv2.cvtColor(cv2.imread(str(photo["srgb"])), cv2.COLOR_BGR2RGB)  # undistort's 8-bit copy
-            mask = segment(srgb, conf, conf.working_size)
-        mask = clean(mask, conf.min_component_fraction, conf.fill_holes)
+        mask = _mask(conf, source, name, photo, cameras[photo["camera"]], user_masks.get(name), plate_of.get(name))
         path = out_dir / "masks" / f"{Path(name).stem}.png"
         cv2.imwrite(str(path), mask.astype(np.uint8) * 255)
         border = np.concatenate([mask[0], mask[-1], mask[:, 0], mask[:, -1]])
@@ -185,8 +176,9 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         }
         if not 0.005 <= mask.mean() <= 0.9:
             logger.warning("%s: the mask covers %.1f %% of the photo; check it in %s", name, 100 * mask.mean(), path)
-    masks_json = out_dir / "masks.json"
-    masks_json.write_text(json.dumps({"source": source, "images": report}, indent=1))
+
+    # 3. The listing downstream stages read (pipeline.formats.masks).
+    masks_json = write_masks(out_dir / "masks.json", source, report)
     cut_off = sorted(n for n, r in report.items() if r["touches_border"])
     if cut_off:
         logger.warning("the specimen touches the image border in %s", ", ".join(cut_off))
@@ -197,17 +189,13 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     )
 
 
-def mask_files(masks_json: Path) -> dict[str, Path]:
-    """For downstream stages: photo name -> its mask PNG (white = specimen)."""
-    return {name: masks_json.parent / entry["mask"] for name, entry in json.loads(masks_json.read_text())["images"].items()}
-
-
 STAGE = Stage(
     name="masks",
     version=3,
     config=Config,
     main=main,
-    upstream=("undistort",),
+    needs=("undistort.pinhole",),
+    outputs=("masks_json", "masks"),
     reads=("masks/*",),
 )
 

@@ -42,18 +42,17 @@ from typing import Annotated, Literal
 
 import cv2
 import numpy as np
-import pycolmap
 import trimesh
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from pipeline import logger
-from pipeline.camera.model import read_views
+from pipeline import colmap, logger
+from pipeline.formats.cameras import read_frame, read_views
 from pipeline.core.config import Range
 from pipeline.core.errors import PipelineError
 from pipeline.core.stage import Stage, StageInputs, StageResult
 from pipeline.geometry.visual_hull import Grid, View, bounds, hull_field, surface
-from stages.masks import mask_files
+from pipeline.formats.masks import read_masks
 
 
 @dataclass(frozen=True)
@@ -87,7 +86,7 @@ class Config:
 
 
 def _views(cameras_json: Path, masks_json: Path) -> list[View]:
-    masks = mask_files(masks_json)
+    masks = read_masks(masks_json)
     views = []
     for name, (intrinsics, pose) in sorted(read_views(cameras_json).items()):
         mask = cv2.imread(str(masks[name]), cv2.IMREAD_GRAYSCALE) > 127
@@ -100,41 +99,9 @@ def _views(cameras_json: Path, masks_json: Path) -> list[View]:
 
 def _ground_height(cameras_json: Path) -> float | None:
     """Height of the ground plane z = h in the world frame, if the sfm stage found one."""
-    plane = json.loads(cameras_json.read_text()).get("frame", {}).get("ground_plane")
+    plane = read_frame(cameras_json).get("ground_plane")
     return None if plane is None else float(-plane[3] / plane[2])
 
-
-def _trusted_points(sparse: Path, conf: Config) -> tuple[np.ndarray, np.ndarray]:
-    """Sparse points and, for each, the mean direction towards the cameras that saw it."""
-    model = pycolmap.Reconstruction(sparse)
-    centres = {image_id: image.projection_center() for image_id, image in model.images.items() if image.has_pose}
-    points, towards = [], []
-    for point in model.points3D.values():
-        if point.track.length() < conf.min_track_length or point.error > conf.max_point_error_px:
-            continue
-        directions = [centres[e.image_id] - point.xyz for e in point.track.elements if e.image_id in centres]
-        directions = [d / np.linalg.norm(d) for d in directions]
-        points.append(point.xyz)
-        towards.append(np.mean(directions, axis=0))
-    return np.reshape(points, (-1, 3)), np.reshape(towards, (-1, 3))
-
-
-def _screened_poisson(points: np.ndarray, normals: np.ndarray, conf: Config, work_dir: Path) -> trimesh.Trimesh:
-    """COLMAP's screened Poisson reconstruction, untrimmed (so closed) and on one
-    thread. Unlike pymeshlab's, it returns the same mesh, vertex for vertex, on
-    every run: cleanup's decimation and the UV charts depend on that order."""
-    cloud_ply, mesh_ply = work_dir / "poisson_input.ply", work_dir / "poisson_output.ply"
-    oriented = np.hstack([points, normals]).astype("<f4")
-    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(oriented)}\n"
-              + "".join(f"property float {name}\n" for name in ("x", "y", "z", "nx", "ny", "nz")) + "end_header\n")  # fmt: skip
-    cloud_ply.write_bytes(header.encode() + oriented.tobytes())
-    options = pycolmap.PoissonMeshingOptions()
-    options.depth, options.point_weight, options.trim, options.num_threads = conf.poisson_depth, conf.poisson_point_weight, 0.0, 1
-    pycolmap.poisson_meshing(cloud_ply, mesh_ply, options)
-    mesh = trimesh.load(mesh_ply, force="mesh", process=True)
-    cloud_ply.unlink()
-    mesh_ply.unlink()
-    return mesh
 
 
 def _refine_with_points(hull: trimesh.Trimesh, views: list[View], points: np.ndarray, towards: np.ndarray,
@@ -160,7 +127,8 @@ def _refine_with_points(hull: trimesh.Trimesh, views: list[View], points: np.nda
     # The smallest-eigenvalue eigenvector of each neighbourhood's scatter, all at once.
     point_normals = np.linalg.eigh(np.einsum("nki,nkj->nij", local, local))[1][:, :, 0]
     point_normals *= np.where(np.sum(point_normals * towards, axis=1) >= 0, 1.0, -1.0)[:, None]
-    mesh = _screened_poisson(cloud, np.vstack([normals, point_normals]), conf, work_dir)
+    mesh = colmap.screened_poisson(cloud, np.vstack([normals, point_normals]), conf.poisson_depth,
+                                  conf.poisson_point_weight, work_dir)
     parts = mesh.split(only_watertight=False)
     mesh = max(parts, key=lambda part: len(part.faces)) if len(parts) > 1 else mesh
     if mesh.volume < 0:
@@ -199,7 +167,8 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     report: dict = {"views": len(views), "voxel": grid.voxel, "grid": list(grid.shape),
                     "hull_seconds": time.perf_counter() - started, "ground_clipped": ground is not None}  # fmt: skip
     if conf.refine == "poisson":
-        points, towards = _trusted_points(inputs.upstream["sfm"]["sparse"], conf)
+        points, towards = colmap.trusted_points(inputs.upstream["sfm"]["sparse"], conf.min_track_length,
+                                                conf.max_point_error_px)
         if len(points) >= 10:
             refined, details = _refine_with_points(mesh, views, points, towards, conf, grid.voxel, out_dir)
             report.update(details)
@@ -230,6 +199,7 @@ STAGE = Stage(
     version=5,
     config=Config,
     main=main,
-    upstream=("sfm", "masks"),
+    needs=("sfm.cameras", "sfm.sparse", "masks.masks_json"),
+    outputs=("mesh", "report"),
     exports=("mesh",),
 )

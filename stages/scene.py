@@ -46,7 +46,6 @@ assumed laser toner on white paper (reflectance 0.04 and 0.80).
 
 from __future__ import annotations
 
-import json
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -61,14 +60,16 @@ from pipeline.render import materials
 from pipeline.render import mitsuba_variant
 from pipeline.render import scene_xml
 from pipeline.camera.board import board_image
-from pipeline.camera.model import Intrinsics, Pose, read_views, resize_exact, scaled
+from pipeline.camera.model import Intrinsics, Pose, resize_exact, scaled
+from pipeline.formats.cameras import read_frame, read_views
 from pipeline.core.config import Range
 from pipeline.core.errors import PipelineError
 from pipeline.imaging.photo_io import read_photo, to_uint8
 from pipeline.core.sections import BoardSection, CaptureSection, LightSection
 from pipeline.core.stage import Stage, StageInputs, StageResult
-from stages.masks import mask_files
-from stages.undistort import photo_files
+from pipeline.formats.masks import read_masks
+from pipeline.formats.pinhole import linear_photos
+from pipeline.formats.scene_folder import DESCRIPTION_JSON, MESH_PLY, SCENE_XML, SPECIMEN_XML, write_json
 
 PAPER, TONER = 0.80, 0.04
 
@@ -221,11 +222,43 @@ def render_preview(view_xml: Path, intrinsics: Intrinsics, pose: Pose, near_clip
     cv2.imwrite(str(path), cv2.cvtColor(to_uint8(image), cv2.COLOR_RGB2BGR))
 
 
+def _environment_file(light: LightSection, capture_dir: Path, out_dir: Path) -> str | None:
+    """The environment map copied into the scene folder, its name there; None for none."""
+    if not light.environment_map:
+        return None
+    source = capture_dir / light.environment_map
+    if not source.is_file():
+        raise PipelineError(f"light.environment_map = '{light.environment_map}' is not a file in "
+                            f"{capture_dir}: fix the path or set it to \"\"")
+    environment = "environment" + source.suffix
+    shutil.copy2(source, out_dir / environment)
+    return environment
+
+
+def _write_board_texture(board: BoardSection, out_dir: Path) -> None:
+    # Rows flipped: Mitsuba's rectangle puts the bitmap's first row at local -y,
+    # and the board's top edge is at +y (pipeline.camera.board.board_to_world).
+    reflectance = TONER + (PAPER - TONER) * board_image(board)[::-1].astype(np.float32) / 255.0
+    cv2.imwrite(str(out_dir / "board.png"), np.round(reflectance * 255).astype(np.uint8))
+
+
+def _load_all(paths: list[Path]) -> None:
+    """Prove that Mitsuba loads every file written."""
+    import mitsuba as mi
+
+    for path in paths:
+        try:
+            mi.load_file(str(path))
+        except RuntimeError as error:
+            raise PipelineError(f"Mitsuba cannot load the scene it was given, {path}: {error}") from error
+
+
 def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
+    # 1. Model, integrator and the world frame the light is placed in.
     capture: CaptureSection = inputs.shared["capture"]
     light: LightSection = inputs.shared["light"]
     cameras_json = inputs.upstream["sfm"]["cameras"]
-    frame = json.loads(cameras_json.read_text()).get("frame", {})
+    frame = read_frame(cameras_json)
     views = read_views(cameras_json)
     model = choose_model(conf, capture)
     integrator = materials.INTEGRATORS[model]
@@ -233,75 +266,61 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         integrator = (integrator[0], conf.max_depth)
     if not frame.get("metric"):
         logger.warning("the world frame is not metric (%s): the light positions in [light] are used as they are",
-                       frame.get("source", "unknown"))  # fmt: skip
+                       frame.get("source", "unknown"))
 
+    # 2. The specimen: mesh, material, and the board and ground it stands on.
     out_dir = out_dir / "scene"  # one self-contained folder, exported as it is
     out_dir.mkdir()
-    mesh_ply = out_dir / "mesh.ply"
+    mesh_ply = out_dir / MESH_PLY
     shutil.copy2(inputs.upstream["uv"]["mesh"], mesh_ply)
     mesh = trimesh.load(mesh_ply, force="mesh", process=False)
     board = inputs.shared["board"] if conf.board_plane and frame.get("source") == "board" else None
     if board is not None:
-        # Rows flipped: Mitsuba's rectangle puts the bitmap's first row at local -y,
-        # and the board's top edge is at +y (pipeline.camera.board.board_to_world).
-        reflectance = TONER + (PAPER - TONER) * board_image(board)[::-1].astype(np.float32) / 255.0
-        cv2.imwrite(str(out_dir / "board.png"), np.round(reflectance * 255).astype(np.uint8))
-    environment = None
-    if light.environment_map:
-        source = inputs.capture_dir / light.environment_map
-        if not source.is_file():
-            raise PipelineError(f"light.environment_map = '{light.environment_map}' is not a file in "
-                                f"{inputs.capture_dir}: fix the path or set it to \"\"")  # fmt: skip
-        environment = "environment" + source.suffix
-        shutil.copy2(source, out_dir / environment)
+        _write_board_texture(board, out_dir)
+    environment = _environment_file(light, inputs.capture_dir, out_dir)
     values = materials.initial_values(model)
     ground_radius = None
     if conf.ground and frame.get("ground_plane") is not None:
         ground_radius = conf.ground_radius * float(np.max(np.linalg.norm(mesh.vertices[:, :2], axis=1)))
     # The ground's albedo is measured against a white ground in the scene itself.
-    _specimen_file(out_dir / "specimen.xml", model, values, board,
-                   (ground_radius, (1.0, 1.0, 1.0)) if ground_radius else None)  # fmt: skip
+    _specimen_file(out_dir / SPECIMEN_XML, model, values, board,
+                   (ground_radius, (1.0, 1.0, 1.0)) if ground_radius else None)
 
+    # 3. scene.xml with every sensor, and one view-NAME.xml per photo with its light.
     # Near clip well inside the closest camera's distance to the specimen.
     centre = mesh.bounding_box.centroid
-    nearest = min(np.linalg.norm(pose.center - centre) for _, pose in views.values())
-    near_clip = 0.01 * nearest
+    near_clip = 0.01 * min(np.linalg.norm(pose.center - centre) for _, pose in views.values())
     sensors = [(Path(name).stem, intrinsics, pose) for name, (intrinsics, pose) in sorted(views.items())]
     riding = light.frame == "camera"
-    scene = _scene_file(out_dir / "scene.xml", "specimen.xml", sensors, light, environment, integrator, conf.spp,
+    scene = _scene_file(out_dir / SCENE_XML, SPECIMEN_XML, sensors, light, environment, integrator, conf.spp,
                         near_clip, "every registered photo; " + ("the light rides with the camera: this file has the "
                         "first photo's light, view-*.xml light each photo correctly" if riding else
-                        "the light is fixed in the world"))  # fmt: skip
+                        "the light is fixed in the world"))
     # Beside specimen.xml: Mitsuba resolves paths in an included file relative to
     # the including one.
     view_files = {}
     for name, (intrinsics, pose) in sorted(views.items()):
         stem = Path(name).stem
-        view_files[name] = _scene_file(out_dir / f"view-{stem}.xml", "specimen.xml", [(stem, intrinsics, pose)], light,
-                                       environment, integrator, conf.spp, near_clip, f"photo {name}")  # fmt: skip
-
+        view_files[name] = _scene_file(out_dir / f"view-{stem}.xml", SPECIMEN_XML, [(stem, intrinsics, pose)], light,
+                                       environment, integrator, conf.spp, near_clip, f"photo {name}")
     mitsuba_variant.activate(inputs.shared["mitsuba"].variant)
-    import mitsuba as mi
+    _load_all([scene, *view_files.values()])
 
-    for path in [scene, *view_files.values()]:
-        try:
-            mi.load_file(str(path))
-        except RuntimeError as error:
-            raise PipelineError(f"Mitsuba cannot load the scene it was given, {path}: {error}") from error
+    # 4. The ground's albedo, measured in the photos.
     ground_albedo = None
     if ground_radius:
-        linear = {n: p["linear"] for n, p in photo_files(inputs.upstream["undistort"]["pinhole"]).items()}
-        masks = mask_files(inputs.upstream["masks"]["masks_json"])
+        linear = linear_photos(inputs.upstream["undistort"]["pinhole"])
+        masks = read_masks(inputs.upstream["masks"]["masks_json"])
         ground_albedo = _ground_albedo(view_files, views, linear, masks, board, ground_radius, near_clip)
         if ground_albedo is None:
             logger.warning("too little of the table is seen to measure its albedo: no ground in the scene")
-        _specimen_file(out_dir / "specimen.xml", model, values, board,
-                       (ground_radius, ground_albedo) if ground_albedo else None)  # fmt: skip
+        _specimen_file(out_dir / SPECIMEN_XML, model, values, board,
+                       (ground_radius, ground_albedo) if ground_albedo else None)
+
+    # 5. A preview, and the description the fit stages read (pipeline.formats.scene_folder).
     first = sorted(views)[0]
     render_preview(view_files[first], *views[first], near_clip, mesh, conf.preview_spp, out_dir / "preview.png")
-
-    scene_json = out_dir / "scene.json"
-    scene_json.write_text(json.dumps({
+    scene_json = write_json(out_dir / DESCRIPTION_JSON, {
         "model": model,
         "integrator": {"type": integrator[0], "max_depth": integrator[1]},
         "light_frame": light.frame,
@@ -313,7 +332,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
                               "units": materials.PARAMETERS[name].units} for name, value in values.items()},
         "views": {name: {"xml": str(path.relative_to(out_dir)), "sensor": Path(name).stem}
                   for name, path in view_files.items()},
-    }, indent=1))  # fmt: skip
+    })
     outputs = {"scene_dir": out_dir, "scene": scene, "description": scene_json, "preview": out_dir / "preview.png"}
     return StageResult(outputs, {"model": model, "views": len(views), "integrator": f"{integrator[0]}/{integrator[1]}"})
 
@@ -323,7 +342,8 @@ STAGE = Stage(
     version=1,
     config=Config,
     main=main,
-    upstream=("uv", "sfm", "undistort", "masks"),
+    needs=("uv.mesh", "sfm.cameras", "undistort.pinhole", "masks.masks_json"),
+    outputs=("scene_dir", "scene", "description", "preview"),
     shared=("capture", "light", "board", "mitsuba"),
     exports=("scene_dir",),
 )

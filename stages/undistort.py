@@ -22,7 +22,6 @@ linear colour space, and float files, are taken as linear.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated
@@ -43,6 +42,8 @@ from pipeline.imaging.photo_io import (
     write_image,
 )
 from pipeline.core.stage import Stage, StageInputs, StageResult
+from pipeline.formats.calibration import read_camera_groups
+from pipeline.formats.pinhole import write_pinhole
 
 
 @dataclass(frozen=True)
@@ -71,8 +72,7 @@ def _output_names(paths: list[Path]) -> dict[Path, str]:
 
 
 def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
-    calibration = json.loads(inputs.upstream["calibrate"]["calibration"].read_text())
-    groups = calibration["groups"]
+    groups = read_camera_groups(inputs.upstream["calibrate"]["calibration"])
     setting_index = {group["camera"]: i for i, group in enumerate(groups)}
     image_group = {name: i for i, group in enumerate(groups) for name in group["images"]}
     cameras = []
@@ -115,8 +115,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
                 "encoding": photo.encoding,
                 "bits": photo.bits,
             }
-    pinhole = out_dir / "pinhole.json"
-    pinhole.write_text(json.dumps({"cameras": cameras, **listing}, indent=1))
+    pinhole = write_pinhole(out_dir / "pinhole.json", cameras, listing)
     size = cameras[0]["intrinsics"]
     logger.info(
         "undistorted %d photos and %d background plates to %dx%d",
@@ -134,16 +133,9 @@ STAGE = Stage(
     version=2,
     config=Config,
     main=main,
-    upstream=("calibrate",),
+    needs=("calibrate.calibration",),
+    outputs=("pinhole", "undistorted", "linear"),
     reads=("images/*", "background/*"),
 )
 
 
-def photo_files(pinhole_json: Path, folder: str = "images") -> dict[str, dict]:
-    """For downstream stages: photo name -> its entry of pinhole.json with absolute paths."""
-    listing = json.loads(pinhole_json.read_text())
-    base = pinhole_json.parent
-    return {
-        name: entry | {"srgb": base / entry["srgb"], "linear": base / entry["linear"]}
-        for name, entry in listing[folder].items()
-    }

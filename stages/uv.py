@@ -44,7 +44,7 @@ import xatlas
 
 from pipeline.render import mitsuba_variant
 from pipeline.geometry.atlas import overlapping_texels
-from pipeline.camera.model import read_views
+from pipeline.formats.cameras import read_views
 from pipeline.core.config import Range
 from pipeline.core.errors import PipelineError
 from pipeline.imaging.photo_io import to_uint8
@@ -191,7 +191,8 @@ STAGE = Stage(
     version=2,
     config=Config,
     main=main,
-    upstream=("cleanup", "sfm"),
+    needs=("cleanup.mesh", "sfm.cameras"),
+    outputs=("mesh", "obj", "checker", "preview", "report"),
     shared=("mitsuba",),
     exports=("mesh", "obj"),
 )

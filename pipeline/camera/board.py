@@ -18,6 +18,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pipeline.camera.model import Intrinsics, Pose
 from pipeline.core.sections import BoardSection
 
 
@@ -193,3 +194,35 @@ def write_printable(board: BoardSection, stem: Path, paper: str = "A4", dpi: int
     figure.savefig(pdf, dpi=dpi)
     plt.close(figure)
     return png, pdf
+
+
+def board_poses(board: BoardSection, photos: dict[str, dict], intrinsics: dict[str, Intrinsics], min_corners: int,
+                max_error_px: float) -> tuple[dict[str, Pose], dict[str, float]]:
+    """World pose (board_to_world's frame) and RMS reprojection error of every photo
+    (``{"srgb": 8-bit file}``) whose board shows ``min_corners`` corners and whose
+    board pose reprojects within ``max_error_px``."""
+    if board.kind == "none":
+        return {}, {}
+    detector = BoardDetector(board, min_corners)
+    B = board_to_world(board)
+    poses, errors = {}, {}
+    for name, photo in photos.items():
+        gray = cv2.imread(str(photo["srgb"]), cv2.IMREAD_GRAYSCALE)
+        detection = detector.detect(gray)
+        if detection is None:
+            continue
+        K = intrinsics[name].K
+        found, rvec, tvec = cv2.solvePnP(detection.object_points, detection.image_points, K, None,
+                                         flags=cv2.SOLVEPNP_IPPE)  # fmt: skip
+        if not found:
+            continue
+        rvec, tvec = cv2.solvePnPRefineLM(detection.object_points, detection.image_points, K, None, rvec, tvec)
+        projected = cv2.projectPoints(detection.object_points, rvec, tvec, K, None)[0].reshape(-1, 2)
+        rms = float(np.sqrt(np.mean(np.sum((projected - detection.image_points) ** 2, axis=1))))
+        if rms > max_error_px:
+            continue
+        R_board = cv2.Rodrigues(rvec)[0]
+        R = R_board @ B[:3, :3].T
+        poses[name] = Pose(R, tvec.ravel() - R @ B[:3, 3])
+        errors[name] = rms
+    return poses, errors

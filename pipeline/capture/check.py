@@ -41,8 +41,7 @@ from pipeline.camera.board import BoardDetector
 from pipeline.core.config import Config
 from pipeline.core.errors import PipelineError
 from pipeline.imaging.photo_io import camera_setting, gray_uint8, list_photos, read_photo, to_uint8
-from pipeline.imaging.segmentation import clean
-from stages.masks import read_user_mask, segment
+from pipeline.imaging.segmentation import clean, read_user_mask, segment
 
 MIN_PHOTOS = 3
 ENOUGH_PHOTOS = 20
@@ -215,7 +214,8 @@ def check_masks(capture_dir: Path, photos: list[PhotoSummary], config: Config) -
                 continue
             mask = read_user_mask(user_masks[Path(photo.name).stem])
         else:
-            mask = segment(photo.srgb, conf, MASK_WORKING_SIZE)
+            mask = segment(photo.srgb, conf.segmenter, conf.backdrop_chroma, conf.centre_fraction,
+                               conf.grabcut_iterations, MASK_WORKING_SIZE)
         mask = clean(mask, conf.min_component_fraction, conf.fill_holes)
         coverage = float(mask.mean())
         file = f"images/{photo.name}"

@@ -59,15 +59,30 @@ class PlannedStage:
     metrics: dict[str, Any] = field(default_factory=dict)
 
 
-def topological_order(stages: Sequence[Stage]) -> list[Stage]:
-    """Stages ordered so that each comes after its upstream; rejects bad graphs."""
+def check_contract(stages: Sequence[Stage]) -> None:
+    """Every need names an output its stage declares, and every export is an output."""
     by_name = {s.name: s for s in stages}
     if len(by_name) != len(stages):
         raise ValueError("two stages share a name")
     for s in stages:
-        for up in s.upstream:
+        for need in s.needs:
+            up, _, output = need.partition(".")
             if up not in by_name:
-                raise ValueError(f"stage {s.name} names unknown upstream stage {up}")
+                raise ValueError(f"stage {s.name} needs {need}: there is no stage {up}")
+            if output not in by_name[up].outputs:
+                raise ValueError(
+                    f"stage {s.name} needs {need}, which stage {up} does not declare "
+                    f"(its outputs: {', '.join(by_name[up].outputs) or 'none'})"
+                )
+        undeclared = set(s.exports) - set(s.outputs)
+        if undeclared:
+            raise ValueError(f"stage {s.name} exports {', '.join(sorted(undeclared))}, which it does not declare")
+
+
+def topological_order(stages: Sequence[Stage]) -> list[Stage]:
+    """Stages ordered so that each comes after its upstream; rejects bad graphs."""
+    check_contract(stages)
+    by_name = {s.name: s for s in stages}
     ordered: list[Stage] = []
     visiting: set[str] = set()
 
@@ -274,7 +289,7 @@ class Runner:
         inputs = StageInputs(
             capture_dir=self.capture_dir,
             files=tuple(self.capture_dir / f for f in item.components["files"]),
-            upstream={up: results[up].outputs for up in stage.upstream if up in results},
+            upstream=self._needed_outputs(stage, results),
             shared={name: self.config[name] for name in stage.shared},
         )
         tmp = self.cache.begin(stage.name, item.key)
@@ -289,6 +304,11 @@ class Runner:
             result = stage.main(conf, inputs, tmp)
             item.seconds = time.time() - started
             item.metrics = result.metrics
+            if set(result.outputs) != set(stage.outputs):
+                raise RuntimeError(
+                    f"stage {stage.name} returned outputs {sorted(result.outputs)} but declares "
+                    f"{sorted(stage.outputs)}"
+                )
             outputs = {}
             for name, path in result.outputs.items():
                 resolved = Path(path).resolve()
@@ -323,6 +343,16 @@ class Runner:
             if not committed:
                 kept = self.cache.keep_failed(tmp, stage.name)
                 logger.error("stage %s failed; its log is in %s", stage.name, kept / LOG_FILE)
+
+    @staticmethod
+    def _needed_outputs(stage: Stage, results: dict[str, Entry]) -> dict[str, dict[str, Path]]:
+        """Exactly the upstream outputs ``stage`` declares it needs, by stage and name."""
+        needed: dict[str, dict[str, Path]] = {}
+        for need in stage.needs:
+            up, _, output = need.partition(".")
+            if up in results:
+                needed.setdefault(up, {})[output] = results[up].outputs[output]
+        return needed
 
     def _export(self, plan: list[PlannedStage]) -> None:
         """Copy the exported outputs of this run's results to CAPTURE/output/."""

@@ -5,6 +5,13 @@ the stage), a ``main(conf, inputs, out_dir) -> StageResult`` function that reads
 paths and writes only inside ``out_dir``, and a module-level ``STAGE`` that ties
 them together. The runner owns everything else: where ``out_dir`` lives, when a
 result may be reused, and which upstream outputs the stage sees.
+
+Stages talk only through declared outputs: a stage lists the names it returns
+(``outputs``) and the upstream outputs it reads (``needs``, as ``stage.output``);
+the runner checks before anything runs that every need is an output some stage
+declares, hands a stage exactly the outputs it needs, and fails a stage that
+returns other names than it declared. The files behind the names are
+pipeline.formats' business.
 """
 
 from __future__ import annotations
@@ -23,7 +30,7 @@ class StageInputs:
     files: tuple[Path, ...]
     """Capture files matched by the stage's ``reads`` patterns, sorted."""
     upstream: Mapping[str, Mapping[str, Path]]
-    """Outputs of each upstream stage: stage name -> output name -> path."""
+    """The outputs the stage needs: stage name -> output name -> path."""
     shared: Mapping[str, Any]
     """Shared config sections the stage declared in ``shared`` (e.g. ``capture``)."""
 
@@ -48,13 +55,20 @@ class Stage:
     """Dataclass of the stage's own config section."""
     main: Callable[[Any, StageInputs, Path], StageResult]
     """``main(conf, inputs, out_dir)``: does the work, writes only into ``out_dir``."""
-    upstream: tuple[str, ...] = ()
-    """Names of stages whose outputs this stage reads."""
+    needs: tuple[str, ...] = ()
+    """Upstream outputs this stage reads, as ``"stage.output"``."""
+    outputs: tuple[str, ...] = ()
+    """Names of the outputs ``main`` returns, every one of them, every time."""
     reads: tuple[str, ...] = ()
     """Glob patterns, relative to the capture folder, of the capture files it reads."""
     shared: tuple[str, ...] = ()
     """Shared config sections (not its own) whose values change its results."""
     exports: tuple[str, ...] = ()
-    """Output names copied to ``CAPTURE/output/`` after a successful run."""
+    """Outputs (a subset of ``outputs``) copied to ``CAPTURE/output/`` after a successful run."""
     enabled: Callable[[Any], bool] | None = None
     """Optional predicate on the stage's config; a disabled stage is skipped."""
+
+    @property
+    def upstream(self) -> tuple[str, ...]:
+        """Names of the stages whose outputs this stage needs, in the order first named."""
+        return tuple(dict.fromkeys(need.split(".", 1)[0] for need in self.needs))

@@ -6,11 +6,13 @@ before the expensive stages run).
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 from scipy import ndimage
 
-from pipeline.imaging.photo_io import srgb_encode
+from pipeline.imaging.photo_io import read_photo, srgb_encode
 
 SHADOW_CHROMA_CHANGE = 0.03
 """A shadow darkens the set without changing its colour by more than this (chroma units)."""
@@ -143,3 +145,18 @@ def clean(mask: np.ndarray, min_component_fraction: float, fill_holes: bool) -> 
 def iou(a: np.ndarray, b: np.ndarray) -> float:
     union = np.logical_or(a, b).sum()
     return float(np.logical_and(a, b).sum() / union) if union else 1.0
+
+
+def read_user_mask(path: Path) -> np.ndarray:
+    """A user's mask as booleans: any nonzero value is specimen (read as linear so that
+    8-bit 255 is 1.0 and label images with small values count too)."""
+    return read_photo(path, "linear").pixels[..., 0] > 0.5 / 255
+
+
+def segment(srgb: np.ndarray, segmenter: str, backdrop_chroma: float, centre_fraction: float,
+            grabcut_iterations: int, working_size: int) -> np.ndarray:
+    """The automatic segmenter ``segmenter`` (the masks stage's choice) on an 8-bit RGB
+    photo, before cleaning."""
+    if segmenter == "neutral_backdrop":
+        return segment_neutral_backdrop(srgb, backdrop_chroma, centre_fraction, grabcut_iterations, working_size)
+    return segment_centre_prior(srgb, centre_fraction, grabcut_iterations, working_size)

@@ -47,7 +47,9 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from pipeline.geometry.atlas import chart_texels, occluder, unoccluded
-from pipeline.camera.model import Intrinsics, Pose, Similarity, project, read_cameras, rotation_angle_deg, similarity_umeyama
+from pipeline.camera.model import Intrinsics, Pose, Similarity, project, rotation_angle_deg, similarity_umeyama
+from pipeline.formats.cameras import read_cameras
+from pipeline.formats.scene_folder import heldout_files, heldout_names
 from pipeline.core.errors import PipelineError
 from pipeline.render.mitsuba_variant import activate as activate_mitsuba
 
@@ -293,10 +295,10 @@ def score_heldout(folder: Path) -> dict[str, Any]:
     """PSNR of each held-out render against its photo, over NAME.mask.png's pixels when
     there is one (the specimen), else over the whole image."""
     per_view = {}
-    for render_path in sorted(folder.glob("*.render.exr")):
-        name = render_path.name.removesuffix(".render.exr")
-        render, reference = read_linear_image(render_path), read_linear_image(folder / f"{name}.reference.exr")
-        if (mask_path := folder / f"{name}.mask.png").is_file():
+    for name in heldout_names(folder):
+        render_path, reference_path, mask_path = heldout_files(folder, name)
+        render, reference = read_linear_image(render_path), read_linear_image(reference_path)
+        if mask_path.is_file():
             inside = read_linear_image(mask_path)[..., 0] > 0.5
             render, reference = render[inside], reference[inside]
         per_view[name] = psnr(render, reference)

@@ -31,7 +31,8 @@ from pipeline.render import mitsuba_variant
 from pipeline.core import progress
 from pipeline.geometry.atlas import mitsuba_mesh
 from pipeline.camera.board import board_image, board_to_world
-from pipeline.camera.model import Intrinsics, Pose, distortion_maps, pinhole_render_size, write_cameras
+from pipeline.camera.model import Intrinsics, Pose, distortion_maps, pinhole_render_size
+from pipeline.formats.cameras import write_cameras
 from pipeline.core.errors import PipelineError
 from pipeline.imaging.photo_io import to_uint8, write_image
 from pipeline.core.config import toml_section

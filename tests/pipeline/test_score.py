@@ -10,7 +10,8 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from pipeline import cli
-from pipeline.camera.model import Intrinsics, Pose, read_cameras, write_cameras
+from pipeline.camera.model import Intrinsics, Pose
+from pipeline.formats.cameras import read_cameras, write_cameras
 from pipeline.synthetic.score import score_cameras, score_capture, score_mesh, score_texture, true_surface
 
 SIMILARITY = (2.3, Rotation.from_euler("xyz", [20, -35, 60], degrees=True).as_matrix(), np.array([1.0, -2.0, 0.5]))

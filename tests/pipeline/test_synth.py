@@ -7,7 +7,8 @@ import OpenImageIO as oiio
 import pytest
 import trimesh
 
-from pipeline.camera.model import mesh_coverage, read_cameras
+from pipeline.camera.model import mesh_coverage
+from pipeline.formats.cameras import read_cameras
 from pipeline.core.config import load_config
 from pipeline.core.errors import PipelineError
 from pipeline.core.sections import BoardSection, schema

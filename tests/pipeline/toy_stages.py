@@ -81,10 +81,10 @@ def report(conf: EmptyConfig, inputs: StageInputs, out_dir: Path) -> StageResult
 
 def make_stages(ingest_version: int = 1) -> tuple[Stage, ...]:
     return (
-        Stage("ingest", ingest_version, IngestConfig, ingest, reads=("images/*.txt",)),
-        Stage("double", 1, DoubleConfig, double, upstream=("ingest",)),
-        Stage("meta", 1, EmptyConfig, meta, upstream=("ingest",)),
-        Stage("report", 1, EmptyConfig, report, upstream=("double",), exports=("report",)),
+        Stage("ingest", ingest_version, IngestConfig, ingest, outputs=("total",), reads=("images/*.txt",)),
+        Stage("double", 1, DoubleConfig, double, needs=("ingest.total",), outputs=("doubled",)),
+        Stage("meta", 1, EmptyConfig, meta, needs=("ingest.total",), outputs=("meta",)),
+        Stage("report", 1, EmptyConfig, report, needs=("double.doubled",), outputs=("report",), exports=("report",)),
     )
 
 

@@ -8,7 +8,8 @@ import pytest
 from conftest import run_stages
 
 from pipeline.camera.board import BoardDetector, homography_residual_px, straightness_px
-from pipeline.camera.model import Intrinsics, ideal_pinhole, read_cameras, undistort
+from pipeline.camera.model import Intrinsics, ideal_pinhole, undistort
+from pipeline.formats.cameras import read_cameras
 from pipeline.core.errors import PipelineError
 from pipeline.imaging.photo_io import gray_uint8, read_photo, write_image
 from pipeline.core.sections import BoardSection

@@ -11,7 +11,7 @@ import pytest
 import trimesh
 from conftest import run_stages
 
-from pipeline.camera.model import read_cameras, read_views
+from pipeline.formats.cameras import read_cameras, read_views
 from pipeline.core.errors import PipelineError
 from pipeline.synthetic.score import score_cameras, score_mesh
 

@@ -10,7 +10,7 @@ import pytest
 import trimesh
 from conftest import run_stages
 
-from pipeline.camera.model import read_views
+from pipeline.formats.cameras import read_views
 from pipeline.synthetic.score import score_heldout, score_material
 
 pytestmark = pytest.mark.slow

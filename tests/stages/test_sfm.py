@@ -4,7 +4,10 @@ test_geometry on the sample bird)."""
 from sphere_views import sphere_views
 
 from pipeline.camera.model import Pose
-from stages.sfm import Config, silhouette_check
+from pipeline.geometry.pose_check import silhouette_check
+
+MIN_IOU, RESOLUTION = 0.2, 64
+"""The sfm stage's defaults."""
 
 
 def test_several_wrong_poses_are_all_found():
@@ -17,8 +20,8 @@ def test_several_wrong_poses_are_all_found():
     poses = {n: v.pose for n, v in zip(names, views)}
     poses["view_2"] = Pose.look_at(poses["view_2"].center, [0.0, 0.0, 0.25])
     poses["view_7"] = Pose.look_at(poses["view_7"].center, [0.0, 0.0, -0.25])
-    scores, off = silhouette_check(Config(), poses, {n: v.intrinsics for n, v in zip(names, views)},
-                                   {n: v.mask for n, v in zip(names, views)})  # fmt: skip
+    scores, off = silhouette_check(poses, {n: v.intrinsics for n, v in zip(names, views)},
+                                   {n: v.mask for n, v in zip(names, views)}, MIN_IOU, RESOLUTION)
     assert off == ["view_2", "view_7"], scores
     assert min(scores[n] for n in names if n not in off) > 0.6, scores
 
@@ -26,7 +29,7 @@ def test_several_wrong_poses_are_all_found():
 def test_right_poses_all_pass():
     views = sphere_views(10)
     names = [f"view_{i}" for i in range(len(views))]
-    scores, off = silhouette_check(Config(), {n: v.pose for n, v in zip(names, views)},
+    scores, off = silhouette_check({n: v.pose for n, v in zip(names, views)},
                                    {n: v.intrinsics for n, v in zip(names, views)},
-                                   {n: v.mask for n, v in zip(names, views)})  # fmt: skip
+                                   {n: v.mask for n, v in zip(names, views)}, MIN_IOU, RESOLUTION)
     assert off == [] and min(scores.values()) > 0.6, scores

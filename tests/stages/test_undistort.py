@@ -8,7 +8,7 @@ from conftest import run_stages
 
 from pipeline.camera.model import Intrinsics
 from pipeline.imaging.photo_io import read_photo, srgb_decode, srgb_encode, write_image
-from stages.undistort import photo_files
+from pipeline.formats.pinhole import read_photos
 
 pytestmark = pytest.mark.slow
 
@@ -55,7 +55,7 @@ def test_linear_copies_decode_the_srgb_copies(tiny_capture, tmp_path):
     capture = tmp_path / "bird"
     shutil.copytree(tiny_capture, capture, ignore=shutil.ignore_patterns(".pipeline", "output"))
     outputs = run_stages(capture, "undistort")["undistort"]
-    photos = photo_files(outputs["pinhole"])
+    photos = read_photos(outputs["pinhole"])
     assert sorted(photos) == sorted(p.name for p in (capture / "images").glob("*.jpg"))
     for entry in photos.values():
         srgb, linear = read_photo(entry["srgb"]), read_photo(entry["linear"])
@@ -72,5 +72,5 @@ def test_working_resolution_scales_the_camera(tiny_capture, tmp_path):
     assert (target.width, target.height) == (48, 36)
     assert target.fx == pytest.approx(source.fx / 2, rel=0.02)  # alpha=0 crops a little
     assert target.dist == [0.0] * 5
-    for entry in photo_files(outputs["pinhole"]).values():
+    for entry in read_photos(outputs["pinhole"]).values():
         assert read_photo(entry["linear"]).size == (48, 36)

@@ -1,0 +1,52 @@
+"""What a fit stage writes beside its scene: held-out renders, texture files, the
+log and its plot (file names in pipeline.formats.scene_folder)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from pipeline.fit import engine
+from pipeline.formats.scene_folder import LOG_JSONL, LOSS_PNG, heldout_files, write_log
+from pipeline.imaging.photo_io import to_uint8, write_image
+from pipeline.render import materials
+
+
+def write_heldout(views: list[engine.FitView], spp: int, folder: Path) -> None:
+    """Each view's render at ``spp`` (fixed seeds), its reference and the pixels scored."""
+    import mitsuba as mi
+
+    folder.mkdir()
+    for index, view in enumerate(views):
+        image = np.asarray(mi.render(view.scene, sensor=view.sensor, spp=spp, seed=10_000 + index), dtype=np.float32)
+        render_path, reference_path, mask_path = heldout_files(folder, view.name)
+        write_image(render_path, image)
+        write_image(reference_path, view.reference)
+        cv2.imwrite(str(mask_path), (view.weight > 0).astype(np.uint8) * 255)
+
+
+def write_texture_files(folder: Path, slot: materials.TextureSlot, texture: np.ndarray) -> None:
+    """The texture's data file (what the scene loads) and a PNG to look at, in ``folder``."""
+    import mitsuba as mi
+
+    name = slot.parameter
+    if slot.kind == "bitmap":
+        # float32, not write_image's half: the scene loads this file as the
+        # starting point of the optimisation, which needs full precision.
+        mi.Bitmap(np.ascontiguousarray(texture, dtype=np.float32)).write(str(folder / f"{name}.exr"))
+        cv2.imwrite(str(folder / f"{name}.png"), to_uint8(texture)[..., ::-1])
+        return
+    mi.VolumeGrid(texture).write(str(folder / f"{name}.vol"))
+    columns = int(np.ceil(np.sqrt(texture.shape[0])))
+    slices = [texture[z] for z in range(texture.shape[0])]
+    slices += [np.zeros_like(slices[0])] * (columns * columns - len(slices))
+    rows = [np.concatenate(slices[r * columns : (r + 1) * columns], axis=1) for r in range(columns)]
+    cv2.imwrite(str(folder / f"{name}.png"), to_uint8(np.concatenate(rows, axis=0)[::-1])[..., ::-1])
+
+
+def write_fit_log(folder: Path, log: list[dict]) -> None:
+    """log.jsonl and loss.png of a fit into ``folder``."""
+    write_log(folder / LOG_JSONL, log)
+    engine.plot_loss(log, folder / LOSS_PNG)
