@@ -16,7 +16,6 @@ value and what is allowed.
 
 from __future__ import annotations
 
-import argparse
 import ast
 import dataclasses
 import functools
@@ -24,6 +23,7 @@ import inspect
 import json
 import textwrap
 import tomllib
+import types
 import typing
 from dataclasses import dataclass
 from pathlib import Path
@@ -76,17 +76,20 @@ def field_docs(cls: type) -> dict[str, str]:
     return docs
 
 
-def _describe_type(hint: Any) -> str:
+def describe_type(hint: Any) -> str:
+    """A type for people: "int in [1, inf]", "one of 'l2', 'dual'", "list of float"."""
     origin = typing.get_origin(hint)
+    if origin in (typing.Union, types.UnionType):
+        return " or ".join("none" if a is type(None) else describe_type(a) for a in typing.get_args(hint))
     if origin is Annotated:
         base, *extra = typing.get_args(hint)
         ranges = [e.describe() for e in extra if isinstance(e, Range)]
-        return _describe_type(base) + (f" in {ranges[0]}" if ranges else "")
+        return describe_type(base) + (f" in {ranges[0]}" if ranges else "")
     if origin is Literal:
         return "one of " + ", ".join(repr(a) for a in typing.get_args(hint))
     if origin in (list, tuple):
         args = [a for a in typing.get_args(hint) if a is not Ellipsis]
-        return f"list of {_describe_type(args[0])}" if args else "list"
+        return f"list of {describe_type(args[0])}" if args else "list"
     return getattr(hint, "__name__", str(hint))
 
 
@@ -112,7 +115,7 @@ def _coerce(key: str, value: Any, hint: Any) -> Any:
         return value
     if origin in (list, tuple):
         if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{key} = {value!r} has the wrong type: expected {_describe_type(hint)}")
+            raise ConfigError(f"{key} = {value!r} has the wrong type: expected {describe_type(hint)}")
         args = typing.get_args(hint)
         if origin is tuple and args and args[-1] is not Ellipsis:
             if len(value) != len(args):
@@ -121,6 +124,12 @@ def _coerce(key: str, value: Any, hint: Any) -> Any:
         item = args[0] if args else Any
         items = [_coerce(f"{key}[{i}]", v, item) for i, v in enumerate(value)]
         return tuple(items) if origin is tuple else items
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in typing.get_args(hint):
+            return None
+        return _coerce(key, value, next(a for a in typing.get_args(hint) if a is not type(None)))
+    if isinstance(hint, type) and dataclasses.is_dataclass(hint) and isinstance(value, hint):
+        return value
     if hint is Any:
         return value
     if hint is float:
@@ -267,7 +276,7 @@ def describe_schema(schema: Mapping[str, type], config: Config | None = None) ->
         lines.append(f"[{name}]  {inspect.cleandoc(cls.__doc__ or '').splitlines()[0]}")
         for f in dataclasses.fields(cls):
             value = getattr(config[name] if config else cls(), f.name)
-            lines.append(f"  {f.name} = {value!r}    ({_describe_type(hints[f.name])})")
+            lines.append(f"  {f.name} = {value!r}    ({describe_type(hints[f.name])})")
             for doc_line in docs.get(f.name, "(undocumented)").splitlines():
                 lines.append(f"      {doc_line}")
         lines.append("")
@@ -294,46 +303,18 @@ def toml_section(name: str, section: Any, documented: bool = True, commented: bo
     for f in dataclasses.fields(cls):
         if documented:
             lines += [f"# {line}" for line in docs.get(f.name, "").splitlines()]
-            lines.append(f"# ({_describe_type(hints[f.name])})")
+            lines.append(f"# ({describe_type(hints[f.name])})")
         lines.append(f"{prefix}{f.name} = {toml_value(getattr(section, f.name))}")
     return lines
 
 
-def add_dataclass_arguments(parser: Any, cls: type) -> None:
-    """Add one ``--field-name`` option per field of ``cls``, documented by its docstring."""
-    hints = typing.get_type_hints(cls, include_extras=True)
-    docs = field_docs(cls)
-    defaults = cls()
-    for f in dataclasses.fields(cls):
-        hint, default = hints[f.name], getattr(defaults, f.name)
-        option = "--" + f.name.replace("_", "-")
-        help_text = f"{docs.get(f.name, '')} ({_describe_type(hint)}; default {default!r})"
-        if isinstance(default, tuple):
-            parser.add_argument(option, dest=f.name, nargs="+", type=float, metavar="X", help=help_text)
-        elif isinstance(default, bool):
-            parser.add_argument(option, dest=f.name, action=argparse.BooleanOptionalAction, help=help_text)
-        else:
-            parser.add_argument(option, dest=f.name, type=type(default), help=help_text)
-
-
-def dataclass_from_arguments(cls: type, args: Any, name: str) -> Any:
-    """Build ``cls`` from parsed options, validating them like config values."""
-    given = {
-        f.name: getattr(args, f.name)
-        for f in dataclasses.fields(cls)
-        if getattr(args, f.name) is not None
-    }
-    return build_section(name, cls, given)
-
-
 __all__ = [
     "Config",
-    "add_dataclass_arguments",
-    "dataclass_from_arguments",
     "ConfigError",
     "Range",
     "build_section",
     "describe_schema",
+    "describe_type",
     "field_docs",
     "load_config",
     "parse_override",

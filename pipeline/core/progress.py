@@ -18,6 +18,11 @@ def set_enabled(enabled: bool) -> None:
     _enabled = enabled
 
 
+def is_enabled() -> bool:
+    """False under ``--quiet``: only warnings and errors are shown."""
+    return _enabled
+
+
 def track(items: Iterable[T], description: str, total: int | None = None) -> Iterator[T]:
     """Iterate ``items`` with a progress bar on stderr."""
     if not _enabled or not console.is_terminal:

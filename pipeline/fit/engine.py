@@ -42,11 +42,12 @@ from __future__ import annotations
 import time
 from pathlib import Path
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 
 from pipeline import logger
+from pipeline.core.config import Range
 from pipeline.core.errors import PipelineError
 
 
@@ -84,18 +85,32 @@ class FitView:
 class FitSettings:
     """How the loop runs (the fit stages' config sections hold these fields too)."""
 
-    iterations: int = 100
-    batch: int = 2
-    spp: int = 16
+    iterations: Annotated[int, Range(1, None)] = 100
+    """Most Adam steps."""
+    batch: Annotated[int, Range(1, None)] = 2
+    """Views rendered per step; their gradients add up before the step."""
+    spp: Annotated[int, Range(1, None)] = 16
+    """Samples per pixel of each training render."""
     loss: Literal["l2", "dual"] = "dual"
-    learning_rate_scale: float = 1.0
-    validate_every: int = 10
-    validation_spp: int = 64
-    tolerance: float = 1e-3
-    window: int = 20
-    time_budget_s: float = 0.0
+    """l2: mean squared error; dual: Deng et al.'s dual-buffer estimator (two renders,
+    unbiased by Monte Carlo noise; twice the cost per view)."""
+    learning_rate_scale: Annotated[float, Range(0.0, None, exclusive_lo=True)] = 1.0
+    """Multiplies every parameter's learning rate."""
+    validate_every: Annotated[int, Range(1, None)] = 10
+    """Iterations between renders of the held-out views."""
+    validation_spp: Annotated[int, Range(1, None)] = 64
+    """Samples per pixel of the held-out renders."""
+    tolerance: Annotated[float, Range(0.0, None)] = 1e-3
+    """Stop when the mean loss over ``window`` iterations improves by less than this
+    (relative); 0: never (run ``iterations``)."""
+    window: Annotated[int, Range(1, None)] = 20
+    """Iterations per window of the tolerance test."""
+    time_budget_s: Annotated[float, Range(0.0, None)] = 0.0
+    """Stop after this many seconds of fitting; 0 for no limit."""
     exposure: bool = False
+    """Fit one exposure scale per view (photos shot with automatic exposure)."""
     seed: int = 0
+    """Seed of the batch order and the renders."""
 
 
 @dataclass

@@ -4,13 +4,14 @@ import pytest
 from toy_stages import RUNS, make_capture, make_stages
 
 from pipeline import cli
+from pipeline.cli import registry
 from pipeline.core import config
 
 
 @pytest.fixture
 def toy_cli(monkeypatch, presets_dir):
     """The real CLI over the test-only stage graph and presets."""
-    monkeypatch.setattr(cli, "registered_stages", make_stages)
+    monkeypatch.setattr(registry, "registered_stages", make_stages)
     monkeypatch.setattr(config, "PRESETS_DIR", presets_dir)
     RUNS.clear()
     return cli.main

@@ -1,0 +1,174 @@
+"""Commands over a capture's stage DAG: ``run``, ``status``, ``clean``, ``config``."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from dataclasses import dataclass, field
+from typing import Annotated
+
+from rich.table import Table
+
+from pipeline import logger
+from pipeline.cli import registry
+from pipeline.cli.options import Arg
+from pipeline.cli.registry import ConfigLayers, capture_dir, command
+from pipeline.core import progress
+from pipeline.core.cache import StageCache
+from pipeline.core.config import describe_schema, load_config
+from pipeline.core.hashing import tree_size
+from pipeline.core.runner import PlannedStage, Runner, Selection, summary
+from pipeline.core.sections import schema
+
+Capture = Annotated[str, Arg(positional=True)]
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """Run the stage DAG on a capture, reusing cached results."""
+
+    capture: Capture
+    """Capture folder (images/, capture.toml, ...)."""
+    config: ConfigLayers = field(default_factory=ConfigLayers)
+    """Preset and overrides."""
+    start: Annotated[str | None, Arg(flag="--from", metavar="STAGE")] = None
+    """Rerun STAGE and everything downstream; upstream must be cached."""
+    until: Annotated[str | None, Arg(metavar="STAGE")] = None
+    """Stop after STAGE."""
+    only: Annotated[str | None, Arg(metavar="STAGE")] = None
+    """Rerun just STAGE; upstream must be cached."""
+    force: Annotated[tuple[str, ...], Arg(repeat=True, metavar="STAGE|all")] = ()
+    """Recompute STAGE (and what is downstream) even if cached."""
+    dry_run: bool = False
+    """List each stage as cached or to run, with the reason."""
+    json: bool = False
+    """Print a machine-readable summary."""
+
+
+@dataclass(frozen=True)
+class StatusOptions:
+    """Stages, cache keys, timings and cache size."""
+
+    capture: Capture
+    """Capture folder."""
+    config: ConfigLayers = field(default_factory=ConfigLayers)
+    """Preset and overrides."""
+    json: bool = False
+    """Print a machine-readable summary."""
+
+
+@dataclass(frozen=True)
+class CleanOptions:
+    """Delete cached results (never output/)."""
+
+    capture: Capture
+    """Capture folder."""
+    keep_latest: bool = False
+    """Keep the newest result of each stage."""
+
+
+@dataclass(frozen=True)
+class ConfigOptions:
+    """Show every setting with its value and documentation."""
+
+    capture: Annotated[str | None, Arg(positional=True)] = None
+    """Include this capture's capture.toml."""
+    config: ConfigLayers = field(default_factory=ConfigLayers)
+    """Preset and overrides."""
+
+
+def make_runner(capture: str, layers: ConfigLayers) -> Runner:
+    folder = capture_dir(capture)
+    stages = registry.registered_stages()
+    return Runner(folder, stages, load_config(schema(stages), folder, layers.preset, layers.set))
+
+
+def _describe(item: PlannedStage) -> str:
+    took = f"{item.seconds:7.1f} s" if item.seconds is not None else " " * 9
+    return f"  {item.action:8s} {item.stage.name:14s} {took}  {item.key[:10]}  {item.reason}"
+
+
+@command("run", RunOptions, "run the stage DAG on a capture, reusing cached results")
+def run(options: RunOptions) -> int:
+    runner = make_runner(options.capture, options.config)
+    selection = Selection(start=options.start, until=options.until, only=options.only, force=options.force)
+    if options.dry_run:
+        plan = runner.plan(selection)
+        for item in plan:
+            print(_describe(item))
+        if options.json:
+            print(json.dumps({"dry_run": True, "stages": [summary(p) for p in plan]}, indent=2))
+        return 0
+    started = time.time()
+
+    def report(item: PlannedStage) -> None:
+        if progress.is_enabled():
+            progress.console.print(_describe(item), highlight=False)
+
+    plan = runner.run(selection, on_stage_done=report)
+    logger.info(
+        "%d stage(s) ran, %d cached, in %.1f s; results in %s",
+        sum(p.action == "run" for p in plan),
+        sum(p.action == "cached" for p in plan),
+        time.time() - started,
+        runner.capture_dir / "output",
+    )
+    if options.json:
+        print(json.dumps({"stages": [summary(p) for p in plan]}, indent=2))
+    return 0
+
+
+@command("status", StatusOptions, "stages, cache keys, timings and cache size")
+def status(options: StatusOptions) -> int:
+    runner = make_runner(options.capture, options.config)
+    plan = {p.stage.name: p for p in runner.plan()}
+    cache = runner.cache
+    table = Table("stage", "current config", "key", "finished", "seconds", "entries", "size")
+    rows = []
+    for stage in runner.stages:
+        entries = cache.entries(stage.name)
+        item = plan[stage.name]
+        state = {"cached": "cached", "run": "to run", "disabled": "disabled"}[item.action]
+        shown = item.entry or (entries[-1] if entries else None)
+        when = time.strftime("%Y-%m-%d %H:%M", time.localtime(shown.finished)) if shown else "-"
+        seconds = shown.status["seconds"] if shown else None
+        size = sum(tree_size(e.path) for e in entries)
+        table.add_row(stage.name, state, item.key[:10], when, "-" if seconds is None else f"{seconds:.1f}",
+                      str(len(entries)), f"{size / 1e6:.1f} MB")
+        rows.append({"stage": stage.name, "state": state, "key": item.key, "finished": when, "seconds": seconds,
+                     "entries": len(entries), "bytes": size})
+    total = tree_size(cache.state_dir) if cache.state_dir.is_dir() else 0
+    if options.json:
+        print(json.dumps({"stages": rows, "cache_bytes": total}, indent=2))
+    else:
+        progress.console.print(table)
+        progress.console.print(f"cache: {total / 1e6:.1f} MB in {cache.state_dir}")
+    return 0
+
+
+@command("clean", CleanOptions, "delete cached results (never output/)")
+def clean(options: CleanOptions) -> int:
+    cache = StageCache(capture_dir(options.capture))
+    before = tree_size(cache.state_dir) if cache.state_dir.is_dir() else 0
+    for leftover in cache.leftovers():
+        shutil.rmtree(leftover)
+    if options.keep_latest:
+        for stage in cache.stages():
+            for entry in cache.entries(stage)[:-1]:
+                cache.remove(entry)
+    elif cache.root.is_dir():
+        shutil.rmtree(cache.root)
+    after = tree_size(cache.state_dir) if cache.state_dir.is_dir() else 0
+    logger.info("freed %.1f MB in %s", (before - after) / 1e6, cache.state_dir)
+    return 0
+
+
+@command("config", ConfigOptions, "show every setting with its value and documentation")
+def config(options: ConfigOptions) -> int:
+    stages = registry.registered_stages()
+    capture = capture_dir(options.capture) if options.capture else None
+    loaded = load_config(schema(stages), capture, options.config.preset, options.config.set)
+    print(f"# preset {loaded.preset}; layers: {', '.join(loaded.sources)}\n")
+    print(describe_schema(schema(stages), loaded))
+    return 0
