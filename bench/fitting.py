@@ -36,22 +36,36 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
-
 from report import ROOT, run_stages, truth_in_reconstruction, write_section
 
-from pipeline.render import mitsuba_variant, stability  # noqa: E402
-from pipeline.formats.cameras import read_cameras  # noqa: E402
-from pipeline.core.config import load_config  # noqa: E402
-from pipeline.core.errors import PipelineError  # noqa: E402
-from pipeline.synthetic.score import (read_linear_image, score_capture, score_heldout, score_material,  # noqa: E402
-                            score_mesh, score_texture, shading_normals, true_surface)
-from pipeline.core.sections import schema  # noqa: E402
-from pipeline.core.stage import StageInputs  # noqa: E402
-from stages import STAGES, fit_material, fit_texture, scene, uv  # noqa: E402
+from pipeline.core.config import load_config
+from pipeline.core.errors import PipelineError
+from pipeline.core.sections import schema
+from pipeline.core.stage import StageInputs
+from pipeline.formats.cameras import read_cameras
+from pipeline.render import mitsuba_variant, stability
+from pipeline.synthetic.score import (
+    read_linear_image,
+    score_capture,
+    score_heldout,
+    score_material,
+    score_mesh,
+    score_texture,
+    shading_normals,
+    true_surface,
+)
+from stages import STAGES, fit_material, fit_texture, scene, uv
 
 # (kind, target) per scored parameter, from issue 6's point 7
-TARGETS = {"base_color": ("abs", 0.03), "albedo": ("abs", 0.03), "roughness": ("abs", 0.05), "alpha": ("abs", 0.05),
-           "eta": ("abs", 0.05), "sigma_t": ("rel", 0.15), "spec_trans": ("abs", None)}  # fmt: skip
+TARGETS = {
+    "base_color": ("abs", 0.03),
+    "albedo": ("abs", 0.03),
+    "roughness": ("abs", 0.05),
+    "alpha": ("abs", 0.05),
+    "eta": ("abs", 0.05),
+    "sigma_t": ("rel", 0.15),
+    "spec_trans": ("abs", None),
+}
 PSNR_TARGET = 30.0
 FRONT_STAGES = ("calibrate", "undistort", "masks", "sfm", "mesh", "cleanup", "uv")
 FIT_STAGES = ("scene", "fit_material", "fit_texture", "fit_geometry", "export")
@@ -59,15 +73,20 @@ FIT_STAGES = ("scene", "fit_material", "fit_texture", "fit_geometry", "export")
 TRADE = ((64, 4, "dual"), (64, 16, "dual"), (128, 4, "dual"), (128, 16, "dual"), (128, 16, "l2"), (256, 16, "dual"))
 # (max_resolution, smoothness, max_size) of fit_texture; the standard preset is (128, 0.05, 128)
 TEXTURE_TRADE = ((64, 0.05, 128), (128, 0.05, 128), (256, 0.05, 128), (256, 0.01, 128), (256, 0.05, 192))
-EXTRA_PROBES = {"principled": [("eta", 1.0, {"eta": (1.0, 3.0)})],
-                "volumetric": [("eta", 1.0, {"eta": (1.0, 3.0)}), ("albedo", 0.0, {"albedo": (0.0, 1.0)}),
-                               ("sigma_t", 1e4, None)]}  # fmt: skip
+EXTRA_PROBES = {
+    "principled": [("eta", 1.0, {"eta": (1.0, 3.0)})],
+    "volumetric": [("eta", 1.0, {"eta": (1.0, 3.0)}), ("albedo", 0.0, {"albedo": (0.0, 1.0)}), ("sigma_t", 1e4, None)],
+}
 
 
 def _copy_sample(name: str, work: Path) -> Path:
     if (work / name).is_dir():
         return work / name
-    return Path(shutil.copytree(ROOT / "sample_captures" / name, work / name, ignore=shutil.ignore_patterns(".pipeline", "output")))
+    return Path(
+        shutil.copytree(
+            ROOT / "sample_captures" / name, work / name, ignore=shutil.ignore_patterns(".pipeline", "output")
+        )
+    )
 
 
 def _error_cells(material: dict) -> dict[str, tuple[float, str]]:
@@ -95,8 +114,10 @@ def _met(name: str, error: float) -> str:
 def _texture_cells(texture: dict, constants: dict, psnr_db: float) -> tuple[str, str]:
     """Table cells of a fit_texture result: its texture error (mean, p90; largest
     channel), and the refitted constants' errors with the held-out PSNR."""
-    return (f"{max(texture['mean_abs_error']):.3f} ({max(texture['p90_abs_error']):.3f})",
-            " | ".join(constants[n][1] for n in ("roughness", "spec_trans", "eta")) + f" | {psnr_db:.1f} dB")
+    return (
+        f"{max(texture['mean_abs_error']):.3f} ({max(texture['p90_abs_error']):.3f})",
+        " | ".join(constants[n][1] for n in ("roughness", "spec_trans", "eta")) + f" | {psnr_db:.1f} dB",
+    )
 
 
 def extremes_part() -> None:
@@ -110,24 +131,31 @@ def extremes_part() -> None:
             for name, value, bounds in probes:
                 r = stability.probe(scene_file, reference, model, name, value, spp=16, steps=10, bounds=bounds)
                 edge = " (bounds widened to reach it)" if bounds else ""
-                rows.append(f"| {model} | {name} = {value:g}{edge} | {'yes' if r.render_finite else '**no**'} | "
-                            f"{r.gradient:.3g} | {r.after:.4g} | {'yes' if r.steps_finite else '**no**'} | "
-                            f"{'yes' if r.in_bounds else '**no**'} | {'yes' if r.toward_reference else 'no'} | "
-                            f"{r.seconds_per_step:.2f} s |")  # fmt: skip
-    print(write_section("fitting-extremes", [
-        "### Numerical stability at the extremes",
-        "",
-        "`pipeline.render.stability` on a sphere 10 cm across (64x48 px, 16 spp, the model's own",
-        "integrator): one parameter at the value shown, the others at their initial values;",
-        "the gradient of an L2 loss against a render at the initial values; then 10 Adam",
-        "steps of `pipeline.fit.engine` with every parameter free. Reproduce:",
-        "`.venv/bin/python bench/fitting.py --parts extremes`.",
-        "",
-        "| model | start | render finite | gradient | value after 10 steps | steps finite | in bounds "
-        "| moved toward the reference | time per step |",
-        "|---|---|---|---|---|---|---|---|---|",
-        *rows,
-    ]))  # fmt: skip
+                rows.append(
+                    f"| {model} | {name} = {value:g}{edge} | {'yes' if r.render_finite else '**no**'} | "
+                    f"{r.gradient:.3g} | {r.after:.4g} | {'yes' if r.steps_finite else '**no**'} | "
+                    f"{'yes' if r.in_bounds else '**no**'} | {'yes' if r.toward_reference else 'no'} | "
+                    f"{r.seconds_per_step:.2f} s |"
+                )
+    print(
+        write_section(
+            "fitting-extremes",
+            [
+                "### Numerical stability at the extremes",
+                "",
+                "`pipeline.render.stability` on a sphere 10 cm across (64x48 px, 16 spp, the model's own",
+                "integrator): one parameter at the value shown, the others at their initial values;",
+                "the gradient of an L2 loss against a render at the initial values; then 10 Adam",
+                "steps of `pipeline.fit.engine` with every parameter free. Reproduce:",
+                "`.venv/bin/python bench/fitting.py --parts extremes`.",
+                "",
+                "| model | start | render finite | gradient | value after 10 steps | steps finite | in bounds "
+                "| moved toward the reference | time per step |",
+                "|---|---|---|---|---|---|---|---|---|",
+                *rows,
+            ],
+        )
+    )
 
 
 def accuracy_part(work: Path, samples: list[str]) -> None:
@@ -141,68 +169,93 @@ def accuracy_part(work: Path, samples: list[str]) -> None:
             continue
         report = score_capture(capture)
         (work / f"{name}.score.json").write_text(json.dumps(report, indent=1))
-        for part, stage in (("material", "fit_material"), ("material_fit_texture", "fit_texture"),
-                            ("material_fit_geometry", "fit_geometry")):  # fmt: skip
+        for part, stage in (
+            ("material", "fit_material"),
+            ("material_fit_texture", "fit_texture"),
+            ("material_fit_geometry", "fit_geometry"),
+        ):
             for parameter, (error, text) in _error_cells(report.get(part, {})).items():
-                rows.append(f"| {name} ({report[part]['model']}) | {parameter} after {stage} | {text} | "
-                            f"{_target_text(parameter)} | {_met(parameter, error)} |")  # fmt: skip
+                rows.append(
+                    f"| {name} ({report[part]['model']}) | {parameter} after {stage} | {text} | "
+                    f"{_target_text(parameter)} | {_met(parameter, error)} |"
+                )
         for part, stage in (("texture", "fit_texture"), ("texture_fit_geometry", "fit_geometry")):
             if texture_score := report.get(part):
                 mean, p90 = max(texture_score["mean_abs_error"]), max(texture_score["p90_abs_error"])
-                rows.append(f"| {name} | base_color texture after {stage}, mean abs error (p90) | {mean:.3f} ({p90:.3f}); "
-                            f"over the seen {texture_score['seen_fraction']:.0%} of the surface "
-                            f"{max(texture_score['seen_mean_abs_error']):.3f}; over the "
-                            f"{texture_score['well_seen_fraction']:.0%} at least {texture_score['well_seen_views']} "
-                            f"training photos see {max(texture_score['well_seen_mean_abs_error']):.3f}; the truth baked into the atlas "
-                            f"{max(texture_score['bake_mean_abs_error']):.3f}; the constant "
-                            f"{max(texture_score['constant_mean_abs_error']):.3f} | 0.03 | {_met('base_color', mean)} |")  # fmt: skip
-        for part, label in (("heldout", "fit_material"), ("heldout_textured", "fit_texture"), ("heldout_geometry", "fit_geometry")):
+                rows.append(
+                    f"| {name} | base_color texture after {stage}, mean abs error (p90) | {mean:.3f} ({p90:.3f}); "
+                    f"over the seen {texture_score['seen_fraction']:.0%} of the surface "
+                    f"{max(texture_score['seen_mean_abs_error']):.3f}; over the "
+                    f"{texture_score['well_seen_fraction']:.0%} at least {texture_score['well_seen_views']} "
+                    f"training photos see {max(texture_score['well_seen_mean_abs_error']):.3f}; the truth baked into the atlas "
+                    f"{max(texture_score['bake_mean_abs_error']):.3f}; the constant "
+                    f"{max(texture_score['constant_mean_abs_error']):.3f} | 0.03 | {_met('base_color', mean)} |"
+                )
+        for part, label in (
+            ("heldout", "fit_material"),
+            ("heldout_textured", "fit_texture"),
+            ("heldout_geometry", "fit_geometry"),
+        ):
             psnr = report[part]["psnr_db_mean"]
-            rows.append(f"| {name} | held-out PSNR after {label} | {psnr:.1f} dB | {PSNR_TARGET:.0f} dB | "
-                        f"{'yes' if psnr >= PSNR_TARGET else '**no**'} |")  # fmt: skip
+            rows.append(
+                f"| {name} | held-out PSNR after {label} | {psnr:.1f} dB | {PSNR_TARGET:.0f} dB | "
+                f"{'yes' if psnr >= PSNR_TARGET else '**no**'} |"
+            )
         texture = json.loads((outputs["fit_texture"]["textured_dir"] / "params.json").read_text())
         geometry = json.loads((outputs["fit_geometry"]["geometry_dir"] / "params.json").read_text())
         fitted = json.loads(outputs["fit_material"]["params"].read_text())
-        rows.append(f"| {name} | fit_material | {fitted['iterations']} iterations, best at {fitted['best_iteration']} "
-                    f"| | |")  # fmt: skip
+        rows.append(
+            f"| {name} | fit_material | {fitted['iterations']} iterations, best at {fitted['best_iteration']} | | |"
+        )
         rows.append(f"| {name} | fit_texture | {'kept' if texture['kept'] else 'not kept'}: {texture['reason']} | | |")
         for index, done in enumerate(geometry["rounds"]):
-            passes = "; ".join(f"{kind} {p['validation_start']:.3g} -> {p['validation']:.3g}" for kind, p in done.items())
-            rows.append(f"| {name} | fit_geometry ({geometry['loss']} loss) round {index + 1}, held-out error | "
-                        f"{passes} | | |")  # fmt: skip
-        timing.append(f"| {name} | {sum(seconds[s] for s in FRONT_STAGES):.0f} s | "
-                      + " | ".join(f"{seconds[s]:.0f} s" for s in FIT_STAGES) + f" | {sum(seconds.values()):.0f} s |")  # fmt: skip
-    print(write_section("fitting-accuracy", [
-        "## Fitting (issue 6)",
-        "",
-        "### Accuracy and time on the standard preset",
-        "",
-        f"`pipeline run` end to end on copies of {', '.join(samples)}, then",
-        "`pipeline score`. Colour errors are the largest over the channels; the principled",
-        "bird's base colour is a texture, and fit_material's constant (and fit_texture's",
-        "texture mean) is scored against the texture's mean. fit_texture refits the other",
-        "constants, alone and then along with the texture; fit_geometry alternates a",
-        "geometry pass (material frozen) with a material pass (constants and texture refitted",
-        "on the refined mesh), twice. Held-out PSNR is over the",
-        "specimen's (eroded) mask on the photos fit_material holds out. Reproduce: `.venv/bin/python bench/fitting.py --parts accuracy`.",
-        "",
-        "A texture is read as Mitsuba reads it (bilinear) at the point of the fitted mesh",
-        "nearest each point sampled on the true surface; for scale the score also gives the",
-        "error over the surface some training photo sees, and that of the truth baked into",
-        "the same atlas at the same resolution: what a perfect fit on this mesh and these UVs",
-        "would score, set by the mesh's error at the blotches' edges and the texel size (0.035",
-        "at 512 texels a side, measured once: below 0.03 needs a better mesh, not a better fit).",
-        "",
-        "| capture | measurement | result | target | met |",
-        "|---|---|---|---|---|",
-        *rows,
-        "",
-        "Wall time per stage (2 cores, no GPU; llvm_ad_rgb):",
-        "",
-        "| capture | calibrate to uv | scene | fit_material | fit_texture | fit_geometry | export | total |",
-        "|---|---|---|---|---|---|---|---|",
-        *timing,
-    ]))  # fmt: skip
+            passes = "; ".join(
+                f"{kind} {p['validation_start']:.3g} -> {p['validation']:.3g}" for kind, p in done.items()
+            )
+            rows.append(
+                f"| {name} | fit_geometry ({geometry['loss']} loss) round {index + 1}, held-out error | {passes} | | |"
+            )
+        timing.append(
+            f"| {name} | {sum(seconds[s] for s in FRONT_STAGES):.0f} s | "
+            + " | ".join(f"{seconds[s]:.0f} s" for s in FIT_STAGES)
+            + f" | {sum(seconds.values()):.0f} s |"
+        )
+    print(
+        write_section(
+            "fitting-accuracy",
+            [
+                "## Fitting (issue 6)",
+                "",
+                "### Accuracy and time on the standard preset",
+                "",
+                f"`pipeline run` end to end on copies of {', '.join(samples)}, then",
+                "`pipeline score`. Colour errors are the largest over the channels; the principled",
+                "bird's base colour is a texture, and fit_material's constant (and fit_texture's",
+                "texture mean) is scored against the texture's mean. fit_texture refits the other",
+                "constants, alone and then along with the texture; fit_geometry alternates a",
+                "geometry pass (material frozen) with a material pass (constants and texture refitted",
+                "on the refined mesh), twice. Held-out PSNR is over the",
+                "specimen's (eroded) mask on the photos fit_material holds out. Reproduce: `.venv/bin/python bench/fitting.py --parts accuracy`.",
+                "",
+                "A texture is read as Mitsuba reads it (bilinear) at the point of the fitted mesh",
+                "nearest each point sampled on the true surface; for scale the score also gives the",
+                "error over the surface some training photo sees, and that of the truth baked into",
+                "the same atlas at the same resolution: what a perfect fit on this mesh and these UVs",
+                "would score, set by the mesh's error at the blotches' edges and the texel size (0.035",
+                "at 512 texels a side, measured once: below 0.03 needs a better mesh, not a better fit).",
+                "",
+                "| capture | measurement | result | target | met |",
+                "|---|---|---|---|---|",
+                *rows,
+                "",
+                "Wall time per stage (2 cores, no GPU; llvm_ad_rgb):",
+                "",
+                "| capture | calibrate to uv | scene | fit_material | fit_texture | fit_geometry | export | total |",
+                "|---|---|---|---|---|---|---|---|",
+                *timing,
+            ],
+        )
+    )
 
 
 def _normal_error(mesh_ply: Path, truth: trimesh.Trimesh) -> float:
@@ -222,7 +275,9 @@ def _shading_normals_towards_truth(mesh_ply: Path, truth: trimesh.Trimesh, weigh
     nearest = cKDTree(samples).query(vertices)[1]
     true_normals = shading_normals(truth, samples[nearest], faces[nearest])
     normals = (1 - weight) * np.array(params["vertex_normals"]).reshape(-1, 3) + weight * true_normals
-    params["vertex_normals"] = mi.Float((normals / np.linalg.norm(normals, axis=1, keepdims=True)).astype(np.float32).ravel())
+    params["vertex_normals"] = mi.Float(
+        (normals / np.linalg.norm(normals, axis=1, keepdims=True)).astype(np.float32).ravel()
+    )
     params.update()
     mesh.write_ply(str(mesh_ply))
 
@@ -240,9 +295,12 @@ def oracle_part(work: Path) -> None:
     hull_ply = outputs["scene"]["scene_dir"] / "mesh.ply"
     rows = [("visual hull (the pipeline)", _normal_error(hull_ply, truth), hull, outputs["fit_material"]["heldout"])]
     shutil.rmtree(work / "oracle", ignore_errors=True)
-    for label, name, weight in (("visual hull, normals halfway to the true surface's", "normals-half", 0.5),
-                                ("visual hull, normals three quarters of the way", "normals-three-quarters", 0.75),
-                                ("visual hull, the true surface's normals", "normals", 1.0), ("true mesh", "mesh", None)):  # fmt: skip
+    for label, name, weight in (
+        ("visual hull, normals halfway to the true surface's", "normals-half", 0.5),
+        ("visual hull, normals three quarters of the way", "normals-three-quarters", 0.75),
+        ("visual hull, the true surface's normals", "normals", 1.0),
+        ("true mesh", "mesh", None),
+    ):
         scene_dir = work / "oracle" / name / "scene"
         shutil.copytree(outputs["scene"]["scene_dir"], scene_dir)
         if weight is None:
@@ -250,33 +308,45 @@ def oracle_part(work: Path) -> None:
         else:
             _shading_normals_towards_truth(scene_dir / "mesh.ply", truth, weight)
         normal_error = _normal_error(scene_dir / "mesh.ply", truth)
-        inputs = StageInputs(capture, (), {**outputs, "scene": {**outputs["scene"], "scene_dir": scene_dir}},
-                             {"mitsuba": config["mitsuba"]})  # fmt: skip
+        inputs = StageInputs(
+            capture,
+            (),
+            {**outputs, "scene": {**outputs["scene"], "scene_dir": scene_dir}},
+            {"mitsuba": config["mitsuba"]},
+        )
         (work / "oracle" / name / "out").mkdir()
         result = fit_material.main(config["fit_material"], inputs, work / "oracle" / name / "out")
         rows.append((label, normal_error, json.loads(result.outputs["params"].read_text()), result.outputs["heldout"]))
     lines = []
     for label, normal_error, params, heldout in rows:
         cells = _error_cells(score_material(params, truth_material))
-        lines.append(f"| {label} | {normal_error:.1f} deg | " + " | ".join(cells[n][1] for n in ("alpha", "eta", "albedo", "sigma_t"))
-                     + f" | {score_heldout(heldout)['psnr_db_mean']:.1f} dB | {params['iterations']} |")  # fmt: skip
-    print(write_section("fitting-oracle", [
-        "### The mesh's share of the volumetric error",
-        "",
-        "fit_material (standard preset) on bird_volumetric five times: on the pipeline's",
-        "mesh (visual hull, cleaned); on the same mesh with each vertex's shading normal",
-        "moved half, three quarters and all of the way to the normal of the true surface's",
-        "nearest point (positions unchanged; Mitsuba interpolates these normals); and on the",
-        "true mesh. Normal error: `pipeline score`'s shading normal error, the mean angle",
-        "between the normal Mitsuba shades with and the true surface's. The truth is moved into the reconstruction's frame by the camera",
-        "alignment; same photos, poses, masks, held-out views and settings. Reproduce:",
-        "`.venv/bin/python bench/fitting.py --parts accuracy,oracle` (the oracle reuses the",
-        "accuracy part's stages).",
-        "",
-        "| mesh | normal error | alpha error | eta error | albedo error | sigma_t error | held-out PSNR | iterations |",
-        "|---|---|---|---|---|---|---|---|",
-        *lines,
-    ]))  # fmt: skip
+        lines.append(
+            f"| {label} | {normal_error:.1f} deg | "
+            + " | ".join(cells[n][1] for n in ("alpha", "eta", "albedo", "sigma_t"))
+            + f" | {score_heldout(heldout)['psnr_db_mean']:.1f} dB | {params['iterations']} |"
+        )
+    print(
+        write_section(
+            "fitting-oracle",
+            [
+                "### The mesh's share of the volumetric error",
+                "",
+                "fit_material (standard preset) on bird_volumetric five times: on the pipeline's",
+                "mesh (visual hull, cleaned); on the same mesh with each vertex's shading normal",
+                "moved half, three quarters and all of the way to the normal of the true surface's",
+                "nearest point (positions unchanged; Mitsuba interpolates these normals); and on the",
+                "true mesh. Normal error: `pipeline score`'s shading normal error, the mean angle",
+                "between the normal Mitsuba shades with and the true surface's. The truth is moved into the reconstruction's frame by the camera",
+                "alignment; same photos, poses, masks, held-out views and settings. Reproduce:",
+                "`.venv/bin/python bench/fitting.py --parts accuracy,oracle` (the oracle reuses the",
+                "accuracy part's stages).",
+                "",
+                "| mesh | normal error | alpha error | eta error | albedo error | sigma_t error | held-out PSNR | iterations |",
+                "|---|---|---|---|---|---|---|---|",
+                *lines,
+            ],
+        )
+    )
 
 
 def texture_oracle_part(work: Path) -> None:
@@ -299,36 +369,55 @@ def texture_oracle_part(work: Path) -> None:
         upstream[name] = module.main(config[name], inputs, folder / name).outputs
     material = json.loads(outputs["fit_material"]["params"].read_text())
     truth_material = json.loads((capture / "ground_truth" / "material.json").read_text())
-    training = [(true_intrinsics, pose) for name, pose in sorted(true_poses.items()) if name not in material["held_out"]]
+    training = [
+        (true_intrinsics, pose) for name, pose in sorted(true_poses.items()) if name not in material["held_out"]
+    ]
     surface = true_surface(trimesh.load(capture / "ground_truth" / "mesh.ply", process=False), training)
     rows = []
     for label, textured_dir, fitted in (
         ("visual hull (the pipeline)", outputs["fit_texture"]["textured_dir"], material),
-        ("true mesh", upstream["fit_texture"]["textured_dir"], json.loads(upstream["fit_material"]["params"].read_text())),
-    ):  # fmt: skip
+        (
+            "true mesh",
+            upstream["fit_texture"]["textured_dir"],
+            json.loads(upstream["fit_material"]["params"].read_text()),
+        ),
+    ):
         textured = trimesh.load(textured_dir / "mesh.ply", process=False)
         textured.apply_transform(similarity.matrix())
-        score = score_texture(textured, read_linear_image(textured_dir / "base_color.exr"),
-                              np.asarray(fitted["params"]["base_color"]), surface)  # fmt: skip
+        score = score_texture(
+            textured,
+            read_linear_image(textured_dir / "base_color.exr"),
+            np.asarray(fitted["params"]["base_color"]),
+            surface,
+        )
         errors = _error_cells(score_material(json.loads((textured_dir / "params.json").read_text()), truth_material))
-        texture_cell, other_cells = _texture_cells(score, errors, score_heldout(textured_dir / "heldout")["psnr_db_mean"])
-        rows.append(f"| {label} | {texture_cell} | {max(score['seen_mean_abs_error']):.3f} | "
-                    f"{max(score['well_seen_mean_abs_error']):.3f} | "
-                    f"{max(score['bake_mean_abs_error']):.3f} | {other_cells} |")  # fmt: skip
-    print(write_section("fitting-texture-oracle", [
-        "### The mesh's share of the texture error",
-        "",
-        "fit_texture (standard preset, after the stages before it) on the bird, on the",
-        "pipeline's mesh and on the true mesh moved into the reconstruction's frame by the",
-        "camera alignment (unwrapped by the uv stage like the hull; same photos, poses, masks,",
-        "held-out views and settings). Texture errors as in the accuracy table (largest",
-        "channel), then the constants fit_texture refitted. Reproduce:",
-        "`.venv/bin/python bench/fitting.py --parts texture-oracle`.",
-        "",
-        "| mesh | texture error (p90) | over the seen surface | over the surface a third of the training photos see | truth baked into the atlas | roughness | spec_trans | eta | held-out PSNR |",
-        "|---|---|---|---|---|---|---|---|---|",
-        *rows,
-    ]))  # fmt: skip
+        texture_cell, other_cells = _texture_cells(
+            score, errors, score_heldout(textured_dir / "heldout")["psnr_db_mean"]
+        )
+        rows.append(
+            f"| {label} | {texture_cell} | {max(score['seen_mean_abs_error']):.3f} | "
+            f"{max(score['well_seen_mean_abs_error']):.3f} | "
+            f"{max(score['bake_mean_abs_error']):.3f} | {other_cells} |"
+        )
+    print(
+        write_section(
+            "fitting-texture-oracle",
+            [
+                "### The mesh's share of the texture error",
+                "",
+                "fit_texture (standard preset, after the stages before it) on the bird, on the",
+                "pipeline's mesh and on the true mesh moved into the reconstruction's frame by the",
+                "camera alignment (unwrapped by the uv stage like the hull; same photos, poses, masks,",
+                "held-out views and settings). Texture errors as in the accuracy table (largest",
+                "channel), then the constants fit_texture refitted. Reproduce:",
+                "`.venv/bin/python bench/fitting.py --parts texture-oracle`.",
+                "",
+                "| mesh | texture error (p90) | over the seen surface | over the surface a third of the training photos see | truth baked into the atlas | roughness | spec_trans | eta | held-out PSNR |",
+                "|---|---|---|---|---|---|---|---|---|",
+                *rows,
+            ],
+        )
+    )
 
 
 def trade_part(work: Path) -> None:
@@ -336,50 +425,69 @@ def trade_part(work: Path) -> None:
     truth = json.loads((capture / "ground_truth" / "material.json").read_text())
     rows = []
     for max_size, spp, loss in TRADE:
-        outputs, seconds = run_stages(capture, "fit_material", f"fit_material.max_size={max_size}",
-                                      f"fit_material.spp={spp}", f"fit_material.loss={loss}")  # fmt: skip
+        outputs, seconds = run_stages(
+            capture,
+            "fit_material",
+            f"fit_material.max_size={max_size}",
+            f"fit_material.spp={spp}",
+            f"fit_material.loss={loss}",
+        )
         params = json.loads(outputs["fit_material"]["params"].read_text())
         cells = _error_cells(score_material(params, truth))
         psnr = score_heldout(outputs["fit_material"]["heldout"])["psnr_db_mean"]
-        rows.append(f"| {max_size} | {spp} | {loss} | {seconds['fit_material']:.0f} s | "
-                    + " | ".join(cells[n][1] for n in ("base_color", "roughness", "spec_trans", "eta"))
-                    + f" | {psnr:.1f} dB |")  # fmt: skip
+        rows.append(
+            f"| {max_size} | {spp} | {loss} | {seconds['fit_material']:.0f} s | "
+            + " | ".join(cells[n][1] for n in ("base_color", "roughness", "spec_trans", "eta"))
+            + f" | {psnr:.1f} dB |"
+        )
     texture_rows = []
     for resolution, smoothness, max_size in TEXTURE_TRADE:
-        outputs, seconds = run_stages(capture, "fit_texture", f"fit_texture.max_resolution={resolution}",
-                                      f"fit_texture.smoothness={smoothness}", f"fit_texture.max_size={max_size}")  # fmt: skip
+        outputs, seconds = run_stages(
+            capture,
+            "fit_texture",
+            f"fit_texture.max_resolution={resolution}",
+            f"fit_texture.smoothness={smoothness}",
+            f"fit_texture.max_size={max_size}",
+        )
         fitted = json.loads((outputs["fit_texture"]["textured_dir"] / "params.json").read_text())
         iterations = " + ".join(str(level["iterations"]) for level in [fitted["constants_fit"], *fitted["levels"]])
         report = score_capture(capture)
         texture, constants = report["texture"], _error_cells(report["material_fit_texture"])
         texture_cell, other_cells = _texture_cells(texture, constants, report["heldout_textured"]["psnr_db_mean"])
-        texture_rows.append(f"| {resolution} | {smoothness:g} | {max_size} | {seconds['fit_texture']:.0f} s | {iterations} | "
-                            f"{texture_cell} | {other_cells} |")  # fmt: skip
-    print(write_section("fitting-trade", [
-        "### Speed against accuracy (fit_material)",
-        "",
-        "fit_material on the bird (principled) with the standard preset's 150 iterations,",
-        "for window sizes (longer side, px), samples per pixel and losses; the standard",
-        "preset is 128 / 16 / dual. Errors as in the accuracy table (base colour against the",
-        "texture's mean). Reproduce: `.venv/bin/python bench/fitting.py --parts trade`.",
-        "",
-        "| max_size | spp | loss | fit_material time | base_color | roughness | spec_trans | eta "
-        "| held-out PSNR |",
-        "|---|---|---|---|---|---|---|---|---|",
-        *rows,
-        "",
-        "fit_texture on the bird after the standard fit_material, for the finest texture",
-        "resolution (3 levels, 30 iterations each, constants refitted), the smoothness",
-        "prior's weight and the training window; texture error as in the accuracy table",
-        "(largest channel's mean, and p90), then the refitted constants' errors. Iterations:",
-        "constants alone + each level; a level stops early when its loss flattens",
-        "(fit_texture.tolerance), so time is not a function of the resolution alone.",
-        "",
-        "| max_resolution | smoothness | max_size | fit_texture time | iterations | texture error (p90) "
-        "| roughness | spec_trans | eta | held-out PSNR |",
-        "|---|---|---|---|---|---|---|---|---|---|",
-        *texture_rows,
-    ]))  # fmt: skip
+        texture_rows.append(
+            f"| {resolution} | {smoothness:g} | {max_size} | {seconds['fit_texture']:.0f} s | {iterations} | "
+            f"{texture_cell} | {other_cells} |"
+        )
+    print(
+        write_section(
+            "fitting-trade",
+            [
+                "### Speed against accuracy (fit_material)",
+                "",
+                "fit_material on the bird (principled) with the standard preset's 150 iterations,",
+                "for window sizes (longer side, px), samples per pixel and losses; the standard",
+                "preset is 128 / 16 / dual. Errors as in the accuracy table (base colour against the",
+                "texture's mean). Reproduce: `.venv/bin/python bench/fitting.py --parts trade`.",
+                "",
+                "| max_size | spp | loss | fit_material time | base_color | roughness | spec_trans | eta "
+                "| held-out PSNR |",
+                "|---|---|---|---|---|---|---|---|---|",
+                *rows,
+                "",
+                "fit_texture on the bird after the standard fit_material, for the finest texture",
+                "resolution (3 levels, 30 iterations each, constants refitted), the smoothness",
+                "prior's weight and the training window; texture error as in the accuracy table",
+                "(largest channel's mean, and p90), then the refitted constants' errors. Iterations:",
+                "constants alone + each level; a level stops early when its loss flattens",
+                "(fit_texture.tolerance), so time is not a function of the resolution alone.",
+                "",
+                "| max_resolution | smoothness | max_size | fit_texture time | iterations | texture error (p90) "
+                "| roughness | spec_trans | eta | held-out PSNR |",
+                "|---|---|---|---|---|---|---|---|---|---|",
+                *texture_rows,
+            ],
+        )
+    )
 
 
 def main() -> None:

@@ -9,27 +9,22 @@ from __future__ import annotations
 
 import json
 import shutil
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+from report import ROOT, run_stages, write_section
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from pipeline.camera.board import BoardDetector, homography_residual_px, straightness_px  # noqa: E402
-from pipeline.camera.model import Intrinsics, undistort  # noqa: E402
+from pipeline.camera.board import BoardDetector, homography_residual_px, straightness_px
+from pipeline.camera.model import Intrinsics, undistort
+from pipeline.capture.check import check_capture
+from pipeline.core.config import load_config
+from pipeline.core.sections import BoardSection, schema
 from pipeline.formats.cameras import read_cameras
-from pipeline.capture.check import check_capture  # noqa: E402
-from pipeline.core.config import load_config  # noqa: E402
-from pipeline.imaging.photo_io import gray_uint8, read_photo  # noqa: E402
-from pipeline.synthetic.score import score_masks  # noqa: E402
-from pipeline.core.sections import BoardSection, schema  # noqa: E402
-from stages import STAGES  # noqa: E402
-
-from report import run_stages, write_section  # noqa: E402
+from pipeline.imaging.photo_io import gray_uint8, read_photo
+from pipeline.synthetic.score import score_masks
+from stages import STAGES
 
 POROUS_CUBE = ROOT.parent / "shared" / "captures" / "porous-cube"
 
@@ -44,7 +39,10 @@ def calibration_rows(capture: Path, outputs: dict) -> list[str]:
     raw, lines, planes = [], [], []
     for shot in sorted((capture / "calibration").glob("*.jpg")):
         linear = read_photo(shot).pixels
-        before, after = detector.detect(gray_uint8(linear)), detector.detect(gray_uint8(undistort(linear, source, target)))
+        before, after = (
+            detector.detect(gray_uint8(linear)),
+            detector.detect(gray_uint8(undistort(linear, source, target))),
+        )
         if before is not None and after is not None:
             raw.append(homography_residual_px(before))
             lines.append(straightness_px(after, board))
@@ -69,13 +67,20 @@ def main() -> None:
             capture = Path(shutil.copytree(ROOT / "sample_captures" / sample, Path(tmp) / sample))
             outputs, seconds = run_stages(capture, "masks")
             rows += calibration_rows(capture, outputs)
-            scores = list(score_masks(capture / "ground_truth", outputs["undistort"]["pinhole"],
-                                      outputs["masks"]["masks_json"]).values())  # fmt: skip
-            rows.append(f"| {sample}: mask IoU (neutral_backdrop), {len(scores)} photos | mean {np.mean(scores):.3f}, "
-                        f"min {min(scores):.3f} |")  # fmt: skip
+            scores = list(
+                score_masks(
+                    capture / "ground_truth", outputs["undistort"]["pinhole"], outputs["masks"]["masks_json"]
+                ).values()
+            )
+            rows.append(
+                f"| {sample}: mask IoU (neutral_backdrop), {len(scores)} photos | mean {np.mean(scores):.3f}, "
+                f"min {min(scores):.3f} |"
+            )
             photos = len(scores)
             timing_rows.append(
-                f"| {sample} ({photos} photos) | " + " | ".join(f"{seconds[s]:.1f} s" for s in ("calibrate", "undistort", "masks")) + " |"
+                f"| {sample} ({photos} photos) | "
+                + " | ".join(f"{seconds[s]:.1f} s" for s in ("calibrate", "undistort", "masks"))
+                + " |"
             )
         if POROUS_CUBE.is_dir():
             capture = Path(tmp) / "porous-cube"
@@ -85,22 +90,27 @@ def main() -> None:
             problems = check_capture(capture, load_config(schema(STAGES), capture))
             elapsed = time.time() - started
             strays = [p.file for p in problems if p.check == "strays"]
-            rows.append(f"| porous-cube: `pipeline check` | {len(problems)} problems in {elapsed:.0f} s; strays: "
-                        f"{', '.join(strays) or 'none'} |")  # fmt: skip
-    section = write_section("front-end", [
-        "## Capture front end (issue 4)",
-        "",
-        "Stages calibrate, undistort and masks on the standard preset, scored against the",
-        "ground truth. Reproduce: `.venv/bin/python bench/front_end.py` (rewrites this section).",
-        "",
-        "| measurement | result |",
-        "|---|---|",
-        *rows,
-        "",
-        "| capture | calibrate | undistort | masks |",
-        "|---|---|---|---|",
-        *timing_rows,
-    ])  # fmt: skip
+            rows.append(
+                f"| porous-cube: `pipeline check` | {len(problems)} problems in {elapsed:.0f} s; strays: "
+                f"{', '.join(strays) or 'none'} |"
+            )
+    section = write_section(
+        "front-end",
+        [
+            "## Capture front end (issue 4)",
+            "",
+            "Stages calibrate, undistort and masks on the standard preset, scored against the",
+            "ground truth. Reproduce: `.venv/bin/python bench/front_end.py` (rewrites this section).",
+            "",
+            "| measurement | result |",
+            "|---|---|",
+            *rows,
+            "",
+            "| capture | calibrate | undistort | masks |",
+            "|---|---|---|---|",
+            *timing_rows,
+        ],
+    )
     print(section)
 
 

@@ -12,27 +12,22 @@ from __future__ import annotations
 
 import json
 import shutil
-import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 import trimesh
+from report import ROOT, run_stages, write_section
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from pipeline.camera.model import read_views  # noqa: E402
-from pipeline.formats.cameras import read_cameras
-from pipeline.synthetic.score import score_cameras, score_mesh  # noqa: E402
-from pipeline.synthetic.synth import SynthOptions, synthesize  # noqa: E402
-
-from report import run_stages, write_section  # noqa: E402
+from pipeline.formats.cameras import read_cameras, read_views
+from pipeline.synthetic.score import score_cameras, score_mesh
+from pipeline.synthetic.synth import SynthOptions, synthesize
 
 POROUS_CUBE = ROOT.parent / "shared" / "captures" / "porous-cube"
 GEOMETRY_STAGES = ("sfm", "mesh", "cleanup", "uv")
-TURNTABLE = SynthOptions(views=24, rings=(25.0,), width=384, height=288, spp=16, rig="turntable", turn_jitter=0.4,
-                         texture="plain", seed=0)  # fmt: skip
+TURNTABLE = SynthOptions(
+    views=24, rings=(25.0,), width=384, height=288, spp=16, rig="turntable", turn_jitter=0.4, texture="plain", seed=0
+)
 
 
 def pose_errors(capture: Path, cameras_json: Path) -> dict:
@@ -48,19 +43,29 @@ def shape(mesh_ply: Path) -> dict:
     mesh.merge_vertices(merge_tex=True, merge_norm=True)
     box = mesh.bounding_box_oriented
     extents = np.sort(box.primitive.extents)
-    return {"watertight": mesh.is_watertight, "genus": round(1 - mesh.euler_number / 2) if mesh.is_watertight else None,
-            "faces": len(mesh.faces), "box_fill": mesh.volume / box.volume, "aspect": extents / extents[-1]}  # fmt: skip
+    return {
+        "watertight": mesh.is_watertight,
+        "genus": round(1 - mesh.euler_number / 2) if mesh.is_watertight else None,
+        "faces": len(mesh.faces),
+        "box_fill": mesh.volume / box.volume,
+        "aspect": extents / extents[-1],
+    }
 
 
 def bird_rows(tmp: Path) -> tuple[list[str], list[str], list[str], list[str]]:
-    capture = Path(shutil.copytree(ROOT / "sample_captures" / "bird", tmp / "bird",
-                                   ignore=shutil.ignore_patterns(".pipeline", "output")))  # fmt: skip
+    capture = Path(
+        shutil.copytree(
+            ROOT / "sample_captures" / "bird", tmp / "bird", ignore=shutil.ignore_patterns(".pipeline", "output")
+        )
+    )
     outputs, seconds = run_stages(capture, "uv")
     cameras = pose_errors(capture, outputs["sfm"]["cameras"])
     sfm = json.loads(outputs["sfm"]["report"].read_text())
     truth = trimesh.load(capture / "ground_truth" / "mesh.ply", force="mesh")
-    chamfer = {s: score_mesh(trimesh.load(outputs[s]["mesh"], force="mesh"), truth)["chamfer_pct_of_diagonal"]
-               for s in ("mesh", "cleanup", "uv")}  # fmt: skip
+    chamfer = {
+        s: score_mesh(trimesh.load(outputs[s]["mesh"], force="mesh"), truth)["chamfer_pct_of_diagonal"]
+        for s in ("mesh", "cleanup", "uv")
+    }
     rows = [
         f"| bird: photos registered | {cameras['registered']} of {cameras['images']} |",
         f"| bird: rotation error (aligned) | median {cameras['rotation_error_deg_median']:.2f} deg, "
@@ -72,25 +77,35 @@ def bird_rows(tmp: Path) -> tuple[list[str], list[str], list[str], list[str]]:
         *[f"| bird: Chamfer distance, {s} stage | {chamfer[s]:.2f} % of the diagonal |" for s in chamfer],
         f"| bird: uv mesh | {_shape_text(shape(outputs['uv']['mesh']))} |",
     ]
-    timing = [f"| bird ({cameras['images']} photos, 560x420) | " + " | ".join(f"{seconds[s]:.1f} s" for s in GEOMETRY_STAGES) + " |"]
+    timing = [
+        f"| bird ({cameras['images']} photos, 560x420) | "
+        + " | ".join(f"{seconds[s]:.1f} s" for s in GEOMETRY_STAGES)
+        + " |"
+    ]
     trade = []
     for resolution in (64, 96, 128, 192, 256):
         outputs, seconds = run_stages(capture, "mesh", f"mesh.resolution={resolution}")
         mesh = trimesh.load(outputs["mesh"]["mesh"], force="mesh")
-        trade.append(f"| {resolution} | {seconds['mesh']:.1f} s | {score_mesh(mesh, truth)['chamfer_pct_of_diagonal']:.2f} % |")
+        trade.append(
+            f"| {resolution} | {seconds['mesh']:.1f} s | {score_mesh(mesh, truth)['chamfer_pct_of_diagonal']:.2f} % |"
+        )
     tolerance = []
     for views in (0, 1, 2):
         outputs, _ = run_stages(capture, "mesh", f"mesh.carve_tolerance={views}")
         mesh = trimesh.load(outputs["mesh"]["mesh"], force="mesh")
-        tolerance.append(f"| {views} | {score_mesh(mesh, truth)['chamfer_pct_of_diagonal']:.2f} % | "
-                         f"{mesh.volume / truth.volume:.3f} |")  # fmt: skip
+        tolerance.append(
+            f"| {views} | {score_mesh(mesh, truth)['chamfer_pct_of_diagonal']:.2f} % | "
+            f"{mesh.volume / truth.volume:.3f} |"
+        )
     return rows, timing, trade, tolerance
 
 
 def _shape_text(s: dict) -> str:
     genus = f", genus {s['genus']}" if s["genus"] is not None else ""
-    return (f"{s['faces']} faces, {'watertight' if s['watertight'] else 'NOT watertight'}{genus}, "
-            f"volume / oriented box {s['box_fill']:.2f}, box sides {' : '.join(f'{e:.2f}' for e in s['aspect'])}")
+    return (
+        f"{s['faces']} faces, {'watertight' if s['watertight'] else 'NOT watertight'}{genus}, "
+        f"volume / oriented box {s['box_fill']:.2f}, box sides {' : '.join(f'{e:.2f}' for e in s['aspect'])}"
+    )
 
 
 def turntable_rows(tmp: Path) -> tuple[list[str], list[str]]:
@@ -105,8 +120,10 @@ def turntable_rows(tmp: Path) -> tuple[list[str], list[str]]:
         f"| turntable: rotation error (aligned) | median {cameras['rotation_error_deg_median']:.2f} deg, "
         f"max {cameras['rotation_error_deg_max']:.2f} deg |",
     ]
-    timing = [f"| synthetic turntable ({TURNTABLE.views} photos, {TURNTABLE.width}x{TURNTABLE.height}) | "
-              f"{seconds['sfm']:.1f} s | - | - | - |"]  # fmt: skip
+    timing = [
+        f"| synthetic turntable ({TURNTABLE.views} photos, {TURNTABLE.width}x{TURNTABLE.height}) | "
+        f"{seconds['sfm']:.1f} s | - | - | - |"
+    ]
     return rows, timing
 
 
@@ -114,8 +131,9 @@ def porous_rows(tmp: Path) -> tuple[list[str], list[str]]:
     capture = tmp / "porous-cube"
     capture.mkdir()
     (capture / "images").symlink_to(POROUS_CUBE / "images")
-    (capture / "capture.toml").write_text('[capture]\nrig = "handheld"\n\n[board]\nkind = "none"\n\n'
-                                          '[masks]\nsegmenter = "centre_prior"\n')  # fmt: skip
+    (capture / "capture.toml").write_text(
+        '[capture]\nrig = "handheld"\n\n[board]\nkind = "none"\n\n[masks]\nsegmenter = "centre_prior"\n'
+    )
     outputs, seconds = run_stages(capture, "uv")
     report = json.loads(outputs["sfm"]["report"].read_text())
     rows = [
@@ -126,7 +144,11 @@ def porous_rows(tmp: Path) -> tuple[list[str], list[str]]:
         f"| porous-cube: world frame | {report['frame']['source']} ({report['frame']['units']}) |",
         f"| porous-cube: cleaned mesh | {_shape_text(shape(outputs['cleanup']['mesh']))} |",
     ]
-    timing = [f"| porous-cube ({report['photos']} photos, 1024x1024) | " + " | ".join(f"{seconds[s]:.1f} s" for s in GEOMETRY_STAGES) + " |"]
+    timing = [
+        f"| porous-cube ({report['photos']} photos, 1024x1024) | "
+        + " | ".join(f"{seconds[s]:.1f} s" for s in GEOMETRY_STAGES)
+        + " |"
+    ]
     return rows, timing
 
 
@@ -141,39 +163,42 @@ def main() -> None:
             porous, porous_timing = porous_rows(tmp)
             rows += porous
             timing += porous_timing
-    section = write_section("geometry", [
-        "## Geometry (issue 5)",
-        "",
-        "Stages sfm, mesh, cleanup and uv on the standard preset. Errors are against the",
-        "ground truth after a similarity alignment (the bird's frame is also metric without it).",
-        "The turntable capture: `pipeline synth --rig turntable --turn-jitter 0.4 --texture plain",
-        "--views 24 --width 384 --height 288 --spp 16 --rings 25`. Reproduce:",
-        "`.venv/bin/python bench/geometry.py` (rewrites this section).",
-        "",
-        "| measurement | result |",
-        "|---|---|",
-        *rows,
-        "",
-        "Stage times (wall clock, 2 cores; the turntable row is sfm only):",
-        "",
-        "| capture | sfm | mesh | cleanup | uv |",
-        "|---|---|---|---|---|",
-        *timing,
-        "",
-        "Speed against accuracy: the mesh stage's voxel resolution on the bird (Chamfer of",
-        "the mesh stage's output; the presets use 96 / 128 / 192):",
-        "",
-        "| mesh.resolution | mesh stage time | Chamfer distance |",
-        "|---|---|---|",
-        *trade,
-        "",
-        "The carve tolerance (views allowed to disagree before a voxel is carved) on the bird:",
-        "each view more keeps what that many views alone would carve (the standard is 0).",
-        "",
-        "| mesh.carve_tolerance | Chamfer distance | volume / true volume |",
-        "|---|---|---|",
-        *tolerance,
-    ])  # fmt: skip
+    section = write_section(
+        "geometry",
+        [
+            "## Geometry (issue 5)",
+            "",
+            "Stages sfm, mesh, cleanup and uv on the standard preset. Errors are against the",
+            "ground truth after a similarity alignment (the bird's frame is also metric without it).",
+            "The turntable capture: `pipeline synth --rig turntable --turn-jitter 0.4 --texture plain",
+            "--views 24 --width 384 --height 288 --spp 16 --rings 25`. Reproduce:",
+            "`.venv/bin/python bench/geometry.py` (rewrites this section).",
+            "",
+            "| measurement | result |",
+            "|---|---|",
+            *rows,
+            "",
+            "Stage times (wall clock, 2 cores; the turntable row is sfm only):",
+            "",
+            "| capture | sfm | mesh | cleanup | uv |",
+            "|---|---|---|---|---|",
+            *timing,
+            "",
+            "Speed against accuracy: the mesh stage's voxel resolution on the bird (Chamfer of",
+            "the mesh stage's output; the presets use 96 / 128 / 192):",
+            "",
+            "| mesh.resolution | mesh stage time | Chamfer distance |",
+            "|---|---|---|",
+            *trade,
+            "",
+            "The carve tolerance (views allowed to disagree before a voxel is carved) on the bird:",
+            "each view more keeps what that many views alone would carve (the standard is 0).",
+            "",
+            "| mesh.carve_tolerance | Chamfer distance | volume / true volume |",
+            "|---|---|---|",
+            *tolerance,
+        ],
+    )
     print(section)
 
 

@@ -3,16 +3,15 @@ docs/benchmarks.md, one marked section per benchmark."""
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 BENCHMARKS = ROOT / "docs" / "benchmarks.md"
-sys.path.insert(0, str(ROOT))
 
 
-def run_stages(capture: Path, until: str, *overrides: str, force: tuple[str, ...] = (),
-               preset: str = "standard") -> tuple[dict, dict]:  # fmt: skip
+def run_stages(
+    capture: Path, until: str, *overrides: str, force: tuple[str, ...] = (), preset: str = "standard"
+) -> tuple[dict, dict]:
     """The stage DAG on ``capture`` up to ``until``: (outputs, seconds) per stage; a
     cached stage's seconds are those of the run that computed it."""
     from pipeline.core.config import load_config

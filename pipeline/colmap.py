@@ -24,8 +24,9 @@ from pipeline.camera.model import Intrinsics, Pose, Similarity
 COLMAP_PIXEL_OFFSET = 0.5
 
 
-def feature_masks(mode: str, mask_dilation: float, photos: dict[str, dict], masks: dict[str, Path],
-                  out_dir: Path) -> Path | None:
+def feature_masks(
+    mode: str, mask_dilation: float, photos: dict[str, dict], masks: dict[str, Path], out_dir: Path
+) -> Path | None:
     """Where features may come from, as masks in COLMAP's convention (IMAGE.png.png,
     0 = no features), or None for everywhere. ``mode``: everywhere; specimen (the
     specimen mask dilated by ``mask_dilation`` of the image diagonal); moving (that
@@ -38,7 +39,9 @@ def feature_masks(mode: str, mask_dilation: float, photos: dict[str, dict], mask
     if mode == "moving":
         for camera in {photo["camera"] for photo in photos.values()}:
             names = [n for n, p in photos.items() if p["camera"] == camera]
-            stack = np.stack([cv2.imread(str(photos[n]["srgb"]), cv2.IMREAD_GRAYSCALE) for n in names]).astype(np.float32)
+            stack = np.stack([cv2.imread(str(photos[n]["srgb"]), cv2.IMREAD_GRAYSCALE) for n in names]).astype(
+                np.float32
+            )
             still = np.median(stack, axis=0)
             difference = np.abs(stack - still)
             noise = max(1.4826 * float(np.median(difference)), 1.0)
@@ -56,9 +59,18 @@ def feature_masks(mode: str, mask_dilation: float, photos: dict[str, dict], mask
     return folder
 
 
-def extract_and_match(photos: dict[str, dict], cameras: list[dict], mask_dir: Path | None, image_dir: Path,
-                      database: Path, max_features: int, matcher: str, sequential_overlap: int, ring_neighbours: int,
-                      still_camera: bool) -> None:
+def extract_and_match(
+    photos: dict[str, dict],
+    cameras: list[dict],
+    mask_dir: Path | None,
+    image_dir: Path,
+    database: Path,
+    max_features: int,
+    matcher: str,
+    sequential_overlap: int,
+    ring_neighbours: int,
+    still_camera: bool,
+) -> None:
     """SIFT features of every photo (one SIMPLE_PINHOLE COLMAP camera per camera
     setting), matched ``matcher``-wise (exhaustive, sequential or ring) and verified
     with seeded RANSAC; ``still_camera`` drops matches that do not move (a
@@ -82,11 +94,29 @@ def extract_and_match(photos: dict[str, dict], cameras: list[dict], mask_dir: Pa
         # Extraction numbers photos in the order its threads finish, and matching
         # and mapping follow those numbers: importing them first, sorted, makes a
         # rerun give the same model (it gave rotation errors of 0.7 to 164 degrees).
-        pycolmap.import_images(database, image_dir, camera_mode=pycolmap.CameraMode.SINGLE,
-                               image_names=sorted(names), options=reader)  # fmt: skip
-        pycolmap.extract_features(database, image_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
-                                  reader_options=reader, extraction_options=extraction,
-                                  device=pycolmap.Device.cpu)  # fmt: skip
+        pycolmap.import_images(
+            database, image_dir, camera_mode=pycolmap.CameraMode.SINGLE, image_names=sorted(names), options=reader
+        )
+        pycolmap.extract_features(
+            database,
+            image_dir,
+            image_names=names,
+            camera_mode=pycolmap.CameraMode.SINGLE,
+            reader_options=reader,
+            extraction_options=extraction,
+            device=pycolmap.Device.cpu,
+        )
+    _match(photos, database, matcher, sequential_overlap, ring_neighbours, still_camera)
+
+
+def _match(
+    photos: dict[str, dict],
+    database: Path,
+    matcher: str,
+    sequential_overlap: int,
+    ring_neighbours: int,
+    still_camera: bool,
+) -> None:
     logger.info("%s matching of %d photos", matcher, len(photos))
     verification = pycolmap.TwoViewGeometryOptions()
     # A fixed camera sees the still room at the same pixels in every photo: matches
@@ -105,8 +135,11 @@ def extract_and_match(photos: dict[str, dict], cameras: list[dict], mask_dir: Pa
     else:
         names = sorted(Path(p["srgb"]).name for p in photos.values())
         neighbours = min(ring_neighbours, len(names) // 2)
-        pairs = {tuple(sorted((names[i], names[(i + k) % len(names)])))
-                 for i in range(len(names)) for k in range(1, neighbours + 1)}  # fmt: skip
+        pairs = {
+            tuple(sorted((names[i], names[(i + k) % len(names)])))
+            for i in range(len(names))
+            for k in range(1, neighbours + 1)
+        }
         pairs_file = database.with_name("pairs.txt")
         pairs_file.write_text("".join(f"{a} {b}\n" for a, b in sorted(pairs)))
         pairing = pycolmap.ImportedPairingOptions()
@@ -114,8 +147,9 @@ def extract_and_match(photos: dict[str, dict], cameras: list[dict], mask_dir: Pa
         pycolmap.match_image_pairs(database, pairing_options=pairing, verification_options=verification, device=device)
 
 
-def incremental_map(database: Path, image_dir: Path, work_dir: Path, refine_focal: bool,
-         min_pose_inliers: int) -> pycolmap.Reconstruction | None:  # fmt: skip
+def incremental_map(
+    database: Path, image_dir: Path, work_dir: Path, refine_focal: bool, min_pose_inliers: int
+) -> pycolmap.Reconstruction | None:
     options = pycolmap.IncrementalPipelineOptions()
     options.mapper.abs_pose_min_num_inliers = min_pose_inliers
     options.ba_refine_focal_length = refine_focal
@@ -147,8 +181,10 @@ def unregistered_causes(database: Path, unregistered: list[str], stem_of: dict[s
             if keypoints < 300:
                 causes[name] = f"{keypoints} features: blurred, low-texture or masked out"
             elif matches < 30:
-                causes[name] = (f"{keypoints} features but at most {matches} verified matches with any photo: "
-                                "too little overlap, another scene, or a background that moved")  # fmt: skip
+                causes[name] = (
+                    f"{keypoints} features but at most {matches} verified matches with any photo: "
+                    "too little overlap, another scene, or a background that moved"
+                )
             else:
                 causes[name] = f"{matches} verified matches but no consistent pose: a repeated or moving pattern"
     return causes
@@ -174,8 +210,14 @@ def verified_matches(database: Path, order: list[str], stem_of: dict[str, str]):
     return keypoints, matches
 
 
-def write_model(model: pycolmap.Reconstruction | None, database: Path, to_world: Similarity, poses: dict[str, Pose],
-                  stem_of: dict[str, str], folder: Path) -> Path:  # fmt: skip
+def write_model(
+    model: pycolmap.Reconstruction | None,
+    database: Path,
+    to_world: Similarity,
+    poses: dict[str, Pose],
+    stem_of: dict[str, str],
+    folder: Path,
+) -> Path:
     """The model in the world frame with the final poses (turntable-placed photos
     registered too, without observations), in COLMAP's binary format. The points
     stay where SfM triangulated them."""
@@ -217,15 +259,19 @@ def trusted_points(sparse: Path, min_track_length: int, max_error_px: float) -> 
     return np.reshape(points, (-1, 3)), np.reshape(towards, (-1, 3))
 
 
-def screened_poisson(points: np.ndarray, normals: np.ndarray, depth: int, point_weight: float,
-                     work_dir: Path) -> trimesh.Trimesh:
+def screened_poisson(
+    points: np.ndarray, normals: np.ndarray, depth: int, point_weight: float, work_dir: Path
+) -> trimesh.Trimesh:
     """COLMAP's screened Poisson reconstruction, untrimmed (so closed) and on one
     thread. Unlike pymeshlab's, it returns the same mesh, vertex for vertex, on
     every run: cleanup's decimation and the UV charts depend on that order."""
     cloud_ply, mesh_ply = work_dir / "poisson_input.ply", work_dir / "poisson_output.ply"
     oriented = np.hstack([points, normals]).astype("<f4")
-    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(oriented)}\n"
-              + "".join(f"property float {name}\n" for name in ("x", "y", "z", "nx", "ny", "nz")) + "end_header\n")  # fmt: skip
+    header = (
+        f"ply\nformat binary_little_endian 1.0\nelement vertex {len(oriented)}\n"
+        + "".join(f"property float {name}\n" for name in ("x", "y", "z", "nx", "ny", "nz"))
+        + "end_header\n"
+    )
     cloud_ply.write_bytes(header.encode() + oriented.tobytes())
     options = pycolmap.PoissonMeshingOptions()
     options.depth, options.point_weight, options.trim, options.num_threads = depth, point_weight, 0.0, 1
@@ -234,3 +280,25 @@ def screened_poisson(points: np.ndarray, normals: np.ndarray, depth: int, point_
     cloud_ply.unlink()
     mesh_ply.unlink()
     return mesh
+
+
+def registered_poses(model, name_of: dict[str, str], intrinsics: dict[str, Intrinsics], refine_focal: bool):
+    """Registered photos' poses, by photo name (``name_of`` maps COLMAP's image names);
+    ``intrinsics`` take SfM's focal length and principal point when ``refine_focal``."""
+    registered = {} if model is None else {name_of[im.name]: im for im in model.images.values() if im.has_pose}
+    poses = {}
+    for name, image in registered.items():
+        rigid = image.cam_from_world()
+        poses[name] = Pose(np.asarray(rigid.rotation.matrix()), np.asarray(rigid.translation))
+        if refine_focal:
+            focal, cx, cy = image.camera.params
+            K = intrinsics[name]
+            intrinsics[name] = Intrinsics(
+                K.width,
+                K.height,
+                float(focal),
+                float(focal),
+                float(cx) - COLMAP_PIXEL_OFFSET,
+                float(cy) - COLMAP_PIXEL_OFFSET,
+            )
+    return poses

@@ -5,8 +5,32 @@ added to ``STAGES``.
 """
 
 from pipeline.core.stage import Stage
-from stages import calibrate, cleanup, export, fit_geometry, fit_material, fit_texture, masks, mesh, scene, sfm, undistort, uv
+from stages import (
+    calibrate,
+    cleanup,
+    export,
+    fit_geometry,
+    fit_material,
+    fit_texture,
+    masks,
+    mesh,
+    scene,
+    sfm,
+    undistort,
+    uv,
+)
 
-STAGES: tuple[Stage, ...] = (calibrate.STAGE, undistort.STAGE, masks.STAGE, sfm.STAGE, mesh.STAGE, cleanup.STAGE, uv.STAGE,
-                             scene.STAGE, fit_material.STAGE, fit_texture.STAGE,
-                             fit_geometry.STAGE, export.STAGE)
+STAGES: tuple[Stage, ...] = (
+    calibrate.STAGE,
+    undistort.STAGE,
+    masks.STAGE,
+    sfm.STAGE,
+    mesh.STAGE,
+    cleanup.STAGE,
+    uv.STAGE,
+    scene.STAGE,
+    fit_material.STAGE,
+    fit_texture.STAGE,
+    fit_geometry.STAGE,
+    export.STAGE,
+)

@@ -36,14 +36,14 @@ import cv2
 import numpy as np
 
 from pipeline import logger
-from pipeline.core import progress
 from pipeline.camera.board import BoardDetection, BoardDetector
 from pipeline.camera.model import Intrinsics
+from pipeline.core import progress
 from pipeline.core.config import Range
 from pipeline.core.errors import PipelineError
-from pipeline.imaging.photo_io import PHOTO_SUFFIXES, camera_setting, gray_uint8, read_metadata, read_photo
 from pipeline.core.sections import BoardSection
 from pipeline.core.stage import Stage, StageInputs, StageResult
+from pipeline.imaging.photo_io import PHOTO_SUFFIXES, camera_setting, gray_uint8, read_metadata, read_photo
 
 COLMAP_FOCAL_PRIOR = 1.2
 """COLMAP's default focal length guess, as a multiple of the longer image side."""
@@ -129,7 +129,9 @@ def calibrate_from_board(
     return BoardCalibration(intrinsics, float(rms), shot_rms, dropped, focal_std)
 
 
-def exif_focal_px(metadata: dict[str, object], size: tuple[int, int], sensor_width_mm: float) -> tuple[float, str] | None:
+def exif_focal_px(
+    metadata: dict[str, object], size: tuple[int, int], sensor_width_mm: float
+) -> tuple[float, str] | None:
     """Focal length in pixels from EXIF, and how it was derived; None without EXIF."""
     focal_mm = float(metadata.get("Exif:FocalLength") or 0)
     resolution = float(metadata.get("Exif:FocalPlaneXResolution") or 0)
@@ -169,8 +171,9 @@ def _detect_shots(shots: list[tuple[Path, dict]], board: BoardSection, conf: Con
     return detections, rejected
 
 
-def calibrate_group(setting: str, photos: list[tuple[Path, dict]], shots: list[tuple[Path, dict]],
-                    board: BoardSection, conf: Config) -> dict:  # fmt: skip
+def calibrate_group(
+    setting: str, photos: list[tuple[Path, dict]], shots: list[tuple[Path, dict]], board: BoardSection, conf: Config
+) -> dict:
     size = photos[0][1]["size"]
     metadata = photos[0][1]
     group: dict = {"camera": setting, "images": [p.name for p, _ in photos], "board_shots": len(shots)}
@@ -180,9 +183,12 @@ def calibrate_group(setting: str, photos: list[tuple[Path, dict]], shots: list[t
             result = calibrate_from_board(detections, size, conf)
             logger.info(
                 "%s: calibrated from %d board shots, RMS %.3f px, focal %.2f ± %.2f px",
-                setting, len(detections) - len(result.dropped), result.rms_px,
-                result.intrinsics.fx, result.focal_std_px,
-            )  # fmt: skip
+                setting,
+                len(detections) - len(result.dropped),
+                result.rms_px,
+                result.intrinsics.fx,
+                result.focal_std_px,
+            )
             for name, reason in {**rejected, **result.dropped}.items():
                 logger.warning("calibration/%s not used: %s", name, reason)
             return group | {
@@ -201,8 +207,11 @@ def calibrate_group(setting: str, photos: list[tuple[Path, dict]], shots: list[t
         logger.warning(
             "%s: only %d of %d board shots are usable (calibrate.min_shots = %d); falling back. "
             "Shoot the board closer and from more angles, or check the [board] section.",
-            setting, len(detections), len(shots), conf.min_shots,
-        )  # fmt: skip
+            setting,
+            len(detections),
+            len(shots),
+            conf.min_shots,
+        )
     focal = exif_focal_px(metadata, size, conf.sensor_width_mm)
     if focal is None:
         focal_px, source, how = COLMAP_FOCAL_PRIOR * max(size), "prior", "no EXIF focal length: COLMAP's prior"
@@ -228,8 +237,10 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         if setting not in photo_groups:
             logger.warning(
                 "%d board shots (%s, ...) were taken with %s, which no photo in images/ uses; ignored",
-                len(unmatched), unmatched[0][0].name, setting,
-            )  # fmt: skip
+                len(unmatched),
+                unmatched[0][0].name,
+                setting,
+            )
     groups = [
         calibrate_group(setting, members, shot_groups.get(setting, []), board, conf)
         for setting, members in sorted(photo_groups.items(), key=lambda item: -len(item[1]))

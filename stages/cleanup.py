@@ -91,9 +91,17 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         meshset.apply_coord_taubin_smoothing(stepsmoothnum=conf.smoothing_steps)
     meshset.meshing_remove_unreferenced_vertices()
     after = measure(meshset)
+    if after["faces"] > conf.target_faces:
+        # Seen on a sphere whose hole was closed before remeshing: the collapse makes no step.
+        logger.warning(
+            "decimation stopped at %d faces, above cleanup.target_faces = %d", after["faces"], conf.target_faces
+        )
     if not after["watertight"]:
-        logger.warning("the cleaned mesh has %d boundary edges: holes larger than cleanup.max_hole_edges = %d",
-                       after["boundary_edges"], conf.max_hole_edges)  # fmt: skip
+        logger.warning(
+            "the cleaned mesh has %d boundary edges: holes larger than cleanup.max_hole_edges = %d",
+            after["boundary_edges"],
+            conf.max_hole_edges,
+        )
     mesh_ply = out_dir / "mesh.ply"
     meshset.save_current_mesh(str(mesh_ply), save_vertex_color=False, save_vertex_quality=False)
     report = out_dir / "cleanup.json"

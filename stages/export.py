@@ -55,23 +55,33 @@ def gltf_material(model: str, values: dict[str, list[float]], thickness: float) 
     """(pbrMetallicRoughness, extensions) of the glTF material for the fitted values."""
     if model == "volumetric":
         sigma_a = values["sigma_t"][0] * (1.0 - np.clip(values["albedo"], 0.0, 1.0))
-        pbr = {"baseColorFactor": [1.0, 1.0, 1.0, 1.0], "metallicFactor": 0.0,
-               "roughnessFactor": float(np.sqrt(values["alpha"][0]))}  # fmt: skip
+        pbr = {
+            "baseColorFactor": [1.0, 1.0, 1.0, 1.0],
+            "metallicFactor": 0.0,
+            "roughnessFactor": float(np.sqrt(values["alpha"][0])),
+        }
         extensions = {
             "KHR_materials_transmission": {"transmissionFactor": 1.0},
             "KHR_materials_ior": {"ior": values["eta"][0]},
-            "KHR_materials_volume": {"thicknessFactor": thickness, "attenuationDistance": thickness,
-                                     "attenuationColor": [float(c) for c in np.exp(-sigma_a * thickness)]},
-        }  # fmt: skip
+            "KHR_materials_volume": {
+                "thicknessFactor": thickness,
+                "attenuationDistance": thickness,
+                "attenuationColor": [float(c) for c in np.exp(-sigma_a * thickness)],
+            },
+        }
         return pbr, extensions
-    pbr = {"baseColorFactor": [*map(float, values["base_color"]), 1.0], "metallicFactor": 0.0,
-           "roughnessFactor": values["roughness"][0]}  # fmt: skip
+    pbr = {
+        "baseColorFactor": [*map(float, values["base_color"]), 1.0],
+        "metallicFactor": 0.0,
+        "roughnessFactor": values["roughness"][0],
+    }
     if model == "opaque":
         reflectance = np.sqrt(0.08 * values["specular"][0])
         return pbr, {"KHR_materials_ior": {"ior": float((1 + reflectance) / (1 - reflectance))}}
-    return pbr, {"KHR_materials_transmission": {"transmissionFactor": values["spec_trans"][0]},
-                 "KHR_materials_ior": {"ior": values["eta"][0]}}  # fmt: skip
-
+    return pbr, {
+        "KHR_materials_transmission": {"transmissionFactor": values["spec_trans"][0]},
+        "KHR_materials_ior": {"ior": values["eta"][0]},
+    }
 
 
 def _image(path: Path, max_size: int) -> Image.Image:
@@ -97,13 +107,19 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     if image_path is not None and uv is not None:
         pbr["baseColorFactor"] = [1.0, 1.0, 1.0, 1.0]  # glTF multiplies the texture by it
     material_visual = trimesh.visual.material.PBRMaterial(
-        name="specimen", baseColorFactor=pbr["baseColorFactor"], metallicFactor=pbr["metallicFactor"],
+        name="specimen",
+        baseColorFactor=pbr["baseColorFactor"],
+        metallicFactor=pbr["metallicFactor"],
         roughnessFactor=pbr["roughnessFactor"],
-        baseColorTexture=_image(image_path, conf.max_texture_size) if image_path is not None and uv is not None else None)  # fmt: skip
+        baseColorTexture=_image(image_path, conf.max_texture_size)
+        if image_path is not None and uv is not None
+        else None,
+    )
     # The scene's PLY UVs put v = 0 on the image's first row, as glTF does;
     # trimesh's exporter flips v on the way out, so hand it the flipped value.
     mesh.visual = trimesh.visual.TextureVisuals(
-        uv=None if uv is None else np.column_stack([uv[:, 0], 1.0 - uv[:, 1]]), material=material_visual)  # fmt: skip
+        uv=None if uv is None else np.column_stack([uv[:, 0], 1.0 - uv[:, 1]]), material=material_visual
+    )
     mesh.apply_transform(Z_UP_TO_Y_UP)
 
     def add_extensions(tree: dict) -> None:
@@ -114,7 +130,9 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     folder = out_dir / "export"
     folder.mkdir()
     glb = folder / "specimen.glb"
-    glb.write_bytes(trimesh.exchange.gltf.export_glb(trimesh.Scene({"specimen": mesh}), tree_postprocessor=add_extensions))
+    glb.write_bytes(
+        trimesh.exchange.gltf.export_glb(trimesh.Scene({"specimen": mesh}), tree_postprocessor=add_extensions)
+    )
     logger.info("glTF: %s, %d triangles, extensions %s", glb.name, len(mesh.faces), ", ".join(sorted(extensions)))
     return StageResult({"glb": glb}, {"triangles": len(mesh.faces), "textured": image_path is not None})
 

@@ -1,70 +1,53 @@
 """Stage fit_geometry: the specimen's shape refined by differentiable rendering, in
-alternation with its material.
+alternation with its material (pipeline.fit.passes).
 
 Each of ``rounds`` rounds is a geometry pass, then a material pass:
 
-- Geometry pass: only vertex positions move, by pipeline.fit.engine.fit_shape:
-  Adam on LargeSteps' differential coordinates (Nicolet et al. 2021,
-  ``mi.ad.LargeSteps`` with cholespy), the material frozen. Only primary
-  visibility is differentiated (``sppi = 0``): edges seen through reflections,
-  refraction and shadows would need a guiding pass per render that costs more
-  than the rest of the step on a CPU.
-- Material pass (``material_iterations`` > 0): the model's constants, and the
-  texture if fit_texture kept one, fitted again on the refined mesh by
-  pipeline.fit.engine.fit, the geometry frozen (fit_material's loop: dual loss
-  over the eroded masks, its bounds and held-out photos, fit_texture's
-  smoothness prior). A pass whose best held-out error is not
-  ``material_min_improvement`` (relative) below where it started changes
-  nothing: smaller gains are within the held-out renders' noise.
+- Geometry pass: only vertex positions move (pipeline.fit.engine.fit_shape: Adam on
+  LargeSteps' differential coordinates, Nicolet et al. 2021), the material frozen.
+  Only primary visibility is differentiated (``sppi = 0``): edges seen through
+  reflections, refraction and shadows would need a guiding pass per render that
+  costs more than the rest of the step on a CPU.
+- Material pass (``material_iterations`` > 0): the constants, and the texture if
+  fit_texture kept one, fitted again on the refined mesh with fit_material's loop,
+  the geometry frozen; kept only if its best held-out error is
+  ``material_min_improvement`` (relative) below where it started.
 
 ==============  ===================================================================
 loss            what is compared, with which integrator
 ==============  ===================================================================
-photometric     the photo over each view's window (specimen, silhouette and the
-                board and table around it). Surface models: ``prb_projective`` at
-                the model's depth, silhouette edges included. The volumetric
-                model: ``prbvolpath`` (no projective integrator handles a medium),
-                whose gradients hold the interior terms only, not the
-                silhouette's; rendered with evaluated loops, which Dr.Jit 1.5
-                needs to compile its adjoint with vertex gradients
+photometric     the photo over each view's window (specimen, silhouette, board and
+                table around it). Surface models: ``prb_projective``, silhouette
+                edges included. Volumetric: ``prbvolpath`` (no projective
+                integrator handles a medium), interior terms only, with evaluated
+                loops (Dr.Jit 1.5 needs them for vertex gradients)
 silhouette      the mask against the specimen's coverage (black specimen under a
-                white sky), ``direct_projective``; needs no material at all
+                white sky), ``direct_projective``; needs no material
 auto            photometric for surface models, silhouette for the volumetric one
-                (its photometric pass, lacking the silhouette terms, does not
-                descend reliably)
 ==============  ===================================================================
 
-``start = "sphere"`` is the original tool's naive start: an icosphere scaled to
-the visual hull's bounding box, refined by the same loop, with fit_material's
-constant material (the texture lives on the hull's UVs, which a sphere lacks).
-Held-out photos are fit_material's; every pass keeps its state with the lowest
-held-out error, so a pass that does not help leaves the scene as it was. The
-measurements behind these choices are in docs/fit_geometry.md.
+``start = "sphere"`` is the original tool's naive start: an icosphere in the
+visual hull's bounding box with fit_material's constant material. Held-out
+photos are fit_material's; every pass keeps its best held-out state, so a pass
+that does not help leaves the scene as it was. The measurements behind these
+choices: docs/fit_geometry.md.
 
-Outputs, in geometry/ (exported to CAPTURE/output/geometry/):
+Outputs, in geometry/ (exported to CAPTURE/output/geometry/), a scene folder
+(pipeline.formats.scene_folder): the scene with the refined mesh.ply (UVs kept)
+and material; params.json (loss, start, per round each pass's held-out error
+before and after, best iteration, whether the material pass was kept;
+``params`` and ``bounds`` as in fit_texture's; vertices, seconds); log.jsonl
+(every iteration with its round and pass); loss.png; heldout/ rendered with
+the final scene (with ``enabled = false``, the start scene's passed through).
 
-==============  ===================================================================
-file            content
-==============  ===================================================================
-scene.xml, ...  the scene with the refined mesh.ply (UVs kept) and material
-params.json     loss, start, per round each pass's held-out error before and
-                after, its best iteration and whether a material pass was kept;
-                ``params`` and ``bounds`` as in fit_texture's params.json;
-                vertices, seconds
-log.jsonl       every iteration, with its round and pass
-loss.png        loss and held-out error against iteration
-heldout/        as fit_material writes it, rendered with the final scene (with
-                ``enabled = false``, fit_texture's heldout/ passed through)
-==============  ===================================================================
-
-Limitations: vertices move, connectivity does not (no remeshing), so a start
-far from the truth (the sphere) cannot grow handles or thin limbs. The geometry
-loss is plain L2 (one render per view): its Monte Carlo variance counts in the
-loss. No render differentiates geometry and a medium at once, so a volumetric
-specimen's medium is frozen while its geometry moves. A render and backward
-step costs seconds even at 32-96 px on a CPU (the volumetric photometric pass
-about 4.8 s at 96 px, 8 spp, two views, 2 cores).
+Limitations: vertices move, connectivity does not (no remeshing), so a start far
+from the truth (the sphere) cannot grow handles or thin limbs. The geometry loss
+is plain L2 (one render per view): its Monte Carlo variance counts in the loss.
+No render differentiates geometry and a medium at once. A step costs seconds
+even at 32-96 px on a CPU (volumetric photometric: about 4.8 s at 96 px, 8 spp,
+two views, 2 cores).
 """
+
 from __future__ import annotations
 
 import shutil
@@ -73,16 +56,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal
 
-import cv2
 import numpy as np
 import trimesh
 
 from pipeline import logger
-from pipeline.camera.model import resize_exact
 from pipeline.core.config import Range
 from pipeline.core.stage import Stage, StageInputs, StageResult
 from pipeline.fit import engine
-from pipeline.fit.outputs import write_fit_log, write_heldout, write_texture_files
+from pipeline.fit.outputs import write_fit_log, write_heldout
+from pipeline.fit.passes import material_pass, shape_pass, sphere_in_box
 from pipeline.fit.views import load_views
 from pipeline.formats.cameras import read_views
 from pipeline.formats.masks import read_masks
@@ -91,12 +73,12 @@ from pipeline.formats.scene_folder import (
     HELDOUT,
     MESH_PLY,
     PARAMS_JSON,
-    SPECIMEN_XML,
     copy_scene,
     read_json,
     write_json,
 )
-from pipeline.render import materials, mitsuba_variant, scene_xml
+from pipeline.render import materials, mitsuba_variant
+
 
 @dataclass(frozen=True)
 class Config:
@@ -143,119 +125,105 @@ class Config:
     """Seed of the batch order and the renders."""
 
 
-def sphere_in_box(bounds: np.ndarray, subdivisions: int) -> trimesh.Trimesh:
-    """An icosphere stretched to fill the axis-aligned box ``bounds`` (2, 3)."""
-    sphere = trimesh.creation.icosphere(subdivisions=subdivisions)
-    sphere.apply_scale((bounds[1] - bounds[0]) / 2)
-    sphere.apply_translation(bounds.mean(axis=0))
-    return sphere
-
-
-def silhouette_views(views: list[tuple[engine.FitView, tuple]], mesh_file: Path, masks: dict[str, Path],
-                     cameras: dict) -> list[engine.FitView]:  # fmt: skip
-    """The same windows, with a scene holding only the specimen (black, under a white
-    sky) and the mask's complement as reference: coverage, material-free."""
-    import mitsuba as mi
-
-    scene = mi.load_dict({
-        "type": "scene",
-        "sky": {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}},
-        "specimen": {"type": "ply", "id": "specimen", "filename": str(mesh_file),
-                     "bsdf": {"type": "diffuse", "id": "specimen_bsdf", "reflectance": {"type": "rgb", "value": 0.0}}},
-    })  # fmt: skip
-    result = []
-    for view, (small, crop) in views:
-        mask = (cv2.imread(str(masks[view.name]), cv2.IMREAD_GRAYSCALE) > 127).astype(np.float32)
-        x, y, w, h = crop
-        coverage = resize_exact(mask, small.fx / cameras[view.name][0].fx)[y : y + h, x : x + w]
-        reference = np.repeat(1.0 - coverage[..., None], 3, axis=2).astype(np.float32)
-        result.append(engine.FitView(view.name, scene, view.sensor, reference))
-    return result
-
-
-def geometry_pass(conf: Config, geometry: Path, description: dict, loss: str, views_inputs: tuple, held: set[str],
-                  step: float, seed: int) -> engine.ShapeResult:  # fmt: skip
-    """Vertices of geometry/mesh.ply refined with the scene's material frozen; the
-    mesh written back."""
-    import mitsuba as mi
-
-    cameras, linear, masks = views_inputs
-    windowed = load_views(geometry, description, cameras, linear, masks, conf.max_size, 0, conf.spp, sample_border=True)
-    if loss == "silhouette":
-        views = silhouette_views(windowed, geometry / MESH_PLY, masks, cameras)
-        integrator = {"type": "direct_projective", "sppi": 0}
-    else:
-        # The silhouette and its surroundings carry the shape: every window pixel counts.
-        views = [engine.FitView(v.name, v.scene, v.sensor, v.reference) for v, _ in windowed]
-        kind, depth = materials.INTEGRATORS[description["model"]]
-        integrator = ({"type": "prb_projective", "max_depth": depth, "sppi": 0} if kind == "prb"
-                      else {"type": kind, "max_depth": depth})  # fmt: skip
-    settings = engine.ShapeSettings(iterations=conf.iterations, batch=conf.batch, spp=conf.spp, step=step,
-                                     smoothing=conf.smoothing, validate_every=conf.validate_every,
-                                     validation_spp=conf.validation_spp, seed=seed,
-                                     symbolic_loops=integrator["type"] != "prbvolpath")  # fmt: skip
-    result = engine.fit_shape("specimen", [v for v in views if v.name not in held], [v for v in views if v.name in held],
-                               settings, mi.load_dict(integrator))  # fmt: skip
-    next(s for s in views[0].scene.shapes() if s.id() == "specimen").write_ply(str(geometry / MESH_PLY))
-    return result
-
-
-def material_pass(conf: Config, geometry: Path, description: dict, views_inputs: tuple, held: set[str],
-                  parameters: list[engine.FitParameter], seed: int) -> tuple[engine.FitResult, bool]:  # fmt: skip
-    """The material ``parameters`` fitted again on geometry/'s mesh; written back into
-    specimen.xml (and the texture's files) when the held-out error drops by
-    ``material_min_improvement``. Returns the fit and whether it was kept."""
-    cameras, linear, masks = views_inputs
-    views = [v for v, _ in load_views(geometry, description, cameras, linear, masks, conf.material_max_size,
-                                      conf.erode_px, conf.material_spp)]  # fmt: skip
-    settings = engine.FitSettings(iterations=conf.material_iterations, batch=conf.batch, spp=conf.material_spp,
-                                   loss="dual", validate_every=conf.validate_every, validation_spp=conf.validation_spp,
-                                   tolerance=0.0, seed=seed)  # fmt: skip
-    result = engine.fit(parameters, [v for v in views if v.name not in held], [v for v in views if v.name in held],
-                         settings)  # fmt: skip
-    if result.validation_error > (1 - conf.material_min_improvement) * result.start_validation_error:
-        return result, False
-    slot = materials.TEXTURE_SLOTS[description["model"]]
-    constants = {p.name: result.values[p.name] for p in parameters if p.key != slot.key}
-    specimen = geometry / SPECIMEN_XML
-    scene_xml.set_values(specimen, {materials.PARAMETERS[n].key: v for n, v in constants.items()}, specimen)
-    if slot.parameter in result.textures:
-        write_texture_files(geometry, slot, result.textures[slot.parameter])
-    return result, True
-
-
 def _pass_summary(result: engine.ShapeResult | engine.FitResult) -> dict:
-    return {"iterations": len(result.log), "best_iteration": result.best_iteration,
-            "validation_start": result.start_validation_error, "validation": result.validation_error}  # fmt: skip
+    return {
+        "iterations": len(result.log),
+        "best_iteration": result.best_iteration,
+        "validation_start": result.start_validation_error,
+        "validation": result.validation_error,
+    }
 
 
-def _rounds(conf: Config, geometry: Path, description: dict, loss: str, views_inputs: tuple, held: set[str],
-            parameters: list[engine.FitParameter], diagonal: float, values: dict) -> tuple[list[dict], list[dict]]:
+def _shape_settings(conf: Config, diagonal: float, seed: int) -> engine.ShapeSettings:
+    return engine.ShapeSettings(
+        iterations=conf.iterations,
+        batch=conf.batch,
+        spp=conf.spp,
+        step=conf.step * diagonal,
+        smoothing=conf.smoothing,
+        validate_every=conf.validate_every,
+        validation_spp=conf.validation_spp,
+        seed=seed,
+    )
+
+
+def _material_settings(conf: Config, seed: int) -> engine.FitSettings:
+    """fit_material's loop with the dual loss and no tolerance stop."""
+    return engine.FitSettings(
+        iterations=conf.material_iterations,
+        batch=conf.batch,
+        spp=conf.material_spp,
+        loss="dual",
+        validate_every=conf.validate_every,
+        validation_spp=conf.validation_spp,
+        tolerance=0.0,
+        seed=seed,
+    )
+
+
+def _rounds(
+    conf: Config,
+    geometry: Path,
+    description: dict,
+    loss: str,
+    views_inputs: tuple,
+    held: set[str],
+    parameters: list[engine.FitParameter],
+    diagonal: float,
+    values: dict,
+) -> tuple[list[dict], list[dict]]:
     """``rounds`` alternations of a geometry and a material pass on geometry/;
     ``values`` takes a kept material pass's values. Returns (per round summary, log)."""
     rounds, log = [], []
 
     def record(result, round_index: int, name: str) -> None:
         offset = len(log)
-        log.extend({"iteration": e["iteration"] + offset, "round": round_index, "pass": name,
-                    **{k: v for k, v in e.items() if k != "iteration"}} for e in result.log)
+        log.extend(
+            {
+                "iteration": e["iteration"] + offset,
+                "round": round_index,
+                "pass": name,
+                **{k: v for k, v in e.items() if k != "iteration"},
+            }
+            for e in result.log
+        )
 
     for round_index in range(conf.rounds):
         seed = conf.seed + round_index
-        shape = geometry_pass(conf, geometry, description, loss, views_inputs, held, conf.step * diagonal, seed)
+        shape_settings = _shape_settings(conf, diagonal, seed)
+        shape = shape_pass(geometry, description, loss, views_inputs, held, conf.max_size, shape_settings)
         record(shape, round_index, "geometry")
         rounds.append({"geometry": _pass_summary(shape)})
-        logger.info("round %d, geometry: held-out MSE %s -> %s", round_index + 1, shape.start_validation_error,
-                    shape.validation_error)
+        logger.info(
+            "round %d, geometry: held-out MSE %s -> %s",
+            round_index + 1,
+            shape.start_validation_error,
+            shape.validation_error,
+        )
         if conf.material_iterations:
-            refit, kept = material_pass(conf, geometry, description, views_inputs, held, parameters, seed)
+            material_settings = _material_settings(conf, seed)
+            refit, kept = material_pass(
+                geometry,
+                description,
+                views_inputs,
+                held,
+                parameters,
+                conf.material_max_size,
+                conf.erode_px,
+                material_settings,
+                conf.material_min_improvement,
+            )
             record(refit, round_index, "material")
             rounds[-1]["material"] = _pass_summary(refit) | {"kept": kept}
             if kept:
                 values |= refit.values
-            logger.info("round %d, material: held-out error %s -> %s (%s)", round_index + 1,
-                        refit.start_validation_error, refit.validation_error,
-                        "kept" if kept else f"gain below {conf.material_min_improvement:.0%}, not kept")
+            logger.info(
+                "round %d, material: held-out error %s -> %s (%s)",
+                round_index + 1,
+                refit.start_validation_error,
+                refit.validation_error,
+                "kept" if kept else f"gain below {conf.material_min_improvement:.0%}, not kept",
+            )
     return rounds, log
 
 
@@ -282,8 +250,11 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
     # 2. The rounds of geometry and material passes.
     mitsuba_variant.activate(inputs.shared["mitsuba"].variant)
-    views_inputs = (read_views(inputs.upstream["sfm"]["cameras"]), linear_photos(inputs.upstream["undistort"]["pinhole"]),
-                    read_masks(inputs.upstream["masks"]["masks_json"]))
+    views_inputs = (
+        read_views(inputs.upstream["sfm"]["cameras"]),
+        linear_photos(inputs.upstream["undistort"]["pinhole"]),
+        read_masks(inputs.upstream["masks"]["masks_json"]),
+    )
     held = set(material["held_out"])
     diagonal = float(np.linalg.norm(hull.extents))
     start = trimesh.load(geometry / MESH_PLY, force="mesh", process=False).vertices.copy()
@@ -294,19 +265,30 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
     # 3. Held-out renders of the final scene, the log and params.json.
     cameras, linear, masks = views_inputs
-    final = load_views(geometry, description, cameras, linear, masks, conf.max_size, conf.erode_px, conf.validation_spp,
-                       names=held)
+    final = load_views(
+        geometry, description, cameras, linear, masks, conf.max_size, conf.erode_px, conf.validation_spp, names=held
+    )
     write_heldout([v for v, _ in final], 4 * conf.validation_spp, geometry / HELDOUT)
     write_fit_log(geometry, log)
     positions = trimesh.load(geometry / MESH_PLY, force="mesh", process=False).vertices
     moved = np.linalg.norm(positions - start, axis=1)
     first, last = rounds[0]["geometry"], rounds[-1]["geometry"]
-    report |= {"loss": loss, "rounds": rounds, "validation_mse_start": first["validation_start"],
-               "validation_mse": last["validation"], "params": values, "bounds": bounds,
-               "vertices": int(len(positions)), "seconds": time.perf_counter() - started,
-               "held_out": sorted(held), "median_vertex_move_of_diagonal": float(np.median(moved)) / diagonal}
+    report |= {
+        "loss": loss,
+        "rounds": rounds,
+        "validation_mse_start": first["validation_start"],
+        "validation_mse": last["validation"],
+        "params": values,
+        "bounds": bounds,
+        "vertices": int(len(positions)),
+        "seconds": time.perf_counter() - started,
+        "held_out": sorted(held),
+        "median_vertex_move_of_diagonal": float(np.median(moved)) / diagonal,
+    }
     write_json(geometry / PARAMS_JSON, report)
-    return StageResult(outputs, {"validation_mse_start": first["validation_start"], "validation_mse": last["validation"]})
+    return StageResult(
+        outputs, {"validation_mse_start": first["validation_start"], "validation_mse": last["validation"]}
+    )
 
 
 STAGE = Stage(
@@ -314,9 +296,18 @@ STAGE = Stage(
     version=6,
     config=Config,
     main=main,
-    needs=("fit_texture.textured_dir", "fit_texture.params", "fit_texture.heldout", "fit_material.fitted_dir",
-           "fit_material.params", "fit_material.heldout", "scene.description", "sfm.cameras", "undistort.pinhole",
-           "masks.masks_json"),
+    needs=(
+        "fit_texture.textured_dir",
+        "fit_texture.params",
+        "fit_texture.heldout",
+        "fit_material.fitted_dir",
+        "fit_material.params",
+        "fit_material.heldout",
+        "scene.description",
+        "sfm.cameras",
+        "undistort.pinhole",
+        "masks.masks_json",
+    ),
     outputs=("geometry_dir", "params", "heldout"),
     shared=("mitsuba",),
     exports=("geometry_dir",),

@@ -50,6 +50,7 @@ from pipeline.formats.pinhole import linear_photos
 from pipeline.formats.scene_folder import HELDOUT, PARAMS_JSON, SCENE_XML, SPECIMEN_XML, read_json, write_json
 from pipeline.render import materials, mitsuba_variant, scene_xml
 
+
 @dataclass(frozen=True)
 class Config:
     """Material fitting by differentiable rendering."""
@@ -95,8 +96,10 @@ def fit_parameters(model: str, bounds: tuple[str, ...]) -> list[engine.FitParame
     overrides = engine.parse_bounds(bounds, "fit_material.bounds")
     unknown = set(overrides) - set(materials.MODEL_PARAMETERS[model])
     if unknown:
-        raise PipelineError(f"fit_material.bounds names {', '.join(sorted(unknown))}, not parameters of the {model} "
-                            f"model ({', '.join(materials.MODEL_PARAMETERS[model])})")  # fmt: skip
+        raise PipelineError(
+            f"fit_material.bounds names {', '.join(sorted(unknown))}, not parameters of the {model} "
+            f"model ({', '.join(materials.MODEL_PARAMETERS[model])})"
+        )
     return materials.fit_parameters(model, overrides)
 
 
@@ -113,14 +116,17 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     cameras = read_views(inputs.upstream["sfm"]["cameras"])
     linear = linear_photos(inputs.upstream["undistort"]["pinhole"])
     masks = read_masks(inputs.upstream["masks"]["masks_json"])
-    views = [view for view, _ in load_views(fitted, description, cameras, linear, masks, conf.max_size,
-                                            conf.erode_px, conf.spp)]
+    views = [
+        view
+        for view, _ in load_views(fitted, description, cameras, linear, masks, conf.max_size, conf.erode_px, conf.spp)
+    ]
     held = set(held_out_names([v.name for v in views], conf.held_out))
 
     # 3. The fit.
     settings = engine.FitSettings(**{f: getattr(conf, f) for f in engine.FitSettings.__dataclass_fields__})
-    result = engine.fit(parameters, [v for v in views if v.name not in held], [v for v in views if v.name in held],
-                        settings)
+    result = engine.fit(
+        parameters, [v for v in views if v.name not in held], [v for v in views if v.name in held], settings
+    )
 
     # 4. The fitted scene, its log, held-out renders and params.json.
     keys = {p.name: p.key for p in parameters}
@@ -128,21 +134,27 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     scene_xml.set_values(specimen, {keys[n]: v for n, v in result.values.items()}, specimen)
     write_fit_log(fitted, result.log)
     write_heldout([v for v in views if v.name in held], 4 * conf.validation_spp, fitted / HELDOUT)
-    params = write_json(fitted / PARAMS_JSON, {
-        "model": model,
-        "params": result.values,
-        "bounds": {p.name: [p.lower, p.upper] for p in parameters},
-        "units": {p.name: materials.PARAMETERS[p.name].units for p in parameters},
-        "best_iteration": result.best_iteration,
+    params = write_json(
+        fitted / PARAMS_JSON,
+        {
+            "model": model,
+            "params": result.values,
+            "bounds": {p.name: [p.lower, p.upper] for p in parameters},
+            "units": {p.name: materials.PARAMETERS[p.name].units for p in parameters},
+            "best_iteration": result.best_iteration,
+            "iterations": len(result.log),
+            "validation_mse": result.validation_error,
+            "held_out": sorted(held),
+            "stopped": result.stopped,
+            "exposures": result.exposures,
+        },
+    )
+    metrics = {
         "iterations": len(result.log),
+        "best_iteration": result.best_iteration,
         "validation_mse": result.validation_error,
-        "held_out": sorted(held),
-        "stopped": result.stopped,
-        "exposures": result.exposures,
-    })
-    metrics = {"iterations": len(result.log), "best_iteration": result.best_iteration,
-               "validation_mse": result.validation_error,
-               **{n: v if len(v) > 1 else v[0] for n, v in result.values.items()}}
+        **{n: v if len(v) > 1 else v[0] for n, v in result.values.items()},
+    }
     outputs = {"fitted_dir": fitted, "params": params, "heldout": fitted / HELDOUT, "scene": fitted / SCENE_XML}
     return StageResult(outputs, metrics)
 

@@ -59,20 +59,19 @@ the prior sets. Held-out photos are fit_material's.
 from __future__ import annotations
 
 import shutil
-import xml.etree.ElementTree as ET
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
 import trimesh
-from scipy import ndimage
 
 from pipeline import logger
 from pipeline.core.config import Range
 from pipeline.core.stage import Stage, StageInputs, StageResult
 from pipeline.fit import engine
-from pipeline.fit.outputs import write_fit_log, write_heldout, write_texture_files
+from pipeline.fit.outputs import write_fit_log, write_heldout
+from pipeline.fit.texture import TextureFit, fit_constants_then_levels, level_shapes, write_texture
 from pipeline.fit.views import load_views
 from pipeline.formats.cameras import read_views
 from pipeline.formats.masks import read_masks
@@ -87,6 +86,7 @@ from pipeline.formats.scene_folder import (
     write_json,
 )
 from pipeline.render import materials, mitsuba_variant, scene_xml
+
 
 @dataclass(frozen=True)
 class Config:
@@ -134,115 +134,56 @@ class Config:
     """Seed of the batch order and the renders."""
 
 
-def level_shapes(conf: Config, kind: str, box_extent: np.ndarray) -> list[tuple[int, ...]]:
-    """Spatial shape of the texture at each level, coarsest first: (side, side) for a
-    bitmap, (z, y, x) proportional to the box for a grid."""
-    shapes = []
-    for level in range(conf.levels):
-        factor = 2 ** (conf.levels - 1 - level)
-        if kind == "bitmap":
-            side = max(conf.max_resolution // factor, 2)
-            shapes.append((side, side))
-        else:
-            longest = max(conf.max_grid_resolution // factor, 2)
-            x, y, z = np.maximum(np.round(longest * box_extent / box_extent.max()), 2).astype(int)
-            shapes.append((int(z), int(y), int(x)))
-    return shapes
-
-
-def resample(texture: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
-    """Linear resampling to a new spatial shape, texel centres aligned."""
-    factors = [new / old for new, old in zip(shape, texture.shape[:-1])] + [1.0]
-    return ndimage.zoom(texture, factors, order=1, mode="nearest", grid_mode=True).astype(np.float32)
-
-
-
-def write_texture(folder: Path, slot: materials.TextureSlot, texture: np.ndarray, box: np.ndarray) -> ET.Element:
-    """Write the texture's files into ``folder``; the XML element that loads them."""
-    write_texture_files(folder, slot, texture)
-    holder = ET.Element("holder")
-    name = slot.parameter
-    if slot.kind == "bitmap":
-        return scene_xml.plugin(holder, "texture", {"type": "bitmap", "id": f"specimen_{name}",
-                                                    "filename": f"{name}.exr"})  # fmt: skip
-    element = scene_xml.plugin(holder, "volume", {"type": "gridvolume", "id": f"specimen_{name}",
-                                                  "filename": f"{name}.vol"})  # fmt: skip
-    lower, upper = box
-    to_world = np.diag([*(upper - lower), 1.0])
-    to_world[:3, 3] = lower
-    scene_xml.transform_matrix(element, to_world)
-    return element
-
-
-@dataclass
-class _Training:
-    """What the levels are fitted on."""
-
-    training: list[engine.FitView]
-    validation: list[engine.FitView]
-    parameters: list[engine.FitParameter]
-    """The texture first, then the constants refitted with it."""
-    settings: engine.FitSettings
-
-
-def _fit_constants_then_levels(conf: Config, slot: materials.TextureSlot, texture: np.ndarray,
-                               shapes: list[tuple[int, ...]], fit: _Training, report: dict) -> dict:
-    """The constants alone (texture constant), then the texture level by level; fills
-    ``report`` and returns the last level's result with the texture, the refitted
-    constants, the constant model's held-out error and the joined log."""
-    import mitsuba as mi
-
-    log, levels = [], []
-
-    def record(result: engine.FitResult, level: int | str, shape: tuple[int, ...] | None) -> dict:
-        offset = len(log)
-        log.extend({**e, "iteration": e["iteration"] + offset, "level": level, "resolution": shape and list(shape)}
-                   for e in result.log)
-        return {"resolution": shape and list(shape), "iterations": len(result.log),
-                "best_iteration": result.best_iteration, "validation_mse": result.validation_error,
-                "stopped": result.stopped}
-
-    constants = [p.name for p in fit.parameters[1:]]
-    refitted, constant_error = {}, None
-    if constants:
-        # The constants alone first, the colour still constant: the texture must then
-        # earn its place against the refitted constant model, not against
-        # fit_material's (a texture-free specimen's texture was kept on what the
-        # constants alone gained).
-        result = engine.fit(fit.parameters[1:], fit.training, fit.validation, fit.settings)
-        refitted, constant_error = {n: result.values[n] for n in constants}, result.validation_error
-        report["constants_fit"] = record(result, "constants", None)
-        logger.info("constants refitted: held-out MSE %s", result.validation_error)
-    scenes = {id(v.scene): v.scene for v in fit.training + fit.validation}
-    for level, shape in enumerate(shapes):
-        texture = resample(texture, shape)
-        for scene in scenes.values():
-            params = mi.traverse(scene)
-            params[slot.key] = mi.TensorXf(texture)
-            params.update()
-        result = engine.fit(fit.parameters, fit.training, fit.validation,
-                            replace(fit.settings, seed=conf.seed + level + 1))
-        texture = result.textures[slot.parameter]
-        if constant_error is None:
-            constant_error = result.start_validation_error
-        levels.append(record(result, level, shape))
-        logger.info("level %d (%s texels): held-out MSE %s", level, "x".join(map(str, shape)), result.validation_error)
-    report["levels"] = levels
-    return {"result": result, "texture": texture, "constants": constants, "refitted": refitted,
-            "constant_error": constant_error, "log": log}
-
-
 def _keep_texture(conf: Config, constant_error: float | None, texture_error: float) -> tuple[bool, str]:
     """Whether the texture earns its place, and why (``texture``, ``min_improvement``)."""
     if constant_error is None:
         return True, "no held-out photos to decide with: kept"
     improvement = (constant_error - texture_error) / constant_error
     kept = conf.texture == "on" or improvement >= conf.min_improvement
-    return kept, (f"held-out MSE {constant_error:.4g} with the constant, {texture_error:.4g} with the texture "
-                  f"({100 * improvement:+.1f} %, threshold {100 * conf.min_improvement:g} %)")
+    return kept, (
+        f"held-out MSE {constant_error:.4g} with the constant, {texture_error:.4g} with the texture "
+        f"({100 * improvement:+.1f} %, threshold {100 * conf.min_improvement:g} %)"
+    )
+
+
+def _finish_report(report: dict, material: dict, constants: dict, texture_mean: list | None) -> None:
+    """The scene's values as in fit_material's params.json: the refitted constants,
+    and a kept texture's mean in its parameter's place."""
+    report["params"] = {**material["params"], **constants}
+    if texture_mean is not None:
+        report["params"][materials.TEXTURE_SLOTS[report["model"]].parameter] = texture_mean
+    report["bounds"] = material["bounds"]
+
+
+def _texture_fit(conf: Config, model: str, bounds: dict, views: list[engine.FitView], held: set[str]) -> TextureFit:
+    """The views split by fit_material's held-out photos, the texture's and constants'
+    parameters, and the loop's settings for one level."""
+    settings = engine.FitSettings(
+        iterations=conf.iterations_per_level,
+        batch=conf.batch,
+        spp=conf.spp,
+        loss=conf.loss,
+        validate_every=conf.validate_every,
+        validation_spp=conf.validation_spp,
+        tolerance=conf.tolerance,
+        window=conf.window,
+        seed=conf.seed,
+    )
+    parameters = materials.refit_parameters(model, bounds, (conf.learning_rate, conf.smoothness), conf.refit_constants)
+    training, validation = [v for v in views if v.name not in held], [v for v in views if v.name in held]
+    return TextureFit(training=training, validation=validation, parameters=parameters, settings=settings)
+
+
+def _render_heldout(conf: Config, textured: Path, description: dict, photos: tuple, held: set[str]) -> None:
+    cameras, linear, masks = photos
+    views = load_views(
+        textured, description, cameras, linear, masks, conf.max_size, conf.erode_px, conf.spp, names=held
+    )
+    write_heldout([view for view, _ in views], 4 * conf.validation_spp, textured / HELDOUT)
 
 
 def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
+    # Longer than 60 lines on purpose: the stage's five steps in their order.
     # 1. fit_material's scene, without its fit results.
     material_dir = inputs.upstream["fit_material"]["fitted_dir"]
     material = read_json(inputs.upstream["fit_material"]["params"])
@@ -251,8 +192,14 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     slot = materials.TEXTURE_SLOTS[model]
     textured = copy_scene(material_dir, out_dir / "textured")
     outputs = {"textured_dir": textured, "params": textured / PARAMS_JSON, "heldout": textured / HELDOUT}
-    report = {"model": model, "parameter": slot.parameter, "kind": slot.kind, "mode": conf.texture,
-              "constant": material["params"][slot.parameter], "held_out": material["held_out"]}
+    report = {
+        "model": model,
+        "parameter": slot.parameter,
+        "kind": slot.kind,
+        "mode": conf.texture,
+        "constant": material["params"][slot.parameter],
+        "held_out": material["held_out"],
+    }
     if conf.texture == "off":
         shutil.copytree(inputs.upstream["fit_material"]["heldout"], textured / HELDOUT)
         report |= {"kept": False, "reason": "texture = off", "params": material["params"], "bounds": material["bounds"]}
@@ -262,7 +209,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     # 2. The texture at the coarsest level, set to fit_material's constant.
     mesh = trimesh.load(textured / MESH_PLY, force="mesh")
     box = np.array([mesh.bounds[0] - 0.02 * mesh.extents, mesh.bounds[1] + 0.02 * mesh.extents])
-    shapes = level_shapes(conf, slot.kind, box[1] - box[0])
+    shapes = level_shapes(conf.levels, conf.max_resolution, conf.max_grid_resolution, slot.kind, box[1] - box[0])
     texture = np.broadcast_to(np.float32(material["params"][slot.parameter]), (*shapes[0], 3)).copy()
     specimen = textured / SPECIMEN_XML
     parameter_key = materials.PARAMETERS[slot.parameter].key
@@ -273,19 +220,13 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     cameras = read_views(inputs.upstream["sfm"]["cameras"])
     linear = linear_photos(inputs.upstream["undistort"]["pinhole"])
     masks = read_masks(inputs.upstream["masks"]["masks_json"])
-    views = [view for view, _ in load_views(textured, description, cameras, linear, masks, conf.max_size,
-                                            conf.erode_px, conf.spp)]
+    views = [
+        view
+        for view, _ in load_views(textured, description, cameras, linear, masks, conf.max_size, conf.erode_px, conf.spp)
+    ]
     held = set(material["held_out"])
-    fit = _Training(
-        training=[v for v in views if v.name not in held], validation=[v for v in views if v.name in held],
-        parameters=materials.refit_parameters(model, material["bounds"], (conf.learning_rate, conf.smoothness),
-                                              conf.refit_constants),
-        settings=engine.FitSettings(iterations=conf.iterations_per_level, batch=conf.batch, spp=conf.spp,
-                                    loss=conf.loss, validate_every=conf.validate_every,
-                                    validation_spp=conf.validation_spp, tolerance=conf.tolerance, window=conf.window,
-                                    seed=conf.seed),
-    )
-    fitted = _fit_constants_then_levels(conf, slot, texture, shapes, fit, report)
+    fit = _texture_fit(conf, model, material["bounds"], views, held)
+    fitted = fit_constants_then_levels(slot, texture, shapes, fit, report)
     result, texture, constants = fitted["result"], fitted["texture"], fitted["constants"]
     constant_error, texture_error = fitted["constant_error"], report["levels"][-1]["validation_mse"]
 
@@ -306,24 +247,27 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
     # 5. Held-out renders of the scene kept, and params.json.
     if kept or fitted["refitted"]:
-        held_views = [view for view, _ in load_views(textured, description, cameras, linear, masks, conf.max_size,
-                                                     conf.erode_px, conf.spp, names=held)]
-        write_heldout(held_views, 4 * conf.validation_spp, textured / HELDOUT)
+        photos = (cameras, linear, masks)
+        _render_heldout(conf, textured, description, photos, held)
     else:
         shutil.copytree(inputs.upstream["fit_material"]["heldout"], textured / HELDOUT)
-    report["params"] = {**material["params"], **constant_values}
-    if kept:
-        report["params"][slot.parameter] = result.values[slot.parameter]  # the texture's mean
-    report["bounds"] = material["bounds"]
+    _finish_report(report, material, constant_values, result.values[slot.parameter] if kept else None)
     levels = report.pop("levels")
-    report |= {"kept": kept, "reason": reason, "smoothness": conf.smoothness, "learning_rate": conf.learning_rate,
-               "validation_mse_constant": constant_error, "validation_mse_texture": texture_error, "levels": levels,
-               "texture_mean": [float(v) for v in texture.reshape(-1, 3).mean(axis=0)],
-               "files": sorted(p.name for p in textured.glob(f"{slot.parameter}.*"))}
+    report |= {
+        "kept": kept,
+        "reason": reason,
+        "smoothness": conf.smoothness,
+        "learning_rate": conf.learning_rate,
+        "validation_mse_constant": constant_error,
+        "validation_mse_texture": texture_error,
+        "levels": levels,
+        "texture_mean": [float(v) for v in texture.reshape(-1, 3).mean(axis=0)],
+        "files": sorted(p.name for p in textured.glob(f"{slot.parameter}.*")),
+    }
     write_json(textured / PARAMS_JSON, report)
-    return StageResult(outputs, {"kept": kept, "validation_mse_constant": constant_error,
-                                 "validation_mse_texture": texture_error})
-
+    return StageResult(
+        outputs, {"kept": kept, "validation_mse_constant": constant_error, "validation_mse_texture": texture_error}
+    )
 
 
 STAGE = Stage(
@@ -331,8 +275,15 @@ STAGE = Stage(
     version=6,
     config=Config,
     main=main,
-    needs=("fit_material.fitted_dir", "fit_material.params", "fit_material.heldout", "scene.description",
-           "sfm.cameras", "undistort.pinhole", "masks.masks_json"),
+    needs=(
+        "fit_material.fitted_dir",
+        "fit_material.params",
+        "fit_material.heldout",
+        "scene.description",
+        "sfm.cameras",
+        "undistort.pinhole",
+        "masks.masks_json",
+    ),
     outputs=("textured_dir", "params", "heldout"),
     shared=("mitsuba",),
     exports=("textured_dir",),

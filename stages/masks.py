@@ -43,15 +43,15 @@ import cv2
 import numpy as np
 
 from pipeline import logger
-from pipeline.core import progress
 from pipeline.camera.model import Intrinsics, undistort
+from pipeline.core import progress
 from pipeline.core.config import Range
 from pipeline.core.errors import PipelineError
-from pipeline.imaging.photo_io import read_photo
-from pipeline.imaging.segmentation import clean, read_user_mask, segment, segment_plate_difference
 from pipeline.core.stage import Stage, StageInputs, StageResult
 from pipeline.formats.masks import write_masks
 from pipeline.formats.pinhole import read_camera_settings, read_photos
+from pipeline.imaging.photo_io import read_photo
+from pipeline.imaging.segmentation import clean, read_user_mask, segment, segment_plate_difference
 
 
 @dataclass(frozen=True)
@@ -125,8 +125,9 @@ def _choose_source(conf: Config, user_masks: bool, plates: bool) -> str:
     return "user" if user_masks else "background" if plates else "segment"
 
 
-def _mask(conf: Config, source: str, name: str, photo: dict, camera: dict, user_mask: Path | None,
-          plate: dict | None) -> np.ndarray:
+def _mask(
+    conf: Config, source: str, name: str, photo: dict, camera: dict, user_mask: Path | None, plate: dict | None
+) -> np.ndarray:
     """One photo's mask from the chosen source, cleaned."""
     target = Intrinsics.from_json(camera["intrinsics"])
     if source == "user":
@@ -140,12 +141,18 @@ def _mask(conf: Config, source: str, name: str, photo: dict, camera: dict, user_
         mask = undistort(drawn.astype(np.float32), source_camera, target) >= 0.5
     elif source == "background":
         linear = read_photo(photo["linear"]).pixels
-        mask = segment_plate_difference(linear, read_photo(plate["linear"]).pixels, conf.background_threshold,
-                                        conf.grabcut_iterations, conf.working_size)
+        mask = segment_plate_difference(
+            linear,
+            read_photo(plate["linear"]).pixels,
+            conf.background_threshold,
+            conf.grabcut_iterations,
+            conf.working_size,
+        )
     else:
         srgb = cv2.cvtColor(cv2.imread(str(photo["srgb"])), cv2.COLOR_BGR2RGB)  # undistort's 8-bit copy
-        mask = segment(srgb, conf.segmenter, conf.backdrop_chroma, conf.centre_fraction, conf.grabcut_iterations,
-                       conf.working_size)
+        mask = segment(
+            srgb, conf.segmenter, conf.backdrop_chroma, conf.centre_fraction, conf.grabcut_iterations, conf.working_size
+        )
     return clean(mask, conf.min_component_fraction, conf.fill_holes)
 
 
@@ -198,4 +205,3 @@ STAGE = Stage(
     outputs=("masks_json", "masks"),
     reads=("masks/*",),
 )
-

@@ -47,12 +47,12 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from pipeline import colmap, logger
-from pipeline.formats.cameras import read_frame, read_views
 from pipeline.core.config import Range
 from pipeline.core.errors import PipelineError
 from pipeline.core.stage import Stage, StageInputs, StageResult
-from pipeline.geometry.visual_hull import Grid, View, bounds, hull_field, surface
+from pipeline.formats.cameras import read_frame, read_views
 from pipeline.formats.masks import read_masks
+from pipeline.geometry.visual_hull import Grid, View, bounds, hull_field, surface
 
 
 @dataclass(frozen=True)
@@ -91,8 +91,10 @@ def _views(cameras_json: Path, masks_json: Path) -> list[View]:
     for name, (intrinsics, pose) in sorted(read_views(cameras_json).items()):
         mask = cv2.imread(str(masks[name]), cv2.IMREAD_GRAYSCALE) > 127
         if mask.shape != (intrinsics.height, intrinsics.width):
-            raise PipelineError(f"the mask of {name} is {mask.shape[::-1]} but its camera is "
-                                f"{intrinsics.width}x{intrinsics.height}: rerun the masks and sfm stages")  # fmt: skip
+            raise PipelineError(
+                f"the mask of {name} is {mask.shape[::-1]} but its camera is "
+                f"{intrinsics.width}x{intrinsics.height}: rerun the masks and sfm stages"
+            )
         views.append(View(intrinsics, pose, mask))
     return views
 
@@ -103,9 +105,15 @@ def _ground_height(cameras_json: Path) -> float | None:
     return None if plane is None else float(-plane[3] / plane[2])
 
 
-
-def _refine_with_points(hull: trimesh.Trimesh, views: list[View], points: np.ndarray, towards: np.ndarray,
-                        conf: Config, voxel: float, work_dir: Path) -> tuple[trimesh.Trimesh, dict]:  # fmt: skip
+def _refine_with_points(
+    hull: trimesh.Trimesh,
+    views: list[View],
+    points: np.ndarray,
+    towards: np.ndarray,
+    conf: Config,
+    voxel: float,
+    work_dir: Path,
+) -> tuple[trimesh.Trimesh, dict]:
     depth_in_hull = hull_field(points, views, conf.carve_tolerance)
     consistent = depth_in_hull > -voxel
     # A concavity the hull cannot carve: inside and further than two voxels from its
@@ -127,14 +135,18 @@ def _refine_with_points(hull: trimesh.Trimesh, views: list[View], points: np.nda
     # The smallest-eigenvalue eigenvector of each neighbourhood's scatter, all at once.
     point_normals = np.linalg.eigh(np.einsum("nki,nkj->nij", local, local))[1][:, :, 0]
     point_normals *= np.where(np.sum(point_normals * towards, axis=1) >= 0, 1.0, -1.0)[:, None]
-    mesh = colmap.screened_poisson(cloud, np.vstack([normals, point_normals]), conf.poisson_depth,
-                                  conf.poisson_point_weight, work_dir)
+    mesh = colmap.screened_poisson(
+        cloud, np.vstack([normals, point_normals]), conf.poisson_depth, conf.poisson_point_weight, work_dir
+    )
     parts = mesh.split(only_watertight=False)
     mesh = max(parts, key=lambda part: len(part.faces)) if len(parts) > 1 else mesh
     if mesh.volume < 0:
         mesh.invert()
-    report = {"sparse_points_used": int(len(points)), "sparse_points_inside": int(interior.sum()),
-              "sparse_points_rejected": int((~consistent).sum())}  # fmt: skip
+    report = {
+        "sparse_points_used": int(len(points)),
+        "sparse_points_inside": int(interior.sum()),
+        "sparse_points_rejected": int((~consistent).sum()),
+    }
     return mesh, report
 
 
@@ -164,11 +176,17 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         size = 2 * conf.close_voxels + 1
         field = ndimage.grey_closing(field.reshape(grid.shape), size=(size,) * 3).ravel()
     mesh = surface(field, grid)
-    report: dict = {"views": len(views), "voxel": grid.voxel, "grid": list(grid.shape),
-                    "hull_seconds": time.perf_counter() - started, "ground_clipped": ground is not None}  # fmt: skip
+    report: dict = {
+        "views": len(views),
+        "voxel": grid.voxel,
+        "grid": list(grid.shape),
+        "hull_seconds": time.perf_counter() - started,
+        "ground_clipped": ground is not None,
+    }
     if conf.refine == "poisson":
-        points, towards = colmap.trusted_points(inputs.upstream["sfm"]["sparse"], conf.min_track_length,
-                                                conf.max_point_error_px)
+        points, towards = colmap.trusted_points(
+            inputs.upstream["sfm"]["sparse"], conf.min_track_length, conf.max_point_error_px
+        )
         if len(points) >= 10:
             refined, details = _refine_with_points(mesh, views, points, towards, conf, grid.voxel, out_dir)
             report.update(details)
@@ -177,13 +195,20 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
             if refined.is_watertight and _genus(refined) <= _genus(mesh):
                 mesh, report["refinement"] = refined, "kept"
             else:
-                report["refinement"] = (f"rejected: genus {_genus(refined)}, watertight {refined.is_watertight} "
-                                        f"against the hull's genus {_genus(mesh)}")  # fmt: skip
+                report["refinement"] = (
+                    f"rejected: genus {_genus(refined)}, watertight {refined.is_watertight} "
+                    f"against the hull's genus {_genus(mesh)}"
+                )
                 logger.warning("Poisson refinement %s; keeping the visual hull", report["refinement"])
         else:
             logger.warning("only %d trusted sparse points: keeping the visual hull as it is", len(points))
-    report.update(faces=int(len(mesh.faces)), watertight=bool(mesh.is_watertight), volume=float(mesh.volume),
-                  extent=(mesh.bounds[1] - mesh.bounds[0]).tolist(), seconds=time.perf_counter() - started)  # fmt: skip
+    report.update(
+        faces=int(len(mesh.faces)),
+        watertight=bool(mesh.is_watertight),
+        volume=float(mesh.volume),
+        extent=(mesh.bounds[1] - mesh.bounds[0]).tolist(),
+        seconds=time.perf_counter() - started,
+    )
     if not mesh.is_watertight:
         logger.warning("the mesh is not watertight; the cleanup stage closes its holes")
     mesh_ply = out_dir / "mesh.ply"

@@ -60,7 +60,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal
 
-import cv2
 import numpy as np
 
 from pipeline import colmap, logger
@@ -74,7 +73,7 @@ from pipeline.formats.cameras import write_cameras
 from pipeline.formats.masks import read_masks
 from pipeline.formats.pinhole import read_camera_settings, read_photos
 from pipeline.geometry import world_frame
-from pipeline.geometry.pose_check import silhouette_check
+from pipeline.geometry.pose_check import drop_inconsistent
 from pipeline.geometry.turntable_placement import PlacementSettings, turntable_poses
 
 
@@ -133,66 +132,67 @@ class Config:
     """Voxels along the hull's longest side used to place turntable photos by silhouette."""
 
 
-
-
-
-def _reconstruct(conf: Config, rig: str, photo_paths: dict[str, dict], cameras: list[dict], masks: dict[str, Path],
-                 work: Path):
+def _reconstruct(
+    conf: Config, rig: str, photo_paths: dict[str, dict], cameras: list[dict], masks: dict[str, Path], work: Path
+):
     """Features, matches and COLMAP's incremental model (or None); the database."""
     mode = conf.feature_mask if conf.feature_mask != "auto" else ("moving" if rig == "turntable" else "everywhere")
     mask_dir = colmap.feature_masks(mode, conf.mask_dilation, photo_paths, masks, work)
     matcher = conf.matcher
     if matcher == "auto":
-        matcher = ("ring" if rig == "turntable" else
-                   "exhaustive" if len(photo_paths) <= conf.exhaustive_max_images else "sequential")
+        matcher = (
+            "ring"
+            if rig == "turntable"
+            else "exhaustive"
+            if len(photo_paths) <= conf.exhaustive_max_images
+            else "sequential"
+        )
     database = work / "database.db"
     image_dir = next(iter(photo_paths.values()))["srgb"].parent
-    colmap.extract_and_match(photo_paths, cameras, mask_dir, image_dir, database, conf.max_features, matcher,
-                             conf.sequential_overlap, conf.ring_neighbours, still_camera=rig == "turntable")
+    colmap.extract_and_match(
+        photo_paths,
+        cameras,
+        mask_dir,
+        image_dir,
+        database,
+        conf.max_features,
+        matcher,
+        conf.sequential_overlap,
+        conf.ring_neighbours,
+        still_camera=rig == "turntable",
+    )
     refine_focal = any(c["source"] != "board" for c in cameras)
     model = colmap.incremental_map(database, image_dir, work / "models", refine_focal, conf.min_pose_inliers)
     return model, database, refine_focal
 
 
-def _sfm_poses(model, name_of: dict[str, str], intrinsics: dict[str, Intrinsics], refine_focal: bool):
-    """Registered photos' poses (intrinsics refined in place when SfM refined the focal length)."""
-    registered = {} if model is None else {name_of[im.name]: im for im in model.images.values() if im.has_pose}
-    poses = {}
-    for name, image in registered.items():
-        rigid = image.cam_from_world()
-        poses[name] = Pose(np.asarray(rigid.rotation.matrix()), np.asarray(rigid.translation))
-        if refine_focal:
-            focal, cx, cy = image.camera.params
-            K = intrinsics[name]
-            intrinsics[name] = Intrinsics(K.width, K.height, float(focal), float(focal),
-                                          float(cx) - colmap.COLMAP_PIXEL_OFFSET,
-                                          float(cy) - colmap.COLMAP_PIXEL_OFFSET)
-    return poses
-
-
-def _drop_inconsistent(conf: Config, poses: dict[str, Pose], intrinsics: dict[str, Intrinsics],
-                       masks: dict[str, Path], report: dict) -> None:
-    """Leave out (from ``poses``) photos whose silhouettes contradict the hull of the
-    others, and cameras under the table."""
-    if len(poses) >= 3:
-        mask_of = {n: cv2.imread(str(masks[n]), cv2.IMREAD_GRAYSCALE) > 127 for n in poses}
-        report["silhouette_iou"], off = silhouette_check(poses, intrinsics, mask_of, conf.min_silhouette_iou,
-                                                         conf.silhouette_resolution)
-        for name in off:
-            logger.warning("%s: its silhouette does not match the hull of the other photos at SfM's pose (IoU %.2f "
-                           "< sfm.min_silhouette_iou = %.2f); leaving the photo out", name,
-                           report["silhouette_iou"][name], conf.min_silhouette_iou)
-            del poses[name]
-    if report["frame"].get("ground_plane") is not None:
-        # The world's z = 0 is the table: a camera below it cannot see the specimen on
-        # it. SfM does this to a view of a plain, symmetric specimen it mirrors.
-        report["below_ground"] = sorted(n for n, p in poses.items() if p.center[2] < 0)
-        for name in report["below_ground"]:
-            logger.warning("%s: SfM put the camera below the table (z = %.3f); leaving the photo out", name,
-                           poses.pop(name).center[2])
+def _board_frame(conf: Config, board_found: dict[str, Pose], model, poses: dict[str, Pose], points, report: dict):
+    """SfM's model moved into the board's frame when they agree; the board poses alone
+    when they do not but the board is seen in three photos; else no frame (None).
+    Returns (frame, model, poses, points)."""
+    frame = world_frame.frame_from_board(conf.frame, conf.board_max_disagreement, board_found, poses, report)
+    if frame is not None:
+        poses = {n: frame.pose(p) for n, p in poses.items()}
+        points = frame.points(points) if len(points) else points
+        report["replaced_by_board"] = world_frame.replace_by_board(conf.board_max_disagreement, poses, board_found)
+    elif len(board_found) >= 3 and conf.frame in ("auto", "board"):
+        # The board poses alone define the world; SfM's model, not tied to them, is dropped.
+        logger.warning("SfM's %d photos could not be tied to the board: using the board poses alone", len(poses))
+        frame, model, poses, points = Similarity.identity(), None, {}, np.zeros((0, 3))
+        report["frame"] = {
+            "source": "board",
+            "metric": True,
+            "units": "metres",
+            "up": "+z, normal to the board",
+            "ground_plane": [0.0, 0.0, 1.0, 0.0],
+            "photos": len(board_found),
+        }
+    return frame, model, poses, points
 
 
 def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
+    # Longer than 60 lines on purpose: the stage's seven steps in their order, each a few
+    # calls into pipeline.colmap and pipeline.geometry; split further, the order would hide.
     # 1. The photos, their cameras and masks.
     capture: CaptureSection = inputs.shared["capture"]
     board: BoardSection = inputs.shared["board"]
@@ -209,33 +209,28 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     work = out_dir / "colmap"
     work.mkdir()
     model, database, refine_focal = _reconstruct(conf, capture.rig, photo_paths, cameras, masks, work)
-    poses = _sfm_poses(model, name_of, intrinsics, refine_focal)
+    poses = colmap.registered_poses(model, name_of, intrinsics, refine_focal)
     unregistered = [n for n in order if n not in poses]
     causes = colmap.unregistered_causes(database, unregistered, stem_of) if unregistered else {}
-    board_found, board_errors = board_poses(board, photo_paths, intrinsics, conf.board_min_corners,
-                                            conf.board_max_error_px)
+    board_found, board_errors = board_poses(
+        board, photo_paths, intrinsics, conf.board_min_corners, conf.board_max_error_px
+    )
     # A board pose is as good as a registration (in the board frame), and SfM may
     # fail on a plain specimen.
     if len(set(poses) | set(board_found)) < conf.min_registered_fraction * len(order):
         _too_few(conf, set(poses) | set(board_found), order, causes)
     points = np.array([p.xyz for p in model.points3D.values()]) if model is not None else np.zeros((0, 3))
-    report: dict = {"registered": len(poses), "photos": len(order), "unregistered": causes,
-                    "mean_reprojection_error_px": model.compute_mean_reprojection_error() if model else None,
-                    "mean_track_length": model.compute_mean_track_length() if model else None,
-                    "points": len(points)}
+    report: dict = {
+        "registered": len(poses),
+        "photos": len(order),
+        "unregistered": causes,
+        "mean_reprojection_error_px": model.compute_mean_reprojection_error() if model else None,
+        "mean_track_length": model.compute_mean_track_length() if model else None,
+        "points": len(points),
+    }
 
     # 3. The board's frame, when SfM agrees with it.
-    frame = world_frame.frame_from_board(conf.frame, conf.board_max_disagreement, board_found, poses, report)
-    if frame is not None:
-        poses = {n: frame.pose(p) for n, p in poses.items()}
-        points = frame.points(points) if len(points) else points
-        report["replaced_by_board"] = world_frame.replace_by_board(conf.board_max_disagreement, poses, board_found)
-    elif len(board_found) >= 3 and conf.frame in ("auto", "board"):
-        # The board poses alone define the world; SfM's model, not tied to them, is dropped.
-        logger.warning("SfM's %d photos could not be tied to the board: using the board poses alone", len(poses))
-        frame, model, poses, points = Similarity.identity(), None, {}, np.zeros((0, 3))
-        report["frame"] = {"source": "board", "metric": True, "units": "metres", "up": "+z, normal to the board",
-                           "ground_plane": [0.0, 0.0, 1.0, 0.0], "photos": len(board_found)}
+    frame, model, poses, points = _board_frame(conf, board_found, model, poses, points, report)
     to_world = frame or Similarity.identity()
     if frame is not None and capture.rig != "turntable":
         report["posed_by_board"] = sorted(set(board_found) - set(poses))
@@ -246,10 +241,12 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     if capture.rig == "turntable":
         measured = {"board": board_found if frame is not None else {}, "sfm": poses}
         keypoints, matches = colmap.verified_matches(database, order, stem_of)
-        settings = PlacementSettings(conf.min_pose_inliers, conf.silhouette_resolution,
-                                     model_poses=conf.turntable_poses == "model")
-        table, poses, report["turntable"] = turntable_poses(settings, order, measured, intrinsics, masks, keypoints,
-                                                            matches)
+        settings = PlacementSettings(
+            conf.min_pose_inliers, conf.silhouette_resolution, model_poses=conf.turntable_poses == "model"
+        )
+        table, poses, report["turntable"] = turntable_poses(
+            settings, order, measured, intrinsics, masks, keypoints, matches
+        )
 
     # 5. Without the board: the world frame from the turntable, the ground or the cameras.
     if frame is None:
@@ -260,12 +257,16 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
     # 6. Poses the silhouettes or the table contradict are left out.
     if capture.rig != "turntable":
-        _drop_inconsistent(conf, poses, intrinsics, masks, report)
+        drop_inconsistent(poses, intrinsics, masks, conf.min_silhouette_iou, conf.silhouette_resolution, report)
     if len(poses) < conf.min_registered_fraction * len(order):
         _too_few(conf, set(poses), order, causes)
     if len(poses) < len(order):
-        logger.warning("%d of %d photos are not registered and are left out: %s", len(order) - len(poses),
-                       len(order), ", ".join(n for n in order if n not in poses))
+        logger.warning(
+            "%d of %d photos are not registered and are left out: %s",
+            len(order) - len(poses),
+            len(order),
+            ", ".join(n for n in order if n not in poses),
+        )
 
     # 7. The model, cameras.json and sfm.json.
     sparse = colmap.write_model(model, database, to_world, poses, stem_of, out_dir / "sparse")
@@ -281,14 +282,14 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 
 def _too_few(conf: Config, posed: set[str], order: list[str], causes: dict[str, str]) -> None:
-    listing = "; ".join(f"{n}: {causes.get(n, 'a pose SfM got wrong (see the warnings above)')}"
-                        for n in order if n not in posed)  # fmt: skip
+    listing = "; ".join(
+        f"{n}: {causes.get(n, 'a pose SfM got wrong (see the warnings above)')}" for n in order if n not in posed
+    )
     raise PipelineError(
         f"only {len(posed)} of {len(order)} photos registered (sfm.min_registered_fraction = "
         f"{conf.min_registered_fraction}). Unregistered: {listing}. "
         "Check them with `pipeline check`; add texture or a board near the specimen, or reshoot with more overlap"
     )
-
 
 
 STAGE = Stage(

@@ -29,10 +29,13 @@ from typing import Annotated
 import numpy as np
 
 from pipeline import logger
-from pipeline.core import progress
 from pipeline.camera.model import Intrinsics, ideal_pinhole, undistort
+from pipeline.core import progress
 from pipeline.core.config import Range
 from pipeline.core.errors import PipelineError
+from pipeline.core.stage import Stage, StageInputs, StageResult
+from pipeline.formats.calibration import read_camera_groups
+from pipeline.formats.pinhole import write_pinhole
 from pipeline.imaging.photo_io import (
     PHOTO_SUFFIXES,
     Encoding,
@@ -41,9 +44,6 @@ from pipeline.imaging.photo_io import (
     to_uint8,
     write_image,
 )
-from pipeline.core.stage import Stage, StageInputs, StageResult
-from pipeline.formats.calibration import read_camera_groups
-from pipeline.formats.pinhole import write_pinhole
 
 
 @dataclass(frozen=True)
@@ -119,13 +119,20 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     size = cameras[0]["intrinsics"]
     logger.info(
         "undistorted %d photos and %d background plates to %dx%d",
-        len(listing["images"]), len(listing["background"]), size["width"], size["height"],
-    )  # fmt: skip
+        len(listing["images"]),
+        len(listing["background"]),
+        size["width"],
+        size["height"],
+    )
     return StageResult(
         {"pinhole": pinhole, "undistorted": out_dir / "undistorted", "linear": out_dir / "linear"},
-        {"photos": len(listing["images"]), "plates": len(listing["background"]),
-         "width": size["width"], "height": size["height"]},
-    )  # fmt: skip
+        {
+            "photos": len(listing["images"]),
+            "plates": len(listing["background"]),
+            "width": size["width"],
+            "height": size["height"],
+        },
+    )
 
 
 STAGE = Stage(
@@ -137,5 +144,3 @@ STAGE = Stage(
     outputs=("pinhole", "undistorted", "linear"),
     reads=("images/*", "background/*"),
 )
-
-

@@ -42,13 +42,13 @@ import numpy as np
 import trimesh
 import xatlas
 
-from pipeline.render import mitsuba_variant
-from pipeline.geometry.atlas import overlapping_texels
-from pipeline.formats.cameras import read_views
 from pipeline.core.config import Range
 from pipeline.core.errors import PipelineError
-from pipeline.imaging.photo_io import to_uint8
 from pipeline.core.stage import Stage, StageInputs, StageResult
+from pipeline.formats.cameras import read_views
+from pipeline.geometry.atlas import overlapping_texels
+from pipeline.imaging.photo_io import to_uint8
+from pipeline.render import mitsuba_variant
 
 CHECKER_TEXELS = 16
 
@@ -85,14 +85,18 @@ def unwrap(mesh: trimesh.Trimesh, conf: Config) -> tuple[trimesh.Trimesh, dict]:
         if atlas.atlas_count == 1:
             break
         if conf.texel_density:
-            raise PipelineError(f"uv.texel_density = {conf.texel_density:g} puts the charts on {atlas.atlas_count} "
-                                f"atlases of {conf.texture_size} texels: lower it, raise uv.texture_size, or set it "
-                                "to 0 to choose the density that fits")  # fmt: skip
+            raise PipelineError(
+                f"uv.texel_density = {conf.texel_density:g} puts the charts on {atlas.atlas_count} "
+                f"atlases of {conf.texture_size} texels: lower it, raise uv.texture_size, or set it "
+                "to 0 to choose the density that fits"
+            )
         fill *= 0.85
         if fill < 0.01:
-            raise PipelineError(f"the mesh's {atlas.chart_count} UV charts do not fit one atlas of "
-                                f"uv.texture_size = {conf.texture_size} texels with uv.padding = {conf.padding}: "
-                                "raise texture_size or lower padding")  # fmt: skip
+            raise PipelineError(
+                f"the mesh's {atlas.chart_count} UV charts do not fit one atlas of "
+                f"uv.texture_size = {conf.texture_size} texels with uv.padding = {conf.padding}: "
+                "raise texture_size or lower padding"
+            )
     mapping, faces, uvs = atlas[0]
     visual = trimesh.visual.TextureVisuals(uv=uvs)
     unwrapped = trimesh.Trimesh(mesh.vertices[mapping], faces, visual=visual, process=False)
@@ -141,25 +145,39 @@ def render_preview(mesh_ply: Path, checker_png: Path, cameras_json: Path, path: 
     width, height = round(intrinsics.width * scale), round(intrinsics.height * scale)
     lo = np.clip(np.floor(pixels.min(axis=0) * scale).astype(int), 0, [width - 1, height - 1])
     hi = np.clip(np.ceil(pixels.max(axis=0) * scale).astype(int), lo + 1, [width, height])
-    scene = mi.load_dict({
-        "type": "scene",
-        "integrator": {"type": "direct"},
-        "sensor": {
-            "type": "perspective",
-            "fov": float(np.degrees(2 * np.arctan(intrinsics.width / 2 / intrinsics.fx))),
-            "fov_axis": "x",
-            "to_world": mi.ScalarTransform4f(pose.mitsuba_to_world().tolist()),
-            "film": {"type": "hdrfilm", "width": width, "height": height, "crop_offset_x": int(lo[0]),
-                     "crop_offset_y": int(lo[1]), "crop_width": int(hi[0] - lo[0]), "crop_height": int(hi[1] - lo[1])},
-            "sampler": {"type": "independent", "sample_count": 16},
-        },
-        "specimen": {
-            "type": "ply", "id": "specimen", "filename": str(mesh_ply),
-            "bsdf": {"type": "diffuse", "id": "checker",
-                     "reflectance": {"type": "bitmap", "filename": str(checker_png), "filter_type": "nearest"}},
-        },
-        "sky": {"type": "constant", "radiance": 1.0},
-    })  # fmt: skip
+    scene = mi.load_dict(
+        {
+            "type": "scene",
+            "integrator": {"type": "direct"},
+            "sensor": {
+                "type": "perspective",
+                "fov": float(np.degrees(2 * np.arctan(intrinsics.width / 2 / intrinsics.fx))),
+                "fov_axis": "x",
+                "to_world": mi.ScalarTransform4f(pose.mitsuba_to_world().tolist()),
+                "film": {
+                    "type": "hdrfilm",
+                    "width": width,
+                    "height": height,
+                    "crop_offset_x": int(lo[0]),
+                    "crop_offset_y": int(lo[1]),
+                    "crop_width": int(hi[0] - lo[0]),
+                    "crop_height": int(hi[1] - lo[1]),
+                },
+                "sampler": {"type": "independent", "sample_count": 16},
+            },
+            "specimen": {
+                "type": "ply",
+                "id": "specimen",
+                "filename": str(mesh_ply),
+                "bsdf": {
+                    "type": "diffuse",
+                    "id": "checker",
+                    "reflectance": {"type": "bitmap", "filename": str(checker_png), "filter_type": "nearest"},
+                },
+            },
+            "sky": {"type": "constant", "radiance": 1.0},
+        }
+    )
     cv2.imwrite(str(path), cv2.cvtColor(to_uint8(np.asarray(mi.render(scene))), cv2.COLOR_RGB2BGR))
 
 
@@ -177,12 +195,22 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     obj.write_text(text)
     (out_dir / "mesh.mtl").write_text("newmtl checker\nKd 1 1 1\nmap_Kd checker.png\n")
     draw_layout(unwrapped, out_dir / "uv_layout.png")
-    render_preview(mesh_ply, checker_png, inputs.upstream["sfm"]["cameras"], out_dir / "preview.png",
-                   inputs.shared["mitsuba"].variant)
+    render_preview(
+        mesh_ply,
+        checker_png,
+        inputs.upstream["sfm"]["cameras"],
+        out_dir / "preview.png",
+        inputs.shared["mitsuba"].variant,
+    )
     uv_json = out_dir / "uv.json"
     uv_json.write_text(json.dumps(report, indent=1))
-    outputs = {"mesh": mesh_ply, "obj": obj, "checker": checker_png, "preview": out_dir / "preview.png",
-               "report": uv_json}  # fmt: skip
+    outputs = {
+        "mesh": mesh_ply,
+        "obj": obj,
+        "checker": checker_png,
+        "preview": out_dir / "preview.png",
+        "report": uv_json,
+    }
     return StageResult(outputs, {k: report[k] for k in ("charts", "utilisation", "area_distortion_median")})
 
 

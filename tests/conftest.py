@@ -1,9 +1,12 @@
-import sys
+"""Every fixture of the test suite. Helpers that build test data without being
+fixtures (a toy stage graph, views of a sphere) are in tests/support."""
+
+import shutil
 from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).parent / "pipeline"))
+SAMPLE_CAPTURES = Path(__file__).parents[1] / "sample_captures"
 
 
 @pytest.fixture(scope="session")
@@ -41,21 +44,28 @@ def tiny_capture(tmp_path_factory) -> Path:
 def bird_capture(tmp_path_factory) -> Path:
     """A copy of sample_captures/bird (30 views, 560x420), shared by the stage tests:
     the runner's cache lets each module run only the stages it adds."""
-    import shutil
+    return Path(
+        shutil.copytree(
+            SAMPLE_CAPTURES / "bird",
+            tmp_path_factory.mktemp("bird") / "bird",
+            ignore=shutil.ignore_patterns(".pipeline", "output"),
+        )
+    )
 
-    sample = Path(__file__).parents[1] / "sample_captures" / "bird"
-    return Path(shutil.copytree(sample, tmp_path_factory.mktemp("bird") / "bird",
-                                ignore=shutil.ignore_patterns(".pipeline", "output")))  # fmt: skip
 
-
-def synth_capture(tmp_path_factory, name: str, **options) -> Path:
+def _synth_capture(tmp_path_factory, name: str, **options) -> Path:
     from pipeline.synthetic.synth import SynthOptions, synthesize
 
     return synthesize(tmp_path_factory.mktemp("synth") / name, SynthOptions(**options))
 
 
-def run_stages(capture: Path, until: str, *overrides: str, force: tuple[str, ...] = ()) -> dict[str, dict[str, Path]]:
-    """Run the real stage DAG on ``capture`` up to ``until`` (rerunning ``force``); outputs per stage."""
+@pytest.fixture(scope="session")
+def synth_capture(tmp_path_factory):
+    """``synth_capture(name, **SynthOptions)``: a new synthetic capture."""
+    return lambda name, **options: _synth_capture(tmp_path_factory, name, **options)
+
+
+def _run_stages(capture: Path, until: str, *overrides: str, force: tuple[str, ...] = ()) -> dict[str, dict[str, Path]]:
     from pipeline.core.config import load_config
     from pipeline.core.runner import Runner, Selection
     from pipeline.core.sections import schema
@@ -67,11 +77,33 @@ def run_stages(capture: Path, until: str, *overrides: str, force: tuple[str, ...
 
 
 @pytest.fixture(scope="session")
+def run_stages():
+    """``run_stages(capture, until, *overrides, force=())``: the real stage DAG on
+    ``capture`` up to ``until`` (rerunning ``force``); the outputs of each stage."""
+    return _run_stages
+
+
+@pytest.fixture(scope="session")
+def bird_until_uv(bird_capture) -> tuple[Path, dict]:
+    """The sample bird through the geometry stages (sfm, mesh, cleanup, uv), and their outputs."""
+    return bird_capture, _run_stages(bird_capture, "uv")
+
+
+@pytest.fixture(scope="session")
 def calibration_capture(tmp_path_factory) -> Path:
     """Ten board shots at 320x240 through a strongly distorting lens. ArUco markers need
     about 4 px per bit to decode, which rules out 96-pixel captures for board calibration."""
-    return synth_capture(tmp_path_factory, "calib", views=2, width=320, height=240, spp=4, calibration_shots=10,
-                         distortion=(-0.3, 0.1, 0.001, -0.001, 0.0), seed=5)  # fmt: skip
+    return _synth_capture(
+        tmp_path_factory,
+        "calib",
+        views=2,
+        width=320,
+        height=240,
+        spp=4,
+        calibration_shots=10,
+        distortion=(-0.3, 0.1, 0.001, -0.001, 0.0),
+        seed=5,
+    )
 
 
 @pytest.fixture(scope="session")
@@ -79,12 +111,23 @@ def mask_capture(tmp_path_factory) -> Path:
     """Six close views at 192x144 with background plates; the bird spans ~100 px. 32 spp:
     photo and plate get independent Monte Carlo noise, which at 8 spp is far above a real
     sensor's and makes plate differencing fail in one view."""
-    return synth_capture(tmp_path_factory, "masks", views=6, width=192, height=144, spp=32, distance=0.2,
-                         calibration_shots=0, background_plates=True, seed=4)  # fmt: skip
+    return _synth_capture(
+        tmp_path_factory,
+        "masks",
+        views=6,
+        width=192,
+        height=144,
+        spp=32,
+        distance=0.2,
+        calibration_shots=0,
+        background_plates=True,
+        seed=4,
+    )
 
 
 @pytest.fixture(scope="session")
 def orbit_capture(tmp_path_factory) -> Path:
     """Twelve views on one ring at 192x144: neighbours 30 degrees apart share SIFT features."""
-    return synth_capture(tmp_path_factory, "orbit", views=12, rings=(30.0,), width=192, height=144, spp=4,
-                         calibration_shots=0, seed=6)  # fmt: skip
+    return _synth_capture(
+        tmp_path_factory, "orbit", views=12, rings=(30.0,), width=192, height=144, spp=4, calibration_shots=0, seed=6
+    )

@@ -174,19 +174,28 @@ def write_printable(board: BoardSection, stem: Path, paper: str = "A4", dpi: int
     (page_w, page_h), (left, bottom) = page_layout(board, paper)
     pixels_per_square = round(board.square_mm / 25.4 * dpi)
     pattern = board_image(board, pixels_per_square)
-    png = write_image(stem.with_suffix(".png"), pattern,
-                      {"XResolution": float(dpi), "YResolution": float(dpi), "ResolutionUnit": "in"})  # fmt: skip
+    png = write_image(
+        stem.with_suffix(".png"),
+        pattern,
+        {"XResolution": float(dpi), "YResolution": float(dpi), "ResolutionUnit": "in"},
+    )
     width, height = board_size_mm(board)
     figure = plt.figure(figsize=(page_w / 25.4, page_h / 25.4))
     axes = figure.add_axes((left / page_w, bottom / page_h, width / page_w, height / page_h))
     axes.imshow(pattern, cmap="gray", vmin=0, vmax=255, interpolation="nearest", aspect="auto")
     axes.set_axis_off()
-    details = (f"{board.kind} {board.squares_x} x {board.squares_y}, square {board.square_mm:g} mm"
-               + (f", marker {board.marker_mm:g} mm, {board.dictionary}" if board.kind == "charuco" else ""))  # fmt: skip
+    details = f"{board.kind} {board.squares_x} x {board.squares_y}, square {board.square_mm:g} mm" + (
+        f", marker {board.marker_mm:g} mm, {board.dictionary}" if board.kind == "charuco" else ""
+    )
     figure.text(left / page_w, (bottom - 6) / page_h, details, fontsize=8, va="top")
-    figure.text(left / page_w, (bottom - 10) / page_h,
-                "Print at 100 % (no 'fit to page'). Measure a square and the bar, and set "
-                "board.square_mm (and marker_mm) to what you measure.", fontsize=7, va="top")  # fmt: skip
+    figure.text(
+        left / page_w,
+        (bottom - 10) / page_h,
+        "Print at 100 % (no 'fit to page'). Measure a square and the bar, and set "
+        "board.square_mm (and marker_mm) to what you measure.",
+        fontsize=7,
+        va="top",
+    )
     bar_y = (bottom - 15) / page_h
     figure.add_artist(plt.Line2D([left / page_w, (left + 50) / page_w], [bar_y, bar_y], color="black", linewidth=1.5))
     figure.text((left + 52) / page_w, bar_y, "50 mm", fontsize=7, va="center")
@@ -196,8 +205,13 @@ def write_printable(board: BoardSection, stem: Path, paper: str = "A4", dpi: int
     return png, pdf
 
 
-def board_poses(board: BoardSection, photos: dict[str, dict], intrinsics: dict[str, Intrinsics], min_corners: int,
-                max_error_px: float) -> tuple[dict[str, Pose], dict[str, float]]:
+def board_poses(
+    board: BoardSection,
+    photos: dict[str, dict],
+    intrinsics: dict[str, Intrinsics],
+    min_corners: int,
+    max_error_px: float,
+) -> tuple[dict[str, Pose], dict[str, float]]:
     """World pose (board_to_world's frame) and RMS reprojection error of every photo
     (``{"srgb": 8-bit file}``) whose board shows ``min_corners`` corners and whose
     board pose reprojects within ``max_error_px``."""
@@ -212,8 +226,9 @@ def board_poses(board: BoardSection, photos: dict[str, dict], intrinsics: dict[s
         if detection is None:
             continue
         K = intrinsics[name].K
-        found, rvec, tvec = cv2.solvePnP(detection.object_points, detection.image_points, K, None,
-                                         flags=cv2.SOLVEPNP_IPPE)  # fmt: skip
+        found, rvec, tvec = cv2.solvePnP(
+            detection.object_points, detection.image_points, K, None, flags=cv2.SOLVEPNP_IPPE
+        )
         if not found:
             continue
         rvec, tvec = cv2.solvePnPRefineLM(detection.object_points, detection.image_points, K, None, rvec, tvec)

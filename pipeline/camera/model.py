@@ -130,15 +130,19 @@ def project(points: np.ndarray, intrinsics: Intrinsics, pose: Pose) -> tuple[np.
     cam = points @ pose.R.T + pose.t
     z = cam[:, 2]
     safe = np.where(z > 1e-9, z, 1e-9)
-    return np.stack([intrinsics.fx * cam[:, 0] / safe + intrinsics.cx,
-                     intrinsics.fy * cam[:, 1] / safe + intrinsics.cy], axis=-1), z  # fmt: skip
+    return np.stack(
+        [intrinsics.fx * cam[:, 0] / safe + intrinsics.cx, intrinsics.fy * cam[:, 1] / safe + intrinsics.cy], axis=-1
+    ), z
 
 
-def mesh_coverage(vertices: np.ndarray, faces: np.ndarray, intrinsics: Intrinsics, pose: Pose,
-                  factor: int = 4) -> np.ndarray:  # fmt: skip
+def mesh_coverage(
+    vertices: np.ndarray, faces: np.ndarray, intrinsics: Intrinsics, pose: Pose, factor: int = 4
+) -> np.ndarray:
     """Fraction of each pixel a mesh covers in the (distorted) view, rasterised at
     ``factor`` times the resolution: a mask from known geometry and cameras."""
-    projected, _ = cv2.projectPoints(vertices, cv2.Rodrigues(pose.R)[0], pose.t, intrinsics.K, np.array(intrinsics.dist))
+    projected, _ = cv2.projectPoints(
+        vertices, cv2.Rodrigues(pose.R)[0], pose.t, intrinsics.K, np.array(intrinsics.dist)
+    )
     # pixel centres at integers: the fine grid's sample for coarse x is (x + 0.5) * factor - 0.5
     fine = (projected[:, 0] + 0.5) * factor - 0.5
     canvas = np.zeros((intrinsics.height * factor, intrinsics.width * factor), np.float32)
@@ -173,9 +177,7 @@ def distortion_maps(intrinsics: Intrinsics, render_size: tuple[int, int]) -> tup
     u, v = np.meshgrid(np.arange(intrinsics.width), np.arange(intrinsics.height))
     pixels = np.stack([u.ravel(), v.ravel()], axis=-1).astype(np.float64)[:, None]
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10)
-    ideal = cv2.undistortPoints(
-        pixels, intrinsics.K, np.asarray(intrinsics.dist), criteria=criteria
-    )[:, 0]
+    ideal = cv2.undistortPoints(pixels, intrinsics.K, np.asarray(intrinsics.dist), criteria=criteria)[:, 0]
     render_w, render_h = render_size
     # Render pixel index j has its centre at continuous coordinate j + 0.5.
     map_x = ideal[:, 0] * intrinsics.fx + render_w / 2 - 0.5
@@ -230,9 +232,14 @@ def scaled(intrinsics: Intrinsics, factor: float, exact: bool = False) -> Intrin
     width, height = round(intrinsics.width * factor), round(intrinsics.height * factor)
     sx, sy = (factor, factor) if exact else (width / intrinsics.width, height / intrinsics.height)
     return Intrinsics(
-        width, height, intrinsics.fx * sx, intrinsics.fy * sy,
-        (intrinsics.cx + 0.5) * sx - 0.5, (intrinsics.cy + 0.5) * sy - 0.5, list(intrinsics.dist),
-    )  # fmt: skip
+        width,
+        height,
+        intrinsics.fx * sx,
+        intrinsics.fy * sy,
+        (intrinsics.cx + 0.5) * sx - 0.5,
+        (intrinsics.cy + 0.5) * sy - 0.5,
+        list(intrinsics.dist),
+    )
 
 
 def resize_exact(image: np.ndarray, factor: float) -> np.ndarray:

@@ -36,8 +36,8 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from pipeline.core import progress
 from pipeline.camera.board import BoardDetector
+from pipeline.core import progress
 from pipeline.core.config import Config
 from pipeline.core.errors import PipelineError
 from pipeline.imaging.photo_io import camera_setting, gray_uint8, list_photos, read_photo, to_uint8
@@ -94,18 +94,30 @@ def check_exposure(photos: list[PhotoSummary]) -> list[Problem]:
     for photo in photos:
         clipped = float((photo.srgb.max(axis=-1) >= 250).mean())
         if clipped > CLIPPED_FRACTION:
-            problems.append(Problem("warning", "exposure", f"images/{photo.name}",
-                                    f"overexposed: {100 * clipped:.1f} % of the pixels are clipped",
-                                    "retake it with a shorter exposure; clipped pixels carry no radiance"))  # fmt: skip
+            problems.append(
+                Problem(
+                    "warning",
+                    "exposure",
+                    f"images/{photo.name}",
+                    f"overexposed: {100 * clipped:.1f} % of the pixels are clipped",
+                    "retake it with a shorter exposure; clipped pixels carry no radiance",
+                )
+            )
         brightness[photo.name] = float(np.median(photo.gray)) + 1.0
     median = np.median(list(brightness.values()))
     for name, value in brightness.items():
         # 8-bit sRGB is roughly gamma 2.2: a stop is a factor 2 ** (1 / 2.2) in encoded values.
         stops = 2.2 * np.log2(value / median)
         if abs(stops) > EXPOSURE_STOPS:
-            problems.append(Problem("warning", "exposure", f"images/{name}",
-                                    f"{abs(stops):.1f} stops {'brighter' if stops > 0 else 'darker'} than the set",
-                                    "lock exposure and white balance for the whole session"))  # fmt: skip
+            problems.append(
+                Problem(
+                    "warning",
+                    "exposure",
+                    f"images/{name}",
+                    f"{abs(stops):.1f} stops {'brighter' if stops > 0 else 'darker'} than the set",
+                    "lock exposure and white balance for the whole session",
+                )
+            )
     return problems
 
 
@@ -113,9 +125,13 @@ def check_blur(photos: list[PhotoSummary]) -> list[Problem]:
     sharpness = {p.name: float(cv2.Laplacian(p.gray, cv2.CV_64F).var()) for p in photos}
     median = np.median(list(sharpness.values()))
     return [
-        Problem("warning", "blur", f"images/{name}",
-                f"blurred: sharpness {value / median:.2f} of the set's median",
-                "retake it (tripod, shorter exposure, focus on the specimen) or remove it")  # fmt: skip
+        Problem(
+            "warning",
+            "blur",
+            f"images/{name}",
+            f"blurred: sharpness {value / median:.2f} of the set's median",
+            "retake it (tripod, shorter exposure, focus on the specimen) or remove it",
+        )
         for name, value in sharpness.items()
         if value < BLUR_RATIO * median
     ]
@@ -130,9 +146,15 @@ def check_duplicates(photos: list[PhotoSummary]) -> list[Problem]:
     for i, j in combinations(range(len(photos)), 2):
         correlation = float(thumbnails[i] @ thumbnails[j]) / thumbnails[i].size
         if correlation > DUPLICATE_CORRELATION:
-            problems.append(Problem("warning", "duplicates", f"images/{photos[j].name}",
-                                    f"near-duplicate of {photos[i].name} (correlation {correlation:.4f})",
-                                    "it adds no viewpoint; remove one of the two"))  # fmt: skip
+            problems.append(
+                Problem(
+                    "warning",
+                    "duplicates",
+                    f"images/{photos[j].name}",
+                    f"near-duplicate of {photos[i].name} (correlation {correlation:.4f})",
+                    "it adds no viewpoint; remove one of the two",
+                )
+            )
     return problems
 
 
@@ -166,10 +188,14 @@ def check_strays(photos: list[PhotoSummary], blurred: set[str]) -> list[Problem]
     best = shared_matches(photos).max(axis=1)
     limit = max(MIN_SHARED_MATCHES, STRAY_RATIO * float(np.median(best)))
     return [
-        Problem("error", "strays", f"images/{photo.name}",
-                f"shares only {count} verified feature matches with any other photo (the set: "
-                f"{np.median(best):.0f}); a photo of something else, or a gap in the orbit",
-                "remove it from images/, or add photos between it and its neighbours")  # fmt: skip
+        Problem(
+            "error",
+            "strays",
+            f"images/{photo.name}",
+            f"shares only {count} verified feature matches with any other photo (the set: "
+            f"{np.median(best):.0f}); a photo of something else, or a gap in the orbit",
+            "remove it from images/, or add photos between it and its neighbours",
+        )
         for photo, count in zip(photos, best)
         if count < limit and f"images/{photo.name}" not in blurred
     ]
@@ -179,26 +205,52 @@ def check_board(capture_dir: Path, config: Config) -> list[Problem]:
     shots = list_photos(capture_dir / "calibration")
     board = config["board"]
     if not shots:
-        return [Problem("warning", "board", "calibration/", "no board shots",
-                        "calibration will use EXIF or self-calibration; shoot 10-20 board photos "
-                        "(`pipeline board` prints one) for accurate intrinsics")]  # fmt: skip
+        return [
+            Problem(
+                "warning",
+                "board",
+                "calibration/",
+                "no board shots",
+                "calibration will use EXIF or self-calibration; shoot 10-20 board photos "
+                "(`pipeline board` prints one) for accurate intrinsics",
+            )
+        ]
     if board.kind == "none":
-        return [Problem("warning", "board", "calibration/", "board shots but board.kind = 'none'",
-                        "set the [board] section of capture.toml to the printed board")]  # fmt: skip
+        return [
+            Problem(
+                "warning",
+                "board",
+                "calibration/",
+                "board shots but board.kind = 'none'",
+                "set the [board] section of capture.toml to the printed board",
+            )
+        ]
     detector = BoardDetector(board, min_corners=config["calibrate"].min_corners)
     problems, found = [], 0
     for shot in progress.track(shots, "detecting the board"):
         if detector.detect(gray_uint8(read_photo(shot).pixels)) is None:
-            problems.append(Problem("warning", "board", f"calibration/{shot.name}",
-                                    "board not found (or too few corners)",
-                                    "check that the [board] section matches the print, and that the "
-                                    "board is sharp, evenly lit and fills much of the frame"))  # fmt: skip
+            problems.append(
+                Problem(
+                    "warning",
+                    "board",
+                    f"calibration/{shot.name}",
+                    "board not found (or too few corners)",
+                    "check that the [board] section matches the print, and that the "
+                    "board is sharp, evenly lit and fills much of the frame",
+                )
+            )
         else:
             found += 1
     if found < config["calibrate"].min_shots:
-        problems.append(Problem("warning", "board", "calibration/",
-                                f"only {found} usable board shots (calibrate.min_shots = {config['calibrate'].min_shots})",
-                                "calibration will fall back to EXIF; add shots from varied angles"))  # fmt: skip
+        problems.append(
+            Problem(
+                "warning",
+                "board",
+                "calibration/",
+                f"only {found} usable board shots (calibrate.min_shots = {config['calibrate'].min_shots})",
+                "calibration will fall back to EXIF; add shots from varied angles",
+            )
+        )
     return problems
 
 
@@ -209,26 +261,60 @@ def check_masks(capture_dir: Path, photos: list[PhotoSummary], config: Config) -
     for photo in progress.track(photos, "checking masks"):
         if user_masks:
             if Path(photo.name).stem not in user_masks:
-                problems.append(Problem("error", "masks", f"images/{photo.name}", "no mask in masks/",
-                                        "add a PNG named like the photo, or empty masks/"))  # fmt: skip
+                problems.append(
+                    Problem(
+                        "error",
+                        "masks",
+                        f"images/{photo.name}",
+                        "no mask in masks/",
+                        "add a PNG named like the photo, or empty masks/",
+                    )
+                )
                 continue
             mask = read_user_mask(user_masks[Path(photo.name).stem])
         else:
-            mask = segment(photo.srgb, conf.segmenter, conf.backdrop_chroma, conf.centre_fraction,
-                               conf.grabcut_iterations, MASK_WORKING_SIZE)
+            mask = segment(
+                photo.srgb,
+                conf.segmenter,
+                conf.backdrop_chroma,
+                conf.centre_fraction,
+                conf.grabcut_iterations,
+                MASK_WORKING_SIZE,
+            )
         mask = clean(mask, conf.min_component_fraction, conf.fill_holes)
         coverage = float(mask.mean())
         file = f"images/{photo.name}"
         if coverage < 0.005:
-            problems.append(Problem("error", "masks", file, f"the specimen mask covers {100 * coverage:.1f} % of the photo",
-                                    "the specimen was not found: provide masks/ or background/ plates, "
-                                    "or try masks.segmenter = 'centre_prior'"))  # fmt: skip
+            problems.append(
+                Problem(
+                    "error",
+                    "masks",
+                    file,
+                    f"the specimen mask covers {100 * coverage:.1f} % of the photo",
+                    "the specimen was not found: provide masks/ or background/ plates, "
+                    "or try masks.segmenter = 'centre_prior'",
+                )
+            )
         elif coverage > 0.9:
-            problems.append(Problem("warning", "masks", file, f"the specimen mask covers {100 * coverage:.0f} % of the photo",
-                                    "step back so that the whole specimen and some set are in view"))  # fmt: skip
+            problems.append(
+                Problem(
+                    "warning",
+                    "masks",
+                    file,
+                    f"the specimen mask covers {100 * coverage:.0f} % of the photo",
+                    "step back so that the whole specimen and some set are in view",
+                )
+            )
         elif np.concatenate([mask[0], mask[-1], mask[:, 0], mask[:, -1]]).any():
-            problems.append(Problem("warning", "masks", file, "the specimen touches the image border",
-                                    "keep the whole specimen in frame: a cut-off part is lost from the visual hull"))  # fmt: skip
+            problems.append(
+                Problem(
+                    "warning",
+                    "masks",
+                    file,
+                    "the specimen touches the image border",
+                    "keep the whole specimen in frame: a cut-off part is lost from the visual hull",
+                )
+            )
     return problems
 
 
@@ -236,29 +322,52 @@ def check_capture(capture_dir: Path, config: Config, features: bool = True) -> l
     """Every check on ``capture_dir``; ``features=False`` skips the pairwise matching."""
     paths = list_photos(capture_dir / "images")
     if len(paths) < MIN_PHOTOS:
-        return [Problem("error", "count", "images/", f"{len(paths)} photos",
-                        f"structure-from-motion needs at least {MIN_PHOTOS}; {ENOUGH_PHOTOS}+ from all sides is better")]  # fmt: skip
+        return [
+            Problem(
+                "error",
+                "count",
+                "images/",
+                f"{len(paths)} photos",
+                f"structure-from-motion needs at least {MIN_PHOTOS}; {ENOUGH_PHOTOS}+ from all sides is better",
+            )
+        ]
     problems, photos = [], []
     for path in progress.track(paths, "reading photos"):
         try:
             photo = read_photo(path)
         except PipelineError as e:
-            problems.append(Problem("error", "readable", f"images/{path.name}", str(e).split(": ", 1)[-1],
-                                    "remove or replace the file"))  # fmt: skip
+            problems.append(
+                Problem(
+                    "error", "readable", f"images/{path.name}", str(e).split(": ", 1)[-1], "remove or replace the file"
+                )
+            )
             continue
         srgb = to_uint8(photo.pixels)
         gray = _feature_copy(cv2.cvtColor(srgb, cv2.COLOR_RGB2GRAY))
         photos.append(PhotoSummary(path.name, gray, srgb, camera_setting(photo.metadata, photo.size)))
     if len(photos) < ENOUGH_PHOTOS:
-        problems.append(Problem("warning", "count", "images/", f"only {len(photos)} photos",
-                                f"shoot {ENOUGH_PHOTOS}+ from all sides with 60-80 % overlap between neighbours"))  # fmt: skip
+        problems.append(
+            Problem(
+                "warning",
+                "count",
+                "images/",
+                f"only {len(photos)} photos",
+                f"shoot {ENOUGH_PHOTOS}+ from all sides with 60-80 % overlap between neighbours",
+            )
+        )
     settings = sorted({p.setting for p in photos})
     if len(settings) > 1:
         for setting in settings:
             members = [p.name for p in photos if p.setting == setting]
-            problems.append(Problem("warning", "camera settings", f"images/{members[0]}",
-                                    f"{len(members)} photos taken with {setting}",
-                                    "each camera/zoom setting is calibrated on its own; keep the zoom fixed"))  # fmt: skip
+            problems.append(
+                Problem(
+                    "warning",
+                    "camera settings",
+                    f"images/{members[0]}",
+                    f"{len(members)} photos taken with {setting}",
+                    "each camera/zoom setting is calibrated on its own; keep the zoom fixed",
+                )
+            )
     for same_size_group in _by_setting(photos).values():
         problems += check_exposure(same_size_group) + check_blur(same_size_group) + check_duplicates(same_size_group)
     if features:

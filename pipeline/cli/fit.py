@@ -47,7 +47,15 @@ def fit(options: FitOptions) -> int:
         return 0
     if not options.references or not options.params:
         raise ConfigError("pipeline fit needs --references DIR and --params PATTERN (or --list to see the keys)")
-    params_json = fit_scene(Path(options.scene), Path(options.references), list(options.params), options.settings,
-                            list(options.bound), options.lr, Path(options.out), options.variant)
+    params_json = fit_scene(
+        Path(options.scene),
+        Path(options.references),
+        list(options.params),
+        options.settings,
+        list(options.bound),
+        options.lr,
+        Path(options.out),
+        options.variant,
+    )
     print(params_json.read_text())
     return 0

@@ -134,10 +134,26 @@ def status(options: StatusOptions) -> int:
         when = time.strftime("%Y-%m-%d %H:%M", time.localtime(shown.finished)) if shown else "-"
         seconds = shown.status["seconds"] if shown else None
         size = sum(tree_size(e.path) for e in entries)
-        table.add_row(stage.name, state, item.key[:10], when, "-" if seconds is None else f"{seconds:.1f}",
-                      str(len(entries)), f"{size / 1e6:.1f} MB")
-        rows.append({"stage": stage.name, "state": state, "key": item.key, "finished": when, "seconds": seconds,
-                     "entries": len(entries), "bytes": size})
+        table.add_row(
+            stage.name,
+            state,
+            item.key[:10],
+            when,
+            "-" if seconds is None else f"{seconds:.1f}",
+            str(len(entries)),
+            f"{size / 1e6:.1f} MB",
+        )
+        rows.append(
+            {
+                "stage": stage.name,
+                "state": state,
+                "key": item.key,
+                "finished": when,
+                "seconds": seconds,
+                "entries": len(entries),
+                "bytes": size,
+            }
+        )
     total = tree_size(cache.state_dir) if cache.state_dir.is_dir() else 0
     if options.json:
         print(json.dumps({"stages": rows, "cache_bytes": total}, indent=2))

@@ -68,9 +68,7 @@ class StageCache:
         if not stage_dir.is_dir():
             return []
         found = [
-            e
-            for p in stage_dir.iterdir()
-            if not p.name.startswith(".") and (e := self._read(stage, p)) is not None
+            e for p in stage_dir.iterdir() if not p.name.startswith(".") and (e := self._read(stage, p)) is not None
         ]
         return sorted(found, key=lambda e: e.finished)
 

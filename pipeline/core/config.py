@@ -27,7 +27,7 @@ import types
 import typing
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Annotated, Literal, Mapping
+from typing import Annotated, Any, Literal, Mapping
 
 from pipeline.core.errors import ConfigError
 
@@ -101,17 +101,12 @@ def _coerce(key: str, value: Any, hint: Any) -> Any:
         value = _coerce(key, value, base)
         for bound in extra:
             if isinstance(bound, Range) and not bound.check(value):
-                raise ConfigError(
-                    f"{key} = {value!r} is out of range: allowed {bound.describe()}"
-                )
+                raise ConfigError(f"{key} = {value!r} is out of range: allowed {bound.describe()}")
         return value
     if origin is Literal:
         allowed = typing.get_args(hint)
         if value not in allowed:
-            raise ConfigError(
-                f"{key} = {value!r} is not allowed: use one of "
-                + ", ".join(repr(a) for a in allowed)
-            )
+            raise ConfigError(f"{key} = {value!r} is not allowed: use one of " + ", ".join(repr(a) for a in allowed))
         return value
     if origin in (list, tuple):
         if not isinstance(value, (list, tuple)):
@@ -155,10 +150,7 @@ def build_section(name: str, cls: type, values: Mapping[str, Any]) -> Any:
     fields = {f.name: f for f in dataclasses.fields(cls)}
     unknown = sorted(set(values) - set(fields))
     if unknown:
-        raise ConfigError(
-            f"unknown key {name}.{unknown[0]}: section [{name}] has "
-            + ", ".join(sorted(fields))
-        )
+        raise ConfigError(f"unknown key {name}.{unknown[0]}: section [{name}] has " + ", ".join(sorted(fields)))
     kwargs = {k: _coerce(f"{name}.{k}", v, hints[k]) for k, v in values.items()}
     instance = cls(**kwargs)
     # Defaults go through the same checks so a bad default cannot slip past.
@@ -231,9 +223,7 @@ def load_config(
     presets_dir = presets_dir or PRESETS_DIR
     preset_file = presets_dir / f"{preset}.toml"
     if not preset_file.is_file():
-        raise ConfigError(
-            f"unknown preset {preset!r}: choose one of " + ", ".join(preset_names(presets_dir))
-        )
+        raise ConfigError(f"unknown preset {preset!r}: choose one of " + ", ".join(preset_names(presets_dir)))
     layers: list[tuple[str, dict[str, Any]]] = [(str(preset_file), _read_toml(preset_file))]
     if capture_dir is not None and (capture_dir / "capture.toml").is_file():
         capture_file = capture_dir / "capture.toml"
@@ -250,8 +240,7 @@ def load_config(
         for section, values in layer.items():
             if section not in schema:
                 raise ConfigError(
-                    f"{source}: unknown section [{section}]: known sections are "
-                    + ", ".join(sorted(schema))
+                    f"{source}: unknown section [{section}]: known sections are " + ", ".join(sorted(schema))
                 )
             if not isinstance(values, dict):
                 raise ConfigError(f"{source}: {section} must be a [section] table")
@@ -281,8 +270,6 @@ def describe_schema(schema: Mapping[str, type], config: Config | None = None) ->
                 lines.append(f"      {doc_line}")
         lines.append("")
     return "\n".join(lines)
-
-
 
 
 def toml_value(value: Any) -> str:

@@ -58,6 +58,4 @@ def glob_capture_files(capture_dir: Path, patterns: tuple[str, ...]) -> list[Pat
 
 
 def tree_size(path: Path) -> int:
-    return sum(
-        os.path.getsize(os.path.join(root, f)) for root, _, files in os.walk(path) for f in files
-    )
+    return sum(os.path.getsize(os.path.join(root, f)) for root, _, files in os.walk(path) for f in files)

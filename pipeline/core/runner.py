@@ -31,9 +31,16 @@ from pipeline.core.stage import Stage, StageInputs
 Action = Literal["run", "cached", "disabled"]
 
 LIBRARIES = (
-    "mitsuba", "drjit", "pycolmap", "opencv-contrib-python-headless", "pymeshlab",
-    "xatlas", "trimesh", "OpenImageIO", "numpy",
-)  # fmt: skip
+    "mitsuba",
+    "drjit",
+    "pycolmap",
+    "opencv-contrib-python-headless",
+    "pymeshlab",
+    "xatlas",
+    "trimesh",
+    "OpenImageIO",
+    "numpy",
+)
 
 
 @dataclass(frozen=True)
@@ -195,9 +202,7 @@ class Runner:
             "config": section_dict(self.config[stage.name]),
             "shared": {name: section_dict(self.config[name]) for name in stage.shared},
             "upstream": {up: upstream_keys[up] for up in stage.upstream},
-            "files": {
-                f.relative_to(self.capture_dir).as_posix(): self.hasher.hash(f) for f in files
-            },
+            "files": {f.relative_to(self.capture_dir).as_posix(): self.hasher.hash(f) for f in files},
         }
 
     def plan(self, selection: Selection = Selection()) -> list[PlannedStage]:
@@ -251,11 +256,7 @@ class Runner:
             else:
                 previous = self.cache.entries(stage.name)
                 action = "run"
-                reason = (
-                    explain_change(previous[-1].status["components"], components)
-                    if previous
-                    else "never run"
-                )
+                reason = explain_change(previous[-1].status["components"], components) if previous else "never run"
             if stage.name in targets or stage.name in must_be_cached:
                 planned.append(PlannedStage(stage, key, components, action, reason, entry))
         self.hasher.save()
@@ -306,8 +307,7 @@ class Runner:
             item.metrics = result.metrics
             if set(result.outputs) != set(stage.outputs):
                 raise RuntimeError(
-                    f"stage {stage.name} returned outputs {sorted(result.outputs)} but declares "
-                    f"{sorted(stage.outputs)}"
+                    f"stage {stage.name} returned outputs {sorted(result.outputs)} but declares {sorted(stage.outputs)}"
                 )
             outputs = {}
             for name, path in result.outputs.items():

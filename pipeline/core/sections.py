@@ -54,8 +54,7 @@ class BoardSection:
 
         if self.kind == "charuco" and self.marker_mm >= self.square_mm:
             raise ConfigError(
-                f"{name}.marker_mm = {self.marker_mm} must be smaller than "
-                f"{name}.square_mm = {self.square_mm}"
+                f"{name}.marker_mm = {self.marker_mm} must be smaller than {name}.square_mm = {self.square_mm}"
             )
 
 

@@ -40,8 +40,8 @@ resolution is fixed during one call (coarse to fine is the caller's loop).
 from __future__ import annotations
 
 import time
-from pathlib import Path
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
@@ -174,8 +174,12 @@ def plot_loss(log: list[dict], path: Path) -> None:
     axis.semilogy([e["iteration"] for e in log], [max(e["loss"], 1e-12) for e in log], label="training loss")
     validated = [e for e in log if "validation_error" in e]
     if validated:
-        axis.semilogy([e["iteration"] for e in validated], [max(e["validation_error"], 1e-12) for e in validated], "o-",
-                      label="validation MSE")  # fmt: skip
+        axis.semilogy(
+            [e["iteration"] for e in validated],
+            [max(e["validation_error"], 1e-12) for e in validated],
+            "o-",
+            label="validation MSE",
+        )
     axis.set_xlabel("iteration")
     axis.legend()
     figure.tight_layout()
@@ -239,9 +243,16 @@ class _Target:
         return float(self.dual(image, second, dr).array[0])
 
 
-def fit(parameters: list[FitParameter], training: list[FitView], validation: list[FitView],
-        settings: FitSettings, on_iteration=None) -> FitResult:  # fmt: skip
+def fit(
+    parameters: list[FitParameter],
+    training: list[FitView],
+    validation: list[FitView],
+    settings: FitSettings,
+    on_iteration=None,
+) -> FitResult:
     """Run the loop; the scenes end in the best state."""
+    # Longer than 60 lines: the loop's closures share its state (latents, optimiser,
+    # best state); the fitting-engine issue (25) replaces this loop with one engine.
     import drjit as dr
     import mitsuba as mi
 
@@ -255,8 +266,9 @@ def fit(parameters: list[FitParameter], training: list[FitView], validation: lis
     for parameter in parameters:
         missing = [v.name for v in training + validation if parameter.key not in traversed[id(v.scene)]]
         if missing:
-            raise PipelineError(f"parameter {parameter.name}: key {parameter.key} is not in the scene of "
-                                f"{', '.join(missing[:3])}")  # fmt: skip
+            raise PipelineError(
+                f"parameter {parameter.name}: key {parameter.key} is not in the scene of {', '.join(missing[:3])}"
+            )
     optimizer = mi.ad.Adam(lr=0.01)
     first = traversed[id(training[0].scene)]
     for parameter in parameters:
@@ -271,7 +283,11 @@ def fit(parameters: list[FitParameter], training: list[FitView], validation: lis
 
     def clamp() -> None:
         for parameter in parameters:
-            lo, hi = (np.log(parameter.lower), np.log(parameter.upper)) if parameter.log else (parameter.lower, parameter.upper)
+            lo, hi = (
+                (np.log(parameter.lower), np.log(parameter.upper))
+                if parameter.log
+                else (parameter.lower, parameter.upper)
+            )
             optimizer[parameter.name] = dr.clip(optimizer[parameter.name], lo, hi)
 
     def apply(scene_key: int) -> None:
@@ -305,7 +321,9 @@ def fit(parameters: list[FitParameter], training: list[FitView], validation: lis
         """Values as arrays: a texture (..., channels), else flat."""
         arrays = {p.name: np.array(optimizer[p.name], dtype=np.float64) for p in parameters}
         arrays = {n: a if n in textured else np.ravel(a) for n, a in arrays.items()}
-        return {p.name: np.clip(np.exp(arrays[p.name]), p.lower, p.upper) if p.log else arrays[p.name] for p in parameters}
+        return {
+            p.name: np.clip(np.exp(arrays[p.name]), p.lower, p.upper) if p.log else arrays[p.name] for p in parameters
+        }
 
     priors = []
     for parameter in parameters:
@@ -329,8 +347,11 @@ def fit(parameters: list[FitParameter], training: list[FitView], validation: lis
         for index, view in enumerate(validation):
             with dr.suspend_grad():
                 apply(id(view.scene))
-                errors.append(targets[view.name].heldout_error(view, index, settings.validation_spp,
-                                                               settings.loss == "dual", mi, dr))  # fmt: skip
+                errors.append(
+                    targets[view.name].heldout_error(
+                        view, index, settings.validation_spp, settings.loss == "dual", mi, dr
+                    )
+                )
         return float(np.mean(errors))
 
     clamp()
@@ -350,8 +371,9 @@ def fit(parameters: list[FitParameter], training: list[FitView], validation: lis
             if settings.exposure:
                 image = image * dr.exp(optimizer[f"exposure:{view.name}"])
             if settings.loss == "dual":
-                second = mi.render(view.scene, traversed[id(view.scene)], sensor=view.sensor, spp=settings.spp,
-                                   seed=seed + 1)  # fmt: skip
+                second = mi.render(
+                    view.scene, traversed[id(view.scene)], sensor=view.sensor, spp=settings.spp, seed=seed + 1
+                )
                 if settings.exposure:
                     second = second * dr.exp(optimizer[f"exposure:{view.name}"])
                 loss = targets[view.name].dual(image, second, dr)
@@ -371,8 +393,13 @@ def fit(parameters: list[FitParameter], training: list[FitView], validation: lis
         views_per_step = min(settings.batch, len(training))
         losses.append(relative / views_per_step)
         values = current()
-        entry = {"iteration": iteration, "loss": total / views_per_step, "relative_loss": losses[-1],
-                 "seconds": time.perf_counter() - started, "params": {n: _summary(v) for n, v in values.items()}}  # fmt: skip
+        entry = {
+            "iteration": iteration,
+            "loss": total / views_per_step,
+            "relative_loss": losses[-1],
+            "seconds": time.perf_counter() - started,
+            "params": {n: _summary(v) for n, v in values.items()},
+        }
         if validation and (iteration % settings.validate_every == 0 or iteration == settings.iterations):
             entry["validation_error"] = validate(iteration)
             if entry["validation_error"] < best["error"]:
@@ -400,12 +427,29 @@ def fit(parameters: list[FitParameter], training: list[FitView], validation: lis
     for key in traversed:
         with dr.suspend_grad():
             apply(key)
-    exposures = {v.name: float(np.exp(np.ravel(optimizer[f"exposure:{v.name}"])[0])) for v in training} if settings.exposure else {}
-    logger.info("fit stopped (%s) after %d iterations in %.0f s; best at iteration %d", stopped, len(log),
-                time.perf_counter() - started, best["iteration"])  # fmt: skip
+    exposures = (
+        {v.name: float(np.exp(np.ravel(optimizer[f"exposure:{v.name}"])[0])) for v in training}
+        if settings.exposure
+        else {}
+    )
+    logger.info(
+        "fit stopped (%s) after %d iterations in %.0f s; best at iteration %d",
+        stopped,
+        len(log),
+        time.perf_counter() - started,
+        best["iteration"],
+    )
     textures = {n: v.astype(np.float32) for n, v in best["values"].items() if v.ndim > 1}
-    return FitResult({n: _summary(v) for n, v in best["values"].items()}, best["iteration"], best["error"], stopped,
-                     log, exposures, start_error, textures)  # fmt: skip
+    return FitResult(
+        {n: _summary(v) for n, v in best["values"].items()},
+        best["iteration"],
+        best["error"],
+        stopped,
+        log,
+        exposures,
+        start_error,
+        textures,
+    )
 
 
 @dataclass(frozen=True)
@@ -438,8 +482,9 @@ class ShapeResult:
     log: list[dict] = field(default_factory=list)
 
 
-def fit_shape(shape_id: str, training: list[FitView], validation: list[FitView], settings: ShapeSettings,
-              integrator) -> ShapeResult:  # fmt: skip
+def fit_shape(
+    shape_id: str, training: list[FitView], validation: list[FitView], settings: ShapeSettings, integrator
+) -> ShapeResult:
     """Vertex positions of the mesh ``shape_id`` in every view's scene, everything else
     frozen: Adam on LargeSteps' differential coordinates (Nicolet et al. 2021, seams
     welded), L2 loss, rendered with ``integrator``. Only a projective integrator's
@@ -453,8 +498,10 @@ def fit_shape(shape_id: str, training: list[FitView], validation: list[FitView],
         return _fit_shape(shape_id, training, validation, settings, integrator)
 
 
-def _fit_shape(shape_id: str, training: list[FitView], validation: list[FitView], settings: ShapeSettings,
-               integrator) -> ShapeResult:  # fmt: skip
+def _fit_shape(
+    shape_id: str, training: list[FitView], validation: list[FitView], settings: ShapeSettings, integrator
+) -> ShapeResult:
+    # Longer than 60 lines: fit's loop for vertices; issue 25 merges the two into one engine.
     import drjit as dr
     import mitsuba as mi
 
@@ -486,8 +533,9 @@ def _fit_shape(shape_id: str, training: list[FitView], validation: list[FitView]
             for scene_key in {id(view.scene) for view in validation}:
                 apply(scene_key)
             for index, view in enumerate(validation):
-                errors.append(targets[view.name].heldout_error(view, index, settings.validation_spp, True, mi, dr,
-                                                               integrator))  # fmt: skip
+                errors.append(
+                    targets[view.name].heldout_error(view, index, settings.validation_spp, True, mi, dr, integrator)
+                )
         return float(np.mean(errors))
 
     batches = _Batches(training, settings.batch, settings.seed)
@@ -499,8 +547,14 @@ def _fit_shape(shape_id: str, training: list[FitView], validation: list[FitView]
         total = 0.0
         for view, seed in batches.draw(iteration):
             apply(id(view.scene))
-            image = mi.render(view.scene, traversed[id(view.scene)], sensor=view.sensor, integrator=integrator,
-                              spp=settings.spp, seed=seed)  # fmt: skip
+            image = mi.render(
+                view.scene,
+                traversed[id(view.scene)],
+                sensor=view.sensor,
+                integrator=integrator,
+                spp=settings.spp,
+                seed=seed,
+            )
             loss = targets[view.name].mse(image, dr)
             dr.backward(loss / batches.size)
             total += float(loss.array[0])
@@ -510,8 +564,13 @@ def _fit_shape(shape_id: str, training: list[FitView], validation: list[FitView]
             entry["validation_error"] = validate()
             if entry["validation_error"] < best["error"]:
                 best = {"positions": positions(), "iteration": iteration, "error": entry["validation_error"]}
-            logger.info("shape iteration %d: loss %.4g, held-out %.4g (%.0f s)", iteration, entry["loss"],
-                        entry["validation_error"], entry["seconds"])  # fmt: skip
+            logger.info(
+                "shape iteration %d: loss %.4g, held-out %.4g (%.0f s)",
+                iteration,
+                entry["loss"],
+                entry["validation_error"],
+                entry["seconds"],
+            )
         elif not validation:
             best = {"positions": positions(), "iteration": iteration, "error": None}
         log.append(entry)
@@ -519,6 +578,12 @@ def _fit_shape(shape_id: str, training: list[FitView], validation: list[FitView]
     for scene_key in traversed:
         with dr.suspend_grad():
             apply(scene_key)
-    logger.info("shape fit: %d iterations in %.0f s; best at iteration %d (held-out MSE %s -> %s)", len(log),
-                time.perf_counter() - started, best["iteration"], start_error, best["error"])  # fmt: skip
+    logger.info(
+        "shape fit: %d iterations in %.0f s; best at iteration %d (held-out MSE %s -> %s)",
+        len(log),
+        time.perf_counter() - started,
+        best["iteration"],
+        start_error,
+        best["error"],
+    )
     return ShapeResult(best["positions"], best["iteration"], best["error"], start_error, log)

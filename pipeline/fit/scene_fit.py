@@ -20,12 +20,10 @@ import re
 from pathlib import Path
 
 from pipeline import logger
-from pipeline.fit import engine
-from pipeline.render import materials
-from pipeline.render import mitsuba_variant
-from pipeline.render import scene_xml
 from pipeline.core.errors import PipelineError
+from pipeline.fit import engine
 from pipeline.imaging.photo_io import list_photos, read_photo
+from pipeline.render import materials, mitsuba_variant, scene_xml
 
 EXR_SUFFIXES = (".exr",)
 
@@ -35,8 +33,9 @@ def property_name(key: str) -> str:
     return [part for part in key.split(".") if part != "value"][-1]
 
 
-def select_parameters(params, patterns: list[str], bounds: dict[str, tuple[float, float]],
-                      learning_rate: float | None) -> list[engine.FitParameter]:  # fmt: skip
+def select_parameters(
+    params, patterns: list[str], bounds: dict[str, tuple[float, float]], learning_rate: float | None
+) -> list[engine.FitParameter]:
     import mitsuba as mi
 
     selected = []
@@ -57,8 +56,9 @@ def select_parameters(params, patterns: list[str], bounds: dict[str, tuple[float
         rate = learning_rate if learning_rate is not None else (spec.learning_rate if spec is not None else 0.02)
         selected.append(engine.FitParameter(key, key, lower, upper, log, rate))
     if not selected:
-        raise PipelineError(f"no fittable parameter matches {' '.join(patterns)}; `pipeline fit SCENE --list` "
-                            "shows the scene's keys")  # fmt: skip
+        raise PipelineError(
+            f"no fittable parameter matches {' '.join(patterns)}; `pipeline fit SCENE --list` shows the scene's keys"
+        )
     return selected
 
 
@@ -81,8 +81,16 @@ def _load(scene_path: Path):
         raise PipelineError(f"Mitsuba cannot load {scene_path}: {error}") from error
 
 
-def fit_scene(scene_path: Path, references: Path, patterns: list[str], settings: engine.FitSettings,
-              bound_entries: list[str], learning_rate: float | None, out_dir: Path, variant: str = "auto") -> Path:  # fmt: skip
+def fit_scene(
+    scene_path: Path,
+    references: Path,
+    patterns: list[str],
+    settings: engine.FitSettings,
+    bound_entries: list[str],
+    learning_rate: float | None,
+    out_dir: Path,
+    variant: str = "auto",
+) -> Path:
     """Fit and write the results into ``out_dir``; returns its params.json."""
     mitsuba_variant.activate(variant)
     import mitsuba as mi
@@ -91,17 +99,23 @@ def fit_scene(scene_path: Path, references: Path, patterns: list[str], settings:
     sensors = scene.sensors()
     files = list_photos(references) if references.is_dir() else []
     if len(files) != len(sensors):
-        raise PipelineError(f"{references} holds {len(files)} reference images but {scene_path} has {len(sensors)} "
-                            "sensors: give one image per sensor (matched by sorted file name)")  # fmt: skip
+        raise PipelineError(
+            f"{references} holds {len(files)} reference images but {scene_path} has {len(sensors)} "
+            "sensors: give one image per sensor (matched by sorted file name)"
+        )
     views = []
     for index, (path, sensor) in enumerate(zip(files, sensors)):
         size = tuple(int(v) for v in sensor.film().crop_size())
         pixels = read_photo(path, "linear" if path.suffix.lower() in EXR_SUFFIXES else "srgb").pixels
         if pixels.shape[:2] != size[::-1]:
-            raise PipelineError(f"{path} is {pixels.shape[1]}x{pixels.shape[0]} but sensor {index} renders "
-                                f"{size[0]}x{size[1]}: resize it or fix the film")  # fmt: skip
+            raise PipelineError(
+                f"{path} is {pixels.shape[1]}x{pixels.shape[0]} but sensor {index} renders "
+                f"{size[0]}x{size[1]}: resize it or fix the film"
+            )
         views.append(engine.FitView(path.stem, scene, sensor, pixels))
-    parameters = select_parameters(mi.traverse(scene), patterns, engine.parse_bounds(bound_entries, "--bound"), learning_rate)
+    parameters = select_parameters(
+        mi.traverse(scene), patterns, engine.parse_bounds(bound_entries, "--bound"), learning_rate
+    )
     logger.info("fitting %s on %d views", ", ".join(p.key for p in parameters), len(views))
     result = engine.fit(parameters, views, [], settings)
 
@@ -112,12 +126,17 @@ def fit_scene(scene_path: Path, references: Path, patterns: list[str], settings:
             log.write(json.dumps(entry) + "\n")
     engine.plot_loss(result.log, out_dir / "loss.png")
     params_json = out_dir / "params.json"
-    params_json.write_text(json.dumps({
-        "scene": str(scene_path),
-        "params": result.values,
-        "bounds": {p.key: [p.lower, p.upper] for p in parameters},
-        "iterations": len(result.log),
-        "final_loss": result.log[-1]["loss"] if result.log else None,
-        "stopped": result.stopped,
-    }, indent=1))  # fmt: skip
+    params_json.write_text(
+        json.dumps(
+            {
+                "scene": str(scene_path),
+                "params": result.values,
+                "bounds": {p.key: [p.lower, p.upper] for p in parameters},
+                "iterations": len(result.log),
+                "final_loss": result.log[-1]["loss"] if result.log else None,
+                "stopped": result.stopped,
+            },
+            indent=1,
+        )
+    )
     return params_json

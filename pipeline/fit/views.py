@@ -36,10 +36,18 @@ def mask_window(mask: np.ndarray, max_size: int, margin: int = 8) -> tuple[float
     return scale, (int(lo_s[0]), int(lo_s[1]), int(hi_s[0] - lo_s[0]), int(hi_s[1] - lo_s[1]))
 
 
-def load_views(scene_dir: Path, description: dict, cameras: dict[str, tuple[Intrinsics, Pose]],
-               linear: dict[str, Path], masks: dict[str, Path], max_size: int, erode_px: int,
-               spp: int, sample_border: bool = False,
-               names: set[str] | None = None) -> list[tuple[engine.FitView, tuple]]:  # fmt: skip
+def load_views(
+    scene_dir: Path,
+    description: dict,
+    cameras: dict[str, tuple[Intrinsics, Pose]],
+    linear: dict[str, Path],
+    masks: dict[str, Path],
+    max_size: int,
+    erode_px: int,
+    spp: int,
+    sample_border: bool = False,
+    names: set[str] | None = None,
+) -> list[tuple[engine.FitView, tuple]]:
     """Every photo (or those in ``names``) as a FitView in its window (longer side at most
     ``max_size`` px), with the window's scaled camera and crop; weights are the mask
     eroded by ``erode_px``."""
@@ -66,8 +74,9 @@ def load_views(scene_dir: Path, description: dict, cameras: dict[str, tuple[Intr
         coverage = resize_exact(mask.astype(np.float32), scale)
         weight = (coverage[y : y + h, x : x + w] > 0.999).astype(np.float32)
         scene = shared_scene or mi.load_file(str(scene_dir / description["views"][name]["xml"]))
-        sensor = scene_xml.load_sensor(scene_xml.sensor_properties(small, pose, spp,
-                                                                   description["near_clip"], crop, sample_border))  # fmt: skip
+        sensor = scene_xml.load_sensor(
+            scene_xml.sensor_properties(small, pose, spp, description["near_clip"], crop, sample_border)
+        )
         views.append((engine.FitView(name, scene, sensor, np.ascontiguousarray(reference), weight), (small, crop)))
     return views
 

@@ -90,8 +90,13 @@ def mitsuba_mesh(mesh: trimesh.Trimesh, name: str, props=None):
     (BSDF, medium, emitter) bound at construction; needs Mitsuba's variant set."""
     import mitsuba as mi
 
-    shape = mi.Mesh(name, len(mesh.vertices), len(mesh.faces), props if props is not None else mi.Properties(),
-                    has_vertex_normals=False)  # fmt: skip
+    shape = mi.Mesh(
+        name,
+        len(mesh.vertices),
+        len(mesh.faces),
+        props if props is not None else mi.Properties(),
+        has_vertex_normals=False,
+    )
     params = mi.traverse(shape)
     params["vertex_positions"] = mi.Float(mesh.vertices.astype(np.float32).ravel())
     params["faces"] = mi.UInt32(mesh.faces.astype(np.uint32).ravel())
@@ -118,7 +123,9 @@ def unoccluded(scene, points: np.ndarray, normals: np.ndarray, center: np.ndarra
     origins = np.asarray(points + offset * to_camera, dtype=np.float32)
     directions = np.asarray(to_camera, dtype=np.float32)
     # Ray3f(ray, maxt): the three-argument constructor reads its third as a time.
-    rays = mi.Ray3f(mi.Ray3f(mi.Point3f(*map(mi.Float, origins.T)), mi.Vector3f(*map(mi.Float, directions.T))),
-                    mi.Float(np.asarray(distance - 2 * offset, dtype=np.float32)))  # fmt: skip
+    rays = mi.Ray3f(
+        mi.Ray3f(mi.Point3f(*map(mi.Float, origins.T)), mi.Vector3f(*map(mi.Float, directions.T))),
+        mi.Float(np.asarray(distance - 2 * offset, dtype=np.float32)),
+    )
     hidden = np.array(scene.ray_test(rays), dtype=bool)
     return ((to_camera * normals).sum(axis=1) > 0) & ~hidden

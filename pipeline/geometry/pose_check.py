@@ -3,6 +3,9 @@ wrong shows the specimen where it is not."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import cv2
 import numpy as np
 
 from pipeline import logger
@@ -11,8 +14,14 @@ from pipeline.geometry import turntable
 from pipeline.geometry.visual_hull import Grid, View, bounds, hull_field
 
 
-def hull_points(names: list[str], poses: dict[str, Pose], intrinsics: dict[str, Intrinsics],
-                mask_of: dict[str, np.ndarray], resolution: int, tolerance: int = 1) -> tuple[np.ndarray, float]:
+def hull_points(
+    names: list[str],
+    poses: dict[str, Pose],
+    intrinsics: dict[str, Intrinsics],
+    mask_of: dict[str, np.ndarray],
+    resolution: int,
+    tolerance: int = 1,
+) -> tuple[np.ndarray, float]:
     """Voxel centres inside the visual hull of the posed ``names`` (``tolerance``
     photos may disagree), and the voxel size. ValueError when the silhouettes do not meet."""
     views = [View(intrinsics[n], poses[n], mask_of[n]) for n in names]
@@ -22,8 +31,13 @@ def hull_points(names: list[str], poses: dict[str, Pose], intrinsics: dict[str, 
     return centres[hull_field(centres, views, tolerance) > 0], grid.voxel
 
 
-def silhouette_check(poses: dict[str, Pose], intrinsics: dict[str, Intrinsics], mask_of: dict[str, np.ndarray],
-                     min_iou: float, resolution: int) -> tuple[dict[str, float], list[str]]:
+def silhouette_check(
+    poses: dict[str, Pose],
+    intrinsics: dict[str, Intrinsics],
+    mask_of: dict[str, np.ndarray],
+    min_iou: float,
+    resolution: int,
+) -> tuple[dict[str, float], list[str]]:
     """Each photo's mask against the visual hull of the posed photos seen from its pose
     (IoU), and the photos below ``min_silhouette_iou``: a pose SfM got wrong shows the
     specimen where it is not.
@@ -52,3 +66,38 @@ def silhouette_check(poses: dict[str, Pose], intrinsics: dict[str, Intrinsics], 
             logger.warning("fewer than three photos agree with the visual hull: not checking the poses")
             return scores, []
     return scores, [n for n in names if scores[n] < min_iou]
+
+
+def drop_inconsistent(
+    poses: dict[str, Pose],
+    intrinsics: dict[str, Intrinsics],
+    masks: dict[str, Path],
+    min_iou: float,
+    resolution: int,
+    report: dict,
+) -> None:
+    """Leave out (from ``poses``) photos whose silhouettes contradict the hull of the
+    others (``silhouette_check``), and cameras under the table when ``report``'s frame
+    has a ground plane; ``report`` records both."""
+    if len(poses) >= 3:
+        mask_of = {n: cv2.imread(str(masks[n]), cv2.IMREAD_GRAYSCALE) > 127 for n in poses}
+        report["silhouette_iou"], off = silhouette_check(poses, intrinsics, mask_of, min_iou, resolution)
+        for name in off:
+            logger.warning(
+                "%s: its silhouette does not match the hull of the other photos at SfM's pose (IoU %.2f "
+                "< sfm.min_silhouette_iou = %.2f); leaving the photo out",
+                name,
+                report["silhouette_iou"][name],
+                min_iou,
+            )
+            del poses[name]
+    if report["frame"].get("ground_plane") is not None:
+        # The world's z = 0 is the table: a camera below it cannot see the specimen on
+        # it. SfM does this to a view of a plain, symmetric specimen it mirrors.
+        report["below_ground"] = sorted(n for n, p in poses.items() if p.center[2] < 0)
+        for name in report["below_ground"]:
+            logger.warning(
+                "%s: SfM put the camera below the table (z = %.3f); leaving the photo out",
+                name,
+                poses.pop(name).center[2],
+            )

@@ -193,8 +193,11 @@ def angle_from_matches(
         angle = float(coarse[int(np.argmin(cost(coarse, partners)))])
         fine = np.clip(np.arange(angle - coarse_step, angle + coarse_step + fine_step / 2, fine_step), lo, hi)
         angle = float(fine[int(np.argmin(cost(fine, partners)))])
-        agreeing = [m for m in partners
-                    if np.mean(_sampson_px(model, np.array([angle]), intrinsics, m)[0] < threshold_px) >= 0.5]  # fmt: skip
+        agreeing = [
+            m
+            for m in partners
+            if np.mean(_sampson_px(model, np.array([angle]), intrinsics, m)[0] < threshold_px) >= 0.5
+        ]
         if len(agreeing) == len(partners) or not agreeing:
             return angle, agreeing
         partners = agreeing
@@ -226,9 +229,14 @@ def silhouette_iou(points: np.ndarray, radius_px: int, pose: Pose, intrinsics: I
 
 
 def angle_from_silhouette(
-    model: Turntable, lo: float, hi: float, hull_points: np.ndarray, voxel: float,
-    intrinsics: Intrinsics, mask: np.ndarray,
-) -> tuple[float, float]:  # fmt: skip
+    model: Turntable,
+    lo: float,
+    hi: float,
+    hull_points: np.ndarray,
+    voxel: float,
+    intrinsics: Intrinsics,
+    mask: np.ndarray,
+) -> tuple[float, float]:
     """The angle in [lo, hi] whose view of the hull best matches ``mask``, and its IoU.
 
     A grid search at 1/4 degree, then at 1/64 degree around the best: the IoU is

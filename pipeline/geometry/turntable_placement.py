@@ -31,9 +31,15 @@ class PlacementSettings:
     """True: every photo exactly on the fitted circle; False: a measured pose is kept."""
 
 
-def turntable_poses(settings: PlacementSettings, order: list[str], measured: dict[str, dict[str, Pose]],
-                    intrinsics: dict[str, Intrinsics], masks: dict[str, Path], keypoints: dict[str, np.ndarray],
-                    matches: dict[tuple[str, str], dict[int, int]]):
+def turntable_poses(
+    settings: PlacementSettings,
+    order: list[str],
+    measured: dict[str, dict[str, Pose]],
+    intrinsics: dict[str, Intrinsics],
+    masks: dict[str, Path],
+    keypoints: dict[str, np.ndarray],
+    matches: dict[tuple[str, str], dict[int, int]],
+):
     """The turntable fitted to the measured poses (per photo its board pose, else its
     SfM pose; a board turns with the specimen and does not depend on SfM's luck with
     a plain specimen), and a pose for every photo: a measured one the model agrees
@@ -61,14 +67,15 @@ def turntable_poses(settings: PlacementSettings, order: list[str], measured: dic
     missing = [n for n in order if n not in poses]
     by_matches = _place_by_matches(settings, table, order, missing, poses, intrinsics, keypoints, matches)
     missing = [n for n in missing if n not in by_matches]
-    by_silhouette = (_place_by_silhouette(settings, table, order, missing, poses, intrinsics, masks)
-                     if missing else {})
+    by_silhouette = _place_by_silhouette(settings, table, order, missing, poses, intrinsics, masks) if missing else {}
     placed = by_matches | by_silhouette
     method |= {n: "matches" for n in by_matches} | {n: "silhouette" for n in by_silhouette}
     report = {
         "off_circle": off_circle,
-        "pose_source": {source: sorted(n for n in method if method[n] == source)
-                        for source in ("board", "sfm", "matches", "silhouette")},  # fmt: skip
+        "pose_source": {
+            source: sorted(n for n in method if method[n] == source)
+            for source in ("board", "sfm", "matches", "silhouette")
+        },
         "rotation_residual_deg_max": max(r for r, _ in table.residuals(fitted).values()),
         "centre_residual_of_radius_max": max(c for _, c in table.residuals(fitted).values()),
         "placed": placed,
@@ -79,9 +86,16 @@ def turntable_poses(settings: PlacementSettings, order: list[str], measured: dic
     return table, poses, report
 
 
-def _place_by_matches(settings: PlacementSettings, table: turntable.Turntable, order: list[str], missing: list[str],
-                      poses: dict[str, Pose], intrinsics: dict[str, Intrinsics], keypoints: dict[str, np.ndarray],
-                      matches: dict[tuple[str, str], dict[int, int]]) -> dict[str, dict]:
+def _place_by_matches(
+    settings: PlacementSettings,
+    table: turntable.Turntable,
+    order: list[str],
+    missing: list[str],
+    poses: dict[str, Pose],
+    intrinsics: dict[str, Intrinsics],
+    keypoints: dict[str, np.ndarray],
+    matches: dict[tuple[str, str], dict[int, int]],
+) -> dict[str, dict]:
     """Angles for photos with at least ``min_pose_inliers`` verified matches with
     posed photos that agree on one angle (recorded in ``table.angles``)."""
     placed = {}
@@ -91,8 +105,11 @@ def _place_by_matches(settings: PlacementSettings, table: turntable.Turntable, o
             pairs = matches.get((name, partner))
             if pairs:
                 mine, theirs = (np.array(side) for side in zip(*pairs.items()))
-                partners.append(turntable.Matches(poses[partner], intrinsics[partner], keypoints[name][mine],
-                                                  keypoints[partner][theirs]))  # fmt: skip
+                partners.append(
+                    turntable.Matches(
+                        poses[partner], intrinsics[partner], keypoints[name][mine], keypoints[partner][theirs]
+                    )
+                )
         if sum(len(m.points) for m in partners) < settings.min_pose_inliers:
             continue
         low, high = turntable.bracket(table, order, name)
@@ -102,33 +119,53 @@ def _place_by_matches(settings: PlacementSettings, table: turntable.Turntable, o
             logger.info("%s: no posed photo's matches agree on an angle; trying its silhouette", name)
             continue
         table.angles[name] = angle
-        placed[name] = {"method": "matches", "angle_deg": float(np.degrees(angle)), "matches": supporting,
-                        "partners": len(agreeing), "partners_dropped": len(partners) - len(agreeing)}  # fmt: skip
-        logger.info("%s placed on the turntable at %.2f degrees by its feature matches (posed photos: %d agree, "
-                    "%d disagree)", name, placed[name]["angle_deg"], len(agreeing),
-                    placed[name]["partners_dropped"])  # fmt: skip
+        placed[name] = {
+            "method": "matches",
+            "angle_deg": float(np.degrees(angle)),
+            "matches": supporting,
+            "partners": len(agreeing),
+            "partners_dropped": len(partners) - len(agreeing),
+        }
+        logger.info(
+            "%s placed on the turntable at %.2f degrees by its feature matches (posed photos: %d agree, %d disagree)",
+            name,
+            placed[name]["angle_deg"],
+            len(agreeing),
+            placed[name]["partners_dropped"],
+        )
     return placed
 
 
-def _place_by_silhouette(settings: PlacementSettings, table: turntable.Turntable, order: list[str], missing: list[str],
-                         poses: dict[str, Pose], intrinsics: dict[str, Intrinsics],
-                         masks: dict[str, Path]) -> dict[str, dict]:  # fmt: skip
+def _place_by_silhouette(
+    settings: PlacementSettings,
+    table: turntable.Turntable,
+    order: list[str],
+    missing: list[str],
+    poses: dict[str, Pose],
+    intrinsics: dict[str, Intrinsics],
+    masks: dict[str, Path],
+) -> dict[str, dict]:
     """Angles for the ``missing`` photos from their silhouettes against the hull of
     the posed photos (recorded in ``table.angles``)."""
     placed: dict[str, dict] = {}
     mask_of = {n: cv2.imread(str(masks[n]), cv2.IMREAD_GRAYSCALE) > 127 for n in order}
     try:
-        hull, voxel = hull_points([n for n in order if n in poses], poses, intrinsics, mask_of,
-                                  settings.silhouette_resolution)
+        hull, voxel = hull_points(
+            [n for n in order if n in poses], poses, intrinsics, mask_of, settings.silhouette_resolution
+        )
     except ValueError as error:
         raise PipelineError(f"cannot place {', '.join(missing)} on the turntable by silhouette: {error}") from error
     for name in missing:
         low, high = turntable.bracket(table, order, name)
-        angle, iou = turntable.angle_from_silhouette(table, low, high, hull, voxel,
-                                                     intrinsics[name], mask_of[name])  # fmt: skip
+        angle, iou = turntable.angle_from_silhouette(table, low, high, hull, voxel, intrinsics[name], mask_of[name])
         table.angles[name] = angle
         placed[name] = {"method": "silhouette", "angle_deg": float(np.degrees(angle)), "silhouette_iou": iou}
         log = logger.warning if iou < 0.8 else logger.info
-        log("%s placed on the turntable by its silhouette at %.2f degrees (IoU %.3f%s)", name,
-            placed[name]["angle_deg"], iou, ", unreliable" if iou < 0.8 else "")  # fmt: skip
+        log(
+            "%s placed on the turntable by its silhouette at %.2f degrees (IoU %.3f%s)",
+            name,
+            placed[name]["angle_deg"],
+            iou,
+            ", unreliable" if iou < 0.8 else "",
+        )
     return placed

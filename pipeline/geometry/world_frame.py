@@ -26,7 +26,10 @@ def robust_similarity(source: dict[str, np.ndarray], target: dict[str, np.ndarra
         if len(kept) == len(names) or len(kept) < 3:
             break
         names = kept
-    return similarity, {"photos": len(names), "centre_residual_mm_median": 1000 * float(np.median([residuals[n] for n in names]))}
+    return similarity, {
+        "photos": len(names),
+        "centre_residual_mm_median": 1000 * float(np.median([residuals[n] for n in names])),
+    }
 
 
 def ground_plane(points: np.ndarray, centres: np.ndarray, looked_at: np.ndarray, scale: float, seed: int = 0):
@@ -87,8 +90,9 @@ def level_frame(origin: np.ndarray, up: np.ndarray, poses: dict[str, Pose]) -> S
     return Similarity(scale, R, -scale * R @ origin)
 
 
-def frame_from_board(source: str, max_disagreement: float, board_poses: dict[str, Pose], poses: dict[str, Pose],
-                     report: dict) -> Similarity | None:
+def frame_from_board(
+    source: str, max_disagreement: float, board_poses: dict[str, Pose], poses: dict[str, Pose], report: dict
+) -> Similarity | None:
     """The similarity taking SfM's frame to the board's, when ``source`` allows the board
     and SfM's camera centres agree with three or more board poses to ``max_disagreement``
     of their distance; records the frame in ``report``."""
@@ -100,13 +104,26 @@ def frame_from_board(source: str, max_disagreement: float, board_poses: dict[str
     if fit["centre_residual_mm_median"] / 1000 > max_disagreement * distance:
         # SfM and the board tell different stories: SfM joined photos wrongly
         # (a repetitive set) or the board moved against the specimen.
-        logger.warning("SfM's camera centres and the board's disagree by %.1f mm (median; %.0f mm from the board): "
-                       "not aligning SfM to the board", fit["centre_residual_mm_median"], 1000 * distance)  # fmt: skip
+        logger.warning(
+            "SfM's camera centres and the board's disagree by %.1f mm (median; %.0f mm from the board): "
+            "not aligning SfM to the board",
+            fit["centre_residual_mm_median"],
+            1000 * distance,
+        )
         return None
-    report["frame"] = {"source": "board", "metric": True, "units": "metres", "up": "+z, normal to the board",
-                       "ground_plane": [0.0, 0.0, 1.0, 0.0], **fit}  # fmt: skip
-    logger.info("world frame from the board in %d photos (centres agree to %.2f mm)", fit["photos"],
-                fit["centre_residual_mm_median"])  # fmt: skip
+    report["frame"] = {
+        "source": "board",
+        "metric": True,
+        "units": "metres",
+        "up": "+z, normal to the board",
+        "ground_plane": [0.0, 0.0, 1.0, 0.0],
+        **fit,
+    }
+    logger.info(
+        "world frame from the board in %d photos (centres agree to %.2f mm)",
+        fit["photos"],
+        fit["centre_residual_mm_median"],
+    )
     return frame
 
 
@@ -120,21 +137,28 @@ def replace_by_board(max_disagreement: float, poses: dict[str, Pose], board_pose
         rotation = rotation_angle_deg(sfm.R @ board.R.T)
         distance = np.linalg.norm(sfm.center - board.center) / np.linalg.norm(board.center)
         if rotation > 2.0 or distance > max_disagreement:
-            logger.warning("%s: SfM's pose is %.1f degrees and %.1f %% of the distance from its board pose; "
-                           "using the board pose", name, rotation, 100 * distance)  # fmt: skip
+            logger.warning(
+                "%s: SfM's pose is %.1f degrees and %.1f %% of the distance from its board pose; using the board pose",
+                name,
+                rotation,
+                100 * distance,
+            )
             poses[name] = board
             replaced.append(name)
     return replaced
 
 
-def frame_without_board(requested: str, poses: dict[str, Pose], points: np.ndarray,
-                        table: turntable.Turntable | None, report: dict) -> Similarity:
+def frame_without_board(
+    requested: str, poses: dict[str, Pose], points: np.ndarray, table: turntable.Turntable | None, report: dict
+) -> Similarity:
     """The world frame when the board gives none: the turntable's axis (and the table
     plane), else the ground plane, else the cameras alone, as ``requested`` allows
     (sfm.frame); scaled to a median camera distance of 1. Records it in ``report``."""
     if requested == "board":
-        raise PipelineError("sfm.frame = 'board' but the board was not found in three registered photos, or SfM "
-                            "disagrees with it (see the log): check [board], or set sfm.frame = 'auto'")  # fmt: skip
+        raise PipelineError(
+            "sfm.frame = 'board' but the board was not found in three registered photos, or SfM "
+            "disagrees with it (see the log): check [board], or set sfm.frame = 'auto'"
+        )
     centres = np.array([p.center for p in poses.values()])
     spread = float(np.median(np.linalg.norm(centres - centres.mean(axis=0), axis=1)))
     looked_at = convergence_point(poses.values())
@@ -162,7 +186,12 @@ def frame_without_board(requested: str, poses: dict[str, Pose], points: np.ndarr
     level = level_frame(origin, up, poses)
     # The origin was put on the table plane when there is one: it becomes z = 0.
     ground = [0.0, 0.0, 1.0, 0.0] if plane is not None else None
-    report["frame"] = {"source": source, "metric": False, "units": "median camera distance = 1",
-                       "up": "+z", "ground_plane": ground}  # fmt: skip
+    report["frame"] = {
+        "source": source,
+        "metric": False,
+        "units": "median camera distance = 1",
+        "up": "+z",
+        "ground_plane": ground,
+    }
     logger.warning("no board seen: world frame from %s, scale normalised (not metric)", source.replace("_", " "))
     return level

@@ -36,8 +36,9 @@ def _photo_size(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     if mask.shape == shape:
         return mask
     shrinking = mask.shape[0] > shape[0]
-    soft = cv2.resize(mask.astype(np.float32), (shape[1], shape[0]),
-                      interpolation=cv2.INTER_AREA if shrinking else cv2.INTER_LINEAR)  # fmt: skip
+    soft = cv2.resize(
+        mask.astype(np.float32), (shape[1], shape[0]), interpolation=cv2.INTER_AREA if shrinking else cv2.INTER_LINEAR
+    )
     return soft >= 0.5
 
 
@@ -84,8 +85,9 @@ def chroma(srgb: np.ndarray) -> np.ndarray:
     return (blurred.max(axis=-1) - blurred.min(axis=-1)) / 255.0
 
 
-def segment_neutral_backdrop(srgb: np.ndarray, backdrop_chroma: float, centre_fraction: float,
-                             iterations: int, working_size: int) -> np.ndarray:  # fmt: skip
+def segment_neutral_backdrop(
+    srgb: np.ndarray, backdrop_chroma: float, centre_fraction: float, iterations: int, working_size: int
+) -> np.ndarray:
     """The specimen on a grey, white or black set (table, sweep, printed board).
 
     Pixels greyer than ``backdrop_chroma`` are backdrop for sure, up to twice that
@@ -103,8 +105,14 @@ def segment_neutral_backdrop(srgb: np.ndarray, backdrop_chroma: float, centre_fr
     return _photo_size(grabcut(small, seeds, iterations), srgb.shape[:2])
 
 
-def segment_plate_difference(linear: np.ndarray, plate: np.ndarray, threshold: float, iterations: int,
-                             working_size: int, shadows_are_background: bool = True) -> np.ndarray:  # fmt: skip
+def segment_plate_difference(
+    linear: np.ndarray,
+    plate: np.ndarray,
+    threshold: float,
+    iterations: int,
+    working_size: int,
+    shadows_are_background: bool = True,
+) -> np.ndarray:
     """Pixels that differ from the empty-set plate by more than ``threshold`` noise sigmas.
 
     The noise sigma is estimated robustly (median absolute deviation) from the
@@ -153,8 +161,14 @@ def read_user_mask(path: Path) -> np.ndarray:
     return read_photo(path, "linear").pixels[..., 0] > 0.5 / 255
 
 
-def segment(srgb: np.ndarray, segmenter: str, backdrop_chroma: float, centre_fraction: float,
-            grabcut_iterations: int, working_size: int) -> np.ndarray:
+def segment(
+    srgb: np.ndarray,
+    segmenter: str,
+    backdrop_chroma: float,
+    centre_fraction: float,
+    grabcut_iterations: int,
+    working_size: int,
+) -> np.ndarray:
     """The automatic segmenter ``segmenter`` (the masks stage's choice) on an 8-bit RGB
     photo, before cleaning."""
     if segmenter == "neutral_backdrop":

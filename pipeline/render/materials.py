@@ -66,18 +66,52 @@ SPECIMEN = "specimen"
 PARAMETERS: dict[str, Parameter] = {
     p.name: p
     for p in (
-        Parameter("base_color", f"{SPECIMEN}.bsdf.base_color.value", (0.5, 0.5, 0.5), 0.001, 1.0, "linear RGB reflectance"),
-        Parameter("roughness", f"{SPECIMEN}.bsdf.roughness.value", (0.5,), 0.001, 1.0, "1 (GGX, Disney)", log=True,
-                  learning_rate=0.05),  # fmt: skip
+        Parameter(
+            "base_color", f"{SPECIMEN}.bsdf.base_color.value", (0.5, 0.5, 0.5), 0.001, 1.0, "linear RGB reflectance"
+        ),
+        Parameter(
+            "roughness",
+            f"{SPECIMEN}.bsdf.roughness.value",
+            (0.5,),
+            0.001,
+            1.0,
+            "1 (GGX, Disney)",
+            log=True,
+            learning_rate=0.05,
+        ),
         Parameter("specular", f"{SPECIMEN}.bsdf.specular", (0.5,), 0.0, 1.0, "1 (F0 / 0.08)"),
         Parameter("spec_trans", f"{SPECIMEN}.bsdf.spec_trans.value", (0.3,), 0.0, 1.0, "1 (fraction transmitted)"),
-        Parameter("eta", f"{SPECIMEN}.bsdf.eta", (1.5,), 1.001, 3.0, "1 (relative index of refraction)", learning_rate=0.01),
-        Parameter("alpha", f"{SPECIMEN}.bsdf.alpha.value", (0.2,), 0.001, 1.0, "1 (GGX roughness)", log=True,
-                  learning_rate=0.05),  # fmt: skip
-        Parameter("albedo", f"{SPECIMEN}.interior_medium.albedo.value.value", (0.8, 0.8, 0.8), 0.001, 1.0,
-                  "linear RGB single-scattering albedo"),  # fmt: skip
-        Parameter("sigma_t", f"{SPECIMEN}.interior_medium.sigma_t.value.value", (50.0,), 0.1, 1e5,
-                  "1/m (extinction, world units)", log=True, learning_rate=0.05),  # fmt: skip
+        Parameter(
+            "eta", f"{SPECIMEN}.bsdf.eta", (1.5,), 1.001, 3.0, "1 (relative index of refraction)", learning_rate=0.01
+        ),
+        Parameter(
+            "alpha",
+            f"{SPECIMEN}.bsdf.alpha.value",
+            (0.2,),
+            0.001,
+            1.0,
+            "1 (GGX roughness)",
+            log=True,
+            learning_rate=0.05,
+        ),
+        Parameter(
+            "albedo",
+            f"{SPECIMEN}.interior_medium.albedo.value.value",
+            (0.8, 0.8, 0.8),
+            0.001,
+            1.0,
+            "linear RGB single-scattering albedo",
+        ),
+        Parameter(
+            "sigma_t",
+            f"{SPECIMEN}.interior_medium.sigma_t.value.value",
+            (50.0,),
+            0.1,
+            1e5,
+            "1/m (extinction, world units)",
+            log=True,
+            learning_rate=0.05,
+        ),
     )
 }
 
@@ -120,13 +154,26 @@ def bsdf_and_medium(model: MaterialModel, values: dict[str, tuple[float, ...]]) 
     """The specimen's BSDF and interior medium (or None) as plain dicts of plugin
     properties: {"type": ..., "id": ..., name: number or RGB tuple}."""
     if model == "volumetric":
-        bsdf = {"type": "roughdielectric", "id": "specimen_bsdf", "alpha": values["alpha"][0],
-                "int_ior": values["eta"][0], "ext_ior": 1.0}  # fmt: skip
-        medium = {"type": "homogeneous", "id": "specimen_medium", "albedo": tuple(values["albedo"]),
-                  "sigma_t": values["sigma_t"][0]}  # fmt: skip
+        bsdf = {
+            "type": "roughdielectric",
+            "id": "specimen_bsdf",
+            "alpha": values["alpha"][0],
+            "int_ior": values["eta"][0],
+            "ext_ior": 1.0,
+        }
+        medium = {
+            "type": "homogeneous",
+            "id": "specimen_medium",
+            "albedo": tuple(values["albedo"]),
+            "sigma_t": values["sigma_t"][0],
+        }
         return bsdf, medium
-    bsdf = {"type": "principled", "id": "specimen_bsdf", "base_color": tuple(values["base_color"]),
-            "roughness": values["roughness"][0]}  # fmt: skip
+    bsdf = {
+        "type": "principled",
+        "id": "specimen_bsdf",
+        "base_color": tuple(values["base_color"]),
+        "roughness": values["roughness"][0],
+    }
     if model == "opaque":
         bsdf["specular"] = values["specular"][0]
     else:
@@ -139,12 +186,24 @@ def fit_parameters(model: MaterialModel, bounds: Mapping[str, tuple[float, float
     """The model's parameters for pipeline.fit.engine, ``bounds`` overriding the defaults
     by name (names that are not the model's are ignored: callers check them)."""
     bounds = bounds or {}
-    return [FitParameter(n, PARAMETERS[n].key, *bounds.get(n, (PARAMETERS[n].lower, PARAMETERS[n].upper)),
-                         PARAMETERS[n].log, PARAMETERS[n].learning_rate) for n in MODEL_PARAMETERS[model]]  # fmt: skip
+    return [
+        FitParameter(
+            n,
+            PARAMETERS[n].key,
+            *bounds.get(n, (PARAMETERS[n].lower, PARAMETERS[n].upper)),
+            PARAMETERS[n].log,
+            PARAMETERS[n].learning_rate,
+        )
+        for n in MODEL_PARAMETERS[model]
+    ]
 
 
-def refit_parameters(model: MaterialModel, bounds: Mapping[str, tuple[float, float]],
-                     texture: tuple[float, float] | None, constants: bool = True) -> list[FitParameter]:  # fmt: skip
+def refit_parameters(
+    model: MaterialModel,
+    bounds: Mapping[str, tuple[float, float]],
+    texture: tuple[float, float] | None,
+    constants: bool = True,
+) -> list[FitParameter]:
     """Parameters of a fit that continues fit_material's, within its ``bounds``: with
     ``texture`` = (learning rate, smoothness), first the texture slot's data in place
     of its constant; then, with ``constants``, the model's other parameters."""

@@ -61,8 +61,10 @@ def probe(variant: str) -> tuple[bool, str]:
     try:
         done = subprocess.run(
             [sys.executable, "-c", _PROBE, variant],
-            capture_output=True, text=True, timeout=300,
-        )  # fmt: skip
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
     except subprocess.TimeoutExpired:
         return False, "a 8x8 test render did not finish within 300 s"
     if done.returncode == 0 and "mean" in done.stdout:
@@ -87,9 +89,7 @@ def choose(requested: str = "auto") -> str:
             return variant
         failures.append(f"{variant}: {why}")
     source = f"${ENV_VAR}" if os.environ.get(ENV_VAR) else "mitsuba.variant"
-    raise PipelineError(
-        f"no usable Mitsuba variant ({source} = {requested!r}):\n  " + "\n  ".join(failures)
-    )
+    raise PipelineError(f"no usable Mitsuba variant ({source} = {requested!r}):\n  " + "\n  ".join(failures))
 
 
 def activate(requested: str = "auto") -> str:

@@ -73,8 +73,14 @@ def transform_matrix(parent: ET.Element, matrix: np.ndarray) -> None:
     ET.SubElement(transform, "matrix", value=" ".join(_number(v) for v in np.asarray(matrix).ravel()))
 
 
-def sensor_properties(intrinsics: Intrinsics, pose: Pose, spp: int, near_clip: float,
-                      crop: tuple[int, int, int, int] | None = None, sample_border: bool = False) -> dict:  # fmt: skip
+def sensor_properties(
+    intrinsics: Intrinsics,
+    pose: Pose,
+    spp: int,
+    near_clip: float,
+    crop: tuple[int, int, int, int] | None = None,
+    sample_border: bool = False,
+) -> dict:
     """A perspective sensor reproducing a pinhole camera with square pixels, as a
     ``mi.load_dict`` dict (``to_world`` a 4x4 nested list): focal length as
     horizontal field of view, principal point as Mitsuba's offsets (a fraction of
@@ -83,8 +89,10 @@ def sensor_properties(intrinsics: Intrinsics, pose: Pose, spp: int, near_clip: f
     that window of the full image. ``sample_border`` lets geometry that moves across
     the window's edge be differentiated (projective integrators want it)."""
     if abs(intrinsics.fx - intrinsics.fy) > 1e-3 * intrinsics.fx:
-        raise PipelineError(f"a camera has fx = {intrinsics.fx:.2f} and fy = {intrinsics.fy:.2f}: Mitsuba's "
-                            "perspective sensor needs square pixels (rerun undistort and sfm)")  # fmt: skip
+        raise PipelineError(
+            f"a camera has fx = {intrinsics.fx:.2f} and fy = {intrinsics.fy:.2f}: Mitsuba's "
+            "perspective sensor needs square pixels (rerun undistort and sfm)"
+        )
     film = {"type": "hdrfilm", "width": int(intrinsics.width), "height": int(intrinsics.height), "pixel_format": "rgb"}
     if sample_border:
         film["sample_border"] = True
@@ -112,16 +120,30 @@ def load_sensor(properties: dict):
 
 def sensor(parent: ET.Element, sensor_id: str, properties: dict) -> ET.Element:
     """``<sensor>`` from ``sensor_properties``."""
-    element = plugin(parent, "sensor", {"type": "perspective", "id": sensor_id,
-                                        **{k: v for k, v in properties.items() if k not in ("type", "to_world", "sampler", "film")}})  # fmt: skip
+    element = plugin(
+        parent,
+        "sensor",
+        {
+            "type": "perspective",
+            "id": sensor_id,
+            **{k: v for k, v in properties.items() if k not in ("type", "to_world", "sampler", "film")},
+        },
+    )
     transform_matrix(element, np.asarray(properties["to_world"]))
     plugin(element, "sampler", properties["sampler"])
     plugin(element, "film", properties["film"])
     return element
 
 
-def area_light(parent: ET.Element, light_id: str, position: Sequence[float], target: Sequence[float],
-               up: Sequence[float], size: float, radiance: Sequence[float]) -> ET.Element:  # fmt: skip
+def area_light(
+    parent: ET.Element,
+    light_id: str,
+    position: Sequence[float],
+    target: Sequence[float],
+    up: Sequence[float],
+    size: float,
+    radiance: Sequence[float],
+) -> ET.Element:
     """A square softbox of side ``size`` at ``position`` facing ``target``."""
     direction = np.asarray(target, float) - np.asarray(position, float)
     up = np.asarray(up, float)
@@ -130,8 +152,13 @@ def area_light(parent: ET.Element, light_id: str, position: Sequence[float], tar
     shape = ET.SubElement(parent, "shape", type="rectangle", id=light_id)
     transform = ET.SubElement(shape, "transform", name="to_world")
     ET.SubElement(transform, "scale", value=f"{_number(size / 2)} {_number(size / 2)} 1")
-    ET.SubElement(transform, "lookat", origin=" ".join(map(_number, position)), target=" ".join(map(_number, target)),
-                  up=" ".join(map(_number, up)))  # fmt: skip
+    ET.SubElement(
+        transform,
+        "lookat",
+        origin=" ".join(map(_number, position)),
+        target=" ".join(map(_number, target)),
+        up=" ".join(map(_number, up)),
+    )
     plugin(shape, "emitter", {"type": "area", "id": f"{light_id}_emitter", "radiance": tuple(radiance)})
     return shape
 
@@ -158,13 +185,16 @@ def _property_of(by_id: dict[str, ET.Element], key: str, path: Path) -> tuple[ET
         exterior = [float(e.get("value")) for e in owner.iter() if e.get("name") == "ext_ior" and e.tag == "float"]
         factor = exterior[0] if exterior else 1.000277
     if len(matches) != 1 or matches[0].tag not in ("float", "rgb", "spectrum"):
-        raise PipelineError(f"{path}: cannot write {key}: its property '{parts[-1]}' under id "
-                            f"'{parts[0]}' is not one plain value (a texture or a reference)")  # fmt: skip
+        raise PipelineError(
+            f"{path}: cannot write {key}: its property '{parts[-1]}' under id "
+            f"'{parts[0]}' is not one plain value (a texture or a reference)"
+        )
     return matches[0], factor
 
 
-def set_values(path: Path, values: dict[str, Sequence[float]], out: Path,
-               textures: dict[str, ET.Element] | None = None) -> Path:  # fmt: skip
+def set_values(
+    path: Path, values: dict[str, Sequence[float]], out: Path, textures: dict[str, ET.Element] | None = None
+) -> Path:
     """Copy the scene at ``path`` to ``out`` with fitted values written in (file names
     it refers to are made relative to ``out``'s folder). Keys are ``mi.traverse``
     keys of plain values (see ``_property_of``). ``textures`` maps such keys to a

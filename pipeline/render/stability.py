@@ -22,10 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.fit import engine
-from pipeline.render import materials
-from pipeline.render import scene_xml
 from pipeline.camera.model import Intrinsics, Pose
+from pipeline.fit import engine
+from pipeline.render import materials, scene_xml
 
 RADIUS = 0.05
 EYES = ([0.3, 0.0, 0.12], [0.0, 0.3, 0.15], [-0.25, -0.15, 0.18])
@@ -76,11 +75,22 @@ def references(scene_file: Path, spp: int) -> list[np.ndarray]:
     import mitsuba as mi
 
     scene = mi.load_file(str(scene_file))
-    return [np.asarray(mi.render(scene, sensor=s, spp=spp, seed=1000 + i), np.float32) for i, s in enumerate(scene.sensors())]
+    return [
+        np.asarray(mi.render(scene, sensor=s, spp=spp, seed=1000 + i), np.float32)
+        for i, s in enumerate(scene.sensors())
+    ]
 
 
-def probe(scene_file: Path, reference: list[np.ndarray], model: materials.MaterialModel, name: str, value: float,
-          spp: int, steps: int, bounds: dict[str, tuple[float, float]] | None = None) -> ProbeResult:  # fmt: skip
+def probe(
+    scene_file: Path,
+    reference: list[np.ndarray],
+    model: materials.MaterialModel,
+    name: str,
+    value: float,
+    spp: int,
+    steps: int,
+    bounds: dict[str, tuple[float, float]] | None = None,
+) -> ProbeResult:
     """``name`` set to ``value`` (all channels), the rest at their initial values;
     ``bounds`` overrides pipeline.render.materials' bounds of the Adam steps (to probe a value
     outside the defaults)."""
@@ -99,27 +109,43 @@ def probe(scene_file: Path, reference: list[np.ndarray], model: materials.Materi
     sensor = scene.sensors()[0]
     rendered = mi.render(scene, params, sensor=sensor, spp=spp, seed=1)
     # A degenerate value can cut the render off the parameter: that is a zero gradient.
-    dr.backward(dr.mean(dr.square(rendered - mi.TensorXf(reference[0])), axis=None),
-                flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)  # fmt: skip
+    dr.backward(
+        dr.mean(dr.square(rendered - mi.TensorXf(reference[0])), axis=None),
+        flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad,
+    )
     gradient = float(np.ravel(dr.grad(variable))[0])
     image = np.asarray(dr.detach(rendered))
 
     views = [engine.FitView(f"view{i}", scene, s, reference[i]) for i, s in enumerate(scene.sensors())]
     parameters = materials.fit_parameters(model, bounds)
     started = time.perf_counter()
-    result = engine.fit(parameters, views, [], engine.FitSettings(iterations=steps, batch=1, spp=spp, loss="l2",
-                                                                    tolerance=0.0))  # fmt: skip
+    result = engine.fit(
+        parameters, views, [], engine.FitSettings(iterations=steps, batch=1, spp=spp, loss="l2", tolerance=0.0)
+    )
     seconds = (time.perf_counter() - started) / steps
     trajectory = [e["params"] for e in result.log]
     steps_finite = all(np.all(np.isfinite(v)) for entry in trajectory for v in entry.values())
     in_bounds = all(p.lower <= x <= p.upper for entry in trajectory for p in parameters for x in entry[p.name])
     after = result.values[name][0]
     initial = spec.initial[0]
-    return ProbeResult(model, name, value, bool(np.all(np.isfinite(image))), gradient,
-                       steps_finite, in_bounds, after, abs(after - initial) < abs(value - initial), seconds)  # fmt: skip
+    return ProbeResult(
+        model,
+        name,
+        value,
+        bool(np.all(np.isfinite(image))),
+        gradient,
+        steps_finite,
+        in_bounds,
+        after,
+        abs(after - initial) < abs(value - initial),
+        seconds,
+    )
 
 
 def extremes(model: materials.MaterialModel) -> list[tuple[str, float]]:
     """(parameter, value) at both bounds of each of the model's parameters."""
-    return [(n, v) for n in materials.MODEL_PARAMETERS[model] for v in (materials.PARAMETERS[n].lower,
-                                                                        materials.PARAMETERS[n].upper)]  # fmt: skip
+    return [
+        (n, v)
+        for n in materials.MODEL_PARAMETERS[model]
+        for v in (materials.PARAMETERS[n].lower, materials.PARAMETERS[n].upper)
+    ]

@@ -46,11 +46,11 @@ import trimesh
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from pipeline.geometry.atlas import chart_texels, occluder, unoccluded
 from pipeline.camera.model import Intrinsics, Pose, Similarity, project, rotation_angle_deg, similarity_umeyama
+from pipeline.core.errors import PipelineError
 from pipeline.formats.cameras import read_cameras
 from pipeline.formats.scene_folder import heldout_files, heldout_names
-from pipeline.core.errors import PipelineError
+from pipeline.geometry.atlas import chart_texels, occluder, unoccluded
 from pipeline.render.mitsuba_variant import activate as activate_mitsuba
 
 MESH_SAMPLES = 30000
@@ -87,7 +87,8 @@ def score_cameras(estimate: dict[str, Pose], truth: dict[str, Pose]) -> tuple[di
     similarity = Similarity(scale, R, t)
     rotation_errors = [
         # aligned camera-to-world rotation is R @ R_est^T; compare with the truth's
-        rotation_angle_deg(truth[n].R @ R @ estimate[n].R.T) for n in common
+        rotation_angle_deg(truth[n].R @ R @ estimate[n].R.T)
+        for n in common
     ]
     scene_size = float(np.linalg.norm(true_centres.max(0) - true_centres.min(0)))
     centre_errors = np.linalg.norm(similarity.points(est_centres) - true_centres, axis=1) / scene_size * 100
@@ -96,7 +97,9 @@ def score_cameras(estimate: dict[str, Pose], truth: dict[str, Pose]) -> tuple[di
         rotation_error_deg_max=float(np.max(rotation_errors)),
         centre_error_pct_median=float(np.median(centre_errors)),
         centre_error_pct_max=float(np.max(centre_errors)),
-        per_image={n: {"rotation_deg": r, "centre_pct": float(c)} for n, r, c in zip(common, rotation_errors, centre_errors)},
+        per_image={
+            n: {"rotation_deg": r, "centre_pct": float(c)} for n, r, c in zip(common, rotation_errors, centre_errors)
+        },
     )
     return metrics, similarity
 
@@ -121,8 +124,11 @@ def score_mesh(estimate: trimesh.Trimesh, truth: trimesh.Trimesh, seed: int = 0)
         np.abs(np.sum(est_normals * true_normals[nearest_true], axis=1)).mean()
         + np.abs(np.sum(true_normals * est_normals[nearest_est], axis=1)).mean()
     ) / 2
-    cosines = np.sum(shading_normals(estimate, est_points, est_faces)
-                     * shading_normals(truth, true_points, true_faces)[nearest_true], axis=1)  # fmt: skip
+    cosines = np.sum(
+        shading_normals(estimate, est_points, est_faces)
+        * shading_normals(truth, true_points, true_faces)[nearest_true],
+        axis=1,
+    )
     angles = np.degrees(np.arccos(np.clip(cosines, -1.0, 1.0)))
     return {
         "chamfer_pct_of_diagonal": float(100 * chamfer / diagonal),
@@ -198,22 +204,30 @@ class TrueSurface:
     """Number of training views counted in ``views_seeing`` (0 without views)."""
 
 
-def true_surface(truth: trimesh.Trimesh, views: list[tuple[Intrinsics, Pose]] = (), samples: int = 20000) -> TrueSurface:
+def true_surface(
+    truth: trimesh.Trimesh, views: list[tuple[Intrinsics, Pose]] = (), samples: int = 20000
+) -> TrueSurface:
     """Sample ``truth`` (sRGB vertex colours); with the true cameras of the training
     ``views``, also count the views that see each sample (needs Mitsuba's variant set)."""
     from pipeline.imaging.photo_io import srgb_decode
 
     def colours_at(faces: np.ndarray, points: np.ndarray) -> np.ndarray:
         weights = trimesh.triangles.points_to_barycentric(truth.triangles[faces], points)
-        return srgb_decode(np.einsum("ij,ijk->ik", weights, truth.visual.vertex_colors[truth.faces[faces]][..., :3] / 255))
+        return srgb_decode(
+            np.einsum("ij,ijk->ik", weights, truth.visual.vertex_colors[truth.faces[faces]][..., :3] / 255)
+        )
 
     points, faces = trimesh.sample.sample_surface(truth, samples, seed=0)
     dense, dense_faces = trimesh.sample.sample_surface(truth, 30 * samples, seed=2)
     seeing = views_seeing(truth, points, truth.face_normals[faces], views) if views else None
-    return TrueSurface(points, colours_at(faces, points), cKDTree(dense), colours_at(dense_faces, dense), seeing, len(views))
+    return TrueSurface(
+        points, colours_at(faces, points), cKDTree(dense), colours_at(dense_faces, dense), seeing, len(views)
+    )
 
 
-def score_texture(textured: trimesh.Trimesh, texture: np.ndarray, constant: np.ndarray, truth: TrueSurface) -> dict[str, Any]:
+def score_texture(
+    textured: trimesh.Trimesh, texture: np.ndarray, constant: np.ndarray, truth: TrueSurface
+) -> dict[str, Any]:
     """Per-channel error of a UV texture (linear, row 0 at v = 0, Mitsuba's convention)
     on ``textured`` (aligned to the truth) at the true surface's points. Each point
     takes the UV of the nearest point of a dense sampling of the textured mesh and
@@ -230,12 +244,16 @@ def score_texture(textured: trimesh.Trimesh, texture: np.ndarray, constant: np.n
     uv = np.einsum("ij,ijk->ik", dense_weights, textured.visual.uv[textured.faces[dense_faces]])
     uv = uv[cKDTree(dense).query(truth.points)[1]]
     bake = bake_into_atlas(textured, texture.shape[:2], truth.dense, truth.dense_colours)
-    errors = {"": np.abs(bilinear(texture[..., :3], uv) - truth.colours),
-              "bake_": np.abs(bilinear(bake, uv) - truth.colours)}  # fmt: skip
-    report = {"mean_abs_error": errors[""].mean(axis=0).tolist(),
-              "p90_abs_error": np.percentile(errors[""], 90, axis=0).tolist(),
-              "constant_mean_abs_error": np.abs(constant - truth.colours).mean(axis=0).tolist(),
-              "bake_mean_abs_error": errors["bake_"].mean(axis=0).tolist()}  # fmt: skip
+    errors = {
+        "": np.abs(bilinear(texture[..., :3], uv) - truth.colours),
+        "bake_": np.abs(bilinear(bake, uv) - truth.colours),
+    }
+    report = {
+        "mean_abs_error": errors[""].mean(axis=0).tolist(),
+        "p90_abs_error": np.percentile(errors[""], 90, axis=0).tolist(),
+        "constant_mean_abs_error": np.abs(constant - truth.colours).mean(axis=0).tolist(),
+        "bake_mean_abs_error": errors["bake_"].mean(axis=0).tolist(),
+    }
     if truth.views_seeing is not None:
         well_seen = max(1, int(np.ceil(truth.view_count / 3)))
         for subset, selected in (("seen", truth.views_seeing >= 1), ("well_seen", truth.views_seeing >= well_seen)):
@@ -251,12 +269,18 @@ def bilinear(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
     (``wrap_mode = repeat``, its default); row 0 at v = 0."""
     height, width = texture.shape[:2]
     coordinates = [uv[:, 1] * height - 0.5, uv[:, 0] * width - 0.5]
-    return np.stack([ndimage.map_coordinates(texture[..., channel], coordinates, order=1, mode="grid-wrap")
-                     for channel in range(texture.shape[2])], axis=-1)  # fmt: skip
+    return np.stack(
+        [
+            ndimage.map_coordinates(texture[..., channel], coordinates, order=1, mode="grid-wrap")
+            for channel in range(texture.shape[2])
+        ],
+        axis=-1,
+    )
 
 
-def bake_into_atlas(textured: trimesh.Trimesh, shape: tuple[int, int], truth_points: cKDTree,
-                    truth_colours: np.ndarray) -> np.ndarray:  # fmt: skip
+def bake_into_atlas(
+    textured: trimesh.Trimesh, shape: tuple[int, int], truth_points: cKDTree, truth_colours: np.ndarray
+) -> np.ndarray:
     """An (h, w, 3) texture on ``textured``'s UVs holding, at each texel centre inside
     a chart, the colour of the nearest of ``truth_points``; texels between charts
     copy the nearest chart texel."""
@@ -264,8 +288,9 @@ def bake_into_atlas(textured: trimesh.Trimesh, shape: tuple[int, int], truth_poi
     return texels.fill_between_charts(truth_colours[truth_points.query(texels.points)[1]])
 
 
-def views_seeing(mesh: trimesh.Trimesh, points: np.ndarray, normals: np.ndarray,
-                 views: list[tuple[Intrinsics, Pose]]) -> np.ndarray:  # fmt: skip
+def views_seeing(
+    mesh: trimesh.Trimesh, points: np.ndarray, normals: np.ndarray, views: list[tuple[Intrinsics, Pose]]
+) -> np.ndarray:
     """How many of ``views`` have each of ``points`` (on ``mesh``, facing ``normals``)
     inside the image, facing the camera and not hidden by ``mesh``."""
     scene = occluder(mesh)
@@ -273,8 +298,13 @@ def views_seeing(mesh: trimesh.Trimesh, points: np.ndarray, normals: np.ndarray,
     seen = np.zeros(len(points), dtype=int)
     for intrinsics, pose in views:
         pixels, depth = project(points, intrinsics, pose)
-        in_image = ((depth > 0) & (pixels[:, 0] >= 0) & (pixels[:, 0] < intrinsics.width)
-                    & (pixels[:, 1] >= 0) & (pixels[:, 1] < intrinsics.height))  # fmt: skip
+        in_image = (
+            (depth > 0)
+            & (pixels[:, 0] >= 0)
+            & (pixels[:, 0] < intrinsics.width)
+            & (pixels[:, 1] >= 0)
+            & (pixels[:, 1] < intrinsics.height)
+        )
         seen += in_image & unoccluded(scene, points, normals, pose.center, offset)
     return seen
 
@@ -351,17 +381,22 @@ def score_capture(capture: Path) -> dict[str, Any]:
             fitted = json.loads(path.read_text())
             constant = np.asarray(fitted["params"]["base_color"])
             activate_mitsuba()
-            training = [(true_intrinsics, pose) for name, pose in sorted(true_poses.items())
-                        if name not in fitted["held_out"]]  # fmt: skip
+            training = [
+                (true_intrinsics, pose) for name, pose in sorted(true_poses.items()) if name not in fitted["held_out"]
+            ]
             surface = true_surface(trimesh.load(truth_dir / "mesh.ply", process=False), training)
             for folder, part in (("textured", "texture"), ("geometry", "texture_fit_geometry")):
                 if (out_dir / folder / "base_color.exr").is_file():
                     textured = trimesh.load(out_dir / folder / "mesh.ply", process=False)
                     textured.apply_transform(similarity.matrix())
-                    report[part] = score_texture(textured, read_linear_image(out_dir / folder / "base_color.exr"),
-                                                 constant, surface)  # fmt: skip
-    for folder, stage, part in (("heldout", "fit_material", "heldout"), ("textured/heldout", "fit_texture", "heldout_textured"),
-                                ("geometry/heldout", "fit_geometry", "heldout_geometry")):  # fmt: skip
+                    report[part] = score_texture(
+                        textured, read_linear_image(out_dir / folder / "base_color.exr"), constant, surface
+                    )
+    for folder, stage, part in (
+        ("heldout", "fit_material", "heldout"),
+        ("textured/heldout", "fit_texture", "heldout_textured"),
+        ("geometry/heldout", "fit_geometry", "heldout_geometry"),
+    ):
         if path := present(folder, stage):
             report[part] = score_heldout(path)
     return report

@@ -27,16 +27,16 @@ import numpy as np
 import trimesh
 
 from pipeline import logger
-from pipeline.render import mitsuba_variant
-from pipeline.core import progress
-from pipeline.geometry.atlas import mitsuba_mesh
 from pipeline.camera.board import board_image, board_to_world
 from pipeline.camera.model import Intrinsics, Pose, distortion_maps, pinhole_render_size
-from pipeline.formats.cameras import write_cameras
-from pipeline.core.errors import PipelineError
-from pipeline.imaging.photo_io import to_uint8, write_image
+from pipeline.core import progress
 from pipeline.core.config import toml_section
+from pipeline.core.errors import PipelineError
 from pipeline.core.sections import BoardSection, CaptureSection, LightSection
+from pipeline.formats.cameras import write_cameras
+from pipeline.geometry.atlas import mitsuba_mesh
+from pipeline.imaging.photo_io import to_uint8, write_image
+from pipeline.render import mitsuba_variant
 from pipeline.synthetic.options import SynthOptions
 from pipeline.synthetic.specimen import bird_mesh, blotch_colours
 
@@ -144,14 +144,28 @@ def material_plugins(material: dict, textured: bool) -> tuple[dict, dict | None,
             if textured
             else {"type": "rgb", "value": material["base_color"]}
         )
-        bsdf = {"type": "principled", "id": "specimen_material", "base_color": colour,
-                "roughness": material["roughness"], "spec_trans": material["spec_trans"],
-                "eta": material["eta"]}  # fmt: skip
+        bsdf = {
+            "type": "principled",
+            "id": "specimen_material",
+            "base_color": colour,
+            "roughness": material["roughness"],
+            "spec_trans": material["spec_trans"],
+            "eta": material["eta"],
+        }
         return bsdf, None, {"type": "path", "max_depth": 10}
-    bsdf = {"type": "roughdielectric", "id": "specimen_material", "alpha": material["alpha"],
-            "int_ior": material["eta"], "ext_ior": 1.0}  # fmt: skip
-    medium = {"type": "homogeneous", "id": "specimen_medium",
-              "albedo": {"type": "rgb", "value": material["albedo"]}, "sigma_t": material["sigma_t"]}  # fmt: skip
+    bsdf = {
+        "type": "roughdielectric",
+        "id": "specimen_material",
+        "alpha": material["alpha"],
+        "int_ior": material["eta"],
+        "ext_ior": 1.0,
+    }
+    medium = {
+        "type": "homogeneous",
+        "id": "specimen_medium",
+        "albedo": {"type": "rgb", "value": material["albedo"]},
+        "sigma_t": material["sigma_t"],
+    }
     return bsdf, medium, {"type": "volpath", "max_depth": 32}
 
 
@@ -177,8 +191,14 @@ class _Studio:
         self.board_texture = mi.Bitmap(np.repeat(reflectance[..., None], 3, axis=2))
         self.board_half = (board.squares_x * board.square_mm / 2000, board.squares_y * board.square_mm / 2000)
 
-    def specimen_shape(self, mesh: trimesh.Trimesh, albedo: np.ndarray | None, bsdf: dict,
-                       medium: dict | None = None, emitter: dict | None = None):  # fmt: skip
+    def specimen_shape(
+        self,
+        mesh: trimesh.Trimesh,
+        albedo: np.ndarray | None,
+        bsdf: dict,
+        medium: dict | None = None,
+        emitter: dict | None = None,
+    ):
         """The specimen as a Mitsuba mesh; BSDF, medium and emitter bind at construction."""
         mi = self.mi
         props = mi.Properties()
@@ -193,15 +213,19 @@ class _Studio:
             shape.add_attribute("vertex_color", 3, mi.Float(albedo.astype(np.float32).ravel()))
         return shape
 
-    def scene(self, pose: Pose, spp: int, integrator: dict, specimen=None, black_props: bool = False,
-              board_only: bool = False) -> dict:  # fmt: skip
+    def scene(
+        self, pose: Pose, spp: int, integrator: dict, specimen=None, black_props: bool = False, board_only: bool = False
+    ) -> dict:
         """Board, turntable, rig and the specimen when given, seen from ``pose``; with
         ``board_only`` just the board (the calibration shots add their own light)."""
         mi = self.mi
         render_w, render_h = self.render_size
         black = {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.0}}
-        paper = {"type": "diffuse", "id": "board_paper",
-                 "reflectance": {"type": "bitmap", "bitmap": self.board_texture, "raw": True}}  # fmt: skip
+        paper = {
+            "type": "diffuse",
+            "id": "board_paper",
+            "reflectance": {"type": "bitmap", "bitmap": self.board_texture, "raw": True},
+        }
         scene = {
             "type": "scene",
             "integrator": integrator,
@@ -235,7 +259,9 @@ class _Studio:
 
     def lights(self, pose: Pose) -> dict:
         mi, light = self.mi, self.light
-        lights: dict = {"environment": {"type": "constant", "radiance": {"type": "rgb", "value": list(light.environment_radiance)}}}
+        lights: dict = {
+            "environment": {"type": "constant", "radiance": {"type": "rgb", "value": list(light.environment_radiance)}}
+        }
         if not light.area_light:
             return lights
         position, target = np.array(light.area_position), np.array(light.area_target)
@@ -278,33 +304,47 @@ class _Studio:
         # The 35 mm equivalent is defined on the diagonal (CIPA DC-008): 43.27 mm.
         sensor_diagonal_mm = SENSOR_WIDTH_MM * math.hypot(width, height) / width
         pixels_per_cm = width / (SENSOR_WIDTH_MM / 10)
-        write_image(path, pixels, {
-            "Make": "pipeline-synth",
-            "Model": "SynthCam 1",
-            "Exif:FocalLength": float(focal_mm),
-            "Exif:FocalLengthIn35mmFilm": int(round(focal_mm * 43.27 / sensor_diagonal_mm)),
-            "Exif:FocalPlaneXResolution": float(pixels_per_cm),
-            "Exif:FocalPlaneYResolution": float(pixels_per_cm),
-            "Exif:FocalPlaneResolutionUnit": 3,  # centimetres
-            "compression": f"jpeg:{self.options.jpeg_quality}",
-        })  # fmt: skip
+        write_image(
+            path,
+            pixels,
+            {
+                "Make": "pipeline-synth",
+                "Model": "SynthCam 1",
+                "Exif:FocalLength": float(focal_mm),
+                "Exif:FocalLengthIn35mmFilm": int(round(focal_mm * 43.27 / sensor_diagonal_mm)),
+                "Exif:FocalPlaneXResolution": float(pixels_per_cm),
+                "Exif:FocalPlaneYResolution": float(pixels_per_cm),
+                "Exif:FocalPlaneResolutionUnit": 3,  # centimetres
+                "compression": f"jpeg:{self.options.jpeg_quality}",
+            },
+        )
 
 
 def default_light(options: SynthOptions) -> LightSection:
     """The rig's light: a softbox fixed in the world, or riding with a turntable's camera."""
     if options.rig == "turntable":
         # Camera frame: x right, y down, z forward; softbox up and to the right, aimed at the bird.
-        return LightSection(environment_radiance=(0.3, 0.3, 0.3), area_position=(0.25, -0.30, 0.05),
-                            area_target=(0.0, 0.0, options.distance), area_size=0.3,
-                            area_radiance=(10.0, 10.0, 10.0),
-                            frame="camera")  # fmt: skip
-    return LightSection(environment_radiance=(0.3, 0.3, 0.3), area_position=(0.30, 0.35, 0.50),
-                        area_target=(0.0, 0.0, 0.04), area_size=0.3, area_radiance=(10.0, 10.0, 10.0))  # fmt: skip
+        return LightSection(
+            environment_radiance=(0.3, 0.3, 0.3),
+            area_position=(0.25, -0.30, 0.05),
+            area_target=(0.0, 0.0, options.distance),
+            area_size=0.3,
+            area_radiance=(10.0, 10.0, 10.0),
+            frame="camera",
+        )
+    return LightSection(
+        environment_radiance=(0.3, 0.3, 0.3),
+        area_position=(0.30, 0.35, 0.50),
+        area_target=(0.0, 0.0, 0.04),
+        area_size=0.3,
+        area_radiance=(10.0, 10.0, 10.0),
+    )
 
 
 def _capture_toml(options: SynthOptions, board: BoardSection, light: LightSection) -> str:
-    capture = CaptureSection(f"synthetic bird, {options.material} material, seed {options.seed}",
-                             options.rig, options.material)  # fmt: skip
+    capture = CaptureSection(
+        f"synthetic bird, {options.material} material, seed {options.seed}", options.rig, options.material
+    )
     lines = ["# Written by `pipeline synth`: what a user would write for this capture."]
     for name, section in (("capture", capture), ("board", board), ("light", light)):
         lines += toml_section(name, section, documented=False) + [""]
@@ -315,6 +355,8 @@ def _capture_toml(options: SynthOptions, board: BoardSection, light: LightSectio
 
 def synthesize(out_dir: Path, options: SynthOptions, board: BoardSection = BoardSection()) -> Path:
     """Render a complete synthetic capture into ``out_dir``; returns ``out_dir``."""
+    # Longer than 60 lines: one pass writing the capture's folders in order (photos,
+    # plates, board shots, capture.toml, ground truth), each a call or two.
     if out_dir.exists() and any(out_dir.iterdir()):
         raise PipelineError(f"{out_dir} is not empty: choose a new folder for the synthetic capture")
     mitsuba_variant.activate()
@@ -336,14 +378,20 @@ def synthesize(out_dir: Path, options: SynthOptions, board: BoardSection = Board
     bsdf, medium, integrator = material_plugins(material, textured)
     specimen = studio.specimen_shape(mesh, albedo, bsdf, medium)
     silhouette = studio.specimen_shape(
-        mesh, None, {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.0}},
+        mesh,
+        None,
+        {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.0}},
         emitter={"type": "area", "radiance": {"type": "rgb", "value": 1.0}},
-    )  # fmt: skip
+    )
     names = [f"view_{i:03d}.jpg" for i in range(len(poses))]
     for name, pose in progress.track(list(zip(names, poses)), "rendering views"):
-        studio.write_jpeg(images / name, studio.photo(studio.render(studio.scene(pose, options.spp, integrator, specimen))))
+        studio.write_jpeg(
+            images / name, studio.photo(studio.render(studio.scene(pose, options.spp, integrator, specimen)))
+        )
         coverage = studio.render(studio.scene(pose, 16, {"type": "path", "max_depth": 1}, silhouette, black_props=True))
-        cv2.imwrite(str(truth / "masks" / name.replace(".jpg", ".png")), ((coverage[..., 0] > 0.5) * 255).astype(np.uint8))
+        cv2.imwrite(
+            str(truth / "masks" / name.replace(".jpg", ".png")), ((coverage[..., 0] > 0.5) * 255).astype(np.uint8)
+        )
         if options.background_plates:
             (out_dir / "background").mkdir(exist_ok=True)
             plate = studio.photo(studio.render(studio.scene(pose, options.spp, integrator)))
@@ -363,13 +411,18 @@ def synthesize(out_dir: Path, options: SynthOptions, board: BoardSection = Board
         srgb = to_uint8(albedo)
         exported.visual.vertex_colors = np.c_[srgb, np.full(len(srgb), 255, np.uint8)]
     exported.export(truth / "mesh.ply")
-    (truth / "material.json").write_text(json.dumps(
-        {**material, "texture": "vertex colours of mesh.ply (sRGB)" if textured else None}, indent=1))  # fmt: skip
+    (truth / "material.json").write_text(
+        json.dumps({**material, "texture": "vertex colours of mesh.ply (sRGB)" if textured else None}, indent=1)
+    )
     (truth / "light.json").write_text(json.dumps(asdict(light), indent=1))
-    (truth / "board.json").write_text(json.dumps(
-        {**asdict(board), "board_to_world": board_to_world(board).tolist()}, indent=1))  # fmt: skip
-    (truth / "synth.json").write_text(json.dumps(
-        {"options": asdict(options), "calibration_poses": [p.to_json() for p in calibration_poses]}, indent=1))  # fmt: skip
+    (truth / "board.json").write_text(
+        json.dumps({**asdict(board), "board_to_world": board_to_world(board).tolist()}, indent=1)
+    )
+    (truth / "synth.json").write_text(
+        json.dumps(
+            {"options": asdict(options), "calibration_poses": [p.to_json() for p in calibration_poses]}, indent=1
+        )
+    )
     (out_dir / "capture.toml").write_text(_capture_toml(options, board, light))
     logger.info("wrote %d views and %d calibration shots to %s", len(poses), len(calibration_poses), out_dir)
     return out_dir

@@ -5,21 +5,20 @@ from pathlib import Path
 import numpy as np
 import OpenImageIO as oiio
 import pytest
-from conftest import run_stages
 
 from pipeline.camera.board import BoardDetector, homography_residual_px, straightness_px
 from pipeline.camera.model import Intrinsics, ideal_pinhole, undistort
-from pipeline.formats.cameras import read_cameras
 from pipeline.core.errors import PipelineError
-from pipeline.imaging.photo_io import gray_uint8, read_photo, write_image
 from pipeline.core.sections import BoardSection
+from pipeline.formats.cameras import read_cameras
+from pipeline.imaging.photo_io import gray_uint8, read_photo, write_image
 from stages.calibrate import Config, calibrate_from_board, exif_focal_px
 
 pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
-def calibrated(calibration_capture: Path) -> dict:
+def calibrated(run_stages, calibration_capture: Path) -> dict:
     outputs = run_stages(calibration_capture, "calibrate")["calibrate"]
     return json.loads(outputs["calibration"].read_text())["groups"][0]
 
@@ -42,7 +41,10 @@ def test_undistorted_board_corners_are_straight(calibrated, calibration_capture)
     distorted, straightened = [], []
     for shot in sorted((calibration_capture / "calibration").glob("*.jpg")):
         linear = read_photo(shot).pixels
-        before, after = detector.detect(gray_uint8(linear)), detector.detect(gray_uint8(undistort(linear, source, target)))
+        before, after = (
+            detector.detect(gray_uint8(linear)),
+            detector.detect(gray_uint8(undistort(linear, source, target))),
+        )
         if before is None or after is None:
             continue
         distorted.append(homography_residual_px(before))
@@ -61,7 +63,9 @@ def test_a_bad_shot_is_dropped_and_named(calibration_capture):
             detections[shot.name] = found
     victim = sorted(detections)[2]
     rng = np.random.default_rng(0)
-    detections[victim].image_points = detections[victim].image_points + rng.normal(0, 3.0, detections[victim].image_points.shape)
+    detections[victim].image_points = detections[victim].image_points + rng.normal(
+        0, 3.0, detections[victim].image_points.shape
+    )
     result = calibrate_from_board(detections, (320, 240), Config())
     assert list(result.dropped) == [victim]
     assert "RMS" in result.dropped[victim]
@@ -69,7 +73,7 @@ def test_a_bad_shot_is_dropped_and_named(calibration_capture):
     assert result.rms_px < 0.5
 
 
-def test_without_usable_board_shots_exif_gives_the_focal_length(tiny_capture, tmp_path):
+def test_without_usable_board_shots_exif_gives_the_focal_length(run_stages, tiny_capture, tmp_path):
     capture = tmp_path / "bird"
     shutil.copytree(tiny_capture, capture, ignore=shutil.ignore_patterns(".pipeline", "output"))
     outputs = run_stages(capture, "calibrate")["calibrate"]
@@ -80,7 +84,7 @@ def test_without_usable_board_shots_exif_gives_the_focal_length(tiny_capture, tm
     assert json.loads((capture / "output" / "intrinsics.json").read_text()) == group["intrinsics"]
 
 
-def test_each_zoom_setting_gets_its_own_intrinsics(tiny_capture, tmp_path):
+def test_each_zoom_setting_gets_its_own_intrinsics(run_stages, tiny_capture, tmp_path):
     capture = tmp_path / "bird"
     shutil.copytree(tiny_capture, capture, ignore=shutil.ignore_patterns(".pipeline", "output"))
     for name in ("view_004.jpg", "view_005.jpg"):
@@ -96,7 +100,7 @@ def test_each_zoom_setting_gets_its_own_intrinsics(tiny_capture, tmp_path):
     assert groups[1]["intrinsics"]["fx"] == pytest.approx(2 * groups[0]["intrinsics"]["fx"], rel=1e-3)
 
 
-def test_a_capture_without_photos_is_a_clear_error(tmp_path):
+def test_a_capture_without_photos_is_a_clear_error(run_stages, tmp_path):
     (tmp_path / "images").mkdir()
     with pytest.raises(PipelineError, match="images.*has no photos"):
         run_stages(tmp_path, "calibrate")
@@ -105,12 +109,15 @@ def test_a_capture_without_photos_is_a_clear_error(tmp_path):
 @pytest.mark.parametrize(
     "metadata, expected, how",
     [
-        ({"Exif:FocalLength": 4.0, "Exif:FocalPlaneXResolution": 100.0, "Exif:FocalPlaneResolutionUnit": 4},
-         400.0, "focal-plane"),
+        (
+            {"Exif:FocalLength": 4.0, "Exif:FocalPlaneXResolution": 100.0, "Exif:FocalPlaneResolutionUnit": 4},
+            400.0,
+            "focal-plane",
+        ),
         ({"Exif:FocalLength": 4.0}, 4.0 * 1000 / 8.0, "sensor_width_mm"),
         ({"Exif:FocalLengthIn35mmFilm": 43.27}, float(np.hypot(1000, 750)), "35 mm"),
     ],
-)  # fmt: skip
+)
 def test_exif_focal_length_paths(metadata, expected, how):
     focal, description = exif_focal_px(metadata, (1000, 750), sensor_width_mm=8.0)
     assert focal == pytest.approx(expected) and how in description

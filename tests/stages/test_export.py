@@ -1,9 +1,14 @@
-"""The glTF material mapping of stages.export, model by model."""
+"""Stage export: the glTF material mapping, model by model, and the stage on the
+bundled sample bird."""
+
+import json
+import struct
 
 import numpy as np
 import pytest
 
 from stages.export import gltf_material
+from tests.support.tiny_fits import TINY_FIT, TINY_TEXTURE
 
 
 def test_volumetric_keeps_absorption_as_attenuation_at_the_mean_chord():
@@ -23,3 +28,19 @@ def test_opaque_specular_becomes_the_matching_index_of_refraction():
     # specular 0.5 is F0 = 0.04, the reflectance of ior 1.5.
     assert extensions == {"KHR_materials_ior": {"ior": pytest.approx(1.5)}}
     assert pbr["baseColorFactor"] == [0.2, 0.3, 0.4, 1.0] and pbr["metallicFactor"] == 0.0
+
+
+@pytest.mark.slow
+def test_export_writes_gltf_with_the_models_extensions(run_stages, bird_capture):
+    outputs = run_stages(bird_capture, "export", *TINY_FIT, *TINY_TEXTURE, "fit_geometry.enabled=false")
+    data = outputs["export"]["glb"].read_bytes()
+    tree = json.loads(data[20 : 20 + struct.unpack("<I", data[12:16])[0]])
+    material = tree["materials"][0]
+    fitted = json.loads(outputs["fit_geometry"]["params"].read_text())["params"]
+    extensions = material["extensions"]
+    assert extensions["KHR_materials_transmission"]["transmissionFactor"] == pytest.approx(fitted["spec_trans"][0])
+    assert extensions["KHR_materials_ior"]["ior"] == pytest.approx(fitted["eta"][0])
+    assert set(tree["extensionsUsed"]) == {"KHR_materials_transmission", "KHR_materials_ior"}
+    # y up: the bird stands on y = 0.
+    positions = tree["accessors"][tree["meshes"][0]["primitives"][0]["attributes"]["POSITION"]]
+    assert positions["min"][1] > -0.005 and positions["max"][1] > 0.05

@@ -4,11 +4,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import run_stages
 
 from pipeline.core.errors import PipelineError
-from pipeline.synthetic.score import score_masks
 from pipeline.imaging.segmentation import clean
+from pipeline.synthetic.score import score_masks
 
 pytestmark = pytest.mark.slow
 
@@ -19,10 +18,12 @@ def _copy(capture: Path, tmp_path: Path, *, plates: bool = True) -> Path:
 
 
 def _ious(capture: Path, outputs: dict) -> list[float]:
-    return list(score_masks(capture / "ground_truth", outputs["undistort"]["pinhole"], outputs["masks"]["masks_json"]).values())
+    return list(
+        score_masks(capture / "ground_truth", outputs["undistort"]["pinhole"], outputs["masks"]["masks_json"]).values()
+    )
 
 
-def test_segmentation_on_a_neutral_set_matches_the_truth(mask_capture, tmp_path):
+def test_segmentation_on_a_neutral_set_matches_the_truth(run_stages, mask_capture, tmp_path):
     capture = _copy(mask_capture, tmp_path, plates=False)
     outputs = run_stages(capture, "masks")
     assert json.loads(outputs["masks"]["masks_json"].read_text())["source"] == "segment"
@@ -31,14 +32,14 @@ def test_segmentation_on_a_neutral_set_matches_the_truth(mask_capture, tmp_path)
     assert np.mean(scores) >= 0.95 and min(scores) >= 0.92, scores
 
 
-def test_centre_prior_alone_is_worse_on_a_board(mask_capture, tmp_path):
+def test_centre_prior_alone_is_worse_on_a_board(run_stages, mask_capture, tmp_path):
     """The board's black and white squares fool plain GrabCut: why neutral_backdrop exists."""
     capture = _copy(mask_capture, tmp_path, plates=False)
     scores = _ious(capture, run_stages(capture, "masks", "masks.segmenter=centre_prior"))
     assert np.mean(scores) < 0.9
 
 
-def test_background_plates_give_masks(mask_capture, tmp_path):
+def test_background_plates_give_masks(run_stages, mask_capture, tmp_path):
     capture = _copy(mask_capture, tmp_path)
     outputs = run_stages(capture, "masks")
     assert json.loads(outputs["masks"]["masks_json"].read_text())["source"] == "background"
@@ -48,7 +49,7 @@ def test_background_plates_give_masks(mask_capture, tmp_path):
     assert np.mean(scores) >= 0.93 and min(scores) >= 0.90, scores
 
 
-def test_user_masks_win_and_are_undistorted_with_the_photos(mask_capture, tmp_path):
+def test_user_masks_win_and_are_undistorted_with_the_photos(run_stages, mask_capture, tmp_path):
     capture = _copy(mask_capture, tmp_path)
     shutil.copytree(capture / "ground_truth" / "masks", capture / "masks")
     outputs = run_stages(capture, "masks")
@@ -56,7 +57,7 @@ def test_user_masks_win_and_are_undistorted_with_the_photos(mask_capture, tmp_pa
     assert min(_ious(capture, outputs)) > 0.99
 
 
-def test_a_missing_user_mask_is_named(mask_capture, tmp_path):
+def test_a_missing_user_mask_is_named(run_stages, mask_capture, tmp_path):
     capture = _copy(mask_capture, tmp_path)
     shutil.copytree(capture / "ground_truth" / "masks", capture / "masks")
     (capture / "masks" / "view_002.png").unlink()

@@ -4,11 +4,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import run_stages
 
 from pipeline.camera.model import Intrinsics
-from pipeline.imaging.photo_io import read_photo, srgb_decode, srgb_encode, write_image
 from pipeline.formats.pinhole import read_photos
+from pipeline.imaging.photo_io import read_photo, srgb_decode, srgb_encode, write_image
 
 pytestmark = pytest.mark.slow
 
@@ -43,15 +42,14 @@ def test_every_format_reads_as_the_same_linear_radiance(gradient, tmp_path):
 
 def test_exif_orientation_is_applied(gradient, tmp_path):
     # Orientation 6: the camera was turned clockwise; the viewer rotates 90 degrees clockwise.
-    write_image(tmp_path / "turned.tif", np.round(srgb_encode(gradient) * 255).astype(np.uint8),
-                {"Orientation": 6})  # fmt: skip
+    write_image(tmp_path / "turned.tif", np.round(srgb_encode(gradient) * 255).astype(np.uint8), {"Orientation": 6})
     photo = read_photo(tmp_path / "turned.tif")
     assert photo.size == (30, 40)
     upright = np.rot90(gradient, k=-1)
     np.testing.assert_allclose(photo.pixels, upright, atol=5e-3)
 
 
-def test_linear_copies_decode_the_srgb_copies(tiny_capture, tmp_path):
+def test_linear_copies_decode_the_srgb_copies(run_stages, tiny_capture, tmp_path):
     capture = tmp_path / "bird"
     shutil.copytree(tiny_capture, capture, ignore=shutil.ignore_patterns(".pipeline", "output"))
     outputs = run_stages(capture, "undistort")["undistort"]
@@ -60,10 +58,12 @@ def test_linear_copies_decode_the_srgb_copies(tiny_capture, tmp_path):
     for entry in photos.values():
         srgb, linear = read_photo(entry["srgb"]), read_photo(entry["linear"])
         assert srgb.size == linear.size == (96, 72)
-        np.testing.assert_allclose(linear.pixels, srgb_decode(np.round(srgb_encode(linear.pixels) * 255) / 255), atol=2e-3)
+        np.testing.assert_allclose(
+            linear.pixels, srgb_decode(np.round(srgb_encode(linear.pixels) * 255) / 255), atol=2e-3
+        )
 
 
-def test_working_resolution_scales_the_camera(tiny_capture, tmp_path):
+def test_working_resolution_scales_the_camera(run_stages, tiny_capture, tmp_path):
     capture = tmp_path / "bird"
     shutil.copytree(tiny_capture, capture, ignore=shutil.ignore_patterns(".pipeline", "output"))
     outputs = run_stages(capture, "undistort", "undistort.max_size=48")["undistort"]

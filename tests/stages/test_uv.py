@@ -1,9 +1,14 @@
+"""Stage uv: the atlas of the unwrapped mesh (unit tests on a lumpy sphere) and the
+stage on the bundled sample bird."""
+
+import json
+
 import numpy as np
 import pytest
 import trimesh
 
-from pipeline.geometry.atlas import overlapping_texels
 from pipeline.core.errors import PipelineError
+from pipeline.geometry.atlas import overlapping_texels
 from stages.uv import Config, unwrap
 
 
@@ -32,3 +37,18 @@ def test_a_texel_density_too_high_for_the_atlas_names_the_key():
 def test_charts_that_fit_no_atlas_name_the_keys_to_change():
     with pytest.raises(PipelineError, match="uv.texture_size = 64 .* uv.padding = 16"):
         unwrap(_lumpy_sphere(), Config(texture_size=64, padding=16))
+
+
+@pytest.mark.slow
+def test_uv_covers_the_mesh_with_little_area_distortion(bird_until_uv):
+    _, outputs = bird_until_uv
+    report = json.loads(outputs["uv"]["report"].read_text())
+    assert report["area_distortion_median"] < 1.2 and report["utilisation"] > 0.5
+    assert report["overlapping_texels"] == 0
+    obj = trimesh.load(outputs["uv"]["obj"], force="mesh", process=False)
+    ply = trimesh.load(outputs["uv"]["mesh"], force="mesh", process=False)
+    for mesh in (obj, ply):
+        assert mesh.visual.uv is not None and len(mesh.visual.uv) == len(mesh.vertices)
+        assert mesh.visual.uv.min() >= 0 and mesh.visual.uv.max() <= 1
+    cleaned = trimesh.load(outputs["cleanup"]["mesh"], force="mesh")
+    assert abs(ply.area - cleaned.area) < 1e-9 * max(1.0, cleaned.area) + 1e-12

@@ -1,9 +1,8 @@
 import numpy as np
 import pytest
 
-from sphere_views import K, RADIUS, sphere_views
-
 from pipeline.geometry.visual_hull import Grid, bounds, convergence_point, hull_field, surface
+from tests.support.sphere_views import RADIUS, K, sphere_views
 
 
 def _hull(views, tolerance=0, resolution=48):

@@ -3,16 +3,16 @@ import os
 import subprocess
 import sys
 import textwrap
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
-import toy_stages
-from toy_stages import RUNS, make_capture, make_stages
 
 from pipeline.core.config import load_config
 from pipeline.core.errors import ConfigError
 from pipeline.core.runner import Runner, Selection
 from pipeline.core.sections import schema
+from tests.support.toy_stages import RUNS, make_capture, make_stages
 
 
 @pytest.fixture(autouse=True)
@@ -183,9 +183,8 @@ def test_sigkilled_stage_leaves_no_entry_and_is_redone(tmp_path, presets_dir):
     script = textwrap.dedent(
         f"""
         import sys
-        sys.path.insert(0, {str(Path(toy_stages.__file__).parent)!r})
         from pathlib import Path
-        from toy_stages import make_stages
+        from tests.support.toy_stages import make_stages
         from pipeline.core.config import load_config
         from pipeline.core.runner import Runner
         from pipeline.core.sections import schema
@@ -195,7 +194,10 @@ def test_sigkilled_stage_leaves_no_entry_and_is_redone(tmp_path, presets_dir):
         Runner(Path({str(capture)!r}), stages, config).run()
         """
     )
-    killed = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    # Run from the repository root, where the tests package is importable.
+    killed = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, cwd=Path(__file__).parents[3]
+    )
     assert killed.returncode == -9, killed.stderr
     assert len(committed_entries(capture, "ingest")) == 1
     assert list((capture / ".pipeline" / "cache" / "ingest").glob(".tmp-*"))  # the killed run
@@ -226,3 +228,19 @@ def test_forced_rerun_exports_again_under_the_same_key(tmp_path, presets_dir):
     (capture / "output" / "report.txt").write_text("stale\n")
     run(capture, presets_dir, selection=Selection(force=("report",)))
     assert (capture / "output" / "report.txt").read_text() == "result 12.0\n"
+
+
+def test_a_stage_sees_exactly_the_outputs_it_needs(tmp_path, presets_dir):
+    capture = make_capture(tmp_path)
+    plan = run(capture, presets_dir)
+    # meta writes how many of ingest's outputs it was handed: the one it declared.
+    assert (plan["meta"].entry.outputs["meta"]).read_text() == "1 outputs"
+
+
+def test_a_stage_returning_undeclared_outputs_fails_and_commits_nothing(tmp_path, presets_dir):
+    capture = make_capture(tmp_path)
+    stages = tuple(replace(s, outputs=("total", "extra")) if s.name == "ingest" else s for s in make_stages())
+    config = load_config(schema(stages), capture, "standard", [], presets_dir)
+    with pytest.raises(RuntimeError, match=r"stage ingest returned outputs \['total'\] but declares"):
+        Runner(capture, stages, config).run(Selection(until="ingest"))
+    assert not list((capture / ".pipeline" / "cache" / "ingest").glob("[!.]*"))

@@ -27,7 +27,9 @@ def test_the_printed_board_is_detected_with_every_corner(kind, tmp_path):
 
 
 def test_png_and_pdf_have_the_physical_size(tmp_path):
-    assert main(["board", "--out", str(tmp_path / "board"), "-s", "board.square_mm=25", "-s", "board.marker_mm=18"]) == 0
+    assert (
+        main(["board", "--out", str(tmp_path / "board"), "-s", "board.square_mm=25", "-s", "board.marker_mm=18"]) == 0
+    )
     spec = oiio.ImageInput.open(str(tmp_path / "board.png")).spec()
     assert spec.getattribute("XResolution") == pytest.approx(300)
     assert spec.width == 7 * round(25 / 25.4 * 300)

@@ -7,12 +7,12 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 
-from pipeline.fit import engine
-from pipeline.render import scene_xml
 from pipeline.camera.model import Intrinsics, Pose
 from pipeline.cli import main as cli_main
 from pipeline.core.errors import PipelineError
+from pipeline.fit import engine
 from pipeline.imaging.photo_io import write_image
+from pipeline.render import scene_xml
 
 pytestmark = pytest.mark.slow
 K = Intrinsics(40, 30, 45.0, 45.0, 21.3, 13.6)
@@ -28,8 +28,16 @@ def _scene_file(folder, base_color, roughness, spp=16):
     scene_xml.plugin(root, "emitter", {"type": "constant", "id": "sky", "radiance": (0.3, 0.3, 0.3)})
     scene_xml.area_light(root, "softbox", [0.4, 0.4, 0.6], [0, 0, 0], [0, 0, 1], 0.3, (8.0, 8.0, 8.0))
     shape = scene_xml.plugin(root, "shape", {"type": "sphere", "id": "specimen", "radius": 0.1})
-    scene_xml.plugin(shape, "bsdf", {"type": "principled", "id": "specimen_bsdf", "base_color": tuple(base_color),
-                                     "roughness": float(roughness[0])})  # fmt: skip
+    scene_xml.plugin(
+        shape,
+        "bsdf",
+        {
+            "type": "principled",
+            "id": "specimen_bsdf",
+            "base_color": tuple(base_color),
+            "roughness": float(roughness[0]),
+        },
+    )
     folder.mkdir(exist_ok=True)
     return scene_xml.write(root, folder / "scene.xml")
 
@@ -42,7 +50,9 @@ def references(mi, tmp_path_factory):
     images = folder / "references"
     images.mkdir()
     for index, sensor in enumerate(scene.sensors()):
-        write_image(images / f"ref_{index}.exr", np.asarray(mi.render(scene, sensor=sensor, spp=512, seed=99), np.float32))
+        write_image(
+            images / f"ref_{index}.exr", np.asarray(mi.render(scene, sensor=sensor, spp=512, seed=99), np.float32)
+        )
     return folder
 
 
@@ -50,8 +60,10 @@ def _views(mi, path, references):
     scene = mi.load_file(str(path))
     from pipeline.imaging.photo_io import read_photo
 
-    return [engine.FitView(f"ref_{i}", scene, sensor, read_photo(references / f"ref_{i}.exr").pixels)
-            for i, sensor in enumerate(scene.sensors())]  # fmt: skip
+    return [
+        engine.FitView(f"ref_{i}", scene, sensor, read_photo(references / f"ref_{i}.exr").pixels)
+        for i, sensor in enumerate(scene.sensors())
+    ]
 
 
 PARAMETERS = [
@@ -68,9 +80,18 @@ def test_sensor_matches_the_pinhole_projection(mi):
     expected = [K.fx * point[0] / point[2] + K.cx, K.fy * point[1] / point[2] + K.cy]
     for crop in (None, (10, 4, 24, 16)):
         sensor = scene_xml.load_sensor(scene_xml.sensor_properties(K, pose, 64, 0.01, crop))
-        scene = mi.load_dict({"type": "scene", "integrator": {"type": "direct"},
-                              "ball": {"type": "sphere", "center": point.tolist(), "radius": 0.01,
-                                       "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 1.0}}}})  # fmt: skip
+        scene = mi.load_dict(
+            {
+                "type": "scene",
+                "integrator": {"type": "direct"},
+                "ball": {
+                    "type": "sphere",
+                    "center": point.tolist(),
+                    "radius": 0.01,
+                    "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 1.0}},
+                },
+            }
+        )
         image = np.asarray(mi.render(scene, sensor=sensor, spp=256))[..., 0]
         rows, cols = np.mgrid[: image.shape[0], : image.shape[1]]
         found = [np.sum(image * cols) / image.sum(), np.sum(image * rows) / image.sum()]
@@ -81,8 +102,9 @@ def test_sensor_matches_the_pinhole_projection(mi):
 def test_fit_moves_every_parameter_toward_the_truth_within_bounds(mi, references, tmp_path):
     start = {"base_color": [0.5, 0.5, 0.5], "roughness": [0.7]}
     views = _views(mi, _scene_file(tmp_path, start["base_color"], start["roughness"]), references / "references")
-    result = engine.fit(PARAMETERS, views, [], engine.FitSettings(iterations=40, batch=3, spp=8, loss="dual",
-                                                                     tolerance=0.0))  # fmt: skip
+    result = engine.fit(
+        PARAMETERS, views, [], engine.FitSettings(iterations=40, batch=3, spp=8, loss="dual", tolerance=0.0)
+    )
     for name, truth in TRUTH.items():
         before = np.abs(np.subtract(start[name], truth))
         after = np.abs(np.subtract(result.values[name], truth))
@@ -118,19 +140,27 @@ def test_set_values_writes_back_and_keeps_files_reachable(mi, tmp_path):
     source.mkdir()
     root = scene_xml.new_scene()
     shape = scene_xml.plugin(root, "shape", {"type": "ply", "id": "specimen", "filename": "mesh.ply"})
-    scene_xml.plugin(shape, "bsdf", {"type": "roughdielectric", "id": "specimen_bsdf", "alpha": 0.2,
-                                     "int_ior": 1.5, "ext_ior": 1.0})  # fmt: skip
-    scene_xml.plugin(shape, "medium", {"type": "homogeneous", "id": "specimen_medium", "albedo": (0.5, 0.5, 0.5),
-                                       "sigma_t": 10.0}, name="interior")  # fmt: skip
+    scene_xml.plugin(
+        shape, "bsdf", {"type": "roughdielectric", "id": "specimen_bsdf", "alpha": 0.2, "int_ior": 1.5, "ext_ior": 1.0}
+    )
+    scene_xml.plugin(
+        shape,
+        "medium",
+        {"type": "homogeneous", "id": "specimen_medium", "albedo": (0.5, 0.5, 0.5), "sigma_t": 10.0},
+        name="interior",
+    )
     import trimesh
 
     trimesh.creation.icosphere(1, 0.1).export(source / "mesh.ply")
     scene_xml.write(root, source / "scene.xml")
     out = tmp_path / "out"
     out.mkdir()
-    values = {"specimen.bsdf.alpha.value": [0.05], "specimen.bsdf.eta": [1.33],
-              "specimen.interior_medium.albedo.value.value": [0.9, 0.8, 0.7],
-              "specimen.interior_medium.sigma_t.value.value": [123.0]}  # fmt: skip
+    values = {
+        "specimen.bsdf.alpha.value": [0.05],
+        "specimen.bsdf.eta": [1.33],
+        "specimen.interior_medium.albedo.value.value": [0.9, 0.8, 0.7],
+        "specimen.interior_medium.sigma_t.value.value": [123.0],
+    }
     scene_xml.set_values(source / "scene.xml", values, out / "scene.xml")
     params = mi.traverse(mi.load_file(str(out / "scene.xml")))
     for key, value in values.items():
@@ -142,14 +172,34 @@ def test_set_values_writes_back_and_keeps_files_reachable(mi, tmp_path):
 def test_pipeline_fit_command(mi, references, tmp_path, capsys):
     scene = _scene_file(tmp_path / "start", [0.5, 0.5, 0.5], [0.7])
     out = tmp_path / "out"
-    code = cli_main(["fit", str(scene), "--references", str(references / "references"), "--params", "roughness",
-                     "base_color", "--iterations", "25", "--batch", "3", "--spp", "8", "--tolerance", "0",
-                     "--out", str(out)])  # fmt: skip
+    code = cli_main(
+        [
+            "fit",
+            str(scene),
+            "--references",
+            str(references / "references"),
+            "--params",
+            "roughness",
+            "base_color",
+            "--iterations",
+            "25",
+            "--batch",
+            "3",
+            "--spp",
+            "8",
+            "--tolerance",
+            "0",
+            "--out",
+            str(out),
+        ]
+    )
     assert code == 0
     params = json.loads((out / "params.json").read_text())["params"]
     assert abs(params["specimen.bsdf.roughness.value"][0] - 0.3) < abs(0.7 - 0.3)
     fitted = mi.traverse(mi.load_file(str(out / "scene.xml")))
-    assert fitted["specimen.bsdf.roughness.value"][0] == pytest.approx(params["specimen.bsdf.roughness.value"][0], rel=1e-5)
+    assert fitted["specimen.bsdf.roughness.value"][0] == pytest.approx(
+        params["specimen.bsdf.roughness.value"][0], rel=1e-5
+    )
     assert ET.parse(out / "scene.xml").getroot().tag == "scene"
     assert (out / "log.jsonl").read_text().count("\n") == 25 and (out / "loss.png").is_file()
 
@@ -159,7 +209,9 @@ def test_pipeline_fit_needs_one_reference_per_sensor(mi, references, tmp_path):
     few = tmp_path / "few"
     few.mkdir()
     (few / "ref_0.exr").write_bytes((references / "references" / "ref_0.exr").read_bytes())
-    code = cli_main(["fit", str(scene), "--references", str(few), "--params", "roughness", "--out", str(tmp_path / "o")])
+    code = cli_main(
+        ["fit", str(scene), "--references", str(few), "--params", "roughness", "--out", str(tmp_path / "o")]
+    )
     assert code != 0
 
 
@@ -181,8 +233,7 @@ def test_volumetric_fit_moves_every_parameter_toward_the_truth_within_bounds(mi,
     where a rougher interface and a lower eta look alike at 32 px (alpha 0.65, eta 1.25
     after 60 iterations): alpha and eta are not separable on this sphere, which is
     why this start is below alpha and above eta."""
-    from pipeline.render import materials
-    from pipeline.render import stability
+    from pipeline.render import materials, stability
 
     scene_file = stability.sphere_scene(tmp_path, "volumetric", 32, 8)
     reference = stability.references(scene_file, 128)
@@ -196,8 +247,9 @@ def test_volumetric_fit_moves_every_parameter_toward_the_truth_within_bounds(mi,
     params.update()
     views = [engine.FitView(f"view{i}", scene, s, reference[i]) for i, s in enumerate(scene.sensors())]
     parameters = materials.fit_parameters("volumetric")
-    result = engine.fit(parameters, views, [], engine.FitSettings(iterations=40, batch=3, spp=8, loss="dual",
-                                                                     tolerance=0.0))  # fmt: skip
+    result = engine.fit(
+        parameters, views, [], engine.FitSettings(iterations=40, batch=3, spp=8, loss="dual", tolerance=0.0)
+    )
     for name in start:
         before = np.abs(np.subtract(start[name], truth[name]))
         after = np.abs(np.subtract(result.values[name], truth[name]))
@@ -247,8 +299,9 @@ def test_shape_validation_does_not_count_the_renders_noise(mi, tmp_path):
     converged = stability.references(scene_file, 1024)
     scene = mi.load_file(str(scene_file))
     views = [engine.FitView(f"view{i}", scene, s, converged[i]) for i, s in enumerate(scene.sensors())]
-    noise = np.mean([np.mean((np.asarray(mi.render(scene, sensor=v.sensor, spp=2, seed=7)) - v.reference) ** 2)
-                     for v in views[1:]])  # fmt: skip
+    noise = np.mean(
+        [np.mean((np.asarray(mi.render(scene, sensor=v.sensor, spp=2, seed=7)) - v.reference) ** 2) for v in views[1:]]
+    )
     settings = engine.ShapeSettings(iterations=1, batch=1, spp=2, validation_spp=2, validate_every=1)
     result = engine.fit_shape("specimen", views[:1], views[1:], settings, mi.load_dict({"type": "prb", "max_depth": 8}))
     assert noise > 0 and abs(result.start_validation_error) < 0.25 * noise, (result.start_validation_error, noise)

@@ -1,11 +1,11 @@
 import json
 
 import pytest
-from toy_stages import RUNS, make_capture, make_stages
 
 from pipeline import cli
 from pipeline.cli import registry
 from pipeline.core import config
+from tests.support.toy_stages import RUNS, make_capture, make_stages
 
 
 @pytest.fixture

@@ -1,7 +1,7 @@
 import pytest
 
-from pipeline.render import mitsuba_variant
 from pipeline.core.errors import PipelineError
+from pipeline.render import mitsuba_variant
 
 
 @pytest.fixture

@@ -1,7 +1,7 @@
 import numpy as np
 
-from pipeline.geometry import turntable
 from pipeline.camera.model import Intrinsics, Pose
+from pipeline.geometry import turntable
 from pipeline.geometry.turntable import Turntable, angle_from_silhouette, fit, fit_robust, splat
 
 K = Intrinsics(160, 120, 200.0, 200.0, 79.5, 59.5)
@@ -79,8 +79,11 @@ def test_matches_place_a_photo_and_a_false_pair_is_dropped():
     seen = seen_from(missing)
     matches = [turntable.Matches(truth.pose(angles[n]), K, seen, seen_from(n)) for n in (NAMES[5], NAMES[7])]
     # A false pair: a quarter turn away, matched at random (a repetitive pattern).
-    matches.append(turntable.Matches(truth.pose(angles[NAMES[10]]), K, seen,
-                                     rng.uniform([0, 0], [K.width, K.height], (len(points), 2))))  # fmt: skip
+    matches.append(
+        turntable.Matches(
+            truth.pose(angles[NAMES[10]]), K, seen, rng.uniform([0, 0], [K.width, K.height], (len(points), 2))
+        )
+    )
     lo, hi = turntable.bracket(model, NAMES, missing)
     angle, agreeing = turntable.angle_from_matches(model, lo, hi, K, matches)
     # 0.3 px of keypoint noise moves the angle by about 0.2 degrees (see its limitation).

@@ -59,16 +59,26 @@ def test_mitsuba_sensor_at_a_pose_sees_what_opencv_projects():
     pose = Pose.look_at([0.3, 0.1, 0.2], [0.0, 0.0, 0.0])
     width, height, f = 200, 150, 180.0
     point = np.array([0.05, 0.03, 0.02])
-    scene = mi.load_dict({
-        "type": "scene",
-        "integrator": {"type": "path", "max_depth": 1},
-        "camera": {"type": "perspective", "fov": float(np.degrees(2 * np.arctan(width / 2 / f))), "fov_axis": "x",
-                   "to_world": mi.ScalarTransform4f(pose.mitsuba_to_world().tolist()),
-                   "film": {"type": "hdrfilm", "width": width, "height": height},
-                   "sampler": {"type": "independent", "sample_count": 16}},
-        "dot": {"type": "sphere", "center": point.tolist(), "radius": 0.004,
-                "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 1.0}}},
-    })  # fmt: skip
+    scene = mi.load_dict(
+        {
+            "type": "scene",
+            "integrator": {"type": "path", "max_depth": 1},
+            "camera": {
+                "type": "perspective",
+                "fov": float(np.degrees(2 * np.arctan(width / 2 / f))),
+                "fov_axis": "x",
+                "to_world": mi.ScalarTransform4f(pose.mitsuba_to_world().tolist()),
+                "film": {"type": "hdrfilm", "width": width, "height": height},
+                "sampler": {"type": "independent", "sample_count": 16},
+            },
+            "dot": {
+                "type": "sphere",
+                "center": point.tolist(),
+                "radius": 0.004,
+                "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 1.0}},
+            },
+        }
+    )
     image = np.asarray(mi.render(scene))[..., 0]
     ys, xs = np.nonzero(image > 0.5)
     K = Intrinsics(width, height, f, f, width / 2 - 0.5, height / 2 - 0.5).K

@@ -26,7 +26,9 @@ def sphere_views(count: int = 10) -> list[View]:
     views = []
     for i in range(count):
         azimuth, elevation = 2 * np.pi * i / count, np.radians(20 + 30 * (i % 2))
-        centre = 0.3 * np.array([np.cos(azimuth) * np.cos(elevation), np.sin(azimuth) * np.cos(elevation), np.sin(elevation)])
+        centre = 0.3 * np.array(
+            [np.cos(azimuth) * np.cos(elevation), np.sin(azimuth) * np.cos(elevation), np.sin(elevation)]
+        )
         pose = Pose.look_at(centre, [0, 0, 0])
         views.append(View(K, pose, sphere_mask(pose)))
     return views

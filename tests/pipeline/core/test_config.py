@@ -2,12 +2,12 @@ import dataclasses
 import re
 
 import pytest
-from toy_stages import make_stages
 
 from pipeline.core.config import field_docs, load_config, parse_override
 from pipeline.core.errors import ConfigError
 from pipeline.core.sections import SHARED_SECTIONS, schema
 from stages import STAGES
+from tests.support.toy_stages import make_stages
 
 SCHEMA = schema(make_stages())
 

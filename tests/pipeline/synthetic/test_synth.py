@@ -7,12 +7,12 @@ import OpenImageIO as oiio
 import pytest
 import trimesh
 
+from pipeline.camera.board import board_to_world, make_charuco_board
 from pipeline.camera.model import mesh_coverage
-from pipeline.formats.cameras import read_cameras
 from pipeline.core.config import load_config
 from pipeline.core.errors import PipelineError
 from pipeline.core.sections import BoardSection, schema
-from pipeline.camera.board import board_to_world, make_charuco_board
+from pipeline.formats.cameras import read_cameras
 from pipeline.synthetic.synth import SENSOR_WIDTH_MM, SynthOptions, synthesize
 from stages import STAGES
 
@@ -67,8 +67,10 @@ def test_photos_are_noisy_srgb_renders_of_a_mottled_specimen(tiny_capture):
 
 def test_board_pose_from_a_photo_matches_the_ground_truth(tmp_path):
     """ChArUco detection + PnP with the true intrinsics recovers pose @ board_to_world."""
-    capture = synthesize(tmp_path / "c", SynthOptions(views=2, width=480, height=360, spp=8,
-                                                      calibration_shots=0, rings=(40.0,), noise=0.5))  # fmt: skip
+    capture = synthesize(
+        tmp_path / "c",
+        SynthOptions(views=2, width=480, height=360, spp=8, calibration_shots=0, rings=(40.0,), noise=0.5),
+    )
     intrinsics, poses = read_cameras(capture / "ground_truth" / "cameras.json")
     board = BoardSection()
     charuco, B = make_charuco_board(board), board_to_world(board)
@@ -81,15 +83,27 @@ def test_board_pose_from_a_photo_matches_the_ground_truth(tmp_path):
         true_R, true_t = pose.R @ B[:3, :3], pose.R @ B[:3, 3] + pose.t
         angle = math.degrees(np.arccos(np.clip((np.trace(cv2.Rodrigues(rvec)[0].T @ true_R) - 1) / 2, -1, 1)))
         assert angle < 0.5 and np.linalg.norm(tvec.ravel() - true_t) < 0.002
-        reprojected, _ = cv2.projectPoints(object_points, cv2.Rodrigues(true_R)[0], true_t, intrinsics.K,
-                                           np.array(intrinsics.dist))  # fmt: skip
+        reprojected, _ = cv2.projectPoints(
+            object_points, cv2.Rodrigues(true_R)[0], true_t, intrinsics.K, np.array(intrinsics.dist)
+        )
         assert np.linalg.norm(reprojected.reshape(-1, 2) - image_points.reshape(-1, 2), axis=1).mean() < 0.5
 
 
 def test_turntable_with_uneven_steps_and_volumetric_material(tmp_path):
-    capture = synthesize(tmp_path / "t", SynthOptions(views=5, width=64, height=48, spp=2, calibration_shots=0,
-                                                      rig="turntable", turn_jitter=0.5, material="volumetric",
-                                                      rings=(30.0,)))  # fmt: skip
+    capture = synthesize(
+        tmp_path / "t",
+        SynthOptions(
+            views=5,
+            width=64,
+            height=48,
+            spp=2,
+            calibration_shots=0,
+            rig="turntable",
+            turn_jitter=0.5,
+            material="volumetric",
+            rings=(30.0,),
+        ),
+    )
     _, poses = read_cameras(capture / "ground_truth" / "cameras.json")
     centres = np.array([p.center for p in poses.values()])
     assert np.ptp(centres[:, 2]) < 1e-9  # one ring around the z axis

@@ -5,8 +5,7 @@ and inside the bounds."""
 import numpy as np
 import pytest
 
-from pipeline.render import materials
-from pipeline.render import stability
+from pipeline.render import materials, stability
 from pipeline.render.mitsuba_variant import activate
 
 pytestmark = pytest.mark.slow

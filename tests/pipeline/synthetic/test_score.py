@@ -57,7 +57,9 @@ def perfect_outputs(capture, transform=None):
         (capture / "output" / folder).mkdir(parents=True)
         write_exr(capture / "output" / folder / "view_005.render.exr", image)
         write_exr(capture / "output" / folder / "view_005.reference.exr", image)
-    (capture / "output" / "geometry" / "params.json").write_text(json.dumps({"model": material["model"], "params": params}))
+    (capture / "output" / "geometry" / "params.json").write_text(
+        json.dumps({"model": material["model"], "params": params})
+    )
 
 
 def test_perfect_outputs_score_zero_error(capture):
@@ -142,8 +144,9 @@ def test_shading_normal_error_is_the_tilt_of_the_vertex_normals():
     10 degrees, and its Chamfer distance stays zero: the error a fitted material sees."""
     sphere = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
     tilt = trimesh.transformations.rotation_matrix(np.radians(10.0), [0, 0, 1])[:3, :3]
-    tilted = trimesh.Trimesh(sphere.vertices, sphere.faces, vertex_normals=sphere.vertex_normals @ tilt.T,
-                             process=False)  # fmt: skip
+    tilted = trimesh.Trimesh(
+        sphere.vertices, sphere.faces, vertex_normals=sphere.vertex_normals @ tilt.T, process=False
+    )
     metrics = score_mesh(tilted, sphere)
     assert metrics["chamfer_pct_of_diagonal"] < 1e-6
     # rotating about z tilts a normal by 10 degrees times its distance from the z axis
@@ -237,7 +240,9 @@ def test_texture_score_splits_off_what_no_view_sees(mi):
 
     sphere = trimesh.creation.icosphere(subdivisions=4)
     truth = sphere.copy()
-    truth.visual.vertex_colors = np.c_[to_uint8(np.full((len(sphere.vertices), 3), 0.8)), np.full(len(sphere.vertices), 255, np.uint8)]
+    truth.visual.vertex_colors = np.c_[
+        to_uint8(np.full((len(sphere.vertices), 3), 0.8)), np.full(len(sphere.vertices), 255, np.uint8)
+    ]
     textured = sphere.copy()
     textured.visual = trimesh.visual.TextureVisuals(uv=side_view_uv(sphere))
     texture = np.full((64, 64, 3), srgb_decode(np.array([to_uint8(np.array([0.8]))[0] / 255]))[0])
@@ -251,7 +256,9 @@ def test_texture_score_splits_off_what_no_view_sees(mi):
     # view of four, and counts in the seen error but not in the well-seen one (a third).
     looking_up = Pose(R=np.diag([1.0, 1.0, 1.0]), t=np.array([0.0, 0.0, 5.0]))
     above = [(camera, Pose(R=looking_down.R, t=looking_down.t + [dx, 0.0, 0.0])) for dx in (-0.2, 0.0, 0.2)]
-    report = score_texture(textured, texture, np.array([0.5, 0.5, 0.5]), true_surface(truth, [*above, (camera, looking_up)]))
+    report = score_texture(
+        textured, texture, np.array([0.5, 0.5, 0.5]), true_surface(truth, [*above, (camera, looking_up)])
+    )
     assert report["well_seen_views"] == 2 and report["seen_fraction"] > 0.75  # both halves, less their rims
     assert 0.4 < report["well_seen_fraction"] < 0.55
     assert max(report["well_seen_mean_abs_error"]) < 0.01 < min(report["seen_mean_abs_error"])

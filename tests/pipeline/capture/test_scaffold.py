@@ -9,7 +9,14 @@ from stages import STAGES
 def test_new_capture_has_folders_a_documented_toml_and_a_checklist(tmp_path, capsys):
     capture = tmp_path / "captures" / "soap"
     assert main(["new", str(capture), "--description", "lavender soap", "--rig", "turntable"]) == 0
-    assert {p.name for p in capture.iterdir()} == {"images", "calibration", "background", "masks", "capture.toml", "README.md"}
+    assert {p.name for p in capture.iterdir()} == {
+        "images",
+        "calibration",
+        "background",
+        "masks",
+        "capture.toml",
+        "README.md",
+    }
     text = (capture / "capture.toml").read_text()
     parsed = tomllib.loads(text)
     assert parsed["capture"] == {"description": "lavender soap", "rig": "turntable", "material": "auto"}

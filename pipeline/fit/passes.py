@@ -1,0 +1,128 @@
+"""The passes fit_geometry alternates on a scene folder: the shape with the material
+frozen, and the material with the shape frozen (no Mitsuba integrator
+differentiates geometry through a medium, so the two never share a render)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+import trimesh
+
+from pipeline.camera.model import resize_exact
+from pipeline.fit import engine
+from pipeline.fit.outputs import write_texture_files
+from pipeline.fit.views import load_views
+from pipeline.formats.scene_folder import MESH_PLY, SPECIMEN_XML
+from pipeline.render import materials, scene_xml
+
+
+def silhouette_views(
+    views: list[tuple[engine.FitView, tuple]], mesh_file: Path, masks: dict[str, Path], cameras: dict
+) -> list[engine.FitView]:
+    """The same windows, with a scene holding only the specimen (black, under a white
+    sky) and the mask's complement as reference: coverage, material-free."""
+    import mitsuba as mi
+
+    scene = mi.load_dict(
+        {
+            "type": "scene",
+            "sky": {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}},
+            "specimen": {
+                "type": "ply",
+                "id": "specimen",
+                "filename": str(mesh_file),
+                "bsdf": {"type": "diffuse", "id": "specimen_bsdf", "reflectance": {"type": "rgb", "value": 0.0}},
+            },
+        }
+    )
+    result = []
+    for view, (small, crop) in views:
+        mask = (cv2.imread(str(masks[view.name]), cv2.IMREAD_GRAYSCALE) > 127).astype(np.float32)
+        x, y, w, h = crop
+        coverage = resize_exact(mask, small.fx / cameras[view.name][0].fx)[y : y + h, x : x + w]
+        reference = np.repeat(1.0 - coverage[..., None], 3, axis=2).astype(np.float32)
+        result.append(engine.FitView(view.name, scene, view.sensor, reference))
+    return result
+
+
+def shape_pass(
+    geometry: Path,
+    description: dict,
+    loss: str,
+    photos: tuple,
+    held: set[str],
+    max_size: int,
+    settings: engine.ShapeSettings,
+) -> engine.ShapeResult:
+    """Vertices of the scene folder's mesh.ply refined with the scene's material
+    frozen, compared by ``loss`` (photometric or silhouette) in windows of at most
+    ``max_size`` px; the mesh written back. ``photos``: (cameras, linear photos, masks)."""
+    import mitsuba as mi
+
+    cameras, linear, masks = photos
+    windowed = load_views(geometry, description, cameras, linear, masks, max_size, 0, settings.spp, sample_border=True)
+    if loss == "silhouette":
+        views = silhouette_views(windowed, geometry / MESH_PLY, masks, cameras)
+        integrator = {"type": "direct_projective", "sppi": 0}
+    else:
+        # The silhouette and its surroundings carry the shape: every window pixel counts.
+        views = [engine.FitView(v.name, v.scene, v.sensor, v.reference) for v, _ in windowed]
+        kind, depth = materials.INTEGRATORS[description["model"]]
+        integrator = (
+            {"type": "prb_projective", "max_depth": depth, "sppi": 0}
+            if kind == "prb"
+            else {"type": kind, "max_depth": depth}
+        )
+    settings = replace(settings, symbolic_loops=integrator["type"] != "prbvolpath")
+    result = engine.fit_shape(
+        "specimen",
+        [v for v in views if v.name not in held],
+        [v for v in views if v.name in held],
+        settings,
+        mi.load_dict(integrator),
+    )
+    next(s for s in views[0].scene.shapes() if s.id() == "specimen").write_ply(str(geometry / MESH_PLY))
+    return result
+
+
+def material_pass(
+    geometry: Path,
+    description: dict,
+    photos: tuple,
+    held: set[str],
+    parameters: list[engine.FitParameter],
+    max_size: int,
+    erode_px: int,
+    settings: engine.FitSettings,
+    min_improvement: float,
+) -> tuple[engine.FitResult, bool]:
+    """The material ``parameters`` fitted again on the scene folder's mesh, the
+    geometry frozen; written back into specimen.xml (and the texture's files) when the
+    held-out error drops by ``min_improvement`` (relative). Returns the fit and
+    whether it was kept."""
+    cameras, linear, masks = photos
+    windowed = load_views(geometry, description, cameras, linear, masks, max_size, erode_px, settings.spp)
+    views = [v for v, _ in windowed]
+    result = engine.fit(
+        parameters, [v for v in views if v.name not in held], [v for v in views if v.name in held], settings
+    )
+    if result.validation_error > (1 - min_improvement) * result.start_validation_error:
+        return result, False
+    slot = materials.TEXTURE_SLOTS[description["model"]]
+    constants = {p.name: result.values[p.name] for p in parameters if p.key != slot.key}
+    specimen = geometry / SPECIMEN_XML
+    scene_xml.set_values(specimen, {materials.PARAMETERS[n].key: v for n, v in constants.items()}, specimen)
+    if slot.parameter in result.textures:
+        write_texture_files(geometry, slot, result.textures[slot.parameter])
+    return result, True
+
+
+def sphere_in_box(bounds: np.ndarray, subdivisions: int) -> trimesh.Trimesh:
+    """An icosphere stretched to fill the axis-aligned box ``bounds`` (2, 3)."""
+    sphere = trimesh.creation.icosphere(subdivisions=subdivisions)
+    sphere.apply_scale((bounds[1] - bounds[0]) / 2)
+    sphere.apply_translation(bounds.mean(axis=0))
+    return sphere

@@ -1,0 +1,177 @@
+"""The Mitsuba scene files of a capture: the light rig (in the world or riding
+with the camera), the specimen file (mesh, material, board, ground disk), one
+scene file per sensor set, the board's printed texture, the ground's albedo
+measured in the photos, and a preview render."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import trimesh
+
+from pipeline.camera.board import board_image
+from pipeline.camera.model import Intrinsics, Pose, resize_exact, scaled
+from pipeline.core.sections import BoardSection, LightSection
+from pipeline.imaging.photo_io import read_photo, to_uint8
+from pipeline.render import materials, scene_xml
+
+PAPER, TONER = 0.80, 0.04
+"""Reflectance of the board's paper and of laser toner."""
+
+
+def lights(parent, light: LightSection, pose: Pose, environment_file: str | None) -> None:
+    """Environment and softbox of the rig seen from ``pose``: in the world, or riding
+    with the camera (a turntable's light)."""
+    to_world = np.eye(3) if light.frame == "world" else pose.R.T
+    if environment_file:
+        # An equirectangular map's up is its +y: the world's +z, or the camera's -y.
+        map_up = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]) if light.frame == "world" else np.diag([1.0, -1, -1])
+        emitter = scene_xml.plugin(
+            parent, "emitter", {"type": "envmap", "id": "environment", "filename": environment_file}
+        )
+        matrix = np.eye(4)
+        matrix[:3, :3] = to_world @ map_up
+        scene_xml.transform_matrix(emitter, matrix)
+    else:
+        scene_xml.plugin(
+            parent, "emitter", {"type": "constant", "id": "environment", "radiance": tuple(light.environment_radiance)}
+        )
+    if not light.area_light:
+        return
+    position, target = np.array(light.area_position), np.array(light.area_target)
+    up = np.array([0.0, 0.0, 1.0])
+    if light.frame == "camera":
+        position, target, up = pose.R.T @ (position - pose.t), pose.R.T @ (target - pose.t), -pose.R[1]
+    scene_xml.area_light(parent, "softbox", position, target, up, light.area_size, light.area_radiance)
+
+
+def write_specimen_file(
+    path: Path,
+    model: str,
+    values: dict,
+    board: BoardSection | None,
+    ground: tuple[float, tuple[float, float, float]] | None,
+) -> None:
+    """``ground`` = (radius, albedo) of the table disk, or None."""
+    root = scene_xml.new_scene()
+    shape = scene_xml.plugin(root, "shape", {"type": "ply", "id": materials.SPECIMEN, "filename": "mesh.ply"})
+    bsdf, medium = materials.bsdf_and_medium(model, values)
+    scene_xml.plugin(shape, "bsdf", bsdf)
+    if medium is not None:
+        scene_xml.plugin(shape, "medium", medium, name="interior")
+    if board is not None:
+        half = (board.squares_x * board.square_mm / 2000, board.squares_y * board.square_mm / 2000)
+        plane = scene_xml.plugin(root, "shape", {"type": "rectangle", "id": "board"})
+        matrix = np.diag([half[0], half[1], 1.0, 1.0])
+        scene_xml.transform_matrix(plane, matrix)
+        paper = scene_xml.plugin(plane, "bsdf", {"type": "diffuse", "id": "board_paper"})
+        scene_xml.plugin(
+            paper,
+            "texture",
+            {"type": "bitmap", "id": "board_print", "filename": "board.png", "raw": True},
+            name="reflectance",
+        )
+    if ground is not None:
+        radius, albedo = ground
+        disk = scene_xml.plugin(root, "shape", {"type": "disk", "id": "ground"})
+        # Just below the board, so that the two never fight over a pixel.
+        scene_xml.transform_matrix(disk, _disk_matrix(radius))
+        scene_xml.plugin(disk, "bsdf", {"type": "diffuse", "id": "ground_bsdf", "reflectance": tuple(albedo)})
+    scene_xml.write(root, path, "the specimen and what it stands on; included by scene.xml and view-*.xml")
+
+
+def _disk_matrix(radius: float) -> np.ndarray:
+    matrix = np.diag([radius, radius, 1.0, 1.0])
+    matrix[2, 3] = -1e-3 * radius
+    return matrix
+
+
+def write_scene_file(
+    path: Path,
+    include: str,
+    views: list[tuple[str, Intrinsics, Pose]],
+    light: LightSection,
+    environment: str | None,
+    integrator: tuple[str, int],
+    spp: int,
+    near_clip: float,
+    comment: str,
+) -> Path:
+    root = scene_xml.new_scene()
+    scene_xml.plugin(root, "integrator", {"type": integrator[0], "id": "integrator", "max_depth": integrator[1]})
+    for sensor_id, intrinsics, pose in views:
+        scene_xml.sensor(root, sensor_id, scene_xml.sensor_properties(intrinsics, pose, spp, near_clip))
+    lights(root, light, views[0][2], environment)
+    scene_xml.include(root, include)
+    return scene_xml.write(root, path, comment)
+
+
+def measure_ground_albedo(
+    view_files: dict[str, Path],
+    views: dict[str, tuple[Intrinsics, Pose]],
+    linear: dict[str, Path],
+    masks: dict[str, Path],
+    board: BoardSection | None,
+    radius: float,
+    near_clip: float,
+) -> tuple[float, float, float] | None:
+    """The table's diffuse albedo: photo radiance over the radiance of a white table
+    rendered in the same scene, median over the pixels that see the table (inside
+    the disk, off the board, away from the specimen) in up to four photos."""
+    import mitsuba as mi
+
+    ratios = []
+    for name in sorted(views)[:: max(1, len(views) // 4)][:4]:
+        intrinsics, pose = views[name]
+        scale = min(1.0, 160 / max(intrinsics.width, intrinsics.height))
+        small = scaled(intrinsics, scale, exact=True)
+        columns, rows = np.meshgrid(np.arange(small.width), np.arange(small.height))
+        rays = (
+            np.stack([(columns - small.cx) / small.fx, (rows - small.cy) / small.fy, np.ones(columns.shape)], -1)
+            @ pose.R
+        )
+        with np.errstate(divide="ignore", invalid="ignore"):
+            distance = -pose.center[2] / rays[..., 2]
+        hits = pose.center + distance[..., None] * rays
+        seen = (distance > 0) & (np.linalg.norm(hits[..., :2], axis=-1) < 0.9 * radius)
+        if board is not None:
+            half = np.array([board.squares_x, board.squares_y]) * board.square_mm / 2000 + 0.01
+            seen &= np.any(np.abs(hits[..., :2]) > half, axis=-1)
+        specimen = cv2.imread(str(masks[name]), cv2.IMREAD_GRAYSCALE) > 127
+        specimen = cv2.dilate(specimen.astype(np.uint8), np.ones((15, 15), np.uint8))
+        seen &= resize_exact(specimen.astype(np.float32), scale)[: small.height, : small.width] == 0
+        if np.count_nonzero(seen) < 50:
+            continue
+        sensor = scene_xml.load_sensor(scene_xml.sensor_properties(small, pose, 64, near_clip))
+        white = np.asarray(mi.render(mi.load_file(str(view_files[name])), sensor=sensor, spp=64), dtype=np.float32)
+        photo = resize_exact(read_photo(linear[name]).pixels, scale)
+        ratios.append(photo[: small.height, : small.width][seen] / np.maximum(white[seen], 1e-4))
+    if not ratios:
+        return None
+    return tuple(float(v) for v in np.clip(np.median(np.vstack(ratios), axis=0), 0.01, 1.0))
+
+
+def render_preview(
+    view_xml: Path, intrinsics: Intrinsics, pose: Pose, near_clip: float, mesh: trimesh.Trimesh, spp: int, path: Path
+) -> None:
+    """The view's scene rendered in a window around the specimen (at most 256 px)."""
+    import mitsuba as mi
+
+    corners = mesh.bounding_box.vertices @ pose.R.T + pose.t
+    pixels = corners[:, :2] / corners[:, 2:] * [intrinsics.fx, intrinsics.fy] + [intrinsics.cx, intrinsics.cy]
+    lo = np.clip(np.floor(pixels.min(axis=0)).astype(int) - 4, 0, [intrinsics.width - 1, intrinsics.height - 1])
+    hi = np.clip(np.ceil(pixels.max(axis=0)).astype(int) + 4, lo + 1, [intrinsics.width, intrinsics.height])
+    window = scene_xml.load_sensor(scene_xml.sensor_properties(intrinsics, pose, spp, near_clip, (*lo, *(hi - lo))))
+    image = np.asarray(mi.render(mi.load_file(str(view_xml)), sensor=window, spp=spp))
+    scale = min(1.0, 256 / max(image.shape[:2]))
+    image = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) if scale < 1 else image
+    cv2.imwrite(str(path), cv2.cvtColor(to_uint8(image), cv2.COLOR_RGB2BGR))
+
+
+def write_board_texture(board: BoardSection, out_dir: Path) -> None:
+    # Rows flipped: Mitsuba's rectangle puts the bitmap's first row at local -y,
+    # and the board's top edge is at +y (pipeline.camera.board.board_to_world).
+    reflectance = TONER + (PAPER - TONER) * board_image(board)[::-1].astype(np.float32) / 255.0
+    cv2.imwrite(str(out_dir / "board.png"), np.round(reflectance * 255).astype(np.uint8))
