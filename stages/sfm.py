@@ -179,14 +179,7 @@ def _board_frame(conf: Config, board_found: dict[str, Pose], model, poses: dict[
         # The board poses alone define the world; SfM's model, not tied to them, is dropped.
         logger.warning("SfM's %d photos could not be tied to the board: using the board poses alone", len(poses))
         frame, model, poses, points = Similarity.identity(), None, {}, np.zeros((0, 3))
-        report["frame"] = {
-            "source": "board",
-            "metric": True,
-            "units": "metres",
-            "up": "+z, normal to the board",
-            "ground_plane": [0.0, 0.0, 1.0, 0.0],
-            "photos": len(board_found),
-        }
+        report["frame"] = world_frame.board_frame(photos=len(board_found))
     return frame, model, poses, points
 
 
@@ -209,12 +202,13 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     work = out_dir / "colmap"
     work.mkdir()
     model, database, refine_focal = _reconstruct(conf, capture.rig, photo_paths, cameras, masks, work)
-    poses = colmap.registered_poses(model, name_of, intrinsics, refine_focal)
-    unregistered = [n for n in order if n not in poses]
-    causes = colmap.unregistered_causes(database, unregistered, stem_of) if unregistered else {}
+    # The board's poses with the cameras as calibrated, before SfM refines them.
     board_found, board_errors = board_poses(
         board, photo_paths, intrinsics, conf.board_min_corners, conf.board_max_error_px
     )
+    poses = colmap.registered_poses(model, name_of, intrinsics, refine_focal)
+    unregistered = [n for n in order if n not in poses]
+    causes = colmap.unregistered_causes(database, unregistered, stem_of) if unregistered else {}
     # A board pose is as good as a registration (in the board frame), and SfM may
     # fail on a plain specimen.
     if len(set(poses) | set(board_found)) < conf.min_registered_fraction * len(order):
@@ -256,8 +250,11 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         to_world = to_world.then(level)
 
     # 6. Poses the silhouettes or the table contradict are left out.
-    if capture.rig != "turntable":
-        drop_inconsistent(poses, intrinsics, masks, conf.min_silhouette_iou, conf.silhouette_resolution, report)
+    # A turntable's placement already checked its photos against the silhouettes.
+    check_silhouettes = capture.rig != "turntable"
+    drop_inconsistent(
+        poses, intrinsics, masks, conf.min_silhouette_iou, conf.silhouette_resolution, report, check_silhouettes
+    )
     if len(poses) < conf.min_registered_fraction * len(order):
         _too_few(conf, set(poses), order, causes)
     if len(poses) < len(order):

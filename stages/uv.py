@@ -42,13 +42,14 @@ import numpy as np
 import trimesh
 import xatlas
 
+from pipeline.camera.model import scaled
 from pipeline.core.config import Range
 from pipeline.core.errors import PipelineError
 from pipeline.core.stage import Stage, StageInputs, StageResult
 from pipeline.formats.cameras import read_views
 from pipeline.geometry.atlas import overlapping_texels
 from pipeline.imaging.photo_io import to_uint8
-from pipeline.render import mitsuba_variant
+from pipeline.render import mitsuba_variant, scene_xml
 
 CHECKER_TEXELS = 16
 
@@ -142,29 +143,18 @@ def render_preview(mesh_ply: Path, checker_png: Path, cameras_json: Path, path: 
     corners = trimesh.load(mesh_ply, force="mesh").bounding_box.vertices @ pose.R.T + pose.t
     pixels = corners[:, :2] / corners[:, 2:] * [intrinsics.fx, intrinsics.fy] + [intrinsics.cx, intrinsics.cy]
     scale = 256 / max(np.ptp(pixels, axis=0))
-    width, height = round(intrinsics.width * scale), round(intrinsics.height * scale)
-    lo = np.clip(np.floor(pixels.min(axis=0) * scale).astype(int), 0, [width - 1, height - 1])
-    hi = np.clip(np.ceil(pixels.max(axis=0) * scale).astype(int), lo + 1, [width, height])
+    small = scaled(intrinsics, scale, exact=True)
+    lo = np.clip(np.floor(pixels.min(axis=0) * scale).astype(int), 0, [small.width - 1, small.height - 1])
+    hi = np.clip(np.ceil(pixels.max(axis=0) * scale).astype(int), lo + 1, [small.width, small.height])
+    # The pipeline's one pinhole sensor (principal point included), near clip well
+    # inside the camera's distance to the mesh.
+    near_clip = 0.01 * float(np.min(corners[:, 2]))
+    sensor = scene_xml.sensor_properties(small, pose, 16, max(near_clip, 1e-4), (*lo, *(hi - lo)))
     scene = mi.load_dict(
         {
             "type": "scene",
             "integrator": {"type": "direct"},
-            "sensor": {
-                "type": "perspective",
-                "fov": float(np.degrees(2 * np.arctan(intrinsics.width / 2 / intrinsics.fx))),
-                "fov_axis": "x",
-                "to_world": mi.ScalarTransform4f(pose.mitsuba_to_world().tolist()),
-                "film": {
-                    "type": "hdrfilm",
-                    "width": width,
-                    "height": height,
-                    "crop_offset_x": int(lo[0]),
-                    "crop_offset_y": int(lo[1]),
-                    "crop_width": int(hi[0] - lo[0]),
-                    "crop_height": int(hi[1] - lo[1]),
-                },
-                "sampler": {"type": "independent", "sample_count": 16},
-            },
+            "sensor": {**sensor, "to_world": mi.ScalarTransform4f(sensor["to_world"])},
             "specimen": {
                 "type": "ply",
                 "id": "specimen",
@@ -216,7 +206,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="uv",
-    version=2,
+    version=3,
     config=Config,
     main=main,
     needs=("cleanup.mesh", "sfm.cameras"),

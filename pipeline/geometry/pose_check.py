@@ -75,11 +75,12 @@ def drop_inconsistent(
     min_iou: float,
     resolution: int,
     report: dict,
+    check_silhouettes: bool = True,
 ) -> None:
     """Leave out (from ``poses``) photos whose silhouettes contradict the hull of the
-    others (``silhouette_check``), and cameras under the table when ``report``'s frame
-    has a ground plane; ``report`` records both."""
-    if len(poses) >= 3:
+    others (``silhouette_check``, when ``check_silhouettes``), and cameras under the
+    table when ``report``'s frame has a ground plane; ``report`` records both."""
+    if check_silhouettes and len(poses) >= 3:
         mask_of = {n: cv2.imread(str(masks[n]), cv2.IMREAD_GRAYSCALE) > 127 for n in poses}
         report["silhouette_iou"], off = silhouette_check(poses, intrinsics, mask_of, min_iou, resolution)
         for name in off:

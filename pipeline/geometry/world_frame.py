@@ -13,6 +13,18 @@ from pipeline.geometry import turntable
 from pipeline.geometry.visual_hull import convergence_point
 
 
+def board_frame(**details) -> dict:
+    """The description of the board's frame (cameras.json's ``frame``), with ``details``."""
+    return {
+        "source": "board",
+        "metric": True,
+        "units": "metres",
+        "up": "+z, normal to the board",
+        "ground_plane": [0.0, 0.0, 1.0, 0.0],
+        **details,
+    }
+
+
 def robust_similarity(source: dict[str, np.ndarray], target: dict[str, np.ndarray]) -> tuple[Similarity, dict]:
     """Similarity taking SfM centres to board centres; photos whose residual exceeds
     three times the median (a misdetected board) are dropped once and it is refitted."""
@@ -111,14 +123,7 @@ def frame_from_board(
             1000 * distance,
         )
         return None
-    report["frame"] = {
-        "source": "board",
-        "metric": True,
-        "units": "metres",
-        "up": "+z, normal to the board",
-        "ground_plane": [0.0, 0.0, 1.0, 0.0],
-        **fit,
-    }
+    report["frame"] = board_frame(**fit)
     logger.info(
         "world frame from the board in %d photos (centres agree to %.2f mm)",
         fit["photos"],
