@@ -100,7 +100,7 @@ def _coerce(key: str, value: Any, hint: Any) -> Any:
         base, *extra = typing.get_args(hint)
         value = _coerce(key, value, base)
         for bound in extra:
-            if isinstance(bound, Range) and not bound.check(value):
+            if isinstance(bound, Range) and value is not None and not bound.check(value):
                 raise ConfigError(f"{key} = {value!r} is out of range: allowed {bound.describe()}")
         return value
     if origin is Literal:
