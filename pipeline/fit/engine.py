@@ -79,6 +79,8 @@ class FitView:
     """(h, w, 3) linear radiance of the photo, the sensor's film size."""
     weight: np.ndarray | None = None
     """(h, w) pixel weights (the specimen's mask), or None for every pixel."""
+    integrator: Any = None
+    """The integrator to render with; None: the scene's own (which must then be differentiable)."""
 
 
 @dataclass(frozen=True)
@@ -236,6 +238,7 @@ class _Target:
         """The error of ``view`` (this target's) rendered with fixed seeds (2 * index, and
         2 * index + 1 for the second render): the dual estimator, or with ``dual`` off
         plain MSE. ``integrator`` None renders with the scene's own."""
+        integrator = integrator or view.integrator
         image = mi.render(view.scene, sensor=view.sensor, integrator=integrator, spp=spp, seed=2 * index)
         if not dual:
             return float(self.mse(image, dr).array[0])
@@ -367,12 +370,24 @@ def fit(
         total, relative = 0.0, 0.0
         for view, seed in batches.draw(iteration):
             apply(id(view.scene))
-            image = mi.render(view.scene, traversed[id(view.scene)], sensor=view.sensor, spp=settings.spp, seed=seed)
+            image = mi.render(
+                view.scene,
+                traversed[id(view.scene)],
+                sensor=view.sensor,
+                integrator=view.integrator,
+                spp=settings.spp,
+                seed=seed,
+            )
             if settings.exposure:
                 image = image * dr.exp(optimizer[f"exposure:{view.name}"])
             if settings.loss == "dual":
                 second = mi.render(
-                    view.scene, traversed[id(view.scene)], sensor=view.sensor, spp=settings.spp, seed=seed + 1
+                    view.scene,
+                    traversed[id(view.scene)],
+                    sensor=view.sensor,
+                    integrator=view.integrator,
+                    spp=settings.spp,
+                    seed=seed + 1,
                 )
                 if settings.exposure:
                     second = second * dr.exp(optimizer[f"exposure:{view.name}"])

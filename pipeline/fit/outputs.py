@@ -20,7 +20,8 @@ def write_heldout(views: list[engine.FitView], spp: int, folder: Path) -> None:
 
     folder.mkdir()
     for index, view in enumerate(views):
-        image = np.asarray(mi.render(view.scene, sensor=view.sensor, spp=spp, seed=10_000 + index), dtype=np.float32)
+        render = mi.render(view.scene, sensor=view.sensor, integrator=view.integrator, spp=spp, seed=10_000 + index)
+        image = np.asarray(render, dtype=np.float32)
         render_path, reference_path, mask_path = heldout_files(folder, view.name)
         write_image(render_path, image)
         write_image(reference_path, view.reference)

@@ -3,27 +3,37 @@
 Given a scene XML with N sensors and a folder of N reference images (EXR as
 linear radiance, 8-bit images as sRGB; matched to the sensors in the order the
 scene declares them by the sorted file names; each the size of its sensor's
-film), fit the ``mi.traverse`` parameters whose keys match the given regular
-expressions with pipeline.fit.engine (the same loop as the fit stages), and write
-the optimised scene, params.json, log.jsonl and loss.png.
+film), fit the ``mi.traverse`` parameters that ``--params`` selects with
+pipeline.fit.engine (the same loop as the fit stages), and write the optimised
+scene, params.json, log.jsonl and loss.png.
 
-Bounds come from pipeline.render.materials by the property's name (base_color, eta,
-sigma_t, ...; the last part of the key that is not "value"), else ``--bound``
-must give them. Only plain values can be fitted (a float or an RGB colour, not
-a bitmap).
+The scene is read as users write it (pipeline.render.user_scene: ``<ref>``s,
+objects without ids, includes, ``<default>`` values, IOR names) and rendered
+with the differentiable counterpart of its integrator (``path`` fits with
+``prb``). A ``--params`` word names a property: it selects the keys that have it
+as one of their dot-separated parts (``eta`` is not ``metallic``); a pattern
+with a regular expression's characters is searched for in the keys. Bounds come
+from pipeline.render.materials by the property's name (base_color, eta,
+sigma_t, ...), else ``--bound`` must give them. Only plain values can be fitted
+(a float or an RGB colour, not a bitmap).
+
+params.json and log.jsonl are written first: a scene that cannot be written
+back (a value given by a texture, say) keeps them and says what failed.
 """
 
 from __future__ import annotations
 
 import json
 import re
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 from pipeline import logger
-from pipeline.core.errors import PipelineError
+from pipeline.core.errors import ConfigError, PipelineError
 from pipeline.fit import engine
+from pipeline.fit.outputs import write_fit_log
 from pipeline.imaging.photo_io import list_photos, read_photo
-from pipeline.render import materials, mitsuba_variant, scene_xml
+from pipeline.render import materials, mitsuba_variant, scene_xml, user_scene
 
 EXR_SUFFIXES = (".exr",)
 
@@ -33,14 +43,36 @@ def property_name(key: str) -> str:
     return [part for part in key.split(".") if part != "value"][-1]
 
 
+def selects(pattern: str, key: str) -> bool:
+    """Whether ``--params`` ``pattern`` selects ``key``: a plain word is a part of the
+    key; anything else a regular expression searched for in it."""
+    if re.fullmatch(r"\w+", pattern):
+        return pattern in key.split(".")
+    return re.search(pattern, key) is not None
+
+
+def _check_patterns(patterns: list[str]) -> None:
+    for pattern in patterns:
+        try:
+            re.compile(pattern)
+        except re.error as error:
+            raise ConfigError(f"--params {pattern!r} is not a regular expression: {error}") from None
+
+
 def select_parameters(
-    params, patterns: list[str], bounds: dict[str, tuple[float, float]], learning_rate: float | None
+    params, patterns: list[str], bounds: dict[str, tuple[float, float]], learning_rate: float | None, tree
 ) -> list[engine.FitParameter]:
+    """The keys ``patterns`` select that hold one float or colour written in the scene
+    file ``tree`` (so that the fit can be written back), with their bounds."""
     import mitsuba as mi
 
+    _check_patterns(patterns)
     selected = []
     for key in params.keys():
-        if not any(re.search(pattern, key) for pattern in patterns):
+        if not any(selects(pattern, key) for pattern in patterns):
+            continue
+        if not scene_xml.writable(tree, key):
+            logger.info("skipping %s: not a plain value in the scene file (a default Mitsuba adds?)", key)
             continue
         value = params[key]
         if not isinstance(value, (mi.Float, mi.Color3f)) or (isinstance(value, mi.Float) and len(value) != 1):
@@ -66,36 +98,20 @@ def list_keys(scene_path: Path, variant: str) -> list[str]:
     mitsuba_variant.activate(variant)
     import mitsuba as mi
 
-    params = mi.traverse(_load(scene_path))
+    params = mi.traverse(_load(scene_path, user_scene.normalised(scene_path)))
     return [f"{key}  {type(params[key]).__name__}" for key in params.keys()]
 
 
-def _load(scene_path: Path):
+def _load(scene_path: Path, tree):
     import mitsuba as mi
 
-    if not scene_path.is_file():
-        raise PipelineError(f"{scene_path} does not exist")
     try:
-        return mi.load_file(str(scene_path))
+        return mi.load_string(ET.tostring(tree.getroot(), encoding="unicode"))
     except RuntimeError as error:
         raise PipelineError(f"Mitsuba cannot load {scene_path}: {error}") from error
 
 
-def fit_scene(
-    scene_path: Path,
-    references: Path,
-    patterns: list[str],
-    settings: engine.FitSettings,
-    bound_entries: list[str],
-    learning_rate: float | None,
-    out_dir: Path,
-    variant: str = "auto",
-) -> Path:
-    """Fit and write the results into ``out_dir``; returns its params.json."""
-    mitsuba_variant.activate(variant)
-    import mitsuba as mi
-
-    scene = _load(scene_path)
+def _views(scene, scene_path: Path, references: Path, integrator) -> list[engine.FitView]:
     sensors = scene.sensors()
     files = list_photos(references) if references.is_dir() else []
     if len(files) != len(sensors):
@@ -112,19 +128,40 @@ def fit_scene(
                 f"{path} is {pixels.shape[1]}x{pixels.shape[0]} but sensor {index} renders "
                 f"{size[0]}x{size[1]}: resize it or fix the film"
             )
-        views.append(engine.FitView(path.stem, scene, sensor, pixels))
+        views.append(engine.FitView(path.stem, scene, sensor, pixels, integrator=integrator))
+    return views
+
+
+def fit_scene(
+    scene_path: Path,
+    references: Path,
+    patterns: list[str],
+    settings: engine.FitSettings,
+    bound_entries: list[str],
+    learning_rate: float | None,
+    out_dir: Path,
+    variant: str = "auto",
+) -> Path:
+    """Fit and write the results into ``out_dir``; returns its params.json."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ConfigError(f"--out {out_dir} is a file: name a folder")
+    mitsuba_variant.activate(variant)
+    import mitsuba as mi
+
+    # 1. The scene as Mitsuba loads it with stable keys, and the references.
+    tree = user_scene.normalised(scene_path)
+    scene = _load(scene_path, tree)
+    views = _views(scene, scene_path, references, user_scene.differentiable_integrator(tree))
     parameters = select_parameters(
-        mi.traverse(scene), patterns, engine.parse_bounds(bound_entries, "--bound"), learning_rate
+        mi.traverse(scene), patterns, engine.parse_bounds(bound_entries, "--bound"), learning_rate, tree
     )
+
+    # 2. The fit.
     logger.info("fitting %s on %d views", ", ".join(p.key for p in parameters), len(views))
     result = engine.fit(parameters, views, [], settings)
 
+    # 3. What was found first, then the scene with it written in.
     out_dir.mkdir(parents=True, exist_ok=True)
-    scene_xml.set_values(scene_path, result.values, out_dir / scene_path.name)
-    with (out_dir / "log.jsonl").open("w") as log:
-        for entry in result.log:
-            log.write(json.dumps(entry) + "\n")
-    engine.plot_loss(result.log, out_dir / "loss.png")
     params_json = out_dir / "params.json"
     params_json.write_text(
         json.dumps(
@@ -139,4 +176,14 @@ def fit_scene(
             indent=1,
         )
     )
+    write_fit_log(out_dir, result.log)
+    out_scene = out_dir / scene_path.name
+    user_scene.relative_filenames(tree, out_dir)
+    try:
+        scene_xml.write_values(tree, out_scene, result.values, out_scene)
+    except (PipelineError, OSError) as error:
+        raise PipelineError(
+            f"the fit is in {params_json} and {out_dir / 'log.jsonl'}, but the fitted scene could not be "
+            f"written: {error}"
+        ) from error
     return params_json

@@ -168,16 +168,37 @@ def include(parent: ET.Element, filename: str) -> ET.Element:
     return ET.SubElement(parent, "include", filename=filename)
 
 
+def _element_ids(tree: ET.ElementTree) -> dict[str, ET.Element]:
+    """Plugin elements by id; a ``<ref id=...>`` names another element, it is not one."""
+    return {e.get("id"): e for e in tree.iter() if e.get("id") and e.tag != "ref"}
+
+
+def _child(element: ET.Element, part: str, by_id: dict[str, ET.Element]) -> ET.Element | None:
+    """The child plugin that ``mi.traverse`` names ``part`` under ``element``: by its
+    name or id (through a ``<ref>``), else the one child of that tag."""
+    for child in element:
+        if part in (child.get("name"), child.get("id")):
+            return by_id.get(child.get("id"), child) if child.tag == "ref" else child
+    by_tag = [child for child in element if child.tag == part]  # a shape's nested "bsdf", "emitter"
+    return by_tag[0] if len(by_tag) == 1 else None
+
+
 def _property_of(by_id: dict[str, ET.Element], key: str, path: Path) -> tuple[ET.Element, float]:
     """The element holding ``mi.traverse`` key ``key`` (``<id>.<child>...<property>[.value]``)
-    and the factor from Mitsuba's value to the file's: the element with the first
-    part as id is searched for the property named by the last part that is not
-    ``value``."""
+    and the factor from Mitsuba's value to the file's. The element with the first part
+    as id is walked down the middle parts (children by name or id, ``<ref>``s followed);
+    where that walk fails, its whole subtree is searched for the property named by the
+    last part that is not ``value``."""
     parts = [p for p in key.split(".") if p != "value"]
     owner = by_id.get(parts[0])
     if owner is None:
         raise PipelineError(f"{path}: no element with id '{parts[0]}' for parameter {key}")
-    matches = [e for e in owner.iter() if e.get("name") == parts[-1]]
+    for part in parts[1:-1]:
+        owner = _child(owner, part, by_id) if owner is not None else None
+    scope = owner.iter() if owner is not None else by_id[parts[0]].iter()
+    if owner is None:
+        owner = by_id[parts[0]]
+    matches = [e for e in scope if e.get("name") == parts[-1] and e.tag != "ref"]
     factor = 1.0
     if not matches and parts[-1] == "eta":
         # Dielectrics are written with int_ior / ext_ior; Mitsuba exposes their ratio.
@@ -187,9 +208,20 @@ def _property_of(by_id: dict[str, ET.Element], key: str, path: Path) -> tuple[ET
     if len(matches) != 1 or matches[0].tag not in ("float", "rgb", "spectrum"):
         raise PipelineError(
             f"{path}: cannot write {key}: its property '{parts[-1]}' under id "
-            f"'{parts[0]}' is not one plain value (a texture or a reference)"
+            f"'{parts[0]}' is not one plain value (a texture, or an IOR given by name)"
         )
     return matches[0], factor
+
+
+def writable(tree: ET.ElementTree, key: str) -> bool:
+    """Whether ``write_values`` can write ``mi.traverse`` key ``key`` into ``tree``: a
+    plain value the file holds (not a default Mitsuba adds, such as the BSDF of an
+    area light's shape)."""
+    try:
+        _property_of(_element_ids(tree), key, Path("scene"))
+    except PipelineError:
+        return False
+    return True
 
 
 def set_values(
@@ -200,8 +232,18 @@ def set_values(
     keys of plain values (see ``_property_of``). ``textures`` maps such keys to a
     ``<texture>`` or ``<volume>`` element that takes the value's place (its file
     names relative to ``out``)."""
-    tree = ET.parse(path)
-    by_id = {element.get("id"): element for element in tree.iter() if element.get("id")}
+    return write_values(ET.parse(path), path, values, out, textures)
+
+
+def write_values(
+    tree: ET.ElementTree,
+    path: Path,
+    values: dict[str, Sequence[float]],
+    out: Path,
+    textures: dict[str, ET.Element] | None = None,
+) -> Path:
+    """``set_values`` on a parsed scene ``tree`` read from ``path``."""
+    by_id = _element_ids(tree)
     parents = {child: parent for parent in tree.iter() for child in parent}
     for key, value in values.items():
         element, factor = _property_of(by_id, key, path)

@@ -1,0 +1,154 @@
+"""A scene file as users write it, made ready to fit and to write back.
+
+Scenes come from Blender's Mitsuba add-on, from hand, from other tools: BSDFs
+declared once and used through ``<ref id=...>``, objects without ids (Mitsuba
+then names them by a memory address that changes on every load), ``<include>``d
+files, ``<default>`` values used as ``$name``, dielectrics whose IOR is a material
+name, and a render integrator (``path``) that cannot be differentiated.
+``normalised`` returns one self-contained tree that Mitsuba loads with stable
+``mi.traverse`` keys and that ``scene_xml.write_values`` can write fitted values
+into:
+
+==========================  =========================================================
+as written                  in the normalised tree
+==========================  =========================================================
+``<include filename=..>``   the included file's content, inlined (recursively)
+relative file names         absolute (``relative_filenames`` turns them back for
+                            a file written elsewhere)
+a plugin without an id      ``id="<tag>_<n>"``, numbered in document order
+``int_ior="bk7"``           the number Mitsuba's IOR table gives the name
+``value="$name"``           kept: Mitsuba substitutes the ``<default>``; a fitted
+                            value replaces it
+==========================  =========================================================
+
+``differentiable_integrator`` swaps a render integrator for its differentiable
+counterpart at fit time; the file keeps the one it had.
+
+Limitations: the written scene is one file (includes are not written back
+separately); ``-D`` command-line parameters of the ``mitsuba`` tool are not
+supported, only ``<default>``.
+"""
+
+from __future__ import annotations
+
+import os
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.core.errors import PipelineError
+
+PLUGIN_TAGS = ("shape", "bsdf", "medium", "phase", "emitter", "texture", "volume", "sensor", "film", "sampler")
+"""Elements that load as Mitsuba objects (and so appear in ``mi.traverse``)."""
+
+DIFFERENTIABLE = {"path": "prb", "volpath": "prbvolpath", "direct": "direct_projective"}
+"""Render integrators and the differentiable integrator that computes the same image."""
+DIFFERENTIABLE_TYPES = {"prb", "prbvolpath", "direct_projective", "prb_projective", "prb_basic"}
+
+
+def _filename_attribute(element: ET.Element) -> str | None:
+    if element.tag == "include":
+        return "filename"
+    if element.tag == "string" and element.get("name") == "filename":
+        return "value"
+    return None
+
+
+def _inlined(path: Path, chain: tuple[Path, ...] = ()) -> ET.Element:
+    """The root of ``path`` with its includes replaced by their content and relative
+    file names made absolute."""
+    if path in chain:
+        raise PipelineError(f"{path} includes itself (through {' -> '.join(p.name for p in chain)})")
+    if not path.is_file():
+        raise PipelineError(f"{chain[-1] if chain else path}: the scene file {path} does not exist")
+    try:
+        root = ET.parse(path).getroot()
+    except ET.ParseError as error:
+        raise PipelineError(f"{path} is not valid XML: {error}") from error
+    for element in root.iter():
+        attribute = _filename_attribute(element)
+        target = element.get(attribute) if attribute else None
+        if target and "$" not in target and not Path(target).is_absolute():
+            element.set(attribute, str((path.parent / target).resolve()))
+    for parent in list(root.iter()):
+        for child in list(parent):
+            if child.tag == "include":
+                included = _inlined(Path(child.get("filename")), (*chain, path))
+                position = list(parent).index(child)
+                parent.remove(child)
+                for offset, grandchild in enumerate(list(included)):
+                    parent.insert(position + offset, grandchild)
+    return root
+
+
+def _name_unnamed(root: ET.Element) -> None:
+    """Give every plugin without an id one, ``<tag>_<n>``, unique in the file."""
+    taken = {e.get("id") for e in root.iter() if e.get("id")}
+    counts: dict[str, int] = {}
+    for element in root.iter():
+        if element.tag in PLUGIN_TAGS and not element.get("id"):
+            while True:
+                counts[element.tag] = counts.get(element.tag, 0) + 1
+                candidate = f"{element.tag}_{counts[element.tag]}"
+                if candidate not in taken:
+                    break
+            element.set("id", candidate)
+            taken.add(candidate)
+
+
+def ior_value(name: str) -> float:
+    """The refractive index Mitsuba's table gives a material name ("bk7", "water", ...)."""
+    import mitsuba as mi
+
+    try:
+        bsdf = mi.load_dict({"type": "dielectric", "int_ior": name, "ext_ior": 1.0})
+    except RuntimeError as error:
+        raise PipelineError(f"unknown index of refraction '{name}': give a number or a name Mitsuba knows") from error
+    return float(np.ravel(np.asarray(mi.traverse(bsdf)["eta"]))[0])
+
+
+def _ior_numbers(root: ET.Element) -> None:
+    for element in root.iter("string"):
+        if element.get("name") in ("int_ior", "ext_ior") and "$" not in element.get("value", ""):
+            element.tag = "float"
+            element.set("value", f"{ior_value(element.get('value')):.9g}")
+
+
+def normalised(path: Path) -> ET.ElementTree:
+    """The scene at ``path`` as one self-contained tree (see the module docstring);
+    Mitsuba must be active (IOR names are looked up in its table)."""
+    root = _inlined(path.resolve())
+    _name_unnamed(root)
+    _ior_numbers(root)
+    return ET.ElementTree(root)
+
+
+def relative_filenames(tree: ET.ElementTree, folder: Path) -> None:
+    """Absolute file names made relative to ``folder``, where the tree is written."""
+    for element in tree.iter():
+        attribute = _filename_attribute(element)
+        target = element.get(attribute) if attribute else None
+        if target and Path(target).is_absolute():
+            element.set(attribute, os.path.relpath(target, folder))
+
+
+def differentiable_integrator(tree: ET.ElementTree):
+    """The integrator to fit with: None when the scene's own is differentiable, else
+    the differentiable counterpart of its render integrator, with its max_depth."""
+    import mitsuba as mi
+
+    element = tree.getroot().find("integrator")
+    kind = element.get("type") if element is not None else "path"  # Mitsuba's default
+    if kind in DIFFERENTIABLE_TYPES:
+        return None
+    if kind not in DIFFERENTIABLE:
+        raise PipelineError(
+            f"the scene's integrator '{kind}' has no differentiable counterpart: use path, volpath, direct, "
+            f"or one of {', '.join(sorted(DIFFERENTIABLE_TYPES))}"
+        )
+    properties = {"type": DIFFERENTIABLE[kind]}
+    for child in element if element is not None else ():
+        if child.tag == "integer" and child.get("name") in ("max_depth", "rr_depth"):
+            properties[child.get("name")] = int(child.get("value"))
+    return mi.load_dict(properties)

@@ -1,0 +1,162 @@
+"""`pipeline fit` on scenes written the ways users write them: a BSDF declared once
+and used through <ref>, objects without ids, an included file, <default> values, IORs
+given by name, a render integrator (path) that is swapped for its differentiable one."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.cli import main as cli_main
+from pipeline.fit.scene_fit import selects
+from pipeline.imaging.photo_io import write_image
+
+pytestmark = pytest.mark.slow
+
+SENSORS = """<scene version="3.0.0">
+{sensors}
+</scene>
+"""
+SENSOR = """  <sensor type="perspective">
+    <float name="fov" value="22"/>
+    <transform name="to_world"><lookat origin="{x}, {y}, 0.3" target="0, 0, 0" up="0, 0, 1"/></transform>
+    <sampler type="independent"><integer name="sample_count" value="$spp"/></sampler>
+    <film type="hdrfilm"><integer name="width" value="48"/><integer name="height" value="36"/></film>
+  </sensor>"""
+SCENE = """<scene version="3.0.0">
+  <default name="spp" value="8"/>
+  <default name="rough" value="{rough}"/>
+  <integrator type="path"><integer name="max_depth" value="4"/></integrator>
+  <include filename="parts/sensors.xml"/>
+  <bsdf type="principled" id="mat">
+    <rgb name="base_color" value="{colour}"/>
+    <float name="roughness" value="$rough"/>
+    <float name="metallic" value="0.0"/>
+  </bsdf>
+  <shape type="sphere"><float name="radius" value="0.1"/><ref id="mat"/></shape>
+  <shape type="sphere">
+    <point name="center" x="0" y="0" z="-0.35"/><float name="radius" value="0.2"/>
+    <bsdf type="diffuse"><rgb name="reflectance" value="{floor}"/></bsdf>
+  </shape>
+  <emitter type="constant"><rgb name="radiance" value="0.4"/></emitter>
+  <shape type="rectangle">
+    <transform name="to_world">
+      <scale value="0.15"/><lookat origin="0.4, 0.4, 0.6" target="0, 0, 0" up="0, 0, 1"/>
+    </transform>
+    <emitter type="area"><rgb name="radiance" value="8"/></emitter>
+  </shape>
+</scene>
+"""
+TRUTH = {"rough": 0.3, "colour": "0.7, 0.4, 0.2", "floor": "0.6, 0.6, 0.6"}
+
+
+def _write_scene(folder: Path, rough: float, colour: str, floor: str) -> Path:
+    (folder / "parts").mkdir(parents=True, exist_ok=True)
+    eyes = ((0.6, 0.0), (0.0, 0.6), (-0.5, -0.3))
+    sensors = "\n".join(SENSOR.format(x=x, y=y) for x, y in eyes)
+    (folder / "parts" / "sensors.xml").write_text(SENSORS.format(sensors=sensors))
+    scene = folder / "scene.xml"
+    scene.write_text(SCENE.format(rough=rough, colour=colour, floor=floor))
+    return scene
+
+
+@pytest.fixture(scope="module")
+def references(mi, tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("user_scene")
+    truth = mi.load_file(str(_write_scene(folder / "truth", **TRUTH)), spp=256)
+    images = folder / "references"
+    images.mkdir()
+    for index, sensor in enumerate(truth.sensors()):
+        write_image(images / f"ref_{index}.exr", np.asarray(mi.render(truth, sensor=sensor, seed=7), np.float32))
+    return images
+
+
+def _fit(scene: Path, references: Path, out: Path, *params: str) -> int:
+    return cli_main(
+        [
+            "fit",
+            str(scene),
+            "--references",
+            str(references),
+            "--params",
+            *params,
+            "--iterations",
+            "20",
+            "--batch",
+            "3",
+            "--spp",
+            "4",
+            "--tolerance",
+            "0",
+            "--out",
+            str(out),
+        ]
+    )
+
+
+def test_refs_defaults_includes_and_unnamed_objects_fit_and_write_back(mi, references, tmp_path):
+    scene = _write_scene(tmp_path / "start", rough=0.7, colour="0.5, 0.5, 0.5", floor="0.3, 0.3, 0.3")
+    out = tmp_path / "out"
+    assert _fit(scene, references, out, "roughness", "base_color", "reflectance", "--bound", "reflectance=0:1") == 0
+    params = json.loads((out / "params.json").read_text())["params"]
+    # The BSDF used through <ref> is fitted under its own id, the unnamed floor's BSDF under a stable one.
+    assert set(params) == {"mat.roughness.value", "mat.base_color.value", "shape_2.bsdf.reflectance.value"}
+    assert abs(params["mat.roughness.value"][0] - 0.3) < 0.7 - 0.3
+    assert abs(params["shape_2.bsdf.reflectance.value"][0] - 0.6) < 0.6 - 0.3
+    # The written scene loads as it is (includes inlined, files relative to it) with the fitted values.
+    written = mi.traverse(mi.load_file(str(out / "scene.xml")))
+    for key, value in params.items():
+        assert np.ravel(written[key]) == pytest.approx(value, rel=1e-5), key
+    assert written["mat.metallic.value"][0] == 0.0
+    assert (out / "log.jsonl").read_text().count("\n") == 20
+
+
+def test_a_named_ior_is_fitted_and_written_as_a_number(mi, references, tmp_path):
+    scene = _write_scene(tmp_path / "start", rough=0.3, colour="0.7, 0.4, 0.2", floor="0.6, 0.6, 0.6")
+    text = scene.read_text().replace(
+        '<bsdf type="diffuse"><rgb name="reflectance" value="0.6, 0.6, 0.6"/></bsdf>',
+        '<bsdf type="roughdielectric" id="glass"><float name="alpha" value="0.2"/>'
+        '<string name="int_ior" value="bk7"/><string name="ext_ior" value="water"/></bsdf>',
+    )
+    scene.write_text(text)
+    out = tmp_path / "out"
+    assert _fit(scene, references, out, "eta") == 0
+    params = json.loads((out / "params.json").read_text())["params"]
+    # The nested BSDF is named by its role under the unnamed shape; the principled BSDF has no eta here.
+    assert list(params) == ["shape_2.bsdf.eta"]
+    written_xml = (out / "scene.xml").read_text()
+    assert "bk7" not in written_xml and "water" not in written_xml
+    written = mi.traverse(mi.load_file(str(out / "scene.xml")))
+    assert written["shape_2.bsdf.eta"][0] == pytest.approx(params["shape_2.bsdf.eta"][0], rel=1e-5)
+
+
+def test_a_scene_that_cannot_be_written_keeps_the_fit(mi, references, tmp_path, capsys):
+    scene = _write_scene(tmp_path / "start", rough=0.7, colour="0.7, 0.4, 0.2", floor="0.6, 0.6, 0.6")
+    out = tmp_path / "out"
+    (out / "scene.xml").mkdir(parents=True)  # the scene's file name is taken by a folder
+    assert _fit(scene, references, out, "roughness") == 1
+    assert json.loads((out / "params.json").read_text())["params"]["mat.roughness.value"]
+    assert (out / "log.jsonl").is_file()
+    assert "params.json" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "pattern, key, selected",
+    [
+        ("eta", "mat.eta", True),
+        ("eta", "mat.metallic.value", False),
+        ("base_color", "mat.base_color.value", True),
+        ("bsdf.rough.*", "specimen.bsdf.roughness.value", True),
+        ("^mat\\.", "mat.eta", True),
+        ("^mat\\.", "format.eta", False),
+    ],
+)
+def test_a_word_names_a_property_and_anything_else_is_a_regular_expression(pattern, key, selected):
+    assert selects(pattern, key) is selected
+
+
+def test_a_pattern_that_is_no_regular_expression_is_a_usage_error(mi, references, tmp_path, capsys):
+    scene = _write_scene(tmp_path / "start", rough=0.7, colour="0.7, 0.4, 0.2", floor="0.6, 0.6, 0.6")
+    assert _fit(scene, references, tmp_path / "out", "(") == 2
+    assert "--params '('" in capsys.readouterr().err
