@@ -22,8 +22,10 @@ view-NAME.xml       one file per photo (NAME without extension): its sensor and 
                     carries the first photo's light
 mesh.ply            the mesh with UVs (a copy of uv's)
 board.png           the board's print, when the board is in the scene
-scene.json          model, integrator, fitted parameters (Mitsuba key, value,
-                    bounds, units) and per photo its view file and sensor id
+scene.json          model, integrator (the render one the files name, its depth,
+                    and the differentiable one the fit uses), fitted parameters
+                    (Mitsuba key, value, bounds, units) and per photo its view
+                    file and sensor id
 preview.png         the first view rendered from its view file, cropped to the
                     specimen
 ==================  =============================================================
@@ -189,7 +191,11 @@ def _description(
     }
     return {
         "model": model,
-        "integrator": {"type": integrator[0], "max_depth": integrator[1]},
+        "integrator": {
+            "type": materials.RENDER_INTEGRATORS[integrator[0]],
+            "max_depth": integrator[1],
+            "differentiable": integrator[0],
+        },
         "light_frame": light.frame,
         "near_clip": near_clip,
         "board_in_scene": board is not None,
@@ -264,7 +270,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="scene",
-    version=1,
+    version=2,
     config=Config,
     main=main,
     needs=("uv.mesh", "sfm.cameras", "undistort.pinhole", "masks.masks_json"),

@@ -54,6 +54,11 @@ def load_views(
     import mitsuba as mi
 
     shared_scene = mi.load_file(str(scene_dir / SCENE_XML)) if description["light_frame"] == "world" else None
+    # The scene files name a render integrator (path): the fit renders with its
+    # differentiable counterpart, at the same depth.
+    integrator = mi.load_dict(
+        {"type": description["integrator"]["differentiable"], "max_depth": description["integrator"]["max_depth"]}
+    )
     views = []
     for name in sorted(description["views"] if names is None else set(description["views"]) & names):
         mask = cv2.imread(str(masks[name]), cv2.IMREAD_GRAYSCALE) > 127
@@ -77,7 +82,8 @@ def load_views(
         sensor = scene_xml.load_sensor(
             scene_xml.sensor_properties(small, pose, spp, description["near_clip"], crop, sample_border)
         )
-        views.append((engine.FitView(name, scene, sensor, np.ascontiguousarray(reference), weight), (small, crop)))
+        view = engine.FitView(name, scene, sensor, np.ascontiguousarray(reference), weight, integrator)
+        views.append((view, (small, crop)))
     return views
 
 

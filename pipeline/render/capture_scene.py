@@ -100,7 +100,8 @@ def write_scene_file(
     comment: str,
 ) -> Path:
     root = scene_xml.new_scene()
-    scene_xml.plugin(root, "integrator", {"type": integrator[0], "id": "integrator", "max_depth": integrator[1]})
+    render_type = materials.RENDER_INTEGRATORS[integrator[0]]
+    scene_xml.plugin(root, "integrator", {"type": render_type, "id": "integrator", "max_depth": integrator[1]})
     for sensor_id, intrinsics, pose in views:
         scene_xml.sensor(root, sensor_id, scene_xml.sensor_properties(intrinsics, pose, spp, near_clip))
     lights(root, light, views[0][2], environment)

@@ -128,6 +128,11 @@ INTEGRATORS: dict[str, tuple[str, int]] = {
     "principled": ("prb", 8),
     "volumetric": ("prbvolpath", 32),
 }
+"""The differentiable integrator each model is fitted with, and its path depth."""
+
+RENDER_INTEGRATORS: dict[str, str] = {"prb": "path", "prbvolpath": "volpath"}
+"""The integrator a scene file names for a differentiable one: the same image, and one
+the ``mitsuba`` command-line renderer has (prb and prbvolpath exist only in Python)."""
 
 
 @dataclass(frozen=True)

@@ -3,6 +3,7 @@ runner's cache)."""
 
 import json
 import xml.etree.ElementTree as ET
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -27,7 +28,7 @@ def test_scene_loads_renders_and_lines_up_with_the_photos(run_stages, bird_captu
             if element.tag in ("shape", "bsdf", "medium", "emitter", "sensor"):
                 assert element.get("id"), f"{file.name}: <{element.tag} type={element.get('type')}> has no id"
     assert root.find(".//medium") is None and description["model"] == "principled"
-    assert description["integrator"] == {"type": "prb", "max_depth": 8}
+    assert description["integrator"] == {"type": "path", "max_depth": 8, "differentiable": "prb"}
     # The specimen alone, rendered white on black from a photo's view file, covers its mask.
     name = sorted(views)[3]
     view_scene = mi.load_file(str(folder / description["views"][name]["xml"]))
@@ -47,7 +48,7 @@ def test_scene_loads_renders_and_lines_up_with_the_photos(run_stages, bird_captu
     assert "specimen.bsdf.roughness.value" in params.keys()
 
 
-@pytest.mark.parametrize("model, medium, integrator", [("volumetric", True, "prbvolpath"), ("opaque", False, "prb")])
+@pytest.mark.parametrize("model, medium, integrator", [("volumetric", True, "volpath"), ("opaque", False, "path")])
 def test_each_model_writes_only_what_it_needs(run_stages, bird_capture, mi, model, medium, integrator):
     outputs = run_stages(bird_capture, "scene", f"scene.model={model}")["scene"]
     specimen = ET.parse(outputs["scene_dir"] / "specimen.xml").getroot()
@@ -57,3 +58,21 @@ def test_each_model_writes_only_what_it_needs(run_stages, bird_capture, mi, mode
         assert "spec_trans" not in names and "eta" not in names and "specular" in names
     assert json.loads(outputs["description"].read_text())["integrator"]["type"] == integrator
     mi.load_file(str(outputs["scene"]))
+
+
+def test_the_scene_renders_with_the_mitsuba_command(run_stages, bird_capture, mi, tmp_path):
+    """The scene files name a render integrator the `mitsuba` command has (prb exists
+    only in Python), so a user renders them as they are."""
+    import subprocess
+    import sys
+
+    from pipeline.imaging.photo_io import read_photo
+
+    folder = run_stages(bird_capture, "scene", "scene.spp=1")["scene"]["scene_dir"]
+    view = sorted(folder.glob("view-*.xml"))[0]
+    command = Path(sys.executable).parent / "mitsuba"
+    out = tmp_path / "render.exr"
+    variant = mi.variant()
+    done = subprocess.run([str(command), "-m", variant, "-o", str(out), str(view)], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr + done.stdout
+    assert read_photo(out, "linear").pixels.mean() > 0.01
