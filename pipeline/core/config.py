@@ -21,6 +21,7 @@ import dataclasses
 import functools
 import inspect
 import json
+import math
 import textwrap
 import tomllib
 import types
@@ -130,6 +131,9 @@ def _coerce(key: str, value: Any, hint: Any) -> Any:
     if hint is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{key} = {value!r} has the wrong type: expected a number")
+        if not math.isfinite(value):
+            # NaN passes every comparison a range makes, and no setting means infinity.
+            raise ConfigError(f"{key} = {value!r} is not a finite number: give a number")
         return float(value)
     if hint is int:
         if isinstance(value, bool) or not isinstance(value, int):

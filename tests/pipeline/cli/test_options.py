@@ -93,3 +93,9 @@ def test_help_is_the_field_docstring_with_type_and_default():
     add_options(parser, Options)
     text = parser.format_help()
     assert "A positive rate, or none." in text and "How many steps. (int in [1, inf]; default 10)" in text
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-inf"])
+def test_a_non_finite_number_is_refused(value):
+    with pytest.raises(ConfigError, match="not a finite number"):
+        _parse(["x", f"--rate={value}"])

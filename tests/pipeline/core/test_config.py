@@ -25,6 +25,11 @@ SCHEMA = schema(make_stages())
         (["light.area_size=0"], "light.area_size = 0.0 is out of range: allowed (0, inf]"),
         (["light.area_position=[1, 2]"], "light.area_position = [1, 2] needs exactly 3 items"),
         (["nodot=3"], "override 'nodot=3' must look like section.key=value"),
+        # NaN passes every range check and no setting means infinity: both are refused.
+        (["board.square_mm=nan"], "board.square_mm = nan is not a finite number"),
+        (["board.square_mm=inf"], "board.square_mm = inf is not a finite number"),
+        (["ingest.scale=nan"], "ingest.scale = nan is not a finite number"),
+        (["light.environment_radiance=[-1, nan, inf]"], "light.environment_radiance[1] = nan is not a finite number"),
     ],
 )
 def test_bad_overrides_name_key_value_and_allowed(presets_dir, overrides, message):
