@@ -52,7 +52,7 @@ from pipeline.core.errors import PipelineError
 from pipeline.core.stage import Stage, StageInputs, StageResult
 from pipeline.formats.cameras import read_frame, read_views
 from pipeline.formats.masks import read_masks
-from pipeline.geometry.visual_hull import Grid, View, bounds, hull_field, surface
+from pipeline.geometry.visual_hull import View, bounds, hull_field, sample_hull, surface
 
 
 @dataclass(frozen=True)
@@ -165,9 +165,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     ground = _ground_height(cameras_json) if conf.clip_to_ground else None
     if ground is not None:
         lo[2] = max(lo[2], ground)
-    grid = Grid.around(lo, hi, conf.resolution)
-    centres = grid.centres()
-    field = hull_field(centres, views, conf.carve_tolerance)
+    grid, centres, field = sample_hull(views, lo, hi, conf.resolution, conf.carve_tolerance)
     if ground is not None:
         field = np.minimum(field, centres[:, 2] - ground)
     if conf.close_voxels:

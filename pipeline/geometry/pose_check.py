@@ -11,7 +11,7 @@ import numpy as np
 from pipeline import logger
 from pipeline.camera.model import Intrinsics, Pose
 from pipeline.geometry import turntable
-from pipeline.geometry.visual_hull import Grid, View, bounds, hull_field
+from pipeline.geometry.visual_hull import View, bounds, sample_hull
 
 
 def hull_points(
@@ -26,9 +26,8 @@ def hull_points(
     photos may disagree), and the voxel size. ValueError when the silhouettes do not meet."""
     views = [View(intrinsics[n], poses[n], mask_of[n]) for n in names]
     lo, hi = bounds(views, tolerance)
-    grid = Grid.around(lo, hi, resolution)
-    centres = grid.centres()
-    return centres[hull_field(centres, views, tolerance) > 0], grid.voxel
+    grid, centres, field = sample_hull(views, lo, hi, resolution, tolerance)
+    return centres[field > 0], grid.voxel
 
 
 def silhouette_check(

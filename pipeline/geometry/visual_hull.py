@@ -97,6 +97,16 @@ def hull_field(points: np.ndarray, views: list[View], tolerance: int = 0) -> np.
     return values
 
 
+def sample_hull(
+    views: list[View], lo: np.ndarray, hi: np.ndarray, resolution: int, tolerance: int = 0
+) -> tuple[Grid, np.ndarray, np.ndarray]:
+    """The hull field on a grid of ``resolution`` voxels along the longest side of the
+    box (``lo``, ``hi``): the grid, its voxel centres and the field at them."""
+    grid = Grid.around(lo, hi, resolution)
+    centres = grid.centres()
+    return grid, centres, hull_field(centres, views, tolerance)
+
+
 def convergence_point(poses: Iterable[Pose]) -> np.ndarray:
     """The point nearest to every camera's optical axis: where the photos look."""
     A, b = np.zeros((3, 3)), np.zeros(3)
