@@ -18,6 +18,7 @@ from pipeline.core import progress
 from pipeline.core.cache import StageCache
 from pipeline.core.config import describe_schema, load_config
 from pipeline.core.hashing import tree_size
+from pipeline.core.lock import CaptureLock
 from pipeline.core.runner import PlannedStage, Runner, Selection, summary
 from pipeline.core.sections import schema
 
@@ -42,6 +43,8 @@ class RunOptions:
     """Recompute STAGE (and what is downstream) even if cached."""
     dry_run: bool = False
     """List each stage as cached or to run, with the reason."""
+    no_wait: bool = False
+    """Fail at once when another run holds the capture, instead of waiting for it."""
     json: bool = False
     """Print a machine-readable summary."""
 
@@ -66,6 +69,8 @@ class CleanOptions:
     """Capture folder."""
     keep_latest: bool = False
     """Keep the newest result of each stage."""
+    no_wait: bool = False
+    """Fail at once when a run holds the capture, instead of waiting for it."""
 
 
 @dataclass(frozen=True)
@@ -78,10 +83,10 @@ class ConfigOptions:
     """Preset and overrides."""
 
 
-def make_runner(capture: str, layers: ConfigLayers) -> Runner:
+def make_runner(capture: str, layers: ConfigLayers, wait: bool = True) -> Runner:
     folder = capture_dir(capture)
     stages = registry.registered_stages()
-    return Runner(folder, stages, load_config(schema(stages), folder, layers.preset, layers.set))
+    return Runner(folder, stages, load_config(schema(stages), folder, layers.preset, layers.set), wait=wait)
 
 
 def _describe(item: PlannedStage) -> str:
@@ -91,7 +96,7 @@ def _describe(item: PlannedStage) -> str:
 
 @command("run", RunOptions, "run the stage DAG on a capture, reusing cached results")
 def run(options: RunOptions) -> int:
-    runner = make_runner(options.capture, options.config)
+    runner = make_runner(options.capture, options.config, wait=not options.no_wait)
     selection = Selection(start=options.start, until=options.until, only=options.only, force=options.force)
     if options.dry_run:
         plan = runner.plan(selection)
@@ -165,16 +170,18 @@ def status(options: StatusOptions) -> int:
 
 @command("clean", CleanOptions, "delete cached results (never output/)")
 def clean(options: CleanOptions) -> int:
-    cache = StageCache(capture_dir(options.capture))
+    folder = capture_dir(options.capture)
+    cache = StageCache(folder)
     before = tree_size(cache.state_dir) if cache.state_dir.is_dir() else 0
-    for leftover in cache.leftovers():
-        shutil.rmtree(leftover)
-    if options.keep_latest:
-        for stage in cache.stages():
-            for entry in cache.entries(stage)[:-1]:
-                cache.remove(entry)
-    elif cache.root.is_dir():
-        shutil.rmtree(cache.root)
+    with CaptureLock(folder, "pipeline clean", wait=not options.no_wait):
+        for leftover in cache.leftovers():
+            shutil.rmtree(leftover)
+        if options.keep_latest:
+            for stage in cache.stages():
+                for entry in cache.entries(stage)[:-1]:
+                    cache.remove(entry)
+        elif cache.root.is_dir():
+            shutil.rmtree(cache.root)
     after = tree_size(cache.state_dir) if cache.state_dir.is_dir() else 0
     logger.info("freed %.1f MB in %s", (before - after) / 1e6, cache.state_dir)
     return 0

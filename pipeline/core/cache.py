@@ -11,10 +11,14 @@ Layout under ``CAPTURE/.pipeline/``::
 A result is visible only once its folder has been renamed to ``<key>``, which
 happens after the stage returned and its status.json was written; the rename is
 atomic, so a crash or SIGKILL at any moment leaves either no entry or a whole one.
+status.json lists every file of the entry with its size and SHA-256, and a
+result is reused only when its files still match: an entry damaged later (a file
+deleted or edited, status.json truncated) is recomputed with a warning.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
@@ -23,10 +27,37 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from pipeline import logger
 from pipeline.core.fsutil import atomic_write_text
 
 STATUS_FILE = "status.json"
 LOG_FILE = "log.txt"
+REQUIRED_KEYS = {"outputs", "contents", "finished", "seconds", "components"}
+
+
+def _sha256(path: Path) -> str:
+    with path.open("rb") as f:
+        return hashlib.file_digest(f, "sha256").hexdigest()
+
+
+def contents(folder: Path) -> dict[str, list]:
+    """Every file under ``folder`` but status.json: relative path -> [size, sha256]."""
+    return {
+        p.relative_to(folder).as_posix(): [p.stat().st_size, _sha256(p)]
+        for p in sorted(folder.rglob("*"))
+        if p.is_file() and p.name != STATUS_FILE
+    }
+
+
+def damage(entry: "Entry") -> str | None:
+    """What is wrong with a committed entry's files, or None when they are intact."""
+    for rel, (size, digest) in entry.status["contents"].items():
+        path = entry.path / rel
+        if not path.is_file():
+            return f"{rel} is missing"
+        if path.stat().st_size != size or _sha256(path) != digest:
+            return f"{rel} has changed"
+    return None
 
 
 @dataclass(frozen=True)
@@ -56,11 +87,26 @@ class StageCache:
         status_file = path / STATUS_FILE
         if not status_file.is_file():
             return None
-        status = json.loads(status_file.read_text())
+        try:
+            status = json.loads(status_file.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError):
+            logger.warning("cache entry %s has a damaged %s; it will be recomputed", path, STATUS_FILE)
+            return None
+        if not isinstance(status, dict) or not REQUIRED_KEYS <= status.keys():
+            logger.warning("cache entry %s has an incomplete %s; it will be recomputed", path, STATUS_FILE)
+            return None
         return Entry(stage=stage, key=path.name, path=path, status=status)
 
     def lookup(self, stage: str, key: str) -> Entry | None:
-        return self._read(stage, self.root / stage / key)
+        """The entry of ``stage`` for ``key`` when it exists and its files are intact."""
+        entry = self._read(stage, self.root / stage / key)
+        if entry is None:
+            return None
+        problem = damage(entry)
+        if problem:
+            logger.warning("cache entry %s is damaged (%s); it will be recomputed", entry.path, problem)
+            return None
+        return entry
 
     def entries(self, stage: str) -> list[Entry]:
         """Committed entries of a stage, oldest first."""
@@ -85,6 +131,7 @@ class StageCache:
 
     def commit(self, tmp: Path, stage: str, key: str, status: dict[str, Any]) -> Entry:
         """Write status.json, then atomically publish ``tmp`` as the entry for ``key``."""
+        status = {**status, "contents": contents(tmp)}
         atomic_write_text(tmp / STATUS_FILE, json.dumps(status, indent=2, sort_keys=True))
         final = self.root / stage / key
         if final.exists():
@@ -108,6 +155,14 @@ class StageCache:
 
     def remove(self, entry: Entry) -> None:
         shutil.rmtree(entry.path)
+
+    def remove_unfinished(self) -> int:
+        """Delete the folders of runs that never committed (killed); the caller holds
+        the capture's lock, so none of them belongs to a live run. Returns how many."""
+        unfinished = [p for stage_dir in self.root.glob("*") for p in stage_dir.glob(".*") if p.is_dir()]
+        for path in unfinished:
+            shutil.rmtree(path)
+        return len(unfinished)
 
     def leftovers(self) -> list[Path]:
         """Folders of runs that never committed (killed runs) and of failed runs."""

@@ -12,6 +12,7 @@ import json
 import os
 from pathlib import Path
 
+from pipeline import logger
 from pipeline.core.fsutil import atomic_write_text
 
 
@@ -22,7 +23,10 @@ class FileHasher:
         self.memo_path = memo_path
         self._memo: dict[str, dict] = {}
         if memo_path.is_file():
-            self._memo = json.loads(memo_path.read_text())
+            try:
+                self._memo = json.loads(memo_path.read_text())
+            except (json.JSONDecodeError, UnicodeDecodeError):
+                logger.warning("%s is damaged; hashing the capture files again", memo_path)
         self._dirty = False
         self.files_read = 0
 

@@ -12,8 +12,8 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import os
 import platform
-import shutil
 import time
 from dataclasses import dataclass, field
 from importlib import metadata
@@ -26,6 +26,8 @@ from pipeline.core.config import Config, section_dict
 from pipeline.core.errors import ConfigError, PipelineError
 from pipeline.core.fsutil import atomic_write_text
 from pipeline.core.hashing import FileHasher, glob_capture_files
+from pipeline.core.lock import CaptureLock
+from pipeline.core.publish import check_output_path, publish
 from pipeline.core.stage import Stage, StageInputs
 
 Action = Literal["run", "cached", "disabled"]
@@ -176,15 +178,20 @@ def library_versions() -> dict[str, str]:
 class Runner:
     """Plans and executes ``stages`` on one capture with one validated config."""
 
-    def __init__(self, capture_dir: Path, stages: Sequence[Stage], config: Config):
+    def __init__(self, capture_dir: Path, stages: Sequence[Stage], config: Config, wait: bool = True):
         if not capture_dir.is_dir():
             raise ConfigError(f"capture folder {capture_dir} does not exist")
+        check_output_path(capture_dir)
         self.capture_dir = capture_dir
         self.stages = topological_order(stages)
         self.by_name = {s.name: s for s in self.stages}
         self.config = config
+        self.wait = wait
+        """Whether run() waits for another run on the capture to finish, or fails."""
         self.cache = StageCache(capture_dir)
         self.hasher = FileHasher(self.cache.state_dir / "file_hashes.json")
+        self.keys: dict[str, str] = {}
+        """Every stage's cache key under the current config, filled by plan()."""
 
     # -- planning -----------------------------------------------------------
 
@@ -234,7 +241,7 @@ class Runner:
             for forced_name in set(chosen) & targets:
                 forced.setdefault(forced_name, f"--force {name}")
 
-        keys: dict[str, str] = {}
+        keys = self.keys
         planned: list[PlannedStage] = []
         for stage in self.stages:
             components = self._components(stage, keys)
@@ -259,12 +266,21 @@ class Runner:
                 reason = explain_change(previous[-1].status["components"], components) if previous else "never run"
             if stage.name in targets or stage.name in must_be_cached:
                 planned.append(PlannedStage(stage, key, components, action, reason, entry))
-        self.hasher.save()
+        if os.access(self.capture_dir, os.W_OK):
+            self.hasher.save()  # a memo only: status and --dry-run work on a read-only capture
         return planned
 
     # -- execution ----------------------------------------------------------
 
     def run(self, selection: Selection = Selection(), on_stage_done=None) -> list[PlannedStage]:
+        """Run what the selection needs while holding the capture's lock, then publish."""
+        with CaptureLock(self.capture_dir, "pipeline run", wait=self.wait):
+            removed = self.cache.remove_unfinished()
+            if removed:
+                logger.info("removed %d unfinished result folder(s) of killed runs", removed)
+            return self._run_locked(selection, on_stage_done)
+
+    def _run_locked(self, selection: Selection, on_stage_done) -> list[PlannedStage]:
         plan = self.plan(selection)
         results: dict[str, Entry] = {}
         for item in plan:
@@ -280,7 +296,7 @@ class Runner:
                 results[item.stage.name] = item.entry
             if on_stage_done is not None:
                 on_stage_done(item)
-        self._export(plan)
+        self._publish(results)
         self._record_run(plan)
         return plan
 
@@ -354,34 +370,23 @@ class Runner:
                 needed.setdefault(up, {})[output] = results[up].outputs[output]
         return needed
 
-    def _export(self, plan: list[PlannedStage]) -> None:
-        """Copy the exported outputs of this run's results to CAPTURE/output/."""
-        out_dir = self.capture_dir / "output"
-        manifest_file = out_dir / "manifest.json"
-        manifest = json.loads(manifest_file.read_text()) if manifest_file.is_file() else {}
-        for item in plan:
-            if item.entry is None or not item.stage.exports:
+    def _publish(self, results: dict[str, Entry]) -> None:
+        """Publish to CAPTURE/output/ the exports of every stage whose result is valid
+        for the current config: this run's, or cached ones outside its selection (so
+        ``--until cleanup`` after a full run keeps uv's mesh)."""
+        files: dict[str, tuple[Path, dict[str, Any]]] = {}
+        for stage in self.stages:
+            if not stage.exports or stage.enabled is not None and not stage.enabled(self.config[stage.name]):
                 continue
-            for name in item.stage.exports:
-                source = item.entry.outputs[name]
-                target = out_dir / source.name
-                record = {"stage": item.stage.name, "key": item.key, "path": target.name}
-                # A forced rerun keeps its key but may change the content.
-                if item.action == "cached" and manifest.get(name) == record and target.exists():
-                    continue
-                out_dir.mkdir(exist_ok=True)
-                staging = out_dir / f".{target.name}.tmp"
-                if source.is_dir():
-                    shutil.rmtree(staging, ignore_errors=True)
-                    shutil.copytree(source, staging)
-                    if target.exists():
-                        shutil.rmtree(target)
-                else:
-                    shutil.copy2(source, staging)
-                staging.replace(target)
-                manifest[name] = record
-        if manifest:
-            atomic_write_text(manifest_file, json.dumps(manifest, indent=2, sort_keys=True))
+            entry = results.get(stage.name) or self.cache.lookup(stage.name, self.keys[stage.name])
+            if entry is None:
+                continue
+            for name in stage.exports:
+                source = entry.outputs[name]
+                record = {"stage": stage.name, "output": name, "key": entry.key, "finished": entry.finished}
+                files[source.name] = (source, record)
+        if publish(self.capture_dir, files):
+            logger.info("published %d file(s) to %s", len(files), self.capture_dir / "output")
 
     def _record_run(self, plan: list[PlannedStage]) -> None:
         runs = self.cache.state_dir / "runs"

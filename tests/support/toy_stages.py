@@ -11,13 +11,20 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
+import textwrap
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pipeline.core.config import Range
+from pipeline.core.config import Range, load_config
 from pipeline.core.errors import PipelineError
+from pipeline.core.runner import PlannedStage, Runner, Selection
+from pipeline.core.sections import schema
 from pipeline.core.stage import Stage, StageInputs, StageResult
+
+REPOSITORY = Path(__file__).resolve().parents[2]
 
 RUNS: list[str] = []
 
@@ -94,3 +101,28 @@ def make_capture(root: Path, numbers=(1.0, 2.0, 3.0)) -> Path:
     for i, n in enumerate(numbers):
         (capture / "images" / f"{i:03d}.txt").write_text(str(n))
     return capture
+
+
+def toy_runner(
+    capture: Path, presets_dir: Path, *overrides: str, version: int = 1, wait: bool = True, preset: str = "standard"
+) -> Runner:
+    stages = make_stages(ingest_version=version)
+    config = load_config(schema(stages), capture, preset, list(overrides), presets_dir)
+    return Runner(capture, stages, config, wait=wait)
+
+
+def run_toy(
+    capture: Path, presets_dir: Path, *overrides: str, selection: Selection = Selection(), version: int = 1
+) -> dict[str, PlannedStage]:
+    """Run the toy DAG in this process; the plan by stage name. ``RUNS`` then lists what ran."""
+    RUNS.clear()
+    plan = toy_runner(capture, presets_dir, *overrides, version=version).run(selection)
+    return {p.stage.name: p for p in plan}
+
+
+def run_python(script: str, timeout: float = 60) -> subprocess.CompletedProcess:
+    """Run ``script`` in a fresh interpreter from the repository root (where ``tests``
+    imports), for runs that must be killed or hold a lock in another process."""
+    return subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(script)], capture_output=True, text=True, cwd=REPOSITORY, timeout=timeout
+    )

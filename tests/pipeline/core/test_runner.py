@@ -12,7 +12,7 @@ from pipeline.core.config import load_config
 from pipeline.core.errors import ConfigError
 from pipeline.core.runner import Runner, Selection
 from pipeline.core.sections import schema
-from tests.support.toy_stages import RUNS, make_capture, make_stages
+from tests.support.toy_stages import RUNS, make_capture, make_stages, run_toy, toy_runner
 
 
 @pytest.fixture(autouse=True)
@@ -20,16 +20,12 @@ def clear_runs():
     RUNS.clear()
 
 
-def runner(capture: Path, presets_dir: Path, *overrides: str, version: int = 1, preset="standard"):
-    stages = make_stages(ingest_version=version)
-    config = load_config(schema(stages), capture, preset, list(overrides), presets_dir)
-    return Runner(capture, stages, config)
+def runner(capture: Path, presets_dir: Path, *overrides: str, version: int = 1, preset: str = "standard"):
+    return toy_runner(capture, presets_dir, *overrides, version=version, preset=preset)
 
 
 def run(capture, presets_dir, *overrides, selection=Selection(), version=1):
-    RUNS.clear()
-    plan = runner(capture, presets_dir, *overrides, version=version).run(selection)
-    return {p.stage.name: p for p in plan}
+    return run_toy(capture, presets_dir, *overrides, selection=selection, version=version)
 
 
 def test_first_run_computes_everything_and_exports(tmp_path, presets_dir):
@@ -38,7 +34,7 @@ def test_first_run_computes_everything_and_exports(tmp_path, presets_dir):
     assert RUNS == ["ingest", "double", "meta", "report"]
     assert (capture / "output" / "report.txt").read_text() == "result 12.0\n"
     manifest = json.loads((capture / "output" / "manifest.json").read_text())
-    assert manifest["report"]["key"] == plan["report"].key
+    assert manifest["report.txt"]["key"] == plan["report"].key
     assert plan["ingest"].metrics == {"files": 3}
 
 

@@ -1,0 +1,92 @@
+"""One writer per capture: an advisory lock on ``CAPTURE/.pipeline/lock``.
+
+``pipeline run``, ``clean`` and ``batch`` hold it while they change the cache or
+output/. The lock is an ``flock`` on the file, so the kernel releases it when its
+holder dies: a lock left by a killed run is never stale, the next run simply
+gets it (and says whose it was, from the holder record written into the file).
+Commands that only read (``status``, ``run --dry-run``) take no lock.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import os
+import socket
+import time
+from pathlib import Path
+from types import TracebackType
+
+from pipeline import logger
+from pipeline.core.errors import PipelineError
+
+LOCK_FILE = "lock"
+
+
+class CaptureBusy(PipelineError):
+    """Another run holds the capture's lock and the caller chose not to wait."""
+
+
+def _holder_text(record: dict) -> str:
+    started = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(record.get("started", 0)))
+    return f"pid {record.get('pid')} on {record.get('host')} ({record.get('command')}, since {started})"
+
+
+class CaptureLock:
+    """Context manager holding a capture's lock; waits for it unless ``wait`` is False."""
+
+    def __init__(self, capture_dir: Path, command: str, wait: bool = True):
+        self.path = capture_dir / ".pipeline" / LOCK_FILE
+        self.command = command
+        self.wait = wait
+        self._fd: int | None = None
+
+    def _read_holder(self) -> dict:
+        try:
+            return json.loads(self.path.read_text() or "{}")
+        except json.JSONDecodeError:
+            return {}  # written by a holder killed mid-write: nothing to report
+
+    def __enter__(self) -> "CaptureLock":
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        except PermissionError as error:
+            raise PipelineError(
+                f"cannot write to {self.path.parent}: the capture folder must be writable to run stages "
+                "(copy it somewhere writable, or fix its permissions)"
+            ) from error
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = _holder_text(self._read_holder())
+            if not self.wait:
+                os.close(fd)
+                raise CaptureBusy(
+                    f"{self.path.parents[1]} is in use by {holder}: wait for it to finish, "
+                    "or run again without --no-wait to queue behind it"
+                ) from None
+            logger.warning("%s is in use by %s; waiting for it to finish", self.path.parents[1], holder)
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        previous = self._read_holder()
+        if previous:
+            # The file keeps its last holder's record; a record left behind means
+            # that holder died without releasing (killed), and we took over.
+            logger.warning("took over the lock of %s, which ended without releasing it", _holder_text(previous))
+        record = {"pid": os.getpid(), "host": socket.gethostname(), "command": self.command, "started": time.time()}
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, json.dumps(record).encode(), 0)
+        self._fd = fd
+        return self
+
+    def __exit__(
+        self, kind: type[BaseException] | None, error: BaseException | None, trace: TracebackType | None
+    ) -> None:
+        assert self._fd is not None
+        os.ftruncate(self._fd, 0)  # an empty record: released in good order
+        fcntl.flock(self._fd, fcntl.LOCK_UN)
+        os.close(self._fd)
+        self._fd = None
+
+
+__all__ = ["CaptureBusy", "CaptureLock"]
