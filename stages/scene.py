@@ -57,7 +57,7 @@ import numpy as np
 import trimesh
 
 from pipeline import logger
-from pipeline.core.config import Range
+from pipeline.core.config import Range, input_file_path
 from pipeline.core.errors import PipelineError
 from pipeline.core.sections import CaptureSection, LightSection
 from pipeline.core.stage import Stage, StageInputs, StageResult
@@ -108,12 +108,8 @@ def _environment_file(light: LightSection, capture_dir: Path, out_dir: Path) -> 
     """The environment map copied into the scene folder, its name there; None for none."""
     if not light.environment_map:
         return None
-    source = capture_dir / light.environment_map
-    if not source.is_file():
-        raise PipelineError(
-            f"light.environment_map = '{light.environment_map}' is not a file in "
-            f'{capture_dir}: fix the path or set it to ""'
-        )
+    # Config validation checked that the file exists and where it may be.
+    source = input_file_path(capture_dir, light.environment_map)
     environment = "environment" + source.suffix
     shutil.copy2(source, out_dir / environment)
     return environment

@@ -9,6 +9,12 @@ an ``Annotated[..., Range(lo, hi)]`` bound. The layers are, lowest first:
 3. ``CAPTURE/capture.toml``,
 4. ``-s section.key=value`` overrides from the command line.
 
+A string setting annotated ``InputFile()`` names a file a stage reads. It is
+relative to the capture folder and must lie inside it, unless it was given on
+the command line: a capture.toml cannot make the pipeline read
+``../../../../etc/passwd``. The file's content is part of the cache key of every
+stage whose config holds the setting (pipeline.core.runner).
+
 Everything is validated before any stage runs: unknown sections or keys, wrong
 types and out-of-range values raise :class:`ConfigError` naming the key, the
 value and what is allowed.
@@ -57,6 +63,43 @@ class Range:
         lo = "-inf" if self.lo is None else f"{self.lo:g}"
         hi = "inf" if self.hi is None else f"{self.hi:g}"
         return f"{'(' if self.exclusive_lo or self.lo is None else '['}{lo}, {hi}]"
+
+
+@dataclass(frozen=True)
+class InputFile:
+    """Marks a string setting as the path of an input file (empty: none)."""
+
+
+def input_file_settings(section: Any) -> dict[str, str]:
+    """The non-empty ``InputFile`` settings of a section instance: field -> value."""
+    hints = typing.get_type_hints(type(section), include_extras=True)
+    return {
+        name: value
+        for name, hint in hints.items()
+        if typing.get_origin(hint) is Annotated
+        and any(isinstance(a, InputFile) for a in typing.get_args(hint)[1:])
+        and (value := getattr(section, name))
+    }
+
+
+def input_file_path(capture_dir: Path, value: str) -> Path:
+    """Where an ``InputFile`` setting points: absolute as given, else under the capture."""
+    return Path(value) if Path(value).is_absolute() else capture_dir / value
+
+
+def _check_input_files(name: str, section: Any, capture_dir: Path, origins: Mapping[str, str]) -> None:
+    for key, value in input_file_settings(section).items():
+        path = input_file_path(capture_dir, value)
+        origin = origins.get(key, "defaults")
+        if not origin.startswith("-s ") and not path.resolve().is_relative_to(capture_dir.resolve()):
+            raise ConfigError(
+                f"{name}.{key} = {value!r} points outside the capture folder {capture_dir}: "
+                f"copy the file into the capture folder, or give it on the command line (-s {name}.{key}=PATH)"
+            )
+        if not path.is_file():
+            raise ConfigError(
+                f'{name}.{key} = {value!r} is not a file (looked for {path}): fix the path or set it to ""'
+            )
 
 
 @functools.cache
@@ -240,6 +283,7 @@ def load_config(
         layers.append(("-s " + " -s ".join(overrides), override_layer))
 
     merged: dict[str, dict[str, Any]] = {name: {} for name in schema}
+    origins: dict[str, dict[str, str]] = {name: {} for name in schema}
     for source, layer in layers:
         for section, values in layer.items():
             if section not in schema:
@@ -249,11 +293,14 @@ def load_config(
             if not isinstance(values, dict):
                 raise ConfigError(f"{source}: {section} must be a [section] table")
             merged[section].update(values)
+            origins[section].update(dict.fromkeys(values, source))
 
     sections = {}
     for name, cls in schema.items():
         try:
             sections[name] = build_section(name, cls, merged[name])
+            if capture_dir is not None:
+                _check_input_files(name, sections[name], capture_dir, origins[name])
         except ConfigError as e:
             origin = [s for s, layer in layers if name in layer]
             raise ConfigError(f"{e} (set in {', '.join(origin) or 'defaults'})") from None
@@ -302,11 +349,14 @@ def toml_section(name: str, section: Any, documented: bool = True, commented: bo
 __all__ = [
     "Config",
     "ConfigError",
+    "InputFile",
     "Range",
     "build_section",
     "describe_schema",
     "describe_type",
     "field_docs",
+    "input_file_path",
+    "input_file_settings",
     "load_config",
     "parse_override",
     "preset_names",

@@ -22,7 +22,7 @@ from typing import Any, Literal, Sequence
 
 from pipeline import logger
 from pipeline.core.cache import LOG_FILE, Entry, StageCache
-from pipeline.core.config import Config, section_dict
+from pipeline.core.config import Config, input_file_path, input_file_settings, section_dict
 from pipeline.core.errors import ConfigError, PipelineError
 from pipeline.core.fsutil import atomic_write_text
 from pipeline.core.hashing import FileHasher, glob_capture_files
@@ -159,6 +159,9 @@ def explain_change(old: dict[str, Any], new: dict[str, Any]) -> str:
         if names:
             more = f" (+{len(names) - 3} more)" if len(names) > 3 else ""
             reasons.append(f"input {verb}: {', '.join(names[:3])}{more}")
+    for setting, digest in new["setting_files"].items():
+        if old.get("setting_files", {}).get(setting) != digest:
+            reasons.append(f"the file {setting} names changed")
     for up, key in new["upstream"].items():
         if old["upstream"].get(up) != key:
             reasons.append(f"upstream {up} changed")
@@ -203,6 +206,11 @@ class Runner:
 
     def _components(self, stage: Stage, upstream_keys: dict[str, str]) -> dict[str, Any]:
         files = glob_capture_files(self.capture_dir, stage.reads)
+        setting_files = {
+            f"{section}.{key}": self.hasher.hash(input_file_path(self.capture_dir, value))
+            for section in (stage.name, *stage.shared)
+            for key, value in input_file_settings(self.config[section]).items()
+        }
         return {
             "stage": stage.name,
             "version": stage.version,
@@ -210,6 +218,7 @@ class Runner:
             "shared": {name: section_dict(self.config[name]) for name in stage.shared},
             "upstream": {up: upstream_keys[up] for up in stage.upstream},
             "files": {f.relative_to(self.capture_dir).as_posix(): self.hasher.hash(f) for f in files},
+            "setting_files": setting_files,
         }
 
     def plan(self, selection: Selection = Selection()) -> list[PlannedStage]:

@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Annotated, Literal, Sequence
 
-from pipeline.core.config import Range
+from pipeline.core.config import InputFile, Range
 from pipeline.core.stage import Stage
 
 Vec3 = tuple[float, float, float]
@@ -64,8 +64,9 @@ class LightSection:
 
     environment_radiance: tuple[float, float, float] = (0.5, 0.5, 0.5)
     """Constant environment radiance (linear RGB), used when environment_map is empty."""
-    environment_map: str = ""
-    """Path of an equirectangular EXR, relative to the capture folder; empty for none."""
+    environment_map: Annotated[str, InputFile()] = ""
+    """Path of an equirectangular EXR, relative to the capture folder (a file outside
+    it only from the command line); empty for none."""
     area_light: bool = True
     """Whether a rectangular area light (a softbox) is part of the rig."""
     area_position: Vec3 = (0.6, 0.8, 0.6)

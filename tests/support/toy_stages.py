@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pipeline.core.config import Range, load_config
+from pipeline.core.config import InputFile, Range, input_file_path, load_config
 from pipeline.core.errors import PipelineError
 from pipeline.core.runner import PlannedStage, Runner, Selection
 from pipeline.core.sections import schema
@@ -37,6 +37,8 @@ class IngestConfig:
     """Factor applied to the sum."""
     fail: Literal["no", "raise", "user", "sigkill"] = "no"
     """Make the stage fail (a bug, a user error, a kill), to test crash safety."""
+    extra: Annotated[str, InputFile()] = ""
+    """A file with one more number to add (an input named by a setting)."""
 
 
 @dataclass(frozen=True)
@@ -54,7 +56,8 @@ class EmptyConfig:
 
 def ingest(conf: IngestConfig, inputs: StageInputs, out_dir: Path) -> StageResult:
     RUNS.append("ingest")
-    total = sum(float(p.read_text()) for p in inputs.files) * conf.scale
+    files = [*inputs.files, *([input_file_path(inputs.capture_dir, conf.extra)] if conf.extra else [])]
+    total = sum(float(p.read_text()) for p in files) * conf.scale
     (out_dir / "partial.txt").write_text("half-written")
     if conf.fail == "raise":
         raise RuntimeError("ingest failed on purpose")

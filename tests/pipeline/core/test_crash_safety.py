@@ -6,6 +6,7 @@ import time
 import pytest
 
 from pipeline.core.cache import STATUS_FILE
+from pipeline.core.errors import ConfigError
 from pipeline.core.lock import CaptureBusy, CaptureLock
 from pipeline.core.runner import Selection
 from tests.support.toy_stages import RUNS, make_capture, run_python, run_toy, toy_runner
@@ -166,3 +167,35 @@ def test_a_lock_left_by_a_killed_run_is_taken_over(tmp_path, presets_dir, caplog
     with CaptureLock(capture, "again", wait=False):
         pass  # released in good order: no takeover the next time
     assert caplog.text.count("took over") == 1
+
+
+def test_a_file_named_by_a_setting_is_part_of_the_cache_key(tmp_path, presets_dir):
+    capture = make_capture(tmp_path)
+    (capture / "extra.txt").write_text("4")
+    run_toy(capture, presets_dir, "ingest.extra='extra.txt'")
+    assert published(capture)[0] == "result 20.0\n"
+    (capture / "extra.txt").write_text("6")
+    plan = run_toy(capture, presets_dir, "ingest.extra='extra.txt'")
+    assert plan["ingest"].reason == "the file ingest.extra names changed"
+    assert published(capture)[0] == "result 24.0\n"
+
+
+@pytest.mark.parametrize("value", ["/etc/passwd", "../../../../etc/passwd", "../outside.txt"])
+def test_capture_toml_cannot_name_a_file_outside_the_capture(tmp_path, presets_dir, value):
+    capture = make_capture(tmp_path)
+    (tmp_path / "outside.txt").write_text("1")
+    (capture / "capture.toml").write_text(f"[ingest]\nextra = {value!r}\n")
+    with pytest.raises(
+        ConfigError, match=r"ingest.extra = .* points outside the capture folder .*-s ingest.extra=PATH"
+    ):
+        toy_runner(capture, presets_dir)
+    assert not (capture / ".pipeline").exists()
+
+
+def test_the_command_line_may_name_a_file_outside_the_capture(tmp_path, presets_dir):
+    capture = make_capture(tmp_path)
+    (tmp_path / "outside.txt").write_text("1")
+    run_toy(capture, presets_dir, f"ingest.extra='{tmp_path / 'outside.txt'}'")
+    assert published(capture)[0] == "result 14.0\n"
+    with pytest.raises(ConfigError, match=r"ingest.extra = 'missing.txt' is not a file"):
+        toy_runner(capture, presets_dir, "ingest.extra='missing.txt'")
