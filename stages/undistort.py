@@ -22,14 +22,14 @@ linear colour space, and float files, are taken as linear.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Annotated
 
 import numpy as np
 
 from pipeline import logger
-from pipeline.camera.model import Intrinsics, ideal_pinhole, undistort
+from pipeline.camera.model import Intrinsics, ideal_pinhole, scaled, undistort
 from pipeline.core import progress
 from pipeline.core.config import Range
 from pipeline.core.errors import PipelineError
@@ -40,6 +40,7 @@ from pipeline.imaging.photo_io import (
     PHOTO_SUFFIXES,
     Encoding,
     camera_setting,
+    read_metadata,
     read_photo,
     to_uint8,
     write_image,
@@ -71,6 +72,24 @@ def _output_names(paths: list[Path]) -> dict[Path, str]:
     return {p: p.stem for p in paths}
 
 
+def _decode_reduction(size: tuple[int, int], target: dict) -> int:
+    """The largest power of two a photo of ``size`` can be reduced by while decoding
+    and still have at least the working resolution: a 12000 px photo for a 1280 px
+    working size is decoded at 1500 px, never whole."""
+    reduce = 1
+    while size[0] // (2 * reduce) >= target["width"] and size[1] // (2 * reduce) >= target["height"]:
+        reduce *= 2
+    return reduce
+
+
+def decoded_camera(source: Intrinsics, reduce: int, size: tuple[int, int]) -> Intrinsics:
+    """The camera of a photo box-filtered by ``reduce`` while decoding, whose upright
+    size is ``size`` (the decoder drops the last rows and columns of an incomplete box)."""
+    if reduce == 1:
+        return source
+    return replace(scaled(source, 1 / reduce, exact=True), width=size[0], height=size[1])
+
+
 def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     groups = read_camera_groups(inputs.upstream["calibrate"]["calibration"])
     setting_index = {group["camera"]: i for i, group in enumerate(groups)}
@@ -91,18 +110,20 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     for folder, paths in folders.items():
         names = _output_names(paths)
         for path in progress.track(paths, f"undistorting {folder}/"):
-            photo = read_photo(path, conf.input_encoding)
+            metadata, size = read_metadata(path)
             if folder == "images":
                 index = image_group[path.name]
             else:
-                setting = camera_setting(photo.metadata, photo.size)
+                setting = camera_setting(metadata, size)
                 if setting not in setting_index:
                     raise PipelineError(
                         f"background/{path.name} was taken with {setting}, which no photo in images/ "
                         "uses: shoot the plate with the same camera, zoom and size, or remove it"
                     )
                 index = setting_index[setting]
-            source = Intrinsics.from_json(cameras[index]["source"])
+            reduce = _decode_reduction(size, cameras[index]["intrinsics"])
+            photo = read_photo(path, conf.input_encoding, reduce)
+            source = decoded_camera(Intrinsics.from_json(cameras[index]["source"]), reduce, photo.size)
             target = Intrinsics.from_json(cameras[index]["intrinsics"])
             linear = undistort(photo.pixels, source, target)
             prefix = "" if folder == "images" else "background_"
@@ -137,7 +158,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="undistort",
-    version=2,
+    version=3,
     config=Config,
     main=main,
     needs=("calibrate.calibration",),

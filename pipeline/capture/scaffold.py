@@ -84,6 +84,8 @@ def _capture_toml(description: str, rig: str, stages: tuple[Stage, ...]) -> str:
 
 
 def create_capture(path: Path, description: str, rig: str, stages: tuple[Stage, ...]) -> Path:
+    if path.exists() and not path.is_dir():
+        raise ConfigError(f"{path} is a file: name a new folder for the capture")
     if path.exists() and any(path.iterdir()):
         raise ConfigError(f"{path} already exists and is not empty: choose a new folder for the capture")
     for folder in FOLDERS:

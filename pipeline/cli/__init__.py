@@ -2,7 +2,9 @@
 one dataclass (pipeline.cli.options), registered in pipeline.cli.registry.
 
 Exit codes: 0 success, 1 a stage failed (or another problem in the data), 2 bad
-usage or configuration (nothing ran).
+usage or configuration (nothing ran). A problem the user can fix ends in one
+message (and, with ``--json``, a JSON error object on stdout); ``--debug`` adds
+its traceback.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug messages")
+    parser.add_argument("--debug", action="store_true", help="show the traceback of every error")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, entry in COMMANDS.items():
         add_options(sub.add_parser(name, help=entry.help, description=entry.options.__doc__), entry.options)
@@ -51,6 +54,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         options = parse_options(entry.options, args, args.command)
         return entry.run(options)
     except PipelineError as e:
+        if args.debug:
+            raise
         logger.error("%s", e)
         if getattr(args, "json", False):
             print(json.dumps({"error": str(e), "exit_code": e.exit_code}))

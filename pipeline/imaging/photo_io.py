@@ -26,7 +26,9 @@ def srgb_encode(linear: np.ndarray) -> np.ndarray:
 
 
 def srgb_decode(encoded: np.ndarray) -> np.ndarray:
-    return np.where(encoded <= 0.04045, encoded / 12.92, np.power((encoded + 0.055) / 1.055, 2.4))
+    return np.where(encoded <= 0.04045, encoded / 12.92, np.power((encoded + 0.055) / 1.055, 2.4)).astype(
+        encoded.dtype
+    )
 
 
 def to_uint8(linear: np.ndarray) -> np.ndarray:
@@ -75,28 +77,53 @@ def read_metadata(path: Path) -> tuple[dict[str, object], tuple[int, int]]:
     return metadata, (width, height)
 
 
-def read_photo(path: Path, encoding: Encoding = "auto") -> Photo:
-    """Decode ``path`` to upright linear RGB; a file OpenImageIO cannot read is a user error."""
-    buf = oiio.ImageBuf(str(path))
-    if buf.has_error or not buf.init_spec(str(path), 0, 0):
-        raise PipelineError(f"{path}: cannot read this image ({buf.geterror()}); remove or replace it")
-    spec = buf.spec()
+STRIP_ROWS = 64
+"""Scanlines decoded at a time: memory for a photo stays that strip plus the result."""
+
+
+def _orient(pixels: np.ndarray, orientation: int) -> np.ndarray:
+    """Pixels as stored -> upright, for EXIF orientations 1-8."""
+    if orientation in (5, 6, 7, 8):
+        pixels = np.swapaxes(pixels, 0, 1)  # transpose: 5 as is, the others one flip more
+        flips = {5: (), 6: (1,), 7: (0, 1), 8: (0,)}[orientation]
+    else:
+        flips = {1: (), 2: (1,), 3: (0, 1), 4: (0,)}.get(orientation, ())
+    return np.flip(pixels, flips) if flips else pixels
+
+
+def read_photo(path: Path, encoding: Encoding = "auto", reduce: int = 1) -> Photo:
+    """Decode ``path`` to upright linear RGB, box-filtered down by the integer factor
+    ``reduce`` while decoding: scanlines are read a strip at a time, so a huge photo is
+    never held whole at full size. A file OpenImageIO cannot read is a user error."""
+    image = oiio.ImageInput.open(str(path))
+    if image is None:
+        raise PipelineError(f"{path}: cannot read this image ({oiio.geterror()}); remove or replace it")
+    spec = image.spec()
     metadata = {attribute.name: attribute.value for attribute in spec.extra_attribs}
-    buf = oiio.ImageBufAlgo.reorient(buf)
-    pixels = buf.get_pixels(oiio.FLOAT)
-    if pixels is None or buf.has_error:
-        raise PipelineError(f"{path}: the image data is damaged ({buf.geterror()}); remove or replace it")
-    pixels = np.asarray(pixels, dtype=np.float32)
-    if pixels.ndim == 2:
-        pixels = pixels[..., None]
-    channels = pixels.shape[2]
-    pixels = np.repeat(pixels[..., :1], 3, axis=2) if channels < 3 else pixels[..., :3]
+    width, height = spec.width // reduce * reduce, spec.height // reduce * reduce
+    channels = min(spec.nchannels, 3)
     is_float = spec.format.basetype in (oiio.HALF, oiio.FLOAT, oiio.DOUBLE)
     colour_space = str(metadata.get("oiio:ColorSpace", "")).lower()
     if encoding == "auto":
         encoding = "linear" if is_float or colour_space.startswith("lin") else "srgb"
-    if encoding == "srgb":
-        pixels = srgb_decode(np.clip(pixels, 0.0, 1.0)).astype(np.float32)
+    step = max(STRIP_ROWS // reduce, 1) * reduce
+    strips = []
+    for y in range(spec.y, spec.y + height, step):
+        rows = min(step, spec.y + height - y)
+        strip = image.read_scanlines(0, 0, y, y + rows, 0, 0, channels, oiio.FLOAT)
+        if strip is None or image.has_error:
+            error = image.geterror()
+            image.close()
+            raise PipelineError(f"{path}: the image data is damaged ({error}); remove or replace it")
+        strip = np.asarray(strip, dtype=np.float32).reshape(rows, spec.width, channels)[:, :width]
+        if encoding == "srgb":
+            strip = srgb_decode(np.clip(strip, np.float32(0.0), np.float32(1.0)))
+        if reduce > 1:
+            strip = strip.reshape(rows // reduce, reduce, width // reduce, reduce, channels).mean(axis=(1, 3))
+        strips.append(strip)
+    image.close()
+    pixels = _orient(np.concatenate(strips), int(metadata.get("Orientation", 1)))
+    pixels = np.repeat(pixels[..., :1], 3, axis=2) if channels < 3 else pixels
     return Photo(np.ascontiguousarray(pixels), metadata, encoding, spec.format.size() * 8)
 
 
