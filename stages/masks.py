@@ -51,7 +51,7 @@ from pipeline.core.stage import Stage, StageInputs, StageResult
 from pipeline.formats.masks import write_masks
 from pipeline.formats.pinhole import read_camera_settings, read_photos
 from pipeline.imaging.photo_io import read_photo
-from pipeline.imaging.segmentation import clean, read_user_mask, segment, segment_plate_difference
+from pipeline.imaging.segmentation import chroma, clean, read_user_mask, segment, segment_plate_difference
 
 
 @dataclass(frozen=True)
@@ -156,6 +156,39 @@ def _mask(
     return clean(mask, conf.min_component_fraction, conf.fill_holes)
 
 
+GRAYSCALE_CHROMA = 0.01
+"""Largest colourfulness (pipeline.imaging.segmentation.chroma) of a grayscale photo."""
+
+
+def _refuse_grayscale(photos: dict[str, dict], segmenter: str) -> None:
+    """``neutral_backdrop`` tells specimen from set by colour: refuse photos without any."""
+    if segmenter != "neutral_backdrop":
+        return
+    grey = [
+        name
+        for name, photo in photos.items()
+        if chroma(cv2.imread(str(photo["srgb"]))).max() <= GRAYSCALE_CHROMA  # undistort's 8-bit copy
+    ]
+    if grey:
+        raise PipelineError(
+            f"{len(grey)} of {len(photos)} photos have no colour ({', '.join(grey[:5])}"
+            f"{', ...' if len(grey) > 5 else ''}), and masks.segmenter = 'neutral_backdrop' finds the specimen by "
+            "its colour: set masks.segmenter = 'centre_prior', add plates of the empty set in background/, "
+            "or put your own masks in masks/"
+        )
+
+
+def _refuse_empty_masks(report: dict[str, dict], source: str) -> None:
+    """Later stages carve the specimen from the masks: most of them empty is no capture."""
+    empty = sorted(name for name, r in report.items() if r["coverage"] < 0.001)
+    if len(empty) > len(report) / 2:
+        raise PipelineError(
+            f"{len(empty)} of {len(report)} masks from {source} are empty ({', '.join(empty[:5])}"
+            f"{', ...' if len(empty) > 5 else ''}): the specimen was not found. Check that it is in the photos; "
+            "then try masks.segmenter = 'centre_prior', background/ plates, or your own masks in masks/"
+        )
+
+
 def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     # 1. Which source the masks come from.
     pinhole_json = inputs.upstream["undistort"]["pinhole"]
@@ -166,6 +199,8 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     user_masks = _user_masks(inputs.capture_dir, inputs.files, photos) if source == "user" else {}
     plate_of = _plates_for(photos, plates) if source == "background" else {}
     logger.info("masks from %s", {"user": "masks/", "background": "background plates"}.get(source, conf.segmenter))
+    if source == "segment":
+        _refuse_grayscale(photos, conf.segmenter)
 
     # 2. One mask per photo, with its coverage and whether it touches the border.
     (out_dir / "masks").mkdir()
@@ -183,6 +218,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         }
         if not 0.005 <= mask.mean() <= 0.9:
             logger.warning("%s: the mask covers %.1f %% of the photo; check it in %s", name, 100 * mask.mean(), path)
+    _refuse_empty_masks(report, source)
 
     # 3. The listing downstream stages read (pipeline.formats.masks).
     masks_json = write_masks(out_dir / "masks.json", source, report)

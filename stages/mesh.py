@@ -161,7 +161,8 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     try:
         lo, hi = bounds(views, conf.carve_tolerance)
     except ValueError as error:
-        raise PipelineError(f"no visual hull: {error}. Look at the masks in the masks stage's output") from error
+        masks_folder = inputs.upstream["masks"]["masks_json"].parent / "masks"
+        raise PipelineError(f"no visual hull: {error}. Look at the masks in {masks_folder}") from error
     ground = _ground_height(cameras_json) if conf.clip_to_ground else None
     if ground is not None:
         lo[2] = max(lo[2], ground)

@@ -22,6 +22,8 @@ linear colour space, and float files, are taken as linear.
 
 from __future__ import annotations
 
+import hashlib
+from collections import defaultdict
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Annotated
@@ -90,6 +92,23 @@ def decoded_camera(source: Intrinsics, reduce: int, size: tuple[int, int]) -> In
     return replace(scaled(source, 1 / reduce, exact=True), width=size[0], height=size[1])
 
 
+MIN_DISTINCT_PHOTOS = 3
+"""Fewer views than this cannot be posed and carved into a specimen."""
+
+
+def _check_distinct(copies: list[list[str]]) -> None:
+    """Refuse a capture without enough different photos; warn about exact copies."""
+    for names in copies:
+        if len(names) > 1:
+            logger.warning("photos %s have identical pixels: only one of them adds a view", ", ".join(names))
+    if len(copies) < MIN_DISTINCT_PHOTOS:
+        total = sum(len(names) for names in copies)
+        raise PipelineError(
+            f"images/ holds {total} photo(s) but only {len(copies)} different one(s): the pipeline needs at least "
+            f"{MIN_DISTINCT_PHOTOS} photos of the specimen from different viewpoints (ideally 20 or more all around it)"
+        )
+
+
 def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     groups = read_camera_groups(inputs.upstream["calibrate"]["calibration"])
     setting_index = {group["camera"]: i for i, group in enumerate(groups)}
@@ -107,6 +126,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     (out_dir / "undistorted").mkdir()
     (out_dir / "linear").mkdir()
     listing: dict[str, dict[str, dict]] = {"images": {}, "background": {}}
+    same_pixels: dict[str, list[str]] = defaultdict(list)
     for folder, paths in folders.items():
         names = _output_names(paths)
         for path in progress.track(paths, f"undistorting {folder}/"):
@@ -129,6 +149,8 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
             prefix = "" if folder == "images" else "background_"
             srgb_path = write_image(out_dir / "undistorted" / f"{prefix}{names[path]}.png", to_uint8(linear))
             linear_path = write_image(out_dir / "linear" / f"{prefix}{names[path]}.exr", linear.astype(np.float32))
+            if folder == "images":
+                same_pixels[hashlib.sha256(linear.tobytes()).hexdigest()].append(path.name)
             listing[folder][path.name] = {
                 "camera": index,
                 "srgb": str(srgb_path.relative_to(out_dir)),
@@ -136,6 +158,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
                 "encoding": photo.encoding,
                 "bits": photo.bits,
             }
+    _check_distinct(list(same_pixels.values()))
     pinhole = write_pinhole(out_dir / "pinhole.json", cameras, listing)
     size = cameras[0]["intrinsics"]
     logger.info(

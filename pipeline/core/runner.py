@@ -178,6 +178,21 @@ def library_versions() -> dict[str, str]:
     return versions
 
 
+class _FinalPaths(logging.Filter):
+    """Rewrites a running stage's temporary folder to the folder its result will have,
+    so that a warning's path still exists when the user reads it."""
+
+    def __init__(self, tmp: Path, final: Path):
+        super().__init__()
+        self.tmp, self.final = str(tmp), str(final)
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        message = record.getMessage()
+        if self.tmp in message:
+            record.msg, record.args = message.replace(self.tmp, self.final), None
+        return True
+
+
 class Runner:
     """Plans and executes ``stages`` on one capture with one validated config."""
 
@@ -323,6 +338,8 @@ class Runner:
         handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
         handler.setLevel(logging.DEBUG)
         logger.addHandler(handler)
+        final_paths = _FinalPaths(tmp, self.cache.root / stage.name / item.key)
+        logger.addFilter(final_paths)
         started = time.time()
         committed = False
         try:
@@ -363,6 +380,7 @@ class Runner:
             committed = True
             return entry
         finally:
+            logger.removeFilter(final_paths)
             logger.removeHandler(handler)
             handler.close()
             if not committed:

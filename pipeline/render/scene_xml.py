@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import xml.etree.ElementTree as ET
 from pathlib import Path
 from typing import Sequence
@@ -61,7 +62,8 @@ def new_scene() -> ET.Element:
 
 def write(root: ET.Element, path: Path, comment: str | None = None) -> Path:
     if comment:
-        root.insert(0, ET.Comment(f" {comment} "))
+        # "--" may not occur in an XML comment; names users chose can hold it.
+        root.insert(0, ET.Comment(" " + re.sub(r"-(?=-)", "- ", comment).rstrip("-") + " "))
     ET.indent(root)
     ET.ElementTree(root).write(path, encoding="unicode", xml_declaration=True)
     return path
@@ -118,14 +120,21 @@ def load_sensor(properties: dict):
     return mi.load_dict({**properties, "to_world": mi.ScalarTransform4f(properties["to_world"])})
 
 
-def sensor(parent: ET.Element, sensor_id: str, properties: dict) -> ET.Element:
-    """``<sensor>`` from ``sensor_properties``."""
+def object_id(name: str) -> str:
+    """An id Mitsuba's parser takes as it is, from a name users chose (a photo's): it
+    substitutes ``$name`` in every attribute (with no way to escape a ``$``), and
+    parameter keys are split at dots."""
+    return re.sub(r"[^A-Za-z0-9_-]", "_", name)
+
+
+def sensor(parent: ET.Element, name: str, properties: dict) -> ET.Element:
+    """``<sensor>`` from ``sensor_properties``, its id made from ``name``."""
     element = plugin(
         parent,
         "sensor",
         {
             "type": "perspective",
-            "id": sensor_id,
+            "id": object_id(name),
             **{k: v for k, v in properties.items() if k not in ("type", "to_world", "sampler", "film")},
         },
     )
