@@ -63,6 +63,7 @@ from pipeline import logger
 from pipeline.core.config import Range
 from pipeline.core.stage import Stage, StageInputs, StageResult
 from pipeline.fit import engine
+from pipeline.fit.checkpoint import resumable_stage
 from pipeline.fit.outputs import write_fit_log, write_heldout
 from pipeline.fit.passes import material_pass, shape_pass, sphere_in_box
 from pipeline.fit.views import load_views
@@ -227,6 +228,7 @@ def _rounds(
     return rounds, log
 
 
+@resumable_stage
 def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     # 1. The scene to start from: fit_texture's, or fit_material's for the sphere.
     material = read_json(inputs.upstream["fit_material"]["params"])

@@ -42,6 +42,7 @@ from pipeline.core.config import Range
 from pipeline.core.errors import PipelineError
 from pipeline.core.stage import Stage, StageInputs, StageResult
 from pipeline.fit import engine
+from pipeline.fit.checkpoint import resumable_stage
 from pipeline.fit.outputs import write_fit_log, write_heldout
 from pipeline.fit.views import held_out_names, load_views
 from pipeline.formats.cameras import read_views
@@ -103,6 +104,7 @@ def fit_parameters(model: str, bounds: tuple[str, ...]) -> list[engine.FitParame
     return materials.fit_parameters(model, overrides)
 
 
+@resumable_stage
 def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     # 1. The scene stage's folder, copied: the fitted values are written into it.
     description = read_json(inputs.upstream["scene"]["description"])

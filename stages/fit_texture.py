@@ -70,6 +70,7 @@ from pipeline import logger
 from pipeline.core.config import Range
 from pipeline.core.stage import Stage, StageInputs, StageResult
 from pipeline.fit import engine
+from pipeline.fit.checkpoint import resumable_stage
 from pipeline.fit.outputs import write_fit_log, write_heldout
 from pipeline.fit.texture import TextureFit, fit_constants_then_levels, level_shapes, write_texture
 from pipeline.fit.views import load_views
@@ -182,6 +183,7 @@ def _render_heldout(conf: Config, textured: Path, description: dict, photos: tup
     write_heldout([view for view, _ in views], 4 * conf.validation_spp, textured / HELDOUT)
 
 
+@resumable_stage
 def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     # Longer than 60 lines on purpose: the stage's five steps in their order.
     # 1. fit_material's scene, without its fit results.

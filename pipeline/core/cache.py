@@ -5,6 +5,7 @@ Layout under ``CAPTURE/.pipeline/``::
     cache/<stage>/<key>/          a committed result: outputs, status.json, log.txt
     cache/<stage>/.tmp-<key>-<pid>/   a run in progress (or one that was killed)
     failed/<stage>/<timestamp>/   the folder of a run that raised, kept for its log
+    checkpoints/<stage>-<key>/    resumable state of an unfinished run (long fits)
     file_hashes.json              content hashes memo (see pipeline.core.hashing)
     runs/<timestamp>.json         effective config and summary of each `pipeline run`
 
@@ -156,6 +157,9 @@ class StageCache:
     def remove(self, entry: Entry) -> None:
         shutil.rmtree(entry.path)
 
+    def checkpoint_dir(self, stage: str, key: str) -> Path:
+        return self.state_dir / "checkpoints" / f"{stage}-{key}"
+
     def remove_unfinished(self) -> int:
         """Delete the folders of runs that never committed (killed); the caller holds
         the capture's lock, so none of them belongs to a live run. Returns how many."""
@@ -167,7 +171,7 @@ class StageCache:
     def leftovers(self) -> list[Path]:
         """Folders of runs that never committed (killed runs) and of failed runs."""
         found = [p for stage_dir in self.root.glob("*") for p in stage_dir.glob(".*") if p.is_dir()]
-        failed = self.state_dir / "failed"
-        if failed.is_dir():
-            found.append(failed)
+        for folder in ("failed", "checkpoints"):
+            if (self.state_dir / folder).is_dir():
+                found.append(self.state_dir / folder)
         return found

@@ -14,6 +14,7 @@ import json
 import logging
 import os
 import platform
+import shutil
 import time
 from dataclasses import dataclass, field
 from importlib import metadata
@@ -332,6 +333,7 @@ class Runner:
             files=tuple(self.capture_dir / f for f in item.components["files"]),
             upstream=self._needed_outputs(stage, results),
             shared={name: self.config[name] for name in stage.shared},
+            checkpoint_dir=self.cache.checkpoint_dir(stage.name, item.key),
         )
         tmp = self.cache.begin(stage.name, item.key)
         handler = logging.FileHandler(tmp / LOG_FILE)
@@ -378,6 +380,8 @@ class Runner:
             }
             entry = self.cache.commit(tmp, stage.name, item.key, status)
             committed = True
+            if inputs.checkpoint_dir.exists():
+                shutil.rmtree(inputs.checkpoint_dir)
             return entry
         finally:
             logger.removeFilter(final_paths)

@@ -33,6 +33,10 @@ class StageInputs:
     """The outputs the stage needs: stage name -> output name -> path."""
     shared: Mapping[str, Any]
     """Shared config sections the stage declared in ``shared`` (e.g. ``capture``)."""
+    checkpoint_dir: Path | None = None
+    """A folder for state that lets a killed run of this stage resume (long fits,
+    pipeline.fit.checkpoint): kept across killed runs with the same cache key,
+    deleted once the result is committed."""
 
 
 @dataclass

@@ -49,6 +49,7 @@ import numpy as np
 from pipeline import logger
 from pipeline.core.config import Range
 from pipeline.core.errors import PipelineError
+from pipeline.fit.checkpoint import next_checkpoint
 
 
 @dataclass(frozen=True)
@@ -359,14 +360,37 @@ def fit(
 
     clamp()
     batches = _Batches(training, settings.batch, settings.seed)
-    started = time.perf_counter()
-    best = {"values": current(), "iteration": 0, "error": validate(0) if validation else None}
-    start_error = best["error"]
-    losses: list[float] = []
-    first_loss: dict[str, float] = {}
-    log: list[dict] = []
-    stopped = "iterations"
-    for iteration in range(1, settings.iterations + 1):
+    checkpoint = next_checkpoint()
+    resumed = checkpoint.restore(optimizer) if checkpoint is not None else None
+    if resumed is None:
+        record = {"iteration": 0, "seconds": 0.0, "losses": [], "first_loss": {}, "log": [], "stopped": None}
+        best = {"values": current(), "iteration": 0, "error": validate(0) if validation else None}
+        record["start_error"] = best["error"]
+    else:
+        record = resumed.record
+        best = {
+            "values": {p.name: resumed.arrays[f"best/{p.name}"] for p in parameters},
+            "iteration": record["best_iteration"],
+            "error": record["best_error"],
+        }
+        for iteration in range(1, record["iteration"] + 1):
+            batches.draw(iteration)  # replayed: the views each later step draws stay the same
+    start_error = record["start_error"]
+    losses, first_loss, log = record["losses"], record["first_loss"], record["log"]
+    started = time.perf_counter() - record["seconds"]
+
+    def save_checkpoint(iteration: int, stopped: str | None) -> None:
+        record.update(
+            iteration=iteration,
+            seconds=time.perf_counter() - started,
+            stopped=stopped,
+            best_iteration=best["iteration"],
+            best_error=best["error"],
+        )
+        checkpoint.save(optimizer, {f"best/{n}": v for n, v in best["values"].items()}, record)
+
+    stopped = record["stopped"]
+    for iteration in range(record["iteration"] + 1, settings.iterations + 1 if stopped is None else 0):
         total, relative = 0.0, 0.0
         for view, seed in batches.draw(iteration):
             apply(id(view.scene))
@@ -433,6 +457,11 @@ def fit(
         if settings.time_budget_s and entry["seconds"] > settings.time_budget_s:
             stopped = f"time budget of {settings.time_budget_s:g} s spent"
             break
+        if checkpoint is not None and checkpoint.due():
+            save_checkpoint(iteration, None)
+    stopped = stopped or "iterations"
+    if checkpoint is not None:
+        save_checkpoint(len(log), stopped)
     # Leave the scenes in the best state.
     for parameter in parameters:
         value = best["values"][parameter.name]

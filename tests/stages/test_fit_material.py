@@ -7,6 +7,7 @@ import pytest
 
 from pipeline.synthetic.score import score_heldout, score_material
 from tests.support.tiny_fits import TINY_FIT
+from tests.support.toy_stages import run_python
 
 pytestmark = pytest.mark.slow
 
@@ -38,3 +39,38 @@ def test_fit_material_rejects_bounds_of_unknown_parameters(run_stages, bird_capt
 
     with pytest.raises(PipelineError, match="alpha, not parameters of the principled model"):
         run_stages(bird_capture, "fit_material", *TINY_FIT, 'fit_material.bounds=["alpha=0.1:0.5"]')
+
+
+KILLED_IN_FIT = """
+import os, signal
+from pathlib import Path
+import pipeline.fit.checkpoint as checkpoint
+from pipeline.core.config import load_config
+from pipeline.core.runner import Runner, Selection
+from pipeline.core.sections import schema
+from stages import STAGES
+
+save = checkpoint.Checkpoint.save
+def save_then_die(self, optimizer, arrays, record):
+    save(self, optimizer, arrays, record)
+    if record["iteration"] == 5:
+        os.kill(os.getpid(), signal.SIGKILL)
+checkpoint.Checkpoint.save = save_then_die
+checkpoint.CHECKPOINT_EVERY_S = 0.0
+capture = Path(CAPTURE)
+config = load_config(schema(STAGES), capture, "standard", OVERRIDES)
+Runner(capture, STAGES, config).run(Selection(until="fit_material"))
+"""
+
+
+def test_a_fit_killed_midway_resumes_where_it_was(run_stages, bird_capture, caplog):
+    overrides = [*TINY_FIT, "fit_material.seed=11"]  # a key no other test computes
+    run_stages(bird_capture, "scene")
+    script = KILLED_IN_FIT.replace("CAPTURE", repr(str(bird_capture))).replace("OVERRIDES", repr(overrides))
+    killed = run_python(script, timeout=300)
+    assert killed.returncode == -9, killed.stderr[-2000:]
+    outputs = run_stages(bird_capture, "fit_material", *overrides)["fit_material"]
+    assert "at iteration 5" in caplog.text and "resuming a fit" in caplog.text
+    log = [json.loads(line) for line in (outputs["fitted_dir"] / "log.jsonl").read_text().splitlines()]
+    assert [e["iteration"] for e in log] == list(range(1, 9))
+    assert not list((bird_capture / ".pipeline" / "checkpoints").glob("fit_material-*"))  # removed once committed
