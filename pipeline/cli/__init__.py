@@ -16,7 +16,7 @@ import sys
 from typing import Sequence
 
 from pipeline import logger
-from pipeline.cli import capture, fit, stages, synthetic  # noqa: F401  (each registers its commands)
+from pipeline.cli import batch, capture, fit, stages, synthetic  # noqa: F401  (each registers its commands)
 from pipeline.cli.options import add_options, parse_options
 from pipeline.cli.registry import COMMANDS
 from pipeline.core import progress
