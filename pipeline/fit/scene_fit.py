@@ -66,7 +66,6 @@ def select_parameters(
     file ``tree`` (so that the fit can be written back), with their bounds."""
     import mitsuba as mi
 
-    _check_patterns(patterns)
     selected = []
     for key in params.keys():
         if not any(selects(pattern, key) for pattern in patterns):
@@ -145,6 +144,7 @@ def fit_scene(
     """Fit and write the results into ``out_dir``; returns its params.json."""
     if out_dir.exists() and not out_dir.is_dir():
         raise ConfigError(f"--out {out_dir} is a file: name a folder")
+    _check_patterns(patterns)
     mitsuba_variant.activate(variant)
     import mitsuba as mi
 

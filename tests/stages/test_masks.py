@@ -74,3 +74,17 @@ def test_clean_keeps_the_specimen_and_fills_its_holes():
     cleaned = clean(mask, min_component_fraction=0.02, fill_holes=True)
     assert cleaned[22, 22] and not cleaned[51, 51] and cleaned[6, 50]
     assert not clean(mask, min_component_fraction=0.05, fill_holes=False)[22, 22]
+
+
+def test_grayscale_photos_are_refused_under_the_colour_segmenter(run_stages, tiny_capture, tmp_path):
+    import cv2
+
+    capture = tmp_path / "grey"
+    shutil.copytree(tiny_capture, capture, ignore=shutil.ignore_patterns(".pipeline", "output"))
+    for photo in (capture / "images").iterdir():
+        grey = cv2.cvtColor(cv2.imread(str(photo)), cv2.COLOR_BGR2GRAY)
+        cv2.imwrite(str(photo), cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR))
+    with pytest.raises(PipelineError, match=r"6 of 6 photos have no colour.*masks.segmenter = 'centre_prior'"):
+        run_stages(capture, "masks")
+    masks = run_stages(capture, "masks", "masks.segmenter=centre_prior")["masks"]  # the fix works
+    assert json.loads(masks["masks_json"].read_text())

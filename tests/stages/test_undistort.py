@@ -74,3 +74,39 @@ def test_working_resolution_scales_the_camera(run_stages, tiny_capture, tmp_path
     assert target.dist == [0.0] * 5
     for entry in read_photos(outputs["pinhole"]).values():
         assert read_photo(entry["linear"]).size == (48, 36)
+
+
+def _copy_capture(tiny_capture, folder):
+    shutil.copytree(tiny_capture, folder, ignore=shutil.ignore_patterns(".pipeline", "output"))
+    return folder
+
+
+def test_copies_of_one_photo_are_refused_with_the_fix(run_stages, tiny_capture, tmp_path):
+    from pipeline.core.errors import PipelineError
+
+    capture = _copy_capture(tiny_capture, tmp_path / "copies")
+    photos = sorted((capture / "images").iterdir())
+    for photo in photos[1:]:
+        shutil.copy(photos[0], photo)
+    with pytest.raises(PipelineError, match=r"holds 6 photo\(s\) but only 1 different one\(s\).*at least 3 photos"):
+        run_stages(capture, "undistort")
+
+
+def test_a_single_photo_is_refused_with_the_fix(run_stages, tiny_capture, tmp_path):
+    from pipeline.core.errors import PipelineError
+
+    capture = _copy_capture(tiny_capture, tmp_path / "single")
+    for photo in sorted((capture / "images").iterdir())[1:]:
+        photo.unlink()
+    with pytest.raises(PipelineError, match=r"holds 1 photo\(s\).*at least 3 photos"):
+        run_stages(capture, "undistort")
+
+
+def test_an_unreadable_photo_is_named(run_stages, tiny_capture, tmp_path):
+    from pipeline.core.errors import PipelineError
+
+    capture = _copy_capture(tiny_capture, tmp_path / "unreadable")
+    photo = sorted((capture / "images").iterdir())[2]
+    photo.write_bytes(photo.read_bytes()[:200])  # a truncated download
+    with pytest.raises(PipelineError, match=rf"{photo.name}.*remove or replace it"):
+        run_stages(capture, "undistort")

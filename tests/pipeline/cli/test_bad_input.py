@@ -1,0 +1,192 @@
+"""Bad input as users give it: each case ends in one clear message naming the file or
+key (no traceback), the documented exit code (2: usage and configuration, 1: data),
+a JSON error object with --json, and nothing computed earlier lost.
+
+The capture-level cases run the real CLI over the toy stage graph after one good
+run, then check that the good run's results are still there."""
+
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+from pipeline import cli
+from pipeline.cli import registry
+from pipeline.core import config
+from tests.support.toy_stages import RUNS, make_capture, make_stages
+
+
+@pytest.fixture
+def toy_cli(monkeypatch, presets_dir):
+    monkeypatch.setattr(registry, "registered_stages", make_stages)
+    monkeypatch.setattr(config, "PRESETS_DIR", presets_dir)
+    RUNS.clear()
+    return cli.main
+
+
+@pytest.fixture
+def ran_capture(tmp_path, toy_cli):
+    """A toy capture after one good run."""
+    capture = make_capture(tmp_path)
+    assert toy_cli(["--quiet", "run", str(capture)]) == 0
+    return capture
+
+
+def _toml(text):
+    def write(capture):
+        (capture / "capture.toml").write_text(text)
+
+    return write
+
+
+def _lock_held(capture):
+    from tests.pipeline.core.test_crash_safety import hold_lock
+
+    return hold_lock(capture, 30)
+
+
+# (id, setup(capture) -> anything, argv after the command (CAPTURE is replaced), exit code, message)
+RUN_CASES = [
+    ("unknown-preset", None, ["--preset", "fastest"], 2, "unknown preset 'fastest'"),
+    ("unknown-section", _toml("[sfmm]\nx = 1\n"), [], 2, "unknown section [sfmm]"),
+    ("invalid-toml", _toml("[double\nfactor = 2\n"), [], 2, "capture.toml: invalid TOML"),
+    ("out-of-range", None, ["-s", "double.factor=0"], 2, "double.factor = 0 is out of range"),
+    ("nan", None, ["-s", "ingest.scale=nan"], 2, "ingest.scale = nan is not a finite number"),
+    ("inf", None, ["-s", "ingest.scale=inf"], 2, "ingest.scale = inf is not a finite number"),
+    ("wrong-type", None, ["-s", "double.factor='two'"], 2, "double.factor = 'two' has the wrong type"),
+    ("unknown-key", None, ["-s", "double.fact=3"], 2, "unknown key double.fact"),
+    ("override-shape", None, ["-s", "factor=3"], 2, "must look like section.key=value"),
+    ("choice", None, ["-s", "ingest.fail=maybe"], 2, "ingest.fail = 'maybe' is not allowed"),
+    ("unknown-stage", None, ["--until", "mesh"], 2, "--until mesh: no such stage"),
+    ("only-uncached", None, ["--only", "report", "-s", "double.factor=9"], 2, "has no cached result"),
+    ("outside-file", _toml("[ingest]\nextra = '../../../../etc/passwd'\n"), [], 2, "points outside the capture"),
+    ("absolute-file", _toml("[ingest]\nextra = '/etc/passwd'\n"), [], 2, "points outside the capture"),
+    ("missing-file", None, ["-s", "ingest.extra='nope.txt'"], 2, "ingest.extra = 'nope.txt' is not a file"),
+    ("user-error-in-stage", None, ["-s", "ingest.fail=user"], 1, "000.txt: not a number; fix the file"),
+    ("locked", _lock_held, ["--no-wait"], 1, "is in use by pid"),
+]
+
+
+@pytest.mark.parametrize("case", RUN_CASES, ids=[c[0] for c in RUN_CASES])
+@pytest.mark.parametrize("as_json", [False, True], ids=["text", "json"])
+def test_bad_run_input_fails_clearly_and_loses_nothing(ran_capture, toy_cli, capsys, case, as_json):
+    _, setup, argv, code, message = case
+    before = (ran_capture / "output" / "report.txt").read_text()
+    entries = sorted((ran_capture / ".pipeline" / "cache").glob("*/*"))
+    held = setup(ran_capture) if setup else None
+    capsys.readouterr()
+    try:
+        assert toy_cli(["run", str(ran_capture), *argv, *(["--json"] if as_json else [])]) == code
+    finally:
+        if held is not None:
+            held.kill()
+    out, err = capsys.readouterr()
+    assert message in err and "Traceback" not in err
+    if as_json:
+        error = json.loads(out)
+        assert error["exit_code"] == code and message in error["error"]
+    assert (ran_capture / "output" / "report.txt").read_text() == before
+    assert set(entries) <= set((ran_capture / ".pipeline" / "cache").glob("*/*"))
+
+
+def _damage_memo(capture):
+    (capture / ".pipeline" / "file_hashes.json").write_text("{")
+
+
+def _damage_status(capture):
+    (entry,) = (capture / ".pipeline" / "cache" / "double").iterdir()
+    (entry / "status.json").write_text("")
+
+
+def _delete_cached_file(capture):
+    (entry,) = (capture / ".pipeline" / "cache" / "ingest").iterdir()
+    (entry / "total.txt").unlink()
+
+
+def _damage_manifest(capture):
+    (capture / "output" / "manifest.json").write_text("{")
+
+
+def _leave_killed_run(capture):
+    (capture / ".pipeline" / "cache" / "double" / ".tmp-0123-99999").mkdir()
+
+
+RECOVER_CASES = [
+    ("damaged-hash-memo", _damage_memo, [], "file_hashes.json is damaged"),
+    ("damaged-status", _damage_status, ["double"], "damaged status.json"),  # same result: report reused
+    ("deleted-cached-file", _delete_cached_file, ["ingest"], "total.txt is missing"),
+    ("damaged-manifest", _damage_manifest, [], ""),
+    ("killed-run-leftovers", _leave_killed_run, [], "removed 1 unfinished result folder"),
+]
+
+
+@pytest.mark.parametrize("case", RECOVER_CASES, ids=[c[0] for c in RECOVER_CASES])
+def test_damaged_state_is_rebuilt_with_a_warning(ran_capture, toy_cli, caplog, capsys, case):
+    _, damage, recomputed, warning = case
+    damage(ran_capture)
+    RUNS.clear()
+    assert toy_cli(["run", str(ran_capture)]) == 0
+    assert RUNS == recomputed and warning in caplog.text + capsys.readouterr().err
+    assert (ran_capture / "output" / "report.txt").read_text() == "result 12.0\n"
+    assert json.loads((ran_capture / "output" / "manifest.json").read_text())["report.txt"]["stage"] == "report"
+    assert not list((ran_capture / ".pipeline" / "cache").glob("*/.tmp-*"))
+
+
+def test_output_being_a_file_is_refused_before_anything_runs(tmp_path, toy_cli, capsys):
+    capture = make_capture(tmp_path)
+    (capture / "output").write_text("my notes")
+    assert toy_cli(["run", str(capture)]) == 2
+    assert "output is a file" in capsys.readouterr().err and RUNS == []
+    assert (capture / "output").read_text() == "my notes"
+
+
+def test_a_read_only_capture_can_be_inspected_but_not_run(tmp_path, toy_cli, capsys, monkeypatch):
+    capture = make_capture(tmp_path)
+    # The tests may run as root, whom permissions do not stop: simulate the refusal.
+    monkeypatch.setattr(os, "access", lambda path, mode: False)
+    assert toy_cli(["status", str(capture)]) == 0
+    assert toy_cli(["run", str(capture), "--dry-run"]) == 0
+    assert not (capture / ".pipeline").exists()  # neither wrote anything
+    real_open = os.open
+
+    def read_only_open(path, flags, *args):
+        if str(path).startswith(str(capture)) and flags & (os.O_WRONLY | os.O_RDWR | os.O_CREAT):
+            raise PermissionError(13, "Read-only file system", str(path))
+        return real_open(path, flags, *args)
+
+    monkeypatch.setattr(os, "open", read_only_open)
+    monkeypatch.setattr(Path, "mkdir", lambda self, *a, **k: None)
+    assert toy_cli(["run", str(capture)]) == 1
+    err = capsys.readouterr().err
+    assert "the capture folder must be writable" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["new", "FILE"], "is a file: name a new folder"),
+        (["new", "FULL"], "already exists and is not empty"),
+        (["run", "FILE"], "is a file: give the capture's folder"),
+        (["status", "MISSING"], "does not exist"),
+        (["clean", "MISSING"], "does not exist"),
+        (["fit", "scene.xml", "--references", "refs", "--params", "(", "--out", "out"], "is not a regular expression"),
+        (["fit", "scene.xml", "--references", "refs", "--params", "eta", "--out", "FILE"], "is a file: name a folder"),
+        (["fit", "scene.xml", "--batch", "0"], "fit.batch = 0 is out of range"),
+        (["fit", "scene.xml", "--iterations", "-1"], "fit.iterations = -1 is out of range"),
+        (["fit", "scene.xml", "--spp", "0"], "fit.spp = 0 is out of range"),
+        (["fit", "scene.xml", "--lr", "nan"], "is not a finite number"),
+        (["batch", "MISSING"], "does not exist"),
+        (["batch", "FILE", "--workers", "0"], "batch.workers = 0 is out of range"),
+    ],
+    ids=lambda value: "-".join(value) if isinstance(value, list) else None,
+)
+def test_bad_command_lines_exit_2_with_the_fix(tmp_path, toy_cli, capsys, argv, message):
+    (tmp_path / "FILE").write_text("x")
+    (tmp_path / "FULL").mkdir()
+    (tmp_path / "FULL" / "keep.txt").write_text("x")
+    names = {"FILE": tmp_path / "FILE", "FULL": tmp_path / "FULL", "MISSING": tmp_path / "missing"}
+    assert toy_cli([str(names.get(a, a)) for a in argv]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+    assert (tmp_path / "FILE").read_text() == "x" and (tmp_path / "FULL" / "keep.txt").exists()
