@@ -380,14 +380,7 @@ def fit(
     started = time.perf_counter() - record["seconds"]
 
     def save_checkpoint(iteration: int, stopped: str | None) -> None:
-        record.update(
-            iteration=iteration,
-            seconds=time.perf_counter() - started,
-            stopped=stopped,
-            best_iteration=best["iteration"],
-            best_error=best["error"],
-        )
-        checkpoint.save(optimizer, {f"best/{n}": v for n, v in best["values"].items()}, record)
+        checkpoint.save_loop(optimizer, record, iteration, started, stopped, best | {"arrays": best["values"]})
 
     stopped = record["stopped"]
     for iteration in range(record["iteration"] + 1, settings.iterations + 1 if stopped is None else 0):
@@ -583,11 +576,25 @@ def _fit_shape(
         return float(np.mean(errors))
 
     batches = _Batches(training, settings.batch, settings.seed)
-    started = time.perf_counter()
-    start_error = validate() if validation else None
-    best = {"positions": positions(), "iteration": 0, "error": start_error}
-    log: list[dict] = []
-    for iteration in range(1, settings.iterations + 1):
+    checkpoint = next_checkpoint()
+    resumed = checkpoint.restore(optimizer) if checkpoint is not None else None
+    if resumed is None:
+        record = {"iteration": 0, "seconds": 0.0, "log": [], "stopped": None}
+        record["start_error"] = validate() if validation else None
+        best = {"positions": positions(), "iteration": 0, "error": record["start_error"]}
+    else:
+        record = resumed.record
+        best = {
+            "positions": resumed.arrays["best/positions"],
+            "iteration": record["best_iteration"],
+            "error": record["best_error"],
+        }
+        for iteration in range(1, record["iteration"] + 1):
+            batches.draw(iteration)  # replayed: the views each later step draws stay the same
+    start_error, log = record["start_error"], record["log"]
+    started = time.perf_counter() - record["seconds"]
+    last = settings.iterations if record["stopped"] is None else record["iteration"]
+    for iteration in range(record["iteration"] + 1, last + 1):
         total = 0.0
         for view, seed in batches.draw(iteration):
             apply(id(view.scene))
@@ -618,6 +625,14 @@ def _fit_shape(
         elif not validation:
             best = {"positions": positions(), "iteration": iteration, "error": None}
         log.append(entry)
+        if checkpoint is not None and checkpoint.due():
+            checkpoint.save_loop(
+                optimizer, record, iteration, started, None, best | {"arrays": {"positions": best["positions"]}}
+            )
+    if checkpoint is not None:
+        checkpoint.save_loop(
+            optimizer, record, len(log), started, "iterations", best | {"arrays": {"positions": best["positions"]}}
+        )
     optimizer["u"] = steps.to_differential(mi.Float(best["positions"].ravel()))
     for scene_key in traversed:
         with dr.suspend_grad():

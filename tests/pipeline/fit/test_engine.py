@@ -370,3 +370,42 @@ def test_a_checkpoint_restores_adam_state_exactly(mi, tmp_path):
         np.testing.assert_array_equal(np.array(restored[0]), np.array(saved[0]))
         for a, b in zip(restored[3][:3], saved[3][:3]):
             np.testing.assert_array_equal(np.array(a), np.array(b))
+
+
+def test_an_interrupted_shape_fit_resumes_from_its_checkpoint(mi, tmp_path, monkeypatch, caplog):
+    import trimesh
+
+    from pipeline.fit.checkpoint import Checkpoint, resumable
+    from pipeline.render import stability
+
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=stability.RADIUS)
+    sphere.export(tmp_path / "truth.ply")
+    reference = stability.references(stability.sphere_scene(tmp_path, "principled", 16, 2, mesh="truth.ply"), 16)
+    sphere.apply_scale(0.9)
+    sphere.export(tmp_path / "start.ply")
+
+    def shape_fit(on_save=None):
+        scene = mi.load_file(str(stability.sphere_scene(tmp_path / "start", "principled", 16, 2, mesh="../start.ply")))
+        views = [engine.FitView(f"view{i}", scene, s, reference[i]) for i, s in enumerate(scene.sensors())]
+        settings = engine.ShapeSettings(iterations=6, batch=1, spp=4, step=1e-3)
+        integrator = mi.load_dict({"type": "prb", "max_depth": 8})
+        with resumable(tmp_path / "checkpoints", every_s=0.0):
+            return engine.fit_shape("specimen", views, [], settings, integrator)
+
+    whole = shape_fit()
+    save = Checkpoint.save
+
+    def save_then_interrupt(self, optimizer, arrays, record):
+        save(self, optimizer, arrays, record)
+        if record["iteration"] == 4 and record["stopped"] is None:
+            raise Interrupted
+
+    (tmp_path / "checkpoints" / "00.npz").unlink()
+    monkeypatch.setattr(Checkpoint, "save", save_then_interrupt)
+    with pytest.raises(Interrupted):
+        shape_fit()
+    monkeypatch.setattr(Checkpoint, "save", save)
+    resumed = shape_fit()
+    assert "00.npz at iteration 4" in caplog.text
+    assert [e["iteration"] for e in resumed.log] == list(range(1, 7))
+    np.testing.assert_allclose(resumed.positions, whole.positions, atol=1e-5)
