@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal
 
+from pipeline import logger
 from pipeline.core.config import InputFile, Range, input_file_path, load_config
 from pipeline.core.errors import PipelineError
 from pipeline.core.runner import PlannedStage, Runner, Selection
@@ -79,6 +80,7 @@ def double(conf: DoubleConfig, inputs: StageInputs, out_dir: Path) -> StageResul
 def meta(conf: EmptyConfig, inputs: StageInputs, out_dir: Path) -> StageResult:
     RUNS.append("meta")
     (out_dir / "meta.txt").write_text(f"{len(inputs.upstream['ingest'])} outputs")
+    logger.warning("meta wrote %s", out_dir / "meta.txt")  # a warning naming a result's file
     return StageResult({"meta": out_dir / "meta.txt"})
 
 

@@ -199,3 +199,11 @@ def test_the_command_line_may_name_a_file_outside_the_capture(tmp_path, presets_
     assert published(capture)[0] == "result 14.0\n"
     with pytest.raises(ConfigError, match=r"ingest.extra = 'missing.txt' is not a file"):
         toy_runner(capture, presets_dir, "ingest.extra='missing.txt'")
+
+
+def test_warnings_name_the_folder_a_result_ends_in(tmp_path, presets_dir, caplog):
+    capture = make_capture(tmp_path)
+    plan = run_toy(capture, presets_dir)
+    (message,) = [r.getMessage() for r in caplog.records if r.getMessage().startswith("meta wrote")]
+    assert message == f"meta wrote {plan['meta'].entry.path / 'meta.txt'}" and ".tmp-" not in message
+    assert (plan["meta"].entry.path / "meta.txt").is_file()
