@@ -8,7 +8,8 @@ wins), gets its manifest.json, and replaces the link with one ``rename``. A
 reader, or a run killed at any moment, therefore sees either the old output or
 the new one, never a mixture; the versions a killed publish leaves are removed
 by the next one. A real ``output/`` folder from an older version of the pipeline
-is moved into ``published/`` the first time.
+is moved into ``published/legacy-*`` the first time and kept (users may have put
+files there).
 """
 
 from __future__ import annotations
@@ -20,12 +21,15 @@ import time
 from pathlib import Path
 from typing import Any
 
+from pipeline import logger
 from pipeline.core.errors import ConfigError
 from pipeline.core.fsutil import atomic_write_text
 
 OUTPUT = "output"
 PUBLISHED = "published"
 MANIFEST = "manifest.json"
+LEGACY = "legacy-"
+"""Prefix of a real output/ folder moved aside the first time; never deleted."""
 
 
 def check_output_path(capture_dir: Path) -> None:
@@ -77,14 +81,16 @@ def publish(capture_dir: Path, files: dict[str, tuple[Path, dict[str, Any]]]) ->
 
     output = capture_dir / OUTPUT
     if output.is_dir() and not output.is_symlink():
-        os.rename(output, published / f"legacy-{version}")
+        legacy = published / f"{LEGACY}{version}"
+        os.rename(output, legacy)
+        logger.warning("the output/ folder an older pipeline wrote was moved to %s (kept; delete it when done)", legacy)
     for stale in capture_dir.glob(f".{OUTPUT}.tmp-*"):
         stale.unlink()  # links a killed publish left; the caller holds the capture's lock
     link = capture_dir / f".{OUTPUT}.tmp-{os.getpid()}"
     os.symlink(Path(".pipeline") / PUBLISHED / version, link)
     os.replace(link, output)
     for old in published.iterdir():
-        if old.name != version:
+        if old.name != version and not old.name.startswith(LEGACY):
             shutil.rmtree(old)
     return True
 

@@ -207,3 +207,14 @@ def test_warnings_name_the_folder_a_result_ends_in(tmp_path, presets_dir, caplog
     (message,) = [r.getMessage() for r in caplog.records if r.getMessage().startswith("meta wrote")]
     assert message == f"meta wrote {plan['meta'].entry.path / 'meta.txt'}" and ".tmp-" not in message
     assert (plan["meta"].entry.path / "meta.txt").is_file()
+
+
+def test_an_output_folder_of_an_older_pipeline_is_moved_aside_and_kept(tmp_path, presets_dir, caplog):
+    capture = make_capture(tmp_path)
+    (capture / "output").mkdir()
+    (capture / "output" / "my-notes.txt").write_text("keep me")
+    run_toy(capture, presets_dir)
+    assert (capture / "output").is_symlink() and published(capture)[0] == "result 12.0\n"
+    (legacy,) = (capture / ".pipeline" / "published").glob("legacy-*")
+    run_toy(capture, presets_dir, "double.factor=3")  # a later publish keeps it too
+    assert (legacy / "my-notes.txt").read_text() == "keep me" and "was moved to" in caplog.text
