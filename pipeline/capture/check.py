@@ -158,6 +158,17 @@ def check_duplicates(photos: list[PhotoSummary]) -> list[Problem]:
     return problems
 
 
+def verified_count(points_i: np.ndarray, points_j: np.ndarray) -> int:
+    """Matches consistent with one fundamental matrix; 0 where none can be fitted."""
+    try:
+        _, verified = cv2.findFundamentalMat(points_i, points_j, cv2.USAC_MAGSAC, 1.5, 0.999)
+    except cv2.error:
+        # USAC asserts (`!model.empty()`) on degenerate matches, e.g. all on a few
+        # repeated table dots of a low-resolution turntable photo: no geometry, no match.
+        return 0
+    return 0 if verified is None else int(verified.sum())
+
+
 def shared_matches(photos: list[PhotoSummary]) -> np.ndarray:
     """Matrix of SIFT matches between photo pairs that survive a fundamental-matrix RANSAC."""
     sift = cv2.SIFT_create(nfeatures=1500)
@@ -174,10 +185,9 @@ def shared_matches(photos: list[PhotoSummary]) -> np.ndarray:
         pairs = [m for m, n in matcher.knnMatch(descriptors_i, descriptors_j, k=2) if m.distance < 0.8 * n.distance]
         if len(pairs) < 8:
             continue
-        _, verified = cv2.findFundamentalMat(
-            points_i[[m.queryIdx for m in pairs]], points_j[[m.trainIdx for m in pairs]], cv2.USAC_MAGSAC, 1.5, 0.999
+        inliers[i, j] = inliers[j, i] = verified_count(
+            points_i[[m.queryIdx for m in pairs]], points_j[[m.trainIdx for m in pairs]]
         )
-        inliers[i, j] = inliers[j, i] = 0 if verified is None else int(verified.sum())
     return inliers
 
 
@@ -228,7 +238,12 @@ def check_board(capture_dir: Path, config: Config) -> list[Problem]:
     detector = BoardDetector(board, min_corners=config["calibrate"].min_corners)
     problems, found = [], 0
     for shot in progress.track(shots, "detecting the board"):
-        if detector.detect(gray_uint8(read_photo(shot).pixels)) is None:
+        try:
+            pixels = read_photo(shot).pixels
+        except PipelineError as error:
+            problems.append(Problem("error", "board", f"calibration/{shot.name}", str(error), "remove or replace it"))
+            continue
+        if detector.detect(gray_uint8(pixels)) is None:
             problems.append(
                 Problem(
                     "warning",

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import skimage.data
 
-from pipeline.capture.check import check_capture
+from pipeline.capture.check import check_capture, verified_count
 from pipeline.cli import main
 from pipeline.core.config import load_config
 from pipeline.core.sections import schema
@@ -79,3 +79,17 @@ def test_the_room_shot_in_the_porous_cube_capture_is_flagged(tmp_path):
     (capture / "images").symlink_to(POROUS_CUBE / "images")
     problems = check_capture(capture, _config(capture))
     assert _flagged(problems, "strays") == {"20221109_144453775_iOS.jpg": "error"}
+
+
+def test_degenerate_matches_count_as_none_instead_of_failing_the_check():
+    """Matches on two repeated spots (a few table dots of a small turntable photo) make
+    OpenCV's USAC assert `!model.empty()`; the pair then shares no verified match."""
+
+    repeated = np.float32([[20, 30], [28, 70]] * 9)
+    scattered = np.random.default_rng(2).random((18, 2)).astype(np.float32)
+    with pytest.raises(cv2.error):
+        cv2.findFundamentalMat(repeated, scattered, cv2.USAC_MAGSAC, 1.5, 0.999)
+    assert verified_count(repeated, scattered) == 0
+    rng = np.random.default_rng(0)
+    points = rng.random((40, 2)).astype(np.float32) * 200
+    assert verified_count(points, points + np.float32([5, 0])) >= 30  # a plain translation: all consistent
