@@ -242,6 +242,31 @@ def write_model(
     return folder
 
 
+def model_from_poses(
+    intrinsics: dict[str, Intrinsics], poses: dict[str, Pose], stem_of: dict[str, str], folder: Path
+) -> Path:
+    """A COLMAP model holding only cameras and poses (cameras another tool made), in
+    COLMAP's binary format: one PINHOLE camera per distinct intrinsics."""
+    model = pycolmap.Reconstruction()
+    camera_ids: dict[tuple, int] = {}
+    for image_id, (name, pose) in enumerate(sorted(poses.items()), start=1):
+        K = intrinsics[name]
+        params = (K.fx, K.fy, K.cx + COLMAP_PIXEL_OFFSET, K.cy + COLMAP_PIXEL_OFFSET)
+        key = (K.width, K.height, *params)
+        if key not in camera_ids:
+            camera_ids[key] = len(camera_ids) + 1
+            model.add_camera_with_trivial_rig(
+                pycolmap.Camera(
+                    model="PINHOLE", width=K.width, height=K.height, params=list(params), camera_id=camera_ids[key]
+                )
+            )
+        image = pycolmap.Image(name=stem_of[name], camera_id=camera_ids[key], image_id=image_id)
+        model.add_image_with_trivial_frame(image, pycolmap.Rigid3d(pycolmap.Rotation3d(pose.R), pose.t))
+    folder.mkdir()
+    model.write_binary(folder)
+    return folder
+
+
 def trusted_points(sparse: Path, min_track_length: int, max_error_px: float) -> tuple[np.ndarray, np.ndarray]:
     """The model's points seen by at least ``min_track_length`` photos with at most
     ``max_error_px`` reprojection error and, for each, the mean direction towards the

@@ -39,10 +39,11 @@ from pipeline import logger
 from pipeline.camera.board import BoardDetection, BoardDetector
 from pipeline.camera.model import Intrinsics
 from pipeline.core import progress
-from pipeline.core.config import Range
+from pipeline.core.config import Range, input_file_path
 from pipeline.core.errors import PipelineError
-from pipeline.core.sections import BoardSection
+from pipeline.core.sections import BoardSection, CamerasSection
 from pipeline.core.stage import Stage, StageInputs, StageResult
+from pipeline.formats.external_cameras import read_external_cameras
 from pipeline.imaging.photo_io import PHOTO_SUFFIXES, camera_setting, gray_uint8, read_metadata, read_photo
 
 COLMAP_FOCAL_PRIOR = 1.2
@@ -222,6 +223,50 @@ def calibrate_group(
     return group | {"source": source, "how": how, "refine_in_sfm": True, "intrinsics": intrinsics.to_json()}
 
 
+def _external_groups(
+    source: str, capture_dir: Path, photo_groups: dict[str, list[tuple[Path, dict]]]
+) -> tuple[list[dict], dict[str, list[tuple[Path, dict]]]]:
+    """Groups of the photos the external cameras hold, one per distinct camera, and
+    the photo groups left for calibration (photos the source does not hold)."""
+    path = input_file_path(capture_dir, source)
+    sizes = {p.name: meta["size"] for members in photo_groups.values() for p, meta in members}
+    external = read_external_cameras(path, sorted(sizes))
+    by_camera: dict[str, list[str]] = defaultdict(list)
+    for name, intrinsics in sorted(external.intrinsics.items()):
+        if (intrinsics.width, intrinsics.height) != tuple(sizes[name]):
+            raise PipelineError(
+                f"{path} has {name} at {intrinsics.width}x{intrinsics.height}, but images/{name} is "
+                f"{sizes[name][0]}x{sizes[name][1]}: give the photos the tool saw, at their size"
+            )
+        by_camera[json.dumps(intrinsics.to_json(), sort_keys=True)].append(name)
+    groups = [
+        {
+            "camera": f"{external.tool} camera {index + 1}",
+            "images": names,
+            "board_shots": 0,
+            "source": "external",
+            "how": f"{external.tool} cameras in {source}",
+            "refine_in_sfm": False,
+            "intrinsics": json.loads(key),
+        }
+        for index, (key, names) in enumerate(sorted(by_camera.items(), key=lambda item: -len(item[1])))
+    ]
+    logger.info("intrinsics of %d photos from %s (%d camera(s))", len(external.intrinsics), path, len(groups))
+    left = {
+        setting: kept
+        for setting, members in photo_groups.items()
+        if (kept := [(p, meta) for p, meta in members if p.name not in external.intrinsics])
+    }
+    if left:
+        logger.warning(
+            "%s holds no camera for %d photo(s) (%s): they are calibrated as usual and will lack a pose",
+            path,
+            sum(len(m) for m in left.values()),
+            ", ".join(p.name for m in left.values() for p, _ in m[:3]),
+        )
+    return groups, left
+
+
 def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     files = [p for p in inputs.files if p.suffix.lower() in PHOTO_SUFFIXES]
     photos = [p for p in files if _folder(p, inputs.capture_dir) == "images"]
@@ -241,7 +286,11 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
                 unmatched[0][0].name,
                 setting,
             )
-    groups = [
+    cameras: CamerasSection = inputs.shared["cameras"]
+    groups = []
+    if cameras.source:
+        groups, photo_groups = _external_groups(cameras.source, inputs.capture_dir, photo_groups)
+    groups += [
         calibrate_group(setting, members, shot_groups.get(setting, []), board, conf)
         for setting, members in sorted(photo_groups.items(), key=lambda item: -len(item[1]))
     ]
@@ -266,6 +315,6 @@ STAGE = Stage(
     main=main,
     outputs=("calibration", "intrinsics"),
     reads=("images/*", "calibration/*"),
-    shared=("board",),
+    shared=("board", "cameras"),
     exports=("calibration", "intrinsics"),
 )

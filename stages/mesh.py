@@ -47,12 +47,14 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from pipeline import colmap, logger
-from pipeline.core.config import Range
+from pipeline.camera.model import Similarity, mesh_coverage
+from pipeline.core.config import InputFile, Range, input_file_path
 from pipeline.core.errors import PipelineError
 from pipeline.core.stage import Stage, StageInputs, StageResult
 from pipeline.formats.cameras import read_frame, read_views
 from pipeline.formats.masks import read_masks
 from pipeline.geometry.visual_hull import View, bounds, hull_field, sample_hull, surface
+from pipeline.imaging.segmentation import iou
 
 
 @dataclass(frozen=True)
@@ -83,6 +85,14 @@ class Config:
     """Sparse points seen in fewer photos are not trusted."""
     max_point_error_px: Annotated[float, Range(0.0, None, exclusive_lo=True)] = 2.0
     """Sparse points with a larger mean reprojection error are not trusted."""
+    source: Annotated[str, InputFile()] = ""
+    """A PLY or OBJ of the specimen made by another tool, used instead of the visual
+    hull (the settings above then do nothing), relative to the capture folder. It is
+    in the frame of `[cameras] source` when that is set, else in the world frame of
+    the sfm stage's cameras.json (output/cameras.json)."""
+    min_silhouette_iou: Annotated[float, Range(0.0, 1.0)] = 0.5
+    """A given mesh whose outline overlaps the masks less than this (median over the
+    photos, intersection over union) is refused: it is not in the cameras' frame."""
 
 
 def _views(cameras_json: Path, masks_json: Path) -> list[View]:
@@ -154,9 +164,37 @@ def _genus(mesh: trimesh.Trimesh) -> int:
     return round(1 - mesh.euler_number / 2) if mesh.is_watertight else -1
 
 
+def _given_mesh(conf: Config, capture_dir: Path, cameras_json: Path, views: list[View]) -> tuple[trimesh.Trimesh, dict]:
+    """``mesh.source`` in the world frame, refused when its outlines miss the masks."""
+    path = input_file_path(capture_dir, conf.source)
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False)
+    except (ValueError, OSError, KeyError, IndexError) as error:
+        raise PipelineError(f"mesh.source = {conf.source!r}: cannot read {path} as a mesh ({error})") from error
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise PipelineError(f"mesh.source = {conf.source!r}: {path} holds no triangles")
+    from_source = read_frame(cameras_json).get("from_source")
+    if from_source is not None:
+        mesh.apply_transform(Similarity.from_json(from_source).matrix())
+    overlaps = [iou(mesh_coverage(mesh.vertices, mesh.faces, v.intrinsics, v.pose, 1) >= 0.5, v.mask) for v in views]
+    median = float(np.median(overlaps))
+    if median < conf.min_silhouette_iou:
+        frame = "[cameras] source" if from_source is not None else "the cameras in output/cameras.json"
+        raise PipelineError(
+            f"mesh.source = {conf.source!r}: its outline overlaps the masks by {median:.2f} (median IoU over "
+            f"{len(views)} photos; mesh.min_silhouette_iou = {conf.min_silhouette_iou}): it is not in the frame of "
+            f"{frame}. Export the mesh and the cameras from the same project, in the same coordinate system"
+        )
+    logger.info("mesh from %s: %d faces, outline IoU with the masks %.2f (median)", path, len(mesh.faces), median)
+    return mesh, {"source": conf.source, "silhouette_iou_median": median, "silhouette_iou_min": float(min(overlaps))}
+
+
 def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     cameras_json = inputs.upstream["sfm"]["cameras"]
     views = _views(cameras_json, inputs.upstream["masks"]["masks_json"])
+    if conf.source:
+        mesh, report = _given_mesh(conf, inputs.capture_dir, cameras_json, views)
+        return _write(mesh, report, out_dir)
     started = time.perf_counter()
     try:
         lo, hi = bounds(views, conf.carve_tolerance)
@@ -201,12 +239,16 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
                 logger.warning("Poisson refinement %s; keeping the visual hull", report["refinement"])
         else:
             logger.warning("only %d trusted sparse points: keeping the visual hull as it is", len(points))
+    report["seconds"] = time.perf_counter() - started
+    return _write(mesh, report, out_dir)
+
+
+def _write(mesh: trimesh.Trimesh, report: dict, out_dir: Path) -> StageResult:
     report.update(
         faces=int(len(mesh.faces)),
         watertight=bool(mesh.is_watertight),
-        volume=float(mesh.volume),
+        volume=float(mesh.volume) if mesh.is_watertight else None,
         extent=(mesh.bounds[1] - mesh.bounds[0]).tolist(),
-        seconds=time.perf_counter() - started,
     )
     if not mesh.is_watertight:
         logger.warning("the mesh is not watertight; the cleanup stage closes its holes")
@@ -214,13 +256,13 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     mesh.export(mesh_ply)
     mesh_json = out_dir / "mesh.json"
     mesh_json.write_text(json.dumps(report, indent=1))
-    metrics = {k: report[k] for k in ("faces", "watertight", "voxel")}
+    metrics = {k: report[k] for k in ("faces", "watertight", "voxel") if k in report}
     return StageResult({"mesh": mesh_ply, "report": mesh_json}, metrics)
 
 
 STAGE = Stage(
     name="mesh",
-    version=5,
+    version=6,
     config=Config,
     main=main,
     needs=("sfm.cameras", "sfm.sparse", "masks.masks_json"),

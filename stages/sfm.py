@@ -65,11 +65,12 @@ import numpy as np
 from pipeline import colmap, logger
 from pipeline.camera.board import board_poses
 from pipeline.camera.model import Intrinsics, Pose, Similarity
-from pipeline.core.config import Range
+from pipeline.core.config import Range, input_file_path
 from pipeline.core.errors import PipelineError
-from pipeline.core.sections import BoardSection, CaptureSection
+from pipeline.core.sections import BoardSection, CamerasSection, CaptureSection
 from pipeline.core.stage import Stage, StageInputs, StageResult
 from pipeline.formats.cameras import write_cameras
+from pipeline.formats.external_cameras import read_external_cameras
 from pipeline.formats.masks import read_masks
 from pipeline.formats.pinhole import read_camera_settings, read_photos
 from pipeline.geometry import world_frame
@@ -198,23 +199,31 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     name_of = {stem: name for name, stem in stem_of.items()}
     intrinsics = {name: Intrinsics.from_json(cameras[photo_paths[name]["camera"]]["intrinsics"]) for name in order}
 
-    # 2. COLMAP's model, and the board's pose in every photo that shows it.
+    # 2. COLMAP's model (or the poses another tool made), and the board's pose in
+    # every photo that shows it.
     work = out_dir / "colmap"
     work.mkdir()
-    model, database, refine_focal = _reconstruct(conf, capture.rig, photo_paths, cameras, masks, work)
+    external: CamerasSection = inputs.shared["cameras"]
+    model, database, refine_focal = (
+        (None, None, False) if external.source else _reconstruct(conf, capture.rig, photo_paths, cameras, masks, work)
+    )
     # The board's poses with the cameras as calibrated, before SfM refines them.
     board_found, board_errors = board_poses(
         board, photo_paths, intrinsics, conf.board_min_corners, conf.board_max_error_px
     )
-    poses = colmap.registered_poses(model, name_of, intrinsics, refine_focal)
-    unregistered = [n for n in order if n not in poses]
-    causes = colmap.unregistered_causes(database, unregistered, stem_of) if unregistered else {}
+    if external.source:
+        poses, causes = _external_poses(external.source, inputs.capture_dir, order)
+    else:
+        poses = colmap.registered_poses(model, name_of, intrinsics, refine_focal)
+        unregistered = [n for n in order if n not in poses]
+        causes = colmap.unregistered_causes(database, unregistered, stem_of) if unregistered else {}
     # A board pose is as good as a registration (in the board frame), and SfM may
     # fail on a plain specimen.
     if len(set(poses) | set(board_found)) < conf.min_registered_fraction * len(order):
         _too_few(conf, set(poses) | set(board_found), order, causes)
     points = np.array([p.xyz for p in model.points3D.values()]) if model is not None else np.zeros((0, 3))
     report: dict = {
+        "poses_from": f"[cameras] source = {external.source}" if external.source else "SfM",
         "registered": len(poses),
         "photos": len(order),
         "unregistered": causes,
@@ -230,9 +239,10 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         report["posed_by_board"] = sorted(set(board_found) - set(poses))
         poses |= {n: board_found[n] for n in report["posed_by_board"]}
 
-    # 4. A turntable's circle, with every photo placed on it.
+    # 4. A turntable's circle, with every photo placed on it (poses another tool
+    # made are taken as they are).
     table = None
-    if capture.rig == "turntable":
+    if capture.rig == "turntable" and database is not None:
         measured = {"board": board_found if frame is not None else {}, "sfm": poses}
         keypoints, matches = colmap.verified_matches(database, order, stem_of)
         settings = PlacementSettings(
@@ -266,16 +276,31 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         )
 
     # 7. The model, cameras.json and sfm.json.
-    sparse = colmap.write_model(model, database, to_world, poses, stem_of, out_dir / "sparse")
+    if database is None:
+        # Where a mesh from the same tool ([mesh] source) must be moved to.
+        report["frame"]["from_source"] = to_world.to_json()
+        sparse = colmap.model_from_poses(intrinsics, poses, stem_of, out_dir / "sparse")
+    else:
+        sparse = colmap.write_model(model, database, to_world, poses, stem_of, out_dir / "sparse")
     cameras_json = out_dir / "cameras.json"
     write_cameras(cameras_json, {n: intrinsics[n] for n in poses}, poses, frame=report["frame"])
     report["board_reprojection_px"] = board_errors
     sfm_json = out_dir / "sfm.json"
     sfm_json.write_text(json.dumps(report, indent=1))
-    shutil.rmtree(work / "models")
+    if (work / "models").exists():
+        shutil.rmtree(work / "models")
     metrics = {k: report[k] for k in ("registered", "photos", "mean_reprojection_error_px", "mean_track_length")}
     metrics["frame"] = report["frame"]["source"]
     return StageResult({"cameras": cameras_json, "sparse": sparse, "report": sfm_json}, metrics)
+
+
+def _external_poses(source: str, capture_dir: Path, order: list[str]) -> tuple[dict[str, Pose], dict[str, str]]:
+    """Poses from ``[cameras] source``, in its frame, and why the others have none."""
+    path = input_file_path(capture_dir, source)
+    external = read_external_cameras(path, order)
+    causes = {name: f"not in {source}" for name in order if name not in external.poses}
+    logger.info("poses of %d of %d photos from %s (%s)", len(external.poses), len(order), source, external.tool)
+    return external.poses, causes
 
 
 def _too_few(conf: Config, posed: set[str], order: list[str], causes: dict[str, str]) -> None:
@@ -291,11 +316,11 @@ def _too_few(conf: Config, posed: set[str], order: list[str], causes: dict[str, 
 
 STAGE = Stage(
     name="sfm",
-    version=5,
+    version=6,
     config=Config,
     main=main,
     needs=("undistort.pinhole", "masks.masks_json"),
     outputs=("cameras", "sparse", "report"),
-    shared=("capture", "board"),
+    shared=("capture", "board", "cameras"),
     exports=("cameras",),
 )

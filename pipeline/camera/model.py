@@ -123,6 +123,13 @@ class Similarity:
         M[:3, 3] = self.t
         return M
 
+    def to_json(self) -> dict:
+        return {"scale": float(self.scale), "R": self.R.tolist(), "t": self.t.tolist()}
+
+    @classmethod
+    def from_json(cls, data: dict) -> "Similarity":
+        return cls(float(data["scale"]), np.asarray(data["R"], float), np.asarray(data["t"], float))
+
 
 def project(points: np.ndarray, intrinsics: Intrinsics, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
     """Pixel coordinates (N, 2) and depths (N,) of world points in an undistorted

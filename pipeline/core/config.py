@@ -9,7 +9,7 @@ an ``Annotated[..., Range(lo, hi)]`` bound. The layers are, lowest first:
 3. ``CAPTURE/capture.toml``,
 4. ``-s section.key=value`` overrides from the command line.
 
-A string setting annotated ``InputFile()`` names a file a stage reads. It is
+A string setting annotated ``InputFile()`` names a file (or folder) a stage reads. It is
 relative to the capture folder and must lie inside it, unless it was given on
 the command line: a capture.toml cannot make the pipeline read
 ``../../../../etc/passwd``. The file's content is part of the cache key of every
@@ -67,7 +67,7 @@ class Range:
 
 @dataclass(frozen=True)
 class InputFile:
-    """Marks a string setting as the path of an input file (empty: none)."""
+    """Marks a string setting as the path of an input file or folder (empty: none)."""
 
 
 def input_file_settings(section: Any) -> dict[str, str]:
@@ -96,9 +96,9 @@ def _check_input_files(name: str, section: Any, capture_dir: Path, origins: Mapp
                 f"{name}.{key} = {value!r} points outside the capture folder {capture_dir}: "
                 f"copy the file into the capture folder, or give it on the command line (-s {name}.{key}=PATH)"
             )
-        if not path.is_file():
+        if not path.exists():
             raise ConfigError(
-                f'{name}.{key} = {value!r} is not a file (looked for {path}): fix the path or set it to ""'
+                f'{name}.{key} = {value!r} is not a file or folder (looked for {path}): fix the path or set it to ""'
             )
 
 

@@ -43,6 +43,14 @@ class FileHasher:
         self._dirty = True
         return digest
 
+    def hash_input(self, path: Path) -> str:
+        """A file's hash, or for a folder one hash over its files' names and hashes."""
+        if not path.is_dir():
+            return self.hash(path)
+        files = sorted(p for p in path.rglob("*") if p.is_file())
+        listing = "\n".join(f"{p.relative_to(path).as_posix()} {self.hash(p)}" for p in files)
+        return hashlib.sha256(listing.encode()).hexdigest()
+
     def save(self) -> None:
         if self._dirty:
             self.memo_path.parent.mkdir(parents=True, exist_ok=True)

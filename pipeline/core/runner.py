@@ -223,7 +223,7 @@ class Runner:
     def _components(self, stage: Stage, upstream_keys: dict[str, str]) -> dict[str, Any]:
         files = glob_capture_files(self.capture_dir, stage.reads)
         setting_files = {
-            f"{section}.{key}": self.hasher.hash(input_file_path(self.capture_dir, value))
+            f"{section}.{key}": self.hasher.hash_input(input_file_path(self.capture_dir, value))
             for section in (stage.name, *stage.shared)
             for key, value in input_file_settings(self.config[section]).items()
         }

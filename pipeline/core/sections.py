@@ -83,6 +83,18 @@ class LightSection:
 
 
 @dataclass(frozen=True)
+class CamerasSection:
+    """Cameras from another tool, instead of calibration and structure-from-motion."""
+
+    source: Annotated[str, InputFile()] = ""
+    """A COLMAP sparse model (its folder, .bin or .txt) or an Agisoft Metashape cameras
+    XML export, relative to the capture folder; empty: the pipeline computes the
+    cameras. Its intrinsics replace calibrate's and its poses sfm's (moved into the
+    pipeline's world frame); see pipeline/formats/external_cameras.py for the
+    conventions."""
+
+
+@dataclass(frozen=True)
 class MitsubaSection:
     """How Mitsuba runs on this machine."""
 
@@ -95,6 +107,7 @@ SHARED_SECTIONS: dict[str, type] = {
     "capture": CaptureSection,
     "board": BoardSection,
     "light": LightSection,
+    "cameras": CamerasSection,
     "mitsuba": MitsubaSection,
 }
 

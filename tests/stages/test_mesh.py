@@ -34,3 +34,26 @@ def test_rerun_gives_the_same_poses_and_mesh(run_stages, bird_until_uv):
     rerun = run_stages(capture, "uv", force=("calibrate",))
     assert rerun["sfm"]["cameras"].read_bytes() == first_cameras
     assert rerun["uv"]["mesh"].read_bytes() == first_mesh
+
+
+def test_a_mesh_from_another_tool_follows_its_cameras_or_is_refused(run_stages, tiny_capture, tmp_path):
+    import numpy as np
+    import trimesh
+
+    from pipeline.camera.model import Similarity
+    from pipeline.core.errors import PipelineError
+    from pipeline.formats.cameras import read_frame
+    from tests.support.byo_capture import byo_capture
+
+    capture = byo_capture(tiny_capture, tmp_path / "byo")
+    overrides = ("cameras.source='external'", "mesh.source='ground_truth/mesh.ply'")
+    outputs = run_stages(capture, "mesh", *overrides)
+    truth = trimesh.load(capture / "ground_truth" / "mesh.ply", process=False)
+    from_source = Similarity.from_json(read_frame(outputs["sfm"]["cameras"])["from_source"])
+    mesh = trimesh.load(outputs["mesh"]["mesh"], process=False)
+    np.testing.assert_allclose(mesh.vertices, from_source.points(truth.vertices), atol=1e-5)
+    assert json.loads(outputs["mesh"]["report"].read_text())["silhouette_iou_median"] > 0.8
+    truth.apply_translation([0.5 * truth.extents.max(), 0, 0])  # a mesh in some other frame
+    truth.export(capture / "moved.ply")
+    with pytest.raises(PipelineError, match=r"mesh.source = 'moved.ply': its outline overlaps the masks by 0\.\d\d"):
+        run_stages(capture, "mesh", "cameras.source='external'", "mesh.source='moved.ply'")

@@ -108,3 +108,24 @@ def test_porous_cube_registers_all_but_the_room_shot_and_meshes_a_closed_box(run
     mesh = trimesh.load(outputs["cleanup"]["mesh"], force="mesh")
     assert mesh.is_watertight and mesh.euler_number == 2
     assert mesh.volume / mesh.bounding_box_oriented.volume > 0.7
+
+
+def test_cameras_from_another_tool_replace_calibration_and_sfm(run_stages, tiny_capture, tmp_path):
+    from pipeline.camera.model import Similarity
+    from pipeline.formats.cameras import read_cameras, read_frame
+    from tests.support.byo_capture import byo_capture
+
+    capture = byo_capture(tiny_capture, tmp_path / "byo")
+    outputs = run_stages(capture, "sfm", "cameras.source='external'")
+    truth_K, truth = read_cameras(capture / "ground_truth" / "cameras.json")
+    (group,) = json.loads(outputs["calibrate"]["calibration"].read_text())["groups"]
+    assert group["source"] == "external" and group["intrinsics"]["dist"] == truth_K.dist
+    assert abs(group["intrinsics"]["cx"] - truth_K.cx) < 1e-9
+    _, poses = read_cameras(outputs["sfm"]["cameras"])
+    assert set(poses) == set(truth)  # every photo posed, none by SfM
+    from_source = Similarity.from_json(read_frame(outputs["sfm"]["cameras"])["from_source"])
+    for name, pose in truth.items():
+        moved = from_source.pose(pose)
+        np.testing.assert_allclose(poses[name].R, moved.R, atol=1e-9)
+        np.testing.assert_allclose(poses[name].t, moved.t, atol=1e-6)
+    assert json.loads(outputs["sfm"]["report"].read_text())["poses_from"] == "[cameras] source = external"
