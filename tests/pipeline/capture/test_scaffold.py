@@ -20,7 +20,7 @@ def test_new_capture_has_folders_a_documented_toml_and_a_checklist(tmp_path, cap
     text = (capture / "capture.toml").read_text()
     parsed = tomllib.loads(text)
     assert parsed["capture"] == {"description": "lavender soap", "rig": "turntable", "material": "auto"}
-    assert set(parsed) == {"capture", "board", "light"}  # stage sections are commented out
+    assert set(parsed) == {"capture", "board", "light", "cameras"}  # stage sections are commented out
     for name, cls in schema(STAGES).items():
         assert f"[{name}]" in text, name
         for field in cls.__dataclass_fields__:
