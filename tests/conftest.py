@@ -30,6 +30,20 @@ def presets_dir(tmp_path: Path) -> Path:
     return folder
 
 
+@pytest.fixture
+def toy_cli(monkeypatch, presets_dir):
+    """The real CLI over the test-only stage graph (tests/support/toy_stages.py) and presets."""
+    from pipeline import cli
+    from pipeline.cli import registry
+    from pipeline.core import config
+    from tests.support.toy_stages import RUNS, make_stages
+
+    monkeypatch.setattr(registry, "registered_stages", make_stages)
+    monkeypatch.setattr(config, "PRESETS_DIR", presets_dir)
+    RUNS.clear()
+    return cli.main
+
+
 @pytest.fixture(scope="session")
 def tiny_capture(tmp_path_factory) -> Path:
     """A synthetic capture small enough for tests: 6 views of 96x72 px, 4 spp."""

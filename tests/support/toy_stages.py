@@ -131,3 +131,22 @@ def run_python(script: str, timeout: float = 60) -> subprocess.CompletedProcess:
     return subprocess.run(
         [sys.executable, "-c", textwrap.dedent(script)], capture_output=True, text=True, cwd=REPOSITORY, timeout=timeout
     )
+
+
+HOLD_LOCK = """
+import sys, time
+from pathlib import Path
+from pipeline.core.lock import CaptureLock
+with CaptureLock(Path(sys.argv[1]), "test holder"):
+    print("held", flush=True)
+    time.sleep(float(sys.argv[2]))
+"""
+
+
+def hold_lock(capture, seconds):
+    """A process holding the capture's lock for ``seconds``; returns once it holds it."""
+    holder = subprocess.Popen(
+        [sys.executable, "-c", HOLD_LOCK, str(capture), str(seconds)], stdout=subprocess.PIPE, text=True, cwd=REPOSITORY
+    )
+    assert holder.stdout.readline().strip() == "held"
+    return holder

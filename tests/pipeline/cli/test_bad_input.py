@@ -11,18 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline import cli
-from pipeline.cli import registry
-from pipeline.core import config
-from tests.support.toy_stages import RUNS, make_capture, make_stages
-
-
-@pytest.fixture
-def toy_cli(monkeypatch, presets_dir):
-    monkeypatch.setattr(registry, "registered_stages", make_stages)
-    monkeypatch.setattr(config, "PRESETS_DIR", presets_dir)
-    RUNS.clear()
-    return cli.main
+from tests.support.toy_stages import RUNS, hold_lock, make_capture
 
 
 @pytest.fixture
@@ -41,8 +30,6 @@ def _toml(text):
 
 
 def _lock_held(capture):
-    from tests.pipeline.core.test_crash_safety import hold_lock
-
     return hold_lock(capture, 30)
 
 

@@ -2,19 +2,7 @@ import json
 
 import pytest
 
-from pipeline import cli
-from pipeline.cli import registry
-from pipeline.core import config
-from tests.support.toy_stages import RUNS, make_capture, make_stages
-
-
-@pytest.fixture
-def toy_cli(monkeypatch, presets_dir):
-    """The real CLI over the test-only stage graph and presets."""
-    monkeypatch.setattr(registry, "registered_stages", make_stages)
-    monkeypatch.setattr(config, "PRESETS_DIR", presets_dir)
-    RUNS.clear()
-    return cli.main
+from tests.support.toy_stages import RUNS, make_capture
 
 
 def test_run_then_dry_run_explains_what_would_rerun(tmp_path, toy_cli, capsys):

@@ -9,7 +9,7 @@ from pipeline.core.cache import STATUS_FILE
 from pipeline.core.errors import ConfigError
 from pipeline.core.lock import CaptureBusy, CaptureLock
 from pipeline.core.runner import Selection
-from tests.support.toy_stages import RUNS, make_capture, run_python, run_toy, toy_runner
+from tests.support.toy_stages import RUNS, hold_lock, make_capture, run_python, run_toy, toy_runner
 
 
 @pytest.fixture(autouse=True)
@@ -118,30 +118,6 @@ def test_unfinished_folders_of_killed_runs_are_removed(tmp_path, presets_dir):
     assert list((capture / ".pipeline" / "cache" / "ingest").glob(".tmp-*"))
     run_toy(capture, presets_dir)
     assert not list((capture / ".pipeline" / "cache").glob("*/.*"))
-
-
-HOLD_LOCK = """
-import sys, time
-from pathlib import Path
-from pipeline.core.lock import CaptureLock
-with CaptureLock(Path(sys.argv[1]), "test holder"):
-    print("held", flush=True)
-    time.sleep(float(sys.argv[2]))
-"""
-
-
-def hold_lock(capture, seconds):
-    """A process holding the capture's lock for ``seconds``; returns once it holds it."""
-    import subprocess
-    import sys
-
-    from tests.support.toy_stages import REPOSITORY
-
-    holder = subprocess.Popen(
-        [sys.executable, "-c", HOLD_LOCK, str(capture), str(seconds)], stdout=subprocess.PIPE, text=True, cwd=REPOSITORY
-    )
-    assert holder.stdout.readline().strip() == "held"
-    return holder
 
 
 def test_a_second_run_fails_clearly_with_no_wait_and_waits_otherwise(tmp_path, presets_dir, caplog):
