@@ -11,7 +11,9 @@ this package at (0, 0): ``COLMAP_PIXEL_OFFSET`` converts.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated, Literal
 
 import cv2
 import numpy as np
@@ -20,6 +22,8 @@ import trimesh
 
 from pipeline import logger
 from pipeline.camera.model import Intrinsics, Pose, Similarity
+from pipeline.camera.self_calibration import SelfCalibrationSettings, corner_radius, frame_coverage, radial_shift_px
+from pipeline.core.config import Range
 
 COLMAP_PIXEL_OFFSET = 0.5
 
@@ -59,24 +63,104 @@ def feature_masks(
     return folder
 
 
-def extract_and_match(
+@dataclass(frozen=True)
+class FeatureSettings:
+    """Where features come from, how they are described, and which photos are matched."""
+
+    max_features: Annotated[int, Range(256, 65536)] = 8192
+    """Most SIFT features kept per photo."""
+    upsample: Literal["auto", "yes", "no"] = "auto"
+    """Extract SIFT from twice the photo's resolution (COLMAP's first_octave of -1): two
+    to three times the features on small photos. auto: yes below small_photo_px."""
+    dsp_sift: Literal["auto", "yes", "no"] = "auto"
+    """Domain-size pooled SIFT descriptors: more matches across a change of viewpoint, about
+    four times the extraction time. auto: yes below small_photo_px."""
+    small_photo_px: Annotated[int, Range(0, None)] = 1000
+    """Photos whose longer side is below this are small for upsample and dsp_sift."""
+    feature_mask: Literal["auto", "everywhere", "specimen", "moving"] = "auto"
+    """Where features are extracted. everywhere: the whole photo (a handheld capture,
+    where the set is as still as the specimen); specimen: the dilated specimen mask;
+    moving: the specimen plus whatever changes between photos of a fixed camera (the
+    turning table and board), not the still room. auto: moving for a turntable, else
+    everywhere."""
+    mask_dilation: Annotated[float, Range(0.0, 0.5)] = 0.03
+    """Margin added around the specimen mask, as a fraction of the image diagonal:
+    features on the silhouette's edge are among the best."""
+    matcher: Literal["auto", "exhaustive", "sequential", "ring"] = "auto"
+    """exhaustive: every pair; sequential: each photo with the next sequential_overlap in
+    file order; ring: with the next ring_neighbours, wrapping round (a turntable's
+    revolution). auto: ring for a turntable, else exhaustive up to exhaustive_max_images
+    photos and sequential beyond (a ring rig's photos need not be in order). Exhaustive
+    matching of a turntable finds false pairs between opposite sides of a repetitive set
+    (a checkerboard from 180 degrees away)."""
+    exhaustive_max_images: Annotated[int, Range(2, None)] = 150
+    """Largest capture matched exhaustively (pairs grow with the square of the count)."""
+    sequential_overlap: Annotated[int, Range(1, None)] = 20
+    """Sequential matching: each photo is matched with this many following ones."""
+    ring_neighbours: Annotated[int, Range(1, None)] = 6
+    """Ring matching: each photo is matched with this many following ones, cyclically."""
+
+
+def features_and_matches(
+    settings: FeatureSettings,
+    rig: str,
+    photos: dict[str, dict],
+    cameras: list[dict],
+    masks: dict[str, Path],
+    work: Path,
+) -> Path:
+    """SIFT features and verified matches of every photo (undistort's ``{"srgb": PNG}``)
+    in a new COLMAP database in ``work``, the settings' "auto" choices made for ``rig``."""
+    mode = settings.feature_mask
+    if mode == "auto":
+        mode = "moving" if rig == "turntable" else "everywhere"
+    matcher = settings.matcher
+    if matcher == "auto":
+        exhaustive = len(photos) <= settings.exhaustive_max_images
+        matcher = "ring" if rig == "turntable" else "exhaustive" if exhaustive else "sequential"
+    longest = max(max(c["intrinsics"]["width"], c["intrinsics"]["height"]) for c in cameras)
+    small = longest < settings.small_photo_px
+    database = work / "database.db"
+    _extract_and_match(
+        photos,
+        cameras,
+        feature_masks(mode, settings.mask_dilation, photos, masks, work),
+        next(iter(photos.values()))["srgb"].parent,
+        database,
+        settings.max_features,
+        upsample=settings.upsample == "yes" or (settings.upsample == "auto" and small),
+        domain_size_pooling=settings.dsp_sift == "yes" or (settings.dsp_sift == "auto" and small),
+        matcher=matcher,
+        sequential_overlap=settings.sequential_overlap,
+        ring_neighbours=settings.ring_neighbours,
+        still_camera=rig == "turntable",
+    )
+    return database
+
+
+def _extract_and_match(
     photos: dict[str, dict],
     cameras: list[dict],
     mask_dir: Path | None,
     image_dir: Path,
     database: Path,
     max_features: int,
+    upsample: bool,
+    domain_size_pooling: bool,
     matcher: str,
     sequential_overlap: int,
     ring_neighbours: int,
     still_camera: bool,
 ) -> None:
-    """SIFT features of every photo (one SIMPLE_PINHOLE COLMAP camera per camera
-    setting), matched ``matcher``-wise (exhaustive, sequential or ring) and verified
-    with seeded RANSAC; ``still_camera`` drops matches that do not move (a
-    turntable's room)."""
+    """SIFT features of every photo (one SIMPLE_RADIAL COLMAP camera per camera
+    setting, its distortion 0 until self-calibration; ``upsample``: from twice the
+    resolution; ``domain_size_pooling``: DSP-SIFT descriptors), matched
+    ``matcher``-wise (exhaustive, sequential or ring) and verified with seeded RANSAC;
+    ``still_camera`` drops matches that do not move (a turntable's room)."""
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.sift.max_num_features = max_features
+    extraction.sift.first_octave = -1 if upsample else 0
+    extraction.sift.domain_size_pooling = domain_size_pooling
     extraction.num_threads = -1
     pycolmap.Database.open(database).close()  # import_images needs the file to exist
     for index, camera in enumerate(cameras):
@@ -85,10 +169,11 @@ def extract_and_match(
             continue
         K = Intrinsics.from_json(camera["intrinsics"])
         reader = pycolmap.ImageReaderOptions()
-        # One focal length: undistort makes square pixels, and refining keeps them.
-        reader.camera_model = "SIMPLE_PINHOLE"
+        # One focal length: undistort makes square pixels, and refining keeps them. The
+        # radial term is what self-calibration may find left in the undistorted photos.
+        reader.camera_model = "SIMPLE_RADIAL"
         # COLMAP puts the first pixel's centre at (0.5, 0.5), OpenCV and we at (0, 0).
-        reader.camera_params = f"{K.fx},{K.cx + COLMAP_PIXEL_OFFSET},{K.cy + COLMAP_PIXEL_OFFSET}"
+        reader.camera_params = f"{K.fx},{K.cx + COLMAP_PIXEL_OFFSET},{K.cy + COLMAP_PIXEL_OFFSET},0"
         if mask_dir is not None:
             reader.mask_path = str(mask_dir)
         # Extraction numbers photos in the order its threads finish, and matching
@@ -162,6 +247,99 @@ def incremental_map(
     options.num_threads = 1
     models = pycolmap.incremental_mapping(database, image_dir, work_dir, options=options)
     return max(models.values(), key=lambda m: m.num_reg_images()) if models else None
+
+
+def self_calibrate(model: pycolmap.Reconstruction, settings: SelfCalibrationSettings) -> dict:
+    """Principal point and radial distortion (k1) of each camera of ``model`` adjusted
+    in a global bundle adjustment, each kept only when the photos constrain it
+    (pipeline.camera.self_calibration: COLMAP's covariance estimate for the standard
+    deviation); what is not kept is reset and the adjustment run again without it.
+    Returns the report per camera: coverage, what was tried, what was held and why,
+    and each parameter's final value and standard deviation."""
+    report = {}
+    for camera_id, camera in model.cameras.items():
+        images = [im for im in model.images.values() if im.has_pose and im.camera_id == camera_id]
+        pixels = np.array([p.xy for im in images for p in im.points2D if p.has_point3D()]).reshape(-1, 2)
+        coverage = frame_coverage(pixels, camera.width, camera.height)
+        entry: dict = {"frame_coverage": round(coverage, 3)}
+        free = {"principal_point": False, "k1": False}
+        if coverage < settings.min_frame_coverage:
+            entry["skipped"] = (
+                f"observations cover {coverage:.0%} of the frame (< {settings.min_frame_coverage:.0%}): "
+                "principal point and distortion are not constrained"
+            )
+        else:
+            before = np.array(camera.params)
+            std = _bundle_adjust(model, refine_principal_point=True, refine_extra=True)[camera_id]
+            focal, cx, cy, k1 = camera.params
+            radius = corner_radius(camera.width, camera.height, focal, cx, cy)
+            displacement = {"principal_point": float(max(std[1], std[2])), "k1": radial_shift_px(std[3], focal, radius)}
+            entry["tried"] = {"cx": float(cx - COLMAP_PIXEL_OFFSET), "cy": float(cy - COLMAP_PIXEL_OFFSET), "k1": k1}
+            entry["std_px"] = {name: round(value, 3) for name, value in displacement.items()}
+            free = {name: value <= settings.max_calibration_std_px for name, value in displacement.items()}
+            entry["held"] = {
+                name: f"its standard deviation moves points by {displacement[name]:.2f} px "
+                f"(> sfm.max_calibration_std_px = {settings.max_calibration_std_px})"
+                for name, adjusted in free.items()
+                if not adjusted
+            }
+            if not all(free.values()):
+                params = np.array(camera.params)
+                params[1:3] = params[1:3] if free["principal_point"] else before[1:3]
+                params[3] = params[3] if free["k1"] else 0.0
+                camera.params = params
+                _bundle_adjust(model, free["principal_point"], free["k1"])
+        std = _bundle_adjust(model, free["principal_point"], free["k1"], solve=False)[camera_id]
+        values = np.array(camera.params) - [0, COLMAP_PIXEL_OFFSET, COLMAP_PIXEL_OFFSET, 0]
+        adjusted = [True, free["principal_point"], free["principal_point"], free["k1"]]
+        entry["values"] = {
+            name: {"value": float(values[i]), "std": float(std[i]) if adjusted[i] else None, "adjusted": adjusted[i]}
+            for i, name in enumerate(("f", "cx", "cy", "k1"))
+        }
+        report[str(camera_id)] = entry
+    return report
+
+
+def _bundle_adjust(
+    model: pycolmap.Reconstruction, refine_principal_point: bool, refine_extra: bool, solve: bool = True
+) -> dict[int, np.ndarray]:
+    """A global bundle adjustment (focal length always refined; on one thread, as the
+    mapper's) and the standard deviation of each camera's parameters, in COLMAP's
+    order, 0 for those held fixed."""
+    options = pycolmap.BundleAdjustmentOptions()
+    options.refine_focal_length = True
+    options.refine_principal_point = refine_principal_point
+    options.refine_extra_params = refine_extra
+    options.print_summary = False
+    options.ceres.solver_options.num_threads = 1
+    config = pycolmap.BundleAdjustmentConfig()
+    for image in model.images.values():
+        if image.has_pose:
+            config.add_image(image.image_id)
+    config.fix_gauge(pycolmap.BundleAdjustmentGauge.THREE_POINTS)
+    adjuster = pycolmap.create_default_ceres_bundle_adjuster(options, config, model)
+    if solve:
+        adjuster.solve()
+    covariance = pycolmap.estimate_ba_covariance(pycolmap.BACovarianceOptions(), model, adjuster)
+    free = [True, refine_principal_point, refine_principal_point, refine_extra]
+    std = {}
+    for camera_id, camera in model.cameras.items():
+        values = np.zeros(len(camera.params))
+        block = covariance.get_other_params_cov(camera.params) if covariance is not None else None
+        if block is not None:
+            values[np.flatnonzero(free)] = np.sqrt(np.maximum(np.diag(block), 0))
+        std[camera_id] = values
+    return std
+
+
+def model_metrics(model: pycolmap.Reconstruction | None) -> dict:
+    """The model's mean reprojection error (pixels) and mean track length (None without a model)."""
+    if model is None:
+        return {"mean_reprojection_error_px": None, "mean_track_length": None}
+    return {
+        "mean_reprojection_error_px": model.compute_mean_reprojection_error(),
+        "mean_track_length": model.compute_mean_track_length(),
+    }
 
 
 def unregistered_causes(database: Path, unregistered: list[str], stem_of: dict[str, str]) -> dict[str, str]:
@@ -267,6 +445,49 @@ def model_from_poses(
     return folder
 
 
+def model_from_tracks(
+    database: Path,
+    intrinsics: Intrinsics,
+    poses: dict[str, Pose],
+    points: np.ndarray,
+    tracks: list[dict[str, int]],
+    stem_of: dict[str, str],
+    folder: Path,
+) -> Path:
+    """A COLMAP model of one camera (SIMPLE_RADIAL: the pinhole and k1 of
+    ``intrinsics``), the posed photos with their keypoints from ``database``, and
+    ``points`` with their ``tracks`` (photo name -> keypoint index), in COLMAP's binary
+    format; every point's reprojection error is computed."""
+    model = pycolmap.Reconstruction()
+    K = intrinsics
+    camera = pycolmap.Camera(
+        model="SIMPLE_RADIAL",
+        width=K.width,
+        height=K.height,
+        params=[K.fx, K.cx + COLMAP_PIXEL_OFFSET, K.cy + COLMAP_PIXEL_OFFSET, K.dist[0]],
+        camera_id=1,
+    )
+    model.add_camera_with_trivial_rig(camera)
+    image_ids = {}
+    with pycolmap.Database.open(database) as db:
+        for image_id, name in enumerate(sorted(poses), start=1):
+            stored = db.read_image_with_name(stem_of[name])
+            keypoints = db.read_keypoints(stored.image_id)[:, :2].astype(float)
+            image = pycolmap.Image(name=stem_of[name], keypoints=keypoints, camera_id=1, image_id=image_id)
+            pose = poses[name]
+            model.add_image_with_trivial_frame(image, pycolmap.Rigid3d(pycolmap.Rotation3d(pose.R), pose.t))
+            image_ids[name] = image_id
+    for xyz, track in zip(points, tracks):
+        elements = pycolmap.Track()
+        for name, keypoint in track.items():
+            elements.add_element(image_ids[name], keypoint)
+        model.add_point3D(np.asarray(xyz, float), elements)
+    model.update_point_3d_errors()
+    folder.mkdir()
+    model.write_binary(folder)
+    return folder
+
+
 def trusted_points(sparse: Path, min_track_length: int, max_error_px: float) -> tuple[np.ndarray, np.ndarray]:
     """The model's points seen by at least ``min_track_length`` photos with at most
     ``max_error_px`` reprojection error and, for each, the mean direction towards the
@@ -309,14 +530,15 @@ def screened_poisson(
 
 def registered_poses(model, name_of: dict[str, str], intrinsics: dict[str, Intrinsics], refine_focal: bool):
     """Registered photos' poses, by photo name (``name_of`` maps COLMAP's image names);
-    ``intrinsics`` take SfM's focal length and principal point when ``refine_focal``."""
+    ``intrinsics`` take SfM's focal length and principal point when ``refine_focal``
+    (the pinhole part: the photos stay as undistort made them)."""
     registered = {} if model is None else {name_of[im.name]: im for im in model.images.values() if im.has_pose}
     poses = {}
     for name, image in registered.items():
         rigid = image.cam_from_world()
         poses[name] = Pose(np.asarray(rigid.rotation.matrix()), np.asarray(rigid.translation))
         if refine_focal:
-            focal, cx, cy = image.camera.params
+            focal, cx, cy = image.camera.params[:3]
             K = intrinsics[name]
             intrinsics[name] = Intrinsics(
                 K.width,

@@ -117,7 +117,14 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     for group in groups:
         source = Intrinsics.from_json(group["intrinsics"])
         target = ideal_pinhole(source, conf.alpha, conf.max_size)
-        cameras.append({"camera": group["camera"], "source": source.to_json(), "intrinsics": target.to_json()})
+        cameras.append(
+            {
+                "camera": group["camera"],
+                "calibrated_by": group["source"],
+                "source": source.to_json(),
+                "intrinsics": target.to_json(),
+            }
+        )
 
     folders = {"images": [], "background": []}
     for path in inputs.files:
@@ -181,7 +188,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="undistort",
-    version=3,
+    version=4,
     config=Config,
     main=main,
     needs=("calibrate.calibration",),

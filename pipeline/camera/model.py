@@ -40,6 +40,10 @@ class Intrinsics:
     def to_json(self) -> dict:
         return asdict(self)
 
+    def without_distortion(self) -> "Intrinsics":
+        """The same pinhole, distortion left out."""
+        return Intrinsics(self.width, self.height, float(self.fx), float(self.fy), float(self.cx), float(self.cy))
+
     @classmethod
     def from_json(cls, data: dict) -> "Intrinsics":
         return cls(**{k: data[k] for k in ("width", "height", "fx", "fy", "cx", "cy", "dist")})

@@ -50,7 +50,11 @@ Folders: {folders}
       few from above; 60-80 % overlap between neighbours (about every 10-15 degrees).
 - [ ] The whole specimen in every frame, with some margin; the board visible in most.
 - [ ] Turntable (`capture.rig = "turntable"`): camera and lights fixed, only the table
-      turns; name the photos in turning order.
+      turns; name the photos in turning order; 40-80 photos per turn (5-9 degree steps)
+      so that neighbours share features; a patterned mat or the board on the table.
+      A timed table that turns by equal steps: `sfm.turntable_steps = "even"`.
+- [ ] Ring (`capture.rig = "ring"`): the camera carried round the still specimen on one
+      circle (a gantry or arm), at one height and distance.
 - [ ] Translucent specimens: include back-lit and side-lit views if the rig allows.
 
 ## Background plate (background/, optional)

@@ -23,8 +23,8 @@ class NewOptions:
     """New folder, e.g. captures/bird."""
     description: str = ""
     """What the specimen is."""
-    rig: Literal["handheld", "turntable"] = "handheld"
-    """Capture rig."""
+    rig: Literal["handheld", "turntable", "ring"] = "handheld"
+    """Capture rig (capture.rig in capture.toml)."""
 
 
 @dataclass(frozen=True)

@@ -104,10 +104,14 @@ def _check_input_files(name: str, section: Any, capture_dir: Path, origins: Mapp
 
 @functools.cache
 def field_docs(cls: type) -> dict[str, str]:
-    """The docstring written under each field of a dataclass, by field name."""
+    """The docstring written under each field of a dataclass, by field name; fields a
+    dataclass inherits carry their base's documentation."""
+    docs: dict[str, str] = {}
+    for base in reversed(cls.__mro__[1:]):
+        if dataclasses.is_dataclass(base):
+            docs |= field_docs(base)
     tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
     body = tree.body[0].body  # type: ignore[attr-defined]
-    docs: dict[str, str] = {}
     for stmt, following in zip(body, body[1:]):
         if (
             isinstance(stmt, ast.AnnAssign)

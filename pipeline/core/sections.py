@@ -23,9 +23,11 @@ class CaptureSection:
 
     description: str = ""
     """Free text: specimen, date, camera; kept with the results."""
-    rig: Literal["handheld", "turntable"] = "handheld"
-    """handheld: the camera moves around a still object. turntable: camera and light
-    stay fixed while the object turns; photos are ordered by file name."""
+    rig: Literal["handheld", "turntable", "ring"] = "handheld"
+    """handheld: the camera moves freely around a still object. turntable: camera and
+    light stay fixed while the object turns about one axis; photos are ordered by file
+    name. ring: the camera is carried round a still object on one circle (a gantry, a
+    robot arm), in any order. Turntable and ring poses are solved as one circular motion."""
     material: Literal["auto", "opaque", "principled", "volumetric"] = "auto"
     """Material model hint. opaque: diffuse/principled without transmission;
     principled: surface translucency (spec_trans, eta); volumetric: rough dielectric

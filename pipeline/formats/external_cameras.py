@@ -37,6 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline import logger
 from pipeline.camera.model import Intrinsics, Pose
 from pipeline.core.errors import PipelineError
 
@@ -178,4 +179,13 @@ def read_external_cameras(source: Path, photo_names: list[str]) -> ExternalCamer
     return read_colmap(source, photo_names)
 
 
-__all__ = ["ExternalCameras", "read_colmap", "read_external_cameras", "read_metashape"]
+def external_poses(path: Path, source: str, order: list[str]) -> tuple[dict[str, Pose], dict[str, str]]:
+    """Poses of the photos ``order`` in the cameras file ``path`` (``[cameras] source`` =
+    ``source``), in its frame, and why the others have none."""
+    external = read_external_cameras(path, order)
+    causes = {name: f"not in {source}" for name in order if name not in external.poses}
+    logger.info("poses of %d of %d photos from %s (%s)", len(external.poses), len(order), source, external.tool)
+    return external.poses, causes
+
+
+__all__ = ["ExternalCameras", "external_poses", "read_colmap", "read_external_cameras", "read_metashape"]

@@ -1,8 +1,9 @@
 """pinhole.json (stage undistort): the undistorted photos and their cameras.
 
-``cameras`` lists one entry per camera setting, ``{"camera", "source",
-"intrinsics"}`` (the calibrated camera and the ideal pinhole the photos were
-remapped to); ``images`` and ``background`` map each photo or plate name to
+``cameras`` lists one entry per camera setting, ``{"camera", "calibrated_by",
+"source", "intrinsics"}`` (what calibrated it: board, exif, prior or external; the
+calibrated camera and the ideal pinhole the photos were remapped to); ``images``
+and ``background`` map each photo or plate name to
 ``{"camera": index, "srgb": PNG, "linear": EXR, "encoding", "bits"}``, the paths
 relative to the file's folder.
 """
@@ -22,7 +23,7 @@ def write_pinhole(path: Path, cameras: list[dict], listing: dict[str, dict[str, 
 
 
 def read_camera_settings(pinhole_json: Path) -> list[dict]:
-    """Per camera setting: ``source`` and ``intrinsics`` (pinhole) as JSON."""
+    """Per camera setting: ``calibrated_by``, ``source`` and ``intrinsics`` (pinhole) as JSON."""
     return json.loads(pinhole_json.read_text())["cameras"]
 
 

@@ -132,6 +132,35 @@ def frame_from_board(
     return frame
 
 
+def tie_to_board(
+    source: str,
+    max_disagreement: float,
+    board_poses: dict[str, Pose],
+    poses: dict[str, Pose],
+    points: np.ndarray,
+    report: dict,
+    model_is_circle: bool,
+):
+    """The poses and points moved into the board's frame when they agree with the board
+    (``frame_from_board``); when they do not but the board is seen in three photos, the
+    board poses alone (the poses, not tied to them, are dropped; not for a circular
+    motion, whose circle is the model); else unchanged. Returns (frame or None, poses,
+    points, whether the poses were dropped); ``report`` records the frame and the
+    photos whose own poses contradicted their board poses (replaced by those)."""
+    frame = frame_from_board(source, max_disagreement, board_poses, poses, report)
+    if frame is not None:
+        poses = {n: frame.pose(p) for n, p in poses.items()}
+        points = frame.points(points) if len(points) else points
+        if not model_is_circle:
+            report["replaced_by_board"] = replace_by_board(max_disagreement, poses, board_poses)
+        return frame, poses, points, False
+    if len(board_poses) >= 3 and source in ("auto", "board") and not model_is_circle:
+        logger.warning("SfM's %d photos could not be tied to the board: using the board poses alone", len(poses))
+        report["frame"] = board_frame(photos=len(board_poses))
+        return Similarity.identity(), {}, np.zeros((0, 3)), True
+    return None, poses, points, False
+
+
 def replace_by_board(max_disagreement: float, poses: dict[str, Pose], board_poses: dict[str, Pose]) -> list[str]:
     """Photos whose SfM pose, in the board frame, contradicts their own board pose
     (SfM placed them wrongly on a plain or symmetric specimen: a view from behind
@@ -169,7 +198,11 @@ def frame_without_board(
     looked_at = convergence_point(poses.values())
     plane = ground_plane(points, centres, looked_at, spread) if requested != "normalised" else None
     if table is not None and requested in ("auto", "turntable"):
-        up = table.axis if (centres.mean(axis=0) - table.point) @ table.axis >= 0 else -table.axis
+        # Up is the axis' sense that the table plane's normal (towards the cameras) or,
+        # without a plane, the photos' own up (their image's -y) points along: a camera
+        # level with the table leaves the centres' height above the axis' point no sign.
+        towards = plane[0] if plane is not None else -np.mean([p.R[1] for p in poses.values()], axis=0)
+        up = table.axis if towards @ table.axis >= 0 else -table.axis
         if plane is not None and abs(plane[0] @ up) > np.cos(np.radians(10)):
             # The axis meets the table plane: the natural origin.
             origin = table.point - up * ((plane[0] @ table.point + plane[1]) / (plane[0] @ up))

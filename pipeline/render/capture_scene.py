@@ -21,19 +21,25 @@ PAPER, TONER = 0.80, 0.04
 """Reflectance of the board's paper and of laser toner."""
 
 
+def environment_to_world(frame: str, pose: Pose) -> np.ndarray:
+    """The 4x4 ``to_world`` of an equirectangular environment map in the light's
+    ``frame`` (world, or camera: riding with the camera of ``pose``). The map's up
+    is its +y: the world's +z, or the camera's -y."""
+    to_world = np.eye(3) if frame == "world" else pose.R.T
+    map_up = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]) if frame == "world" else np.diag([1.0, -1, -1])
+    matrix = np.eye(4)
+    matrix[:3, :3] = to_world @ map_up
+    return matrix
+
+
 def lights(parent, light: LightSection, pose: Pose, environment_file: str | None) -> None:
     """Environment and softbox of the rig seen from ``pose``: in the world, or riding
     with the camera (a turntable's light)."""
-    to_world = np.eye(3) if light.frame == "world" else pose.R.T
     if environment_file:
-        # An equirectangular map's up is its +y: the world's +z, or the camera's -y.
-        map_up = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]) if light.frame == "world" else np.diag([1.0, -1, -1])
         emitter = scene_xml.plugin(
             parent, "emitter", {"type": "envmap", "id": "environment", "filename": environment_file}
         )
-        matrix = np.eye(4)
-        matrix[:3, :3] = to_world @ map_up
-        scene_xml.transform_matrix(emitter, matrix)
+        scene_xml.transform_matrix(emitter, environment_to_world(light.frame, pose))
     else:
         scene_xml.plugin(
             parent, "emitter", {"type": "constant", "id": "environment", "radiance": tuple(light.environment_radiance)}

@@ -28,12 +28,24 @@ class SynthOptions:
     """Camera distance from the bird's centre in metres."""
     spp: Annotated[int, Range(1, 4096)] = 64
     """Samples per pixel of the specimen renders."""
-    material: Literal["principled", "volumetric"] = "principled"
+    material: Literal["principled", "volumetric", "glossy_paint"] = "principled"
     """principled: Disney BSDF with specular transmission; volumetric: rough dielectric
-    boundary around a homogeneous scattering medium."""
+    boundary around a homogeneous scattering medium; glossy_paint: an opaque painted
+    figurine (principled, no transmission, low roughness: highlights that move over it)."""
     texture: Literal["blotches", "plain"] = "blotches"
     """blotches: mottled base colour that gives feature points; plain: a low-texture specimen.
-    Principled material only: the volumetric specimen is a homogeneous medium, untextured."""
+    Principled and glossy_paint only: the volumetric specimen is a homogeneous medium, untextured."""
+    table: Literal["board", "dots", "grey"] = "board"
+    """What the specimen stands on: board, the capture's ChArUco board printed on a grey plate;
+    dots, a dark plate with sparse white dots (a turntable without a board); grey, a plain
+    grey plate."""
+    backdrop: Literal["studio", "room", "white"] = "studio"
+    """What is seen behind the specimen: studio, the constant environment (a plain grey
+    surround); room, a textured room (an environment map that also lights the scene), still
+    while a turntable turns; white, photos cut out on white (everything but the specimen
+    replaced by white, as a matting tool leaves them)."""
+    exif_focal: bool = True
+    """Write the focal length into the photos' EXIF; False: a camera or tool that strips it."""
     rig: Literal["handheld", "turntable"] = "handheld"
     """handheld: camera moves, light fixed in the world; turntable: the object turns."""
     turn_jitter: Annotated[float, Range(0.0, 0.9)] = 0.0

@@ -12,6 +12,9 @@ poses, mesh, material, light, board placement and true masks).
 Turntable captures (``--rig turntable``) keep camera and light fixed while the
 object turns: in the object's frame the camera circles one ring and the light
 travels with it. ``--turn-jitter`` makes the steps uneven like a hand-turned table.
+``--table`` and ``--backdrop`` build the hard cases of real captures: a plate with
+sparse dots instead of the board, a still textured room (an environment map, which
+also lights the scene: written to ``ground_truth/room.exr``), photos cut out on white.
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ from __future__ import annotations
 import json
 import math
 import tomllib
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import cv2
@@ -37,6 +40,8 @@ from pipeline.formats.cameras import write_cameras
 from pipeline.geometry.atlas import mitsuba_mesh
 from pipeline.imaging.photo_io import to_uint8, write_image
 from pipeline.render import mitsuba_variant
+from pipeline.render.capture_scene import environment_to_world
+from pipeline.synthetic import set_pieces
 from pipeline.synthetic.options import SynthOptions
 from pipeline.synthetic.specimen import bird_mesh, blotch_colours
 
@@ -57,6 +62,12 @@ PRINCIPLED_TRUTH = {
     # at once; recorded for comparison with fits that use `specular`.
     "specular": ((1.45 - 1) / (1.45 + 1)) ** 2 / 0.08,
 }
+GLOSSY_PAINT_TRUTH = {
+    "model": "opaque",
+    "base_color": [0.60, 0.12, 0.08],
+    "roughness": 0.12,
+    "specular": 0.5,
+}
 VOLUMETRIC_TRUTH = {
     "model": "volumetric",
     "alpha": 0.12,
@@ -65,7 +76,9 @@ VOLUMETRIC_TRUTH = {
     "sigma_t": 180.0,
 }
 
-"""(k1, k2, p1, p2, k3) of the synthetic lens: mild barrel, slight decentring."""
+TRUTHS = {"principled": PRINCIPLED_TRUTH, "volumetric": VOLUMETRIC_TRUTH, "glossy_paint": GLOSSY_PAINT_TRUTH}
+PLATE_RADIUS = 0.2
+"""Radius of the turntable plate, metres."""
 
 
 def lens_intrinsics(options: SynthOptions) -> Intrinsics:
@@ -135,23 +148,20 @@ def _calibration_poses(count: int, board_size: tuple[float, float], rng) -> list
 def material_plugins(material: dict, textured: bool) -> tuple[dict, dict | None, dict]:
     """(bsdf, interior medium or None, integrator) for a ground-truth material.
 
-    Only what the model needs: no medium for the principled model, and the
+    Only what the model needs: no medium for the surface models, and the
     vertex-colour texture only when the specimen has one.
     """
-    if material["model"] == "principled":
+    if material["model"] in ("principled", "opaque"):
         colour = (
             {"type": "mesh_attribute", "name": "vertex_color"}
             if textured
             else {"type": "rgb", "value": material["base_color"]}
         )
-        bsdf = {
-            "type": "principled",
-            "id": "specimen_material",
-            "base_color": colour,
-            "roughness": material["roughness"],
-            "spec_trans": material["spec_trans"],
-            "eta": material["eta"],
-        }
+        bsdf = {"type": "principled", "id": "specimen_material", "base_color": colour}
+        if material["model"] == "principled":
+            bsdf |= {"roughness": material["roughness"], "spec_trans": material["spec_trans"], "eta": material["eta"]}
+        else:
+            bsdf |= {"roughness": material["roughness"], "specular": material["specular"]}
         return bsdf, None, {"type": "path", "max_depth": 10}
     bsdf = {
         "type": "roughdielectric",
@@ -190,6 +200,12 @@ class _Studio:
         reflectance = np.ascontiguousarray(reflectance[::-1])
         self.board_texture = mi.Bitmap(np.repeat(reflectance[..., None], 3, axis=2))
         self.board_half = (board.squares_x * board.square_mm / 2000, board.squares_y * board.square_mm / 2000)
+        plate = {"type": "rgb", "value": 0.25}
+        if options.table == "dots":
+            dots = set_pieces.dotted_plate(options.seed + 11)
+            plate = {"type": "bitmap", "bitmap": mi.Bitmap(np.repeat(dots[..., None], 3, axis=2)), "raw": True}
+        self.plate = {"type": "diffuse", "id": "plate", "reflectance": plate}
+        self.room = set_pieces.room_map(options.seed + 12) if options.backdrop == "room" else None
 
     def specimen_shape(
         self,
@@ -238,18 +254,19 @@ class _Studio:
                 "sampler": {"type": "independent", "sample_count": spp},
                 "film": {"type": "hdrfilm", "width": render_w, "height": render_h, "pixel_format": "rgb"},
             },
-            "board": {
+        }
+        if board_only or self.options.table == "board":
+            scene["board"] = {
                 "type": "rectangle",
                 "to_world": mi.ScalarTransform4f().scale([self.board_half[0], self.board_half[1], 1.0]),
                 "bsdf": black if black_props else paper,
-            },
-        }
+            }
         if board_only:
             return scene
         scene["turntable"] = {
             "type": "disk",
-            "to_world": mi.ScalarTransform4f().translate([0, 0, -0.001]).scale(0.2),
-            "bsdf": black if black_props else {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.25}},
+            "to_world": mi.ScalarTransform4f().translate([0, 0, -0.001]).scale(PLATE_RADIUS),
+            "bsdf": black if black_props else self.plate,
         }
         if specimen is not None:
             scene["specimen"] = specimen
@@ -262,6 +279,12 @@ class _Studio:
         lights: dict = {
             "environment": {"type": "constant", "radiance": {"type": "rgb", "value": list(light.environment_radiance)}}
         }
+        if self.room is not None:
+            lights["environment"] = {
+                "type": "envmap",
+                "bitmap": mi.Bitmap(self.room),
+                "to_world": mi.ScalarTransform4f(environment_to_world(light.frame, pose).tolist()),
+            }
         if not light.area_light:
             return lights
         position, target = np.array(light.area_position), np.array(light.area_target)
@@ -290,12 +313,15 @@ class _Studio:
         image = np.asarray(self.mi.render(self.mi.load_dict(scene), seed=self.renders), dtype=np.float32)
         return cv2.remap(image, *self.maps, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
-    def photo(self, linear: np.ndarray) -> np.ndarray:
-        """Shot and read noise in linear space, then 8-bit sRGB, as a camera writes it."""
+    def photo(self, linear: np.ndarray, coverage: np.ndarray | None = None) -> np.ndarray:
+        """Shot and read noise in linear space, then 8-bit sRGB, as a camera writes it;
+        with ``coverage`` (the specimen's share of each pixel) cut out on white."""
         if self.options.noise > 0:
             electrons_at_white = 4000.0 / self.options.noise
             variance = np.clip(linear, 0, None) / electrons_at_white + (0.0015 * self.options.noise) ** 2
             linear = linear + self.noise_rng.normal(size=linear.shape) * np.sqrt(variance)
+        if coverage is not None:
+            linear = coverage[..., None] * linear + (1 - coverage[..., None])
         return to_uint8(linear)
 
     def write_jpeg(self, path: Path, pixels: np.ndarray) -> None:
@@ -304,17 +330,20 @@ class _Studio:
         # The 35 mm equivalent is defined on the diagonal (CIPA DC-008): 43.27 mm.
         sensor_diagonal_mm = SENSOR_WIDTH_MM * math.hypot(width, height) / width
         pixels_per_cm = width / (SENSOR_WIDTH_MM / 10)
+        focal = {
+            "Exif:FocalLength": float(focal_mm),
+            "Exif:FocalLengthIn35mmFilm": int(round(focal_mm * 43.27 / sensor_diagonal_mm)),
+            "Exif:FocalPlaneXResolution": float(pixels_per_cm),
+            "Exif:FocalPlaneYResolution": float(pixels_per_cm),
+            "Exif:FocalPlaneResolutionUnit": 3,  # centimetres
+        }
         write_image(
             path,
             pixels,
             {
                 "Make": "pipeline-synth",
                 "Model": "SynthCam 1",
-                "Exif:FocalLength": float(focal_mm),
-                "Exif:FocalLengthIn35mmFilm": int(round(focal_mm * 43.27 / sensor_diagonal_mm)),
-                "Exif:FocalPlaneXResolution": float(pixels_per_cm),
-                "Exif:FocalPlaneYResolution": float(pixels_per_cm),
-                "Exif:FocalPlaneResolutionUnit": 3,  # centimetres
+                **(focal if self.options.exif_focal else {}),
                 "compression": f"jpeg:{self.options.jpeg_quality}",
             },
         )
@@ -343,8 +372,12 @@ def default_light(options: SynthOptions) -> LightSection:
 
 def _capture_toml(options: SynthOptions, board: BoardSection, light: LightSection) -> str:
     capture = CaptureSection(
-        f"synthetic bird, {options.material} material, seed {options.seed}", options.rig, options.material
+        f"synthetic bird, {options.material} material, seed {options.seed}",
+        options.rig,
+        TRUTHS[options.material]["model"],
     )
+    if options.table != "board" and options.calibration_shots == 0:
+        board = replace(board, kind="none")  # no board anywhere in the capture
     lines = ["# Written by `pipeline synth`: what a user would write for this capture."]
     for name, section in (("capture", capture), ("board", board), ("light", light)):
         lines += toml_section(name, section, documented=False) + [""]
@@ -361,10 +394,12 @@ def synthesize(out_dir: Path, options: SynthOptions, board: BoardSection = Board
         raise PipelineError(f"{out_dir} is not empty: choose a new folder for the synthetic capture")
     mitsuba_variant.activate()
     light = default_light(options)
+    if options.backdrop == "room":
+        light = replace(light, environment_map="ground_truth/room.exr")
     rng = np.random.default_rng(options.seed)
     mesh = bird_mesh()
-    material = dict(PRINCIPLED_TRUTH if options.material == "principled" else VOLUMETRIC_TRUTH)
-    textured = options.texture == "blotches" and options.material == "principled"
+    material = dict(TRUTHS[options.material])
+    textured = options.texture == "blotches" and options.material != "volumetric"
     albedo = blotch_colours(mesh.vertices, np.array(material["base_color"]), options.seed) if textured else None
     if albedo is not None:
         material["base_color_mean"] = albedo.mean(axis=0).tolist()
@@ -385,10 +420,10 @@ def synthesize(out_dir: Path, options: SynthOptions, board: BoardSection = Board
     )
     names = [f"view_{i:03d}.jpg" for i in range(len(poses))]
     for name, pose in progress.track(list(zip(names, poses)), "rendering views"):
-        studio.write_jpeg(
-            images / name, studio.photo(studio.render(studio.scene(pose, options.spp, integrator, specimen)))
-        )
+        linear = studio.render(studio.scene(pose, options.spp, integrator, specimen))
         coverage = studio.render(studio.scene(pose, 16, {"type": "path", "max_depth": 1}, silhouette, black_props=True))
+        cut_out = np.clip(coverage[..., 0], 0, 1) if options.backdrop == "white" else None
+        studio.write_jpeg(images / name, studio.photo(linear, cut_out))
         cv2.imwrite(
             str(truth / "masks" / name.replace(".jpg", ".png")), ((coverage[..., 0] > 0.5) * 255).astype(np.uint8)
         )
@@ -415,6 +450,8 @@ def synthesize(out_dir: Path, options: SynthOptions, board: BoardSection = Board
         json.dumps({**material, "texture": "vertex colours of mesh.ply (sRGB)" if textured else None}, indent=1)
     )
     (truth / "light.json").write_text(json.dumps(asdict(light), indent=1))
+    if studio.room is not None:
+        write_image(truth / "room.exr", studio.room)
     (truth / "board.json").write_text(
         json.dumps({**asdict(board), "board_to_world": board_to_world(board).tolist()}, indent=1)
     )

@@ -1,0 +1,793 @@
+"""Circular motion from feature matches: a still camera and an object turning about
+one axis (a turntable), or a camera carried round a still object on one circle (a
+ring gantry). Every photo is one angle; the axis, the camera's place relative to it
+and the intrinsics are shared.
+
+In the camera's frame the axis is the line through ``p`` with direction ``a``
+(unit vectors, ``p`` perpendicular to ``a``; the camera's distance from the axis is
+the unit of length). A point ``X`` of the object (in the frame of the photo at angle
+0) is seen in photo i at ``Rot(a, angle_i) (X - p) + p``: the photo's pose is
+``R_i = Rot(a, angle_i)``, ``t_i = p - R_i p``, a ``Turntable`` with ``R_fixed = I``
+and ``c_fixed = 0``.
+
+The solver:
+
+1. **The axis**: the direction (in the camera's frame) under which every matched
+   pair's verified matches are best explained by one turn each (truncated Sampson
+   distances, a grid over the half sphere refined twice), the camera facing the
+   axis. A pair's own essential matrix is not used: a few dozen matches between
+   photos a few degrees apart fix one angle well but a full rotation poorly (on a
+   synthetic turntable their relative rotations were 3 degrees off, their average
+   axis 16 degrees).
+2. **Each pair's turn** under that axis (a 1-degree grid, then 0.05 degrees); pairs
+   whose matches one turn does not explain (a repeated pattern joined them) are
+   left out.
+3. **Angles**: synchronised over the graph of pairs (the leading eigenvector of the
+   pairs' unit phasors, then robust least squares), so any matched pair counts and
+   the photos need not be in order; the photos outside the largest connected ring
+   are left unplaced.
+4. **Bundle adjustment** of the model (pipeline.geometry.bundle): axis, ``p``, one
+   angle per photo, focal length, radial distortion when the photos constrain it
+   (``self_calibrate``; the principal point is held, see ``_self_calibration``),
+   and the feature tracks' points, with Cauchy's loss; observations off by more
+   than ``outlier_px`` are dropped and it is solved again. An optional prior makes
+   the steps between photos in file order even (a timed turntable).
+5. **Which photos it placed**: a photo with fewer than ``min_observations`` inlier
+   observations, or whose angle is uncertain by more than ``max_angle_std_deg``,
+   is not placed; the sfm stage then tries its board pose or its silhouette.
+
+Limitations: one camera setting; the photos' matches must form one connected ring
+(photos in other components are left unplaced); the axis must not point at the
+camera (a camera looking straight down the axis sees only a rotation of the image).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial.transform import Rotation
+
+from pipeline import logger
+from pipeline.camera.model import Intrinsics, Pose
+from pipeline.camera.self_calibration import corner_radius, frame_coverage, radial_shift_px
+from pipeline.geometry.bundle import Observations, Problem, adjust
+
+GLOBAL_NAMES = ("axis_a", "axis_b", "psi", "f", "cx", "cy", "k1")
+"""The model's global parameters: two for the axis direction (a tangent-plane offset
+from its initial estimate), the angle of ``p`` about the axis, focal length,
+principal point, radial distortion."""
+FOCAL, CX, CY, K1 = 3, 4, 5, 6
+KNOWN_TURN_STD_DEG = 0.1
+"""How closely the bundle adjustment holds the turns between photos with known poses (a
+board's, from its many corners) to what those poses say."""
+
+
+@dataclass(frozen=True)
+class CircularSettings:
+    """How the circular-motion solver places photos (the sfm stage's settings)."""
+
+    min_observations: int = 15
+    """Inlier observations a photo needs to be placed by its features."""
+    max_angle_std_deg: float = 0.5
+    """A photo whose angle is more uncertain than this (one standard deviation) is not placed."""
+    outlier_px: float = 3.0
+    """Observations farther than this from their reprojection (or 4 robust standard
+    deviations, whichever is larger) are dropped between solves."""
+    refine_focal: bool = True
+    """Adjust the focal length (False when a board calibrated it)."""
+    self_calibrate: bool = True
+    """Adjust the radial distortion when the photos constrain it (the principal point is
+    held: see ``_self_calibration``)."""
+    max_calibration_std_px: float = 1.0
+    """Distortion is adjusted only when its standard deviation, as a displacement in pixels
+    at the frame's corner, is below this."""
+    min_frame_coverage: float = 0.4
+    """Self-calibration needs observations in at least this fraction of a 6x6 grid over
+    the frame: distortion and principal point show only towards the edges."""
+    in_file_order: bool = False
+    """The photos are named in the order the table turned (a turntable): a photo whose
+    angle breaks that order is not placed by its features."""
+    even_steps_deg: float = 0.0
+    """Above 0: a prior that consecutive photos in file order are one equal step apart,
+    with this standard deviation (degrees): a turntable turned by a timer."""
+
+
+@dataclass
+class CircularMotion:
+    """The solution: the axis in the camera's frame, the camera's offset from it, an
+    angle per placed photo, the intrinsics, and the triangulated tracks."""
+
+    axis: np.ndarray
+    point: np.ndarray
+    angles: dict[str, float]
+    intrinsics: Intrinsics
+    points: np.ndarray
+    """(M, 3) track points in the frame of the photo at angle 0."""
+    tracks: list[dict[str, int]]
+    """Per point: photo name -> keypoint index of its inlier observations."""
+    angle_std_deg: dict[str, float]
+    observations: dict[str, int]
+    """Inlier observations per photo (placed or not)."""
+    calibration: dict
+    """Self-calibration: per parameter its value, standard deviation and whether adjusted."""
+    reprojection_px: float
+    """Median reprojection error of the inlier observations."""
+    unplaced: dict[str, str] = field(default_factory=dict)
+    """Photos the features could not place, with the reason."""
+
+
+def axis_rotation(axis: np.ndarray, angles: np.ndarray, vectors: np.ndarray) -> np.ndarray:
+    """Rodrigues: ``vectors`` (m, 3) turned about the unit ``axis`` by ``angles`` (m,)."""
+    c, s = np.cos(angles)[:, None], np.sin(angles)[:, None]
+    return vectors * c + np.cross(axis, vectors) * s + axis * (vectors @ axis)[:, None] * (1 - c)
+
+
+class Model:
+    """The circular camera model's projection, parameterised for the bundle adjuster."""
+
+    def __init__(self, axis0: np.ndarray):
+        self.axis0 = axis0 / np.linalg.norm(axis0)
+        helper = np.array([1.0, 0, 0]) if abs(self.axis0[0]) < 0.9 else np.array([0, 1.0, 0])
+        self.e1 = np.cross(self.axis0, helper)
+        self.e1 /= np.linalg.norm(self.e1)
+        self.e2 = np.cross(self.axis0, self.e1)
+
+    def axis_and_point(self, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        axis = self.axis0 + g[0] * self.e1 + g[1] * self.e2
+        axis /= np.linalg.norm(axis)
+        u = self.e1 - (self.e1 @ axis) * axis
+        u /= np.linalg.norm(u)
+        v = np.cross(axis, u)
+        return axis, np.cos(g[2]) * u + np.sin(g[2]) * v
+
+    def camera_points(self, g: np.ndarray, angles: np.ndarray, points: np.ndarray) -> np.ndarray:
+        axis, p = self.axis_and_point(g)
+        return axis_rotation(axis, angles, points - p) + p
+
+    def project(self, g: np.ndarray, views: np.ndarray, points: np.ndarray, obs: Observations) -> np.ndarray:
+        camera = self.camera_points(g, views[obs.view, 0], points[obs.point])
+        z = np.maximum(camera[:, 2], 1e-6)
+        x, y = camera[:, 0] / z, camera[:, 1] / z
+        radial = 1 + g[K1] * (x * x + y * y)
+        return np.column_stack([g[FOCAL] * x * radial + g[CX], g[FOCAL] * y * radial + g[CY]])
+
+    def undistorted_rays(self, g: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+        """Normalised image coordinates of ``pixels`` (distortion removed by fixed-point iteration)."""
+        distorted = (pixels - g[[CX, CY]]) / g[FOCAL]
+        undistorted = distorted.copy()
+        for _ in range(10):
+            undistorted = distorted / (1 + g[K1] * np.sum(undistorted**2, axis=1))[:, None]
+        return undistorted
+
+
+# --- 1-3. the axis, each pair's turn and the angles ---------------------------------------
+
+
+@dataclass
+class PairRays:
+    """A matched photo pair (file indices ``i`` < ``j``) as normalised camera rays (k, 3)."""
+
+    i: int
+    j: int
+    rays_i: np.ndarray
+    rays_j: np.ndarray
+
+
+def essentials(axis: np.ndarray, point: np.ndarray, turns: np.ndarray) -> np.ndarray:
+    """(G, 3, 3) essential matrices of the model between photos ``turns`` apart:
+    ``R = Rot(axis, turn)``, ``t = (I - R) p``."""
+    # No turn has no epipolar geometry (E = 0 explains anything): the least turn is kept.
+    turns = np.where(np.abs(turns) < 1e-4, np.where(turns < 0, -1e-4, 1e-4), turns)
+    R = Rotation.from_rotvec(np.outer(turns, axis)).as_matrix()
+    t = point - R @ point
+    cross = np.zeros_like(R)
+    cross[:, 0, 1], cross[:, 0, 2], cross[:, 1, 2] = -t[:, 2], t[:, 1], -t[:, 0]
+    cross -= cross.transpose(0, 2, 1)
+    return cross @ R
+
+
+def sampson_sq(E: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+    """(G, N) squared Sampson distances of rays ``x1`` -> ``x2`` (N, 3) under each of ``E`` (G, 3, 3)."""
+    Ex1 = x1 @ E.transpose(0, 2, 1)
+    Etx2 = x2 @ E
+    algebraic = np.sum(x2 * Ex1, axis=-1)
+    denominator = Ex1[..., 0] ** 2 + Ex1[..., 1] ** 2 + Etx2[..., 0] ** 2 + Etx2[..., 1] ** 2
+    return algebraic**2 / np.maximum(denominator, 1e-300)
+
+
+def facing_point(axis: np.ndarray) -> np.ndarray:
+    """The camera's offset ``p`` from an axis it looks at: the optical axis with its
+    component along the axis removed (the specimen, on the axis, is in view)."""
+    forward = np.array([0.0, 0.0, 1.0])
+    p = forward - (forward @ axis) * axis
+    return p / np.linalg.norm(p)
+
+
+def pair_turns(
+    axis: np.ndarray, pairs: list[PairRays], turns: np.ndarray, threshold: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each pair's turn among ``turns`` under the model with ``axis`` (the camera
+    facing it), by the truncated sum of squared Sampson distances (``threshold`` in
+    normalised units). Returns the best turn, its cost and its inlier count per pair."""
+    x1 = np.vstack([np.column_stack([p.rays_i, np.ones(len(p.rays_i))]) for p in pairs])
+    x2 = np.vstack([np.column_stack([p.rays_j, np.ones(len(p.rays_j))]) for p in pairs])
+    sizes = [len(p.rays_i) for p in pairs]
+    starts = np.cumsum([0] + sizes)[:-1]
+    distances = sampson_sq(essentials(axis, facing_point(axis), turns), x1, x2)
+    costs = np.add.reduceat(np.minimum(distances, threshold**2), starts, axis=1)
+    best = np.argmin(costs, axis=0)
+    at_best = distances[np.repeat(best, sizes), np.arange(len(x1))]
+    inliers = np.add.reduceat((at_best < threshold**2).astype(int), starts)
+    return turns[best], costs[best, np.arange(len(pairs))], inliers
+
+
+def _axis_from(elevation: np.ndarray, roll: np.ndarray) -> np.ndarray:
+    """Axis directions in the camera's frame: ``roll`` turns the axis' image away from
+    the image's vertical, ``elevation`` tilts it towards the camera (an upright camera
+    looking down at a turntable from elevation e sees the axis at elevation e)."""
+    return np.stack([np.cos(elevation) * np.sin(roll), -np.cos(elevation) * np.cos(roll), -np.sin(elevation)], -1)
+
+
+def search_axis(pairs: list[PairRays], threshold: float) -> np.ndarray:
+    """The axis (camera frame) under which the pairs' matches are best explained by one
+    turn each: a grid over the half sphere of directions (every 15 degrees), refined
+    twice around the best (3 and 0.75 degrees). Unlike averaging the pairs' own relative
+    rotations, it needs no pair to determine a rotation on its own: a few dozen matches
+    between photos a few degrees apart fix one angle well but three poorly."""
+    coarse_turns = np.radians(np.arange(-60, 61, 2.0))
+    # A sample is enough to rank axes: at most 30 matches of each of at most 120 pairs.
+    rng = np.random.default_rng(0)
+    sample = []
+    for pair in pairs[:: max(1, len(pairs) // 120)]:
+        keep = np.sort(rng.permutation(len(pair.rays_i))[:30])
+        sample.append(PairRays(pair.i, pair.j, pair.rays_i[keep], pair.rays_j[keep]))
+    best_cost, best = np.inf, (0.0, 0.0)
+    for step, span in ((15.0, None), (3.0, 15.0), (0.75, 3.0)):
+        if span is None:
+            elevations, rolls = np.arange(-75, 76, step), np.arange(0, 180, step)
+        else:
+            elevations = np.arange(best[0] - span, best[0] + span + step / 2, step)
+            rolls = np.arange(best[1] - span, best[1] + span + step / 2, step)
+        for elevation in elevations:
+            for roll in rolls:
+                axis = _axis_from(np.radians(elevation), np.radians(roll))
+                cost = float(np.sum(pair_turns(axis, sample, coarse_turns, threshold)[1]))
+                if cost < best_cost:
+                    best_cost, best = cost, (float(elevation), float(roll))
+    return _axis_from(*np.radians(best))
+
+
+def consistent_pairs(
+    n: int, pairs: np.ndarray, turns: np.ndarray, weights: np.ndarray, tolerance: float, trials: int = 200
+) -> np.ndarray:
+    """Which pairs agree on one set of angles (boolean per pair). Angles from random
+    spanning trees of the pair graph (heavier pairs more likely drawn; the chain of
+    pairs of consecutive photos, a turntable's order, is tried first), each pair's
+    turn compared with the angles' difference; the tree that the most weight agrees
+    with (within ``tolerance``) wins. A pair a repeated pattern joined with a plausible
+    but wrong turn (a board seen from opposite sides matches itself as if barely
+    turned) disagrees with the rest and is left out."""
+    rng = np.random.default_rng(0)
+    best, best_score = np.zeros(len(pairs), bool), -1.0
+    chain = np.where(pairs[:, 1] - pairs[:, 0] == 1, 0.0, np.inf)
+    for trial in range(trials):
+        keys = chain if trial == 0 else -np.log(rng.uniform(1e-12, 1, len(pairs))) / weights
+        tree = _spanning_tree(n, pairs, np.argsort(keys, kind="stable"))
+        angles = _tree_angles(n, pairs[tree], turns[tree])
+        residuals = np.angle(np.exp(1j * (angles[pairs[:, 1]] - angles[pairs[:, 0]] - turns)))
+        agree = np.isfinite(residuals) & (np.abs(residuals) < tolerance)
+        score = float(weights[agree].sum())
+        if score > best_score:
+            best, best_score = agree, score
+    return best
+
+
+def _spanning_tree(n: int, pairs: np.ndarray, edge_order: np.ndarray) -> np.ndarray:
+    """Indices of a spanning forest's pairs, taken in ``edge_order`` (Kruskal)."""
+    parent = list(range(n))
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    tree = []
+    for k in edge_order:
+        a, b = root(int(pairs[k, 0])), root(int(pairs[k, 1]))
+        if a != b:
+            parent[a] = b
+            tree.append(int(k))
+    return np.array(tree, int)
+
+
+def _tree_angles(n: int, pairs: np.ndarray, turns: np.ndarray) -> np.ndarray:
+    """Angles along a spanning forest (nan for photos outside the largest tree)."""
+    neighbours: dict[int, list[tuple[int, float]]] = {}
+    for (i, j), turn in zip(pairs, turns):
+        neighbours.setdefault(int(i), []).append((int(j), float(turn)))
+        neighbours.setdefault(int(j), []).append((int(i), -float(turn)))
+    angles = np.full(n, np.nan)
+    best: list[int] = []
+    for start in neighbours:
+        if np.isfinite(angles[start]):
+            continue
+        angles[start], stack, members = 0.0, [start], [start]
+        while stack:
+            i = stack.pop()
+            for j, turn in neighbours[i]:
+                if not np.isfinite(angles[j]):
+                    angles[j] = angles[i] + turn
+                    stack.append(j)
+                    members.append(j)
+        if len(members) > len(best):
+            best = members
+    keep = np.zeros(n, bool)
+    keep[best] = True
+    return np.where(keep, angles, np.nan)
+
+
+def out_of_order(angles: np.ndarray) -> np.ndarray:
+    """Indices of ``angles`` (in file order) to drop so that the rest increase within one
+    turn from the first: the complement of the longest increasing subsequence of the
+    angles counted forward from the first, modulo a full turn."""
+    forward = np.mod(angles - angles[0], 2 * np.pi)
+    # Longest increasing subsequence, O(n^2): a capture has at most a few hundred photos.
+    length = np.ones(len(forward), int)
+    previous = -np.ones(len(forward), int)
+    for j in range(len(forward)):
+        for i in range(j):
+            if forward[i] < forward[j] and length[i] + 1 > length[j]:
+                length[j], previous[j] = length[i] + 1, i
+    keep, k = set(), int(np.argmax(length))
+    while k >= 0:
+        keep.add(k)
+        k = previous[k]
+    return np.array([i for i in range(len(angles)) if i not in keep], int)
+
+
+def synchronise_angles(n: int, pairs: np.ndarray, turns: np.ndarray, weights: np.ndarray, reference: int) -> np.ndarray:
+    """Angles (n,) with angle[reference] = 0 that best explain ``turns[k]`` = angle[j] -
+    angle[i] for ``pairs[k]`` = (i, j), modulo 2 pi: the leading eigenvector of the
+    pairs' phasors, then iteratively reweighted least squares on the unwrapped
+    differences (Cauchy weights, scale 1 degree)."""
+    H = np.zeros((n, n), complex)
+    H[pairs[:, 0], pairs[:, 1]] = weights * np.exp(-1j * turns)
+    H[pairs[:, 1], pairs[:, 0]] = weights * np.exp(1j * turns)
+    H += np.diag(np.full(n, weights.max()))
+    vector = np.linalg.eigh(H)[1][:, -1]
+    angles = np.angle(vector * np.conj(vector[reference]) / max(abs(vector[reference]), 1e-300))
+    # Unwrapped differences against the spectral solution, then least squares.
+    wraps = np.round((angles[pairs[:, 1]] - angles[pairs[:, 0]] - turns) / (2 * np.pi))
+    targets = turns + 2 * np.pi * wraps
+    A = np.zeros((len(pairs), n))
+    A[np.arange(len(pairs)), pairs[:, 1]] = 1
+    A[np.arange(len(pairs)), pairs[:, 0]] = -1
+    free = np.arange(n) != reference
+    robust = np.ones(len(pairs))
+    for _ in range(10):
+        w = np.sqrt(weights * robust)
+        solution = np.linalg.lstsq(A[:, free] * w[:, None], targets * w, rcond=None)[0]
+        angles = np.zeros(n)
+        angles[free] = solution
+        residuals = A @ angles - targets
+        robust = 1 / (1 + (residuals / np.radians(1.0)) ** 2)
+    return angles
+
+
+# --- 4. tracks and triangulation ----------------------------------------------------------
+
+
+def build_tracks(
+    order: list[str], keypoints: dict[str, np.ndarray], matches: dict[tuple[str, str], dict[int, int]]
+) -> list[dict[str, int]]:
+    """Feature tracks: connected keypoints over all verified matches; a track holding
+    two keypoints of one photo (a repeated pattern joined it) is dropped."""
+    offsets = np.cumsum([0] + [len(keypoints[n]) for n in order])
+    index = {name: i for i, name in enumerate(order)}
+    rows, cols = [], []
+    for (a, b), pairs in matches.items():
+        if index[a] < index[b] and pairs:
+            mine, theirs = np.array(list(pairs.items())).T
+            rows.append(offsets[index[a]] + mine)
+            cols.append(offsets[index[b]] + theirs)
+    if not rows:
+        return []
+    rows, cols = np.concatenate(rows), np.concatenate(cols)
+    graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(offsets[-1], offsets[-1]))
+    _, labels = connected_components(graph, directed=False)
+    used = np.unique(np.concatenate([rows, cols]))
+    photo_of = np.searchsorted(offsets, used, side="right") - 1
+    tracks: dict[int, dict[str, int]] = {}
+    conflicted = set()
+    for node, photo in zip(used, photo_of):
+        track = tracks.setdefault(int(labels[node]), {})
+        name = order[photo]
+        if name in track:
+            conflicted.add(int(labels[node]))
+        track[name] = int(node - offsets[photo])
+    return [t for label, t in sorted(tracks.items()) if label not in conflicted and len(t) >= 2]
+
+
+def triangulate(rays: list[np.ndarray], rotations: list[np.ndarray], translations: list[np.ndarray]) -> np.ndarray:
+    """Linear (DLT) triangulation of one track from normalised rays and poses."""
+    rows = []
+    for (x, y), R, t in zip(rays, rotations, translations):
+        P = np.hstack([R, t[:, None]])
+        rows += [x * P[2] - P[0], y * P[2] - P[1]]
+    X = np.linalg.svd(np.array(rows))[2][-1]
+    return X[:3] / X[3] if abs(X[3]) > 1e-12 else np.full(3, np.nan)
+
+
+# --- the solver ----------------------------------------------------------------------------
+
+
+class _Solver:
+    """State shared by the solver's steps: photos, keypoints, the model and its parameters."""
+
+    def __init__(self, settings: CircularSettings, order: list[str], intrinsics: Intrinsics, keypoints):
+        self.settings = settings
+        self.order = order
+        self.index = {name: i for i, name in enumerate(order)}
+        self.keypoints = keypoints
+        self.start = intrinsics
+        self.g = np.zeros(len(GLOBAL_NAMES))
+        self.g[[FOCAL, CX, CY]] = intrinsics.fx, intrinsics.cx, intrinsics.cy
+        self.g[K1] = intrinsics.dist[0] if intrinsics.dist else 0.0
+        self.model: Model | None = None
+        self.angles = np.zeros(len(order))
+        self.placed = np.zeros(len(order), bool)
+        self.trusted_pairs: set[tuple[str, str]] = set()
+        """Feature pairs the model explains with turns the other pairs agree with."""
+        self.known_rotations: dict[int, np.ndarray] = {}
+        """World-to-camera rotations of photos with known poses (a board's), by index."""
+
+    def K(self) -> np.ndarray:
+        return np.array([[self.g[FOCAL], 0, self.g[CX]], [0, self.g[FOCAL], self.g[CY]], [0, 0, 1.0]])
+
+    def pose(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        axis, p = self.model.axis_and_point(self.g)
+        R = Rotation.from_rotvec(axis * self.angles[i]).as_matrix()
+        return R, p - R @ p
+
+
+def _pair_rays(solver: _Solver, matches, min_matches: int) -> list[PairRays]:
+    model = Model(np.array([0.0, -1.0, 0.0]))
+    pairs = []
+    for (a, b), matched in sorted(matches.items()):
+        i, j = solver.index[a], solver.index[b]
+        if i < j and len(matched) >= min_matches:
+            mine, theirs = np.array(list(matched.items())).T
+            rays = [model.undistorted_rays(solver.g, solver.keypoints[n][k]) for n, k in ((a, mine), (b, theirs))]
+            pairs.append(PairRays(i, j, *rays))
+    return pairs
+
+
+def _known_turns(solver: _Solver, known: dict[str, Pose]) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Pairs (i < j) of photos with known poses (a board's) and their relative rotations."""
+    names = sorted((n for n in known if n in solver.index), key=solver.index.get)
+    pairs, rotations = [], []
+    for a, name_a in enumerate(names):
+        for name_b in names[a + 1 :]:
+            pairs.append((solver.index[name_a], solver.index[name_b]))
+            rotations.append(known[name_b].R @ known[name_a].R.T)
+    return np.array(pairs, int).reshape(-1, 2), rotations
+
+
+def _initial_axis_and_angles(
+    solver: _Solver, pairs: list[PairRays], known: dict[str, Pose], axis: np.ndarray | None
+) -> None:
+    """Steps 1-3: the axis (searched unless given), each pair's turn, the angles of the
+    photos in the largest connected component of pairs the model explains, and the
+    camera's offset. Known poses (a board's) give exact relative rotations: the axis
+    is theirs when they turn, and each of their pairs counts as much as all feature
+    pairs together."""
+    n = len(solver.order)
+    threshold = 2.0 / solver.g[FOCAL]
+    known_pairs, known_rotations = _known_turns(solver, known)
+    rotvecs = np.array([Rotation.from_matrix(R).as_rotvec() for R in known_rotations]).reshape(-1, 3)
+    if np.any(np.linalg.norm(rotvecs, axis=1) > np.radians(5)):
+        axis = np.linalg.svd(rotvecs, full_matrices=False)[2][0]
+    elif axis is None:
+        axis = search_axis(pairs, threshold)
+    turns, _, inliers = pair_turns(axis, pairs, np.radians(np.arange(-90, 90, 1.0)), threshold)
+    for k, pair in enumerate(pairs):
+        fine = turns[k] + np.radians(np.arange(-1, 1.01, 0.05))
+        found, _, count = pair_turns(axis, [pair], fine, threshold)
+        turns[k], inliers[k] = found[0], count[0]
+    sizes = np.array([len(p.rays_i) for p in pairs])
+    # A pair whose matches the model does not explain, or whose turn disagrees with the
+    # other pairs' (a repeated pattern joined it), is left out.
+    explained = (inliers >= solver.settings.min_observations) & (inliers >= 0.5 * sizes)
+    index = np.vstack([np.array([(p.i, p.j) for p in pairs]).reshape(-1, 2), known_pairs])
+    turns = np.concatenate([turns, rotvecs @ axis])
+    weights = np.concatenate([inliers, np.full(len(known_pairs), max(inliers.sum(), 1))]).astype(float)
+    consistent = np.concatenate([explained, np.ones(len(known_pairs), bool)])
+    agree = consistent_pairs(n, index[consistent], turns[consistent], weights[consistent], np.radians(3))
+    consistent[np.flatnonzero(consistent)[~agree]] = False
+    # The table turns one way: most steps to the next photo in file order are positive.
+    neighbours = consistent & (index[:, 1] - index[:, 0] == 1)
+    if np.sum(np.sign(turns[neighbours])) < 0:
+        axis, turns = -axis, -turns
+    graph = coo_matrix((np.ones(int(consistent.sum())), tuple(index[consistent].T)), shape=(n, n))
+    _, labels = connected_components(graph, directed=False)
+    component = labels == np.bincount(labels[index[consistent].ravel()]).argmax()
+    keep = consistent & component[index[:, 0]]
+    members = np.flatnonzero(component)
+    local = -np.ones(n, int)
+    local[members] = np.arange(len(members))
+    angles = synchronise_angles(len(members), local[index[keep]], turns[keep], weights[keep], 0)
+    solver.angles[members] = angles
+    solver.placed[:] = False
+    solver.placed[members] = True
+    if solver.settings.in_file_order:
+        # A photo joined to the others only by a false pair lands out of turning order.
+        solver.placed[members[out_of_order(angles)]] = False
+    solver.trusted_pairs = {
+        (solver.order[i], solver.order[j])
+        for i, j in index[: len(pairs)][keep[: len(pairs)]]
+        if solver.placed[i] and solver.placed[j]
+    }
+    solver.model = Model(axis)
+    p = facing_point(axis)
+    u = solver.model.axis_and_point(np.zeros(3))[1]  # the offset at psi = 0
+    v = np.cross(axis, u)
+    solver.g[2] = np.arctan2(p @ v, p @ u)
+    logger.info(
+        "circular motion: %d photo pairs by features (%d not explained by one turn or disagreeing), %d by known "
+        "poses; %d photos in the largest ring",
+        len(pairs),
+        int((~consistent[: len(pairs)]).sum()),
+        len(known_pairs),
+        len(members),
+    )
+
+
+def _tracks_to_problem(solver: _Solver, tracks: list[dict[str, int]]) -> tuple[np.ndarray, Observations]:
+    """Triangulated points of the tracks among placed photos, and their observations."""
+    placed = {solver.order[i] for i in np.flatnonzero(solver.placed)}
+    poses = {i: solver.pose(i) for i in np.flatnonzero(solver.placed)}
+    points, views, point_ids, pixels, keypoint_ids = [], [], [], [], []
+    for track in tracks:
+        members = {n: k for n, k in track.items() if n in placed}
+        if len(members) < 2:
+            continue
+        names = sorted(members, key=solver.index.get)
+        observed = np.array([solver.keypoints[n][members[n]] for n in names])
+        rays = solver.model.undistorted_rays(solver.g, observed)
+        Rs = [poses[solver.index[n]][0] for n in names]
+        ts = [poses[solver.index[n]][1] for n in names]
+        X = triangulate(list(rays), Rs, ts)
+        if not np.all(np.isfinite(X)) or any((R @ X + t)[2] <= 0 for R, t in zip(Rs, ts)):
+            continue
+        for name, pixel in zip(names, observed):
+            views.append(solver.index[name])
+            point_ids.append(len(points))
+            pixels.append(pixel)
+            keypoint_ids.append(members[name])
+        points.append(X)
+    observations = Observations(
+        np.array(views, int), np.array(point_ids, int), np.array(pixels).reshape(-1, 2), np.array(keypoint_ids, int)
+    )
+    return np.array(points).reshape(-1, 3), observations
+
+
+def _problem(solver: _Solver, observations: Observations, free_global: np.ndarray) -> Problem:
+    free_views = solver.placed[:, None].copy()
+    free_views[int(np.flatnonzero(solver.placed)[0]), 0] = False  # the angle's origin
+    placed = np.flatnonzero(solver.placed)
+    priors = []
+    if solver.settings.even_steps_deg > 0:
+        sigma = np.radians(solver.settings.even_steps_deg)
+
+        def even_steps(g: np.ndarray, views: np.ndarray) -> np.ndarray:
+            turns = np.angle(np.exp(1j * np.diff(views[placed, 0])))
+            steps = turns / np.diff(placed)
+            return (steps - np.sum(turns) / (placed[-1] - placed[0])) / sigma
+
+        priors.append(even_steps)
+    known = [(i, R) for i, R in solver.known_rotations.items() if solver.placed[i]]
+    if len(known) >= 2:
+        # Known poses (a board's) hold their photos' turns: a group of photos no feature
+        # track ties to the rest keeps its place.
+        reference, R_reference = known[0]
+        rotvecs = np.array([Rotation.from_matrix(R @ R_reference.T).as_rotvec() for _, R in known[1:]])
+        others = np.array([i for i, _ in known[1:]])
+        sigma = np.radians(KNOWN_TURN_STD_DEG)
+
+        def known_turns(g: np.ndarray, views: np.ndarray) -> np.ndarray:
+            axis = solver.model.axis_and_point(g)[0]
+            difference = views[others, 0] - views[reference, 0] - rotvecs @ axis
+            return np.angle(np.exp(1j * difference)) / sigma
+
+        priors.append(known_turns)
+    return Problem(
+        project=solver.model.project,
+        observations=observations,
+        free_global=free_global,
+        free_views=free_views,
+        global_steps=np.array([1e-6, 1e-6, 1e-6, 1e-4, 1e-4, 1e-4, 1e-7]),
+        view_steps=np.array([1e-7]),
+        point_step=1e-7,
+        prior=(lambda g, v: np.concatenate([prior(g, v) for prior in priors])) if priors else None,
+    )
+
+
+def _solve(solver: _Solver, tracks, free_global: np.ndarray):
+    """Bundle adjustment of the placed photos, outliers dropped and solved again."""
+    points, observations = _tracks_to_problem(solver, tracks)
+    for attempt in range(4):
+        problem = _problem(solver, observations, free_global)
+        result = adjust(problem, solver.g, solver.angles[:, None], points)
+        solver.g, solver.angles, points = result.global_params, result.view_params[:, 0], result.points
+        limit = max(solver.settings.outlier_px, 4 * result.sigma_px)
+        inliers = result.errors_px <= limit
+        if inliers.all() or attempt == 3:
+            break
+        observations = observations.subset(inliers)
+        # Points seen fewer than twice are dropped and the rest renumbered.
+        counts = np.bincount(observations.point, minlength=len(points))
+        keep_points = counts >= 2
+        renumber = np.cumsum(keep_points) - 1
+        observations = observations.subset(keep_points[observations.point])
+        observations.point = renumber[observations.point]
+        points = points[keep_points]
+    return result, problem, points, observations
+
+
+def _angle_std_deg(solver: _Solver, problem: Problem, covariance: np.ndarray) -> np.ndarray:
+    n_global = int(problem.free_global.sum())
+    std = np.zeros(len(solver.order))
+    free_rows = np.flatnonzero(problem.free_views[:, 0])
+    std[free_rows] = np.degrees(np.sqrt(np.maximum(np.diag(covariance)[n_global:], 0)))
+    return std
+
+
+def _self_calibration(solver: _Solver, tracks, base_free: np.ndarray, observations: Observations):
+    """Whether the photos constrain k1: solved with it free too, kept free only when its
+    standard deviation, as a displacement in pixels at the frame's corner, is below the
+    limit. The principal point is never adjusted: a single circular motion gives two
+    constraints on the image of the absolute conic, enough for the focal length with
+    the principal point known, not for all three; freed, the principal point follows
+    second-order effects (a lens' higher terms, blob centres under perspective) and on
+    a synthetic turntable landed 15 px off with a standard deviation of 0.13 px.
+    Returns (free mask, report); the solver's state is left as it was."""
+    report: dict = {
+        "frame_coverage": round(frame_coverage(observations.pixels, solver.start.width, solver.start.height), 3),
+        "principal_point": "held: a single circular motion does not determine it",
+    }
+    if not solver.settings.self_calibrate:
+        report["skipped"] = "the camera was calibrated with the board, or sfm.self_calibrate is off"
+        return base_free, report
+    if report["frame_coverage"] < solver.settings.min_frame_coverage:
+        report["skipped"] = (
+            f"observations cover {report['frame_coverage']:.0%} of the frame "
+            f"(< {solver.settings.min_frame_coverage:.0%}): principal point and distortion are not constrained"
+        )
+        return base_free, report
+    saved = solver.g.copy(), solver.angles.copy()
+    trial = base_free.copy()
+    trial[K1] = True
+    result, problem, *_ = _solve(solver, tracks, trial)
+    std = _global_std(problem, result.covariance)
+    radius = corner_radius(solver.start.width, solver.start.height, *solver.g[[FOCAL, CX, CY]])
+    displacement = radial_shift_px(std[K1], solver.g[FOCAL], radius)
+    report["tried"] = {"k1": float(solver.g[K1]), "std_px": round(displacement, 3)}
+    solver.g, solver.angles = saved
+    limit = solver.settings.max_calibration_std_px
+    free = base_free.copy()
+    free[K1] = displacement <= limit
+    if not free[K1]:
+        report["held_k1"] = f"its standard deviation moves points by {displacement:.2f} px (> {limit})"
+    return free, report
+
+
+def _global_std(problem: Problem, covariance: np.ndarray) -> np.ndarray:
+    """Standard deviation of each global parameter (0 for fixed ones)."""
+    std = np.zeros(len(problem.free_global))
+    free = np.flatnonzero(problem.free_global)
+    std[free] = np.sqrt(np.maximum(np.diag(covariance)[: len(free)], 0))
+    return std
+
+
+def _solve_placing(solver: _Solver, tracks, free: np.ndarray, unplaced: dict[str, str]):
+    """``_solve``, and photos too weakly constrained, or whose observations fit the
+    circle much worse than the others' (not the same camera on it: a photo turned in
+    the image plane after it was taken, say), left unplaced and solved again."""
+    settings = solver.settings
+    while True:
+        result, problem, points, observations = _solve(solver, tracks, free)
+        counts = np.bincount(observations.view, minlength=len(solver.order))
+        std = _angle_std_deg(solver, problem, result.covariance)
+        typical = float(np.median(result.errors_px))
+        misfit = np.array(
+            [np.median(result.errors_px[observations.view == i]) if counts[i] else 0.0 for i in range(len(counts))]
+        )
+        weak = solver.placed & ((counts < settings.min_observations) | (std > settings.max_angle_std_deg))
+        weak |= solver.placed & (misfit > max(1.0, 3 * typical))
+        if not weak.any() or solver.placed.sum() - weak.sum() < 3:
+            return result, problem, points, observations, counts, std
+        for i in np.flatnonzero(weak):
+            unplaced[solver.order[i]] = (
+                f"{counts[i]} inlier observations fitting the circle to {misfit[i]:.2f} px (the photos' median: "
+                f"{typical:.2f} px), its angle uncertain by {std[i]:.2f} degrees (needs {settings.min_observations} "
+                f"observations, at most {max(1.0, 3 * typical):.2f} px and {settings.max_angle_std_deg} degrees)"
+            )
+            logger.info("%s: %s", solver.order[i], unplaced[solver.order[i]])
+        solver.placed &= ~weak
+
+
+def solve(
+    settings: CircularSettings,
+    order: list[str],
+    intrinsics: Intrinsics,
+    keypoints: dict[str, np.ndarray],
+    matches: dict[tuple[str, str], dict[int, int]],
+    known: dict[str, Pose] | None = None,
+) -> CircularMotion:
+    """Circular motion of the photos ``order`` (one camera, initial ``intrinsics``)
+    from their keypoints and verified matches, and ``known`` poses of some of them
+    (a board's, in any one frame) for the start; ValueError when fewer than three
+    photos are connected by consistent matches."""
+    # 1-3. Relative motions, axis, angles and the camera's offset.
+    solver = _Solver(settings, order, intrinsics, keypoints)
+    solver.known_rotations = {solver.index[n]: pose.R for n, pose in (known or {}).items() if n in solver.index}
+    free = np.zeros(len(GLOBAL_NAMES), bool)
+    free[:3] = True
+    free[FOCAL] = settings.refine_focal
+    axis = None
+    # Twice when the focal length moved: a wrong one scales every turn, and a ring whose
+    # turns do not add up to a full one breaks where the fewest pairs bridge (a prior
+    # 28 % too long made 20 steps of 18 degrees add up to 410 and cut a photo off).
+    for _ in range(2):
+        focal = solver.g[FOCAL]
+        pairs = _pair_rays(solver, matches, settings.min_observations)
+        if len(pairs) < 2:
+            raise ValueError(f"only {len(pairs)} photo pairs share {settings.min_observations} verified matches")
+        _initial_axis_and_angles(solver, pairs, known or {}, axis)
+        if solver.placed.sum() < 3:
+            raise ValueError("fewer than three photos are connected by consistent matches")
+        unplaced = {n: "not matched into the ring of the other photos" for n, p in zip(order, solver.placed) if not p}
+        # 4. Bundle adjustment with the focal length, then self-calibration; tracks only
+        # through the pairs step 3 trusted (one false pair corrupts every track it joins).
+        trusted = {pair: found for pair, found in matches.items() if pair in solver.trusted_pairs}
+        tracks = build_tracks(order, keypoints, trusted)
+        *_, observations, _, _ = _solve_placing(solver, tracks, free, unplaced)
+        if abs(solver.g[FOCAL] / focal - 1) < 0.02:
+            break
+        axis = solver.model.axis_and_point(solver.g)[0]
+    free, calibration = _self_calibration(solver, tracks, free, observations)
+    result, problem, points, observations, counts, std = _solve_placing(solver, tracks, free, unplaced)
+    # Tracks from the inlier observations (outliers were dropped from tracks, not from
+    # the keypoint graph); the solution's points are in the inliers' order.
+    kept: list[dict[str, int]] = [{} for _ in range(len(points))]
+    for view, point, keypoint in zip(observations.view, observations.point, observations.keypoint):
+        kept[point][order[view]] = int(keypoint)
+    # 5. The solution, angles unwrapped in file order.
+    global_std = _global_std(problem, result.covariance)
+    calibration["values"] = {
+        name: {"value": float(solver.g[i]), "std": float(global_std[i]) if free[i] else None, "adjusted": bool(free[i])}
+        for name, i in (("f", FOCAL), ("cx", CX), ("cy", CY), ("k1", K1))
+    }
+    axis, p = solver.model.axis_and_point(solver.g)
+    placed = np.flatnonzero(solver.placed)
+    angles = np.unwrap(solver.angles[placed])
+    g = solver.g
+    return CircularMotion(
+        axis=axis,
+        point=p,
+        angles={order[i]: float(a) for i, a in zip(placed, angles)},
+        intrinsics=Intrinsics(
+            intrinsics.width, intrinsics.height, g[FOCAL], g[FOCAL], g[CX], g[CY], [float(g[K1]), 0, 0, 0, 0]
+        ),
+        points=points,
+        tracks=kept,
+        angle_std_deg={order[i]: float(std[i]) for i in placed},
+        observations={n: int(counts[solver.index[n]]) for n in order},
+        calibration=calibration,
+        reprojection_px=float(np.median(result.errors_px)) if len(result.errors_px) else 0.0,
+        unplaced=unplaced,
+    )

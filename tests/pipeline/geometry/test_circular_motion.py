@@ -1,0 +1,82 @@
+import numpy as np
+import pytest
+
+from pipeline.camera.model import Intrinsics
+from pipeline.geometry import circular_motion
+from pipeline.geometry.circular_motion import CircularSettings, out_of_order, synchronise_angles
+from tests.support.turntable_views import CAMERA, K, turntable_views
+
+pytestmark = pytest.mark.slow  # each solve takes a few seconds
+
+# The photos' size and COLMAP's focal length prior: no principal point, no distortion known.
+START = Intrinsics(K.width, K.height, 1.2 * K.width, 1.2 * K.width, (K.width - 1) / 2, (K.height - 1) / 2)
+
+
+def _angle_errors_deg(solution, views) -> np.ndarray:
+    names = [n for n in views.names if n in solution.angles]
+    estimate = np.array([solution.angles[n] for n in names])
+    truth = np.array([a for n, a in zip(views.names, views.angles) if n in solution.angles])
+    return np.degrees(np.abs(np.angle(np.exp(1j * ((estimate - estimate[0]) - (truth - truth[0]))))))
+
+
+@pytest.fixture(scope="module")
+def views():
+    return turntable_views()
+
+
+@pytest.fixture(scope="module")
+def solution(views):
+    settings = CircularSettings(in_file_order=True)
+    return circular_motion.solve(settings, views.names, START, views.keypoints, views.matches)
+
+
+def test_the_solver_recovers_uneven_angles_axis_focal_length_and_distortion(views, solution):
+    assert set(solution.angles) == set(views.names) and not solution.unplaced
+    assert _angle_errors_deg(solution, views).max() < 0.3
+    true_axis = CAMERA.R @ np.array([0.0, 0.0, 1.0])  # world z in the camera's frame
+    assert np.degrees(np.arccos(abs(solution.axis @ true_axis))) < 1.0
+    assert abs(solution.intrinsics.fx / K.fx - 1) < 0.02  # from a prior 28 % off
+    assert abs(solution.intrinsics.dist[0] - K.dist[0]) < 0.02
+    calibration = solution.calibration
+    assert calibration["values"]["k1"]["adjusted"] and calibration["values"]["k1"]["std"] < 0.01
+    # A single circular motion does not determine the principal point: it stays where it was.
+    assert not calibration["values"]["cx"]["adjusted"] and solution.intrinsics.cx == START.cx
+    # Angles increase in file order: the table turns one way.
+    steps = np.diff([solution.angles[n] for n in views.names])
+    assert np.all(steps > 0)
+
+
+def test_a_photo_without_matches_is_left_unplaced_not_stacked(views):
+    lonely = views.names[7]
+    matches = {pair: found for pair, found in views.matches.items() if lonely not in pair}
+    found = circular_motion.solve(CircularSettings(in_file_order=True), views.names, START, views.keypoints, matches)
+    assert lonely not in found.angles and lonely in found.unplaced
+    assert _angle_errors_deg(found, views).max() < 0.3
+
+
+def test_false_pairs_of_a_symmetric_pattern_are_left_out(views):
+    """Photos half a turn apart matched as if barely turned (a board's squares look the same
+    from the other side): the pairs disagree with the ring and change nothing."""
+    matches = dict(views.matches)
+    n = len(views.names)
+    for i in range(0, n, 2):
+        a, b = views.names[i], views.names[(i + n // 2) % n]
+        near = views.matches[views.names[i], views.names[i + 1]]
+        matches[a, b] = {u: v % len(views.keypoints[b]) for u, v in near.items()}
+        matches[b, a] = {v: u for u, v in matches[a, b].items()}
+    found = circular_motion.solve(CircularSettings(in_file_order=True), views.names, START, views.keypoints, matches)
+    assert _angle_errors_deg(found, views).max() < 0.3
+
+
+def test_synchronised_angles_wrap_round_a_full_turn():
+    truth = np.radians(np.arange(0, 360, 30.0))
+    pairs = np.array([(i, (i + k) % 12) for i in range(12) for k in (1, 2)])
+    turns = np.angle(np.exp(1j * (truth[pairs[:, 1]] - truth[pairs[:, 0]])))
+    angles = synchronise_angles(12, pairs, turns, np.ones(len(pairs)), 0)
+    np.testing.assert_allclose(np.angle(np.exp(1j * (angles - truth))), 0, atol=1e-9)
+
+
+def test_out_of_order_finds_the_photo_that_breaks_the_turning_order():
+    angles = np.radians([0, 30, 60, 5, 120, 150, 180])
+    assert out_of_order(angles).tolist() == [3]
+    assert out_of_order(np.radians([0, 90, 180, 270, 350])).tolist() == []

@@ -1,0 +1,93 @@
+"""A synthetic turntable without rendering: a still camera, an object of random points
+(a box of features on a plate of features) turned by uneven steps, the keypoints each
+photo sees (with noise and a radial lens) and the matches between ring neighbours, a
+tenth of them wrong. The exact poses and angles come with it, so the circular-motion
+solver can be checked against them."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from pipeline.camera.model import Intrinsics, Pose
+
+K = Intrinsics(128, 96, 120.0, 120.0, 64.8, 46.6, [-0.08, 0.0, 0.0, 0.0, 0.0])
+"""The lens: a principal point off centre, barrel distortion."""
+CAMERA = Pose.look_at([0.4 * np.cos(np.radians(25)), 0.0, 0.4 * np.sin(np.radians(25)) + 0.04], [0.0, 0.0, 0.04])
+
+
+@dataclass
+class TurntableViews:
+    names: list[str]
+    angles: np.ndarray
+    """True angles, radians."""
+    poses: dict[str, Pose]
+    keypoints: dict[str, np.ndarray]
+    matches: dict[tuple[str, str], dict[int, int]]
+    visible: dict[str, dict[int, int]]
+    """Per photo: point index -> keypoint index."""
+
+
+def pose_at(angle: float) -> Pose:
+    """The still camera's pose when the table has turned by ``angle`` about world z."""
+    return Pose(CAMERA.R @ Rotation.from_rotvec([0, 0, angle]).as_matrix(), CAMERA.t)
+
+
+def turntable_views(
+    views: int = 20, points: int = 900, neighbours: int = 3, jitter: float = 0.3, seed: int = 0
+) -> TurntableViews:
+    """``jitter``: the steps' unevenness, a fraction of the mean step (0: a timed table)."""
+    rng = np.random.default_rng(seed)
+    steps = 1 + jitter * rng.uniform(-1, 1, views)
+    angles = np.concatenate([[0.0], np.cumsum(steps[:-1])]) * 2 * np.pi / steps.sum()
+    half = points // 2
+    xyz = np.vstack(
+        [
+            rng.uniform([-0.04, -0.03, 0.0], [0.04, 0.03, 0.09], (half, 3)),
+            np.column_stack([rng.uniform(-0.18, 0.18, (points - half, 2)), np.zeros(points - half)]),
+        ]
+    )
+    normals = np.vstack([np.column_stack([xyz[:half, :2], np.zeros(half)]), np.tile([0, 0, 1.0], (points - half, 1))])
+    names = [f"view_{i:03d}.jpg" for i in range(views)]
+    keypoints, visible, poses = {}, {}, {}
+    for name, angle in zip(names, angles):
+        pose = poses[name] = pose_at(angle)
+        camera = xyz @ pose.R.T + pose.t
+        x, y = camera[:, 0] / camera[:, 2], camera[:, 1] / camera[:, 2]
+        radial = 1 + K.dist[0] * (x * x + y * y)
+        pixels = np.column_stack([K.fx * x * radial + K.cx, K.fy * y * radial + K.cy]) + rng.normal(0, 0.3, (points, 2))
+        facing = np.einsum("ij,ij->i", normals, pose.center - xyz) > 0
+        inside = (pixels[:, 0] > 0) & (pixels[:, 0] < K.width - 1) & (pixels[:, 1] > 0) & (pixels[:, 1] < K.height - 1)
+        seen = np.flatnonzero(facing & inside & (rng.uniform(size=points) < 0.6))
+        keypoints[name] = pixels[seen]
+        visible[name] = {int(p): k for k, p in enumerate(seen)}
+    matches: dict[tuple[str, str], dict[int, int]] = {}
+    for i in range(views):
+        for k in range(1, neighbours + 1):
+            a, b = names[i], names[(i + k) % views]
+            pairs = {visible[a][p]: visible[b][p] for p in sorted(set(visible[a]) & set(visible[b]))}
+            for key in list(pairs)[: len(pairs) // 10]:
+                pairs[key] = int(rng.integers(len(keypoints[b])))
+            matches[a, b] = pairs
+            matches[b, a] = {v: u for u, v in pairs.items()}
+    return TurntableViews(names, angles, poses, keypoints, matches, visible)
+
+
+def blob_mask(pose: Pose, spheres: list[tuple[tuple[float, float, float], float]]) -> np.ndarray:
+    """The exact silhouette, in the distorted photo, of a union of spheres ((centre,
+    radius) in the table's frame) seen from ``pose``."""
+    u, v = np.meshgrid(np.arange(K.width, dtype=float), np.arange(K.height, dtype=float))
+    distorted = np.stack([(u - K.cx) / K.fx, (v - K.cy) / K.fy], axis=-1)
+    undistorted = distorted.copy()
+    for _ in range(10):
+        undistorted = distorted / (1 + K.dist[0] * np.sum(undistorted**2, axis=-1, keepdims=True))
+    rays = np.concatenate([undistorted, np.ones(u.shape + (1,))], axis=-1) @ pose.R
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    mask = np.zeros(u.shape, bool)
+    for centre, radius in spheres:
+        offset = np.asarray(centre) - pose.center
+        along = rays @ offset
+        mask |= (along > 0) & (np.sum(offset**2) - along**2 < radius**2)
+    return mask
