@@ -11,11 +11,13 @@ count               fewer than MIN_PHOTOS photos (error) or fewer than ENOUGH_PH
 readable            OpenImageIO cannot decode a file (error)
 camera settings     photos differ in camera, zoom or size (each setting gets its
                     own intrinsics, so each needs enough photos)
-exposure            more than CLIPPED_FRACTION of a photo's pixels clipped; a photo
-                    more than EXPOSURE_STOPS stops off the set's median (exposure
-                    not locked)
+exposure            more than CLIPPED_FRACTION of the specimen's pixels clipped (of
+                    the photo's where no mask was found: a photo cut out on white
+                    is not overexposed); a photo more than EXPOSURE_STOPS stops off
+                    the set's median (exposure not locked)
 blur                variance of the Laplacian below BLUR_RATIO x the set's median
-near-duplicates     thumbnails correlate above DUPLICATE_CORRELATION
+near-duplicates     thumbnails of the specimen's box (of the photo without a mask)
+                    correlate above DUPLICATE_CORRELATION
 strays              a photo shares fewer verified SIFT matches with every other
                     photo than max(MIN_SHARED_MATCHES, STRAY_RATIO x the set's
                     median): a photo of something else (error)
@@ -54,6 +56,8 @@ STRAY_RATIO = 0.3
 FEATURE_SIZE = (256, 640)
 """Photos are resized for SIFT so that the longer side falls in this range."""
 MASK_WORKING_SIZE = 256
+MIN_MASK_COVERAGE = 0.005
+"""A mask covering less of the photo has not found the specimen."""
 
 
 @dataclass
@@ -88,18 +92,27 @@ def _feature_copy(gray: np.ndarray) -> np.ndarray:
     return cv2.resize(gray, None, fx=factor, fy=factor, interpolation=interpolation)
 
 
-def check_exposure(photos: list[PhotoSummary]) -> list[Problem]:
+def _specimen(photo: PhotoSummary, masks: dict[str, np.ndarray | None]) -> np.ndarray | None:
+    """The photo's specimen mask when one was found (at least MIN_MASK_COVERAGE)."""
+    mask = masks.get(photo.name)
+    return mask if mask is not None and mask.mean() >= MIN_MASK_COVERAGE else None
+
+
+def check_exposure(photos: list[PhotoSummary], masks: dict[str, np.ndarray | None]) -> list[Problem]:
     problems = []
     brightness = {}
     for photo in photos:
-        clipped = float((photo.srgb.max(axis=-1) >= 250).mean())
+        specimen = _specimen(photo, masks)
+        clipped_pixels = photo.srgb.max(axis=-1) >= 250
+        clipped = float(clipped_pixels[specimen].mean() if specimen is not None else clipped_pixels.mean())
         if clipped > CLIPPED_FRACTION:
+            where = "the specimen's pixels" if specimen is not None else "the pixels (no specimen mask found)"
             problems.append(
                 Problem(
                     "warning",
                     "exposure",
                     f"images/{photo.name}",
-                    f"overexposed: {100 * clipped:.1f} % of the pixels are clipped",
+                    f"overexposed: {100 * clipped:.1f} % of {where} are clipped",
                     "retake it with a shorter exposure; clipped pixels carry no radiance",
                 )
             )
@@ -137,10 +150,17 @@ def check_blur(photos: list[PhotoSummary]) -> list[Problem]:
     ]
 
 
-def check_duplicates(photos: list[PhotoSummary]) -> list[Problem]:
+def check_duplicates(photos: list[PhotoSummary], masks: dict[str, np.ndarray | None]) -> list[Problem]:
+    """Thumbnails of the specimen's box: photos cut out on white, or of a turntable, are
+    alike around the specimen whatever the specimen shows."""
     thumbnails = []
     for photo in photos:
-        small = cv2.resize(photo.gray, (32, 32), interpolation=cv2.INTER_AREA).astype(np.float64).ravel()
+        gray = cv2.cvtColor(photo.srgb, cv2.COLOR_RGB2GRAY)
+        specimen = _specimen(photo, masks)
+        if specimen is not None:
+            x, y, w, h = cv2.boundingRect(specimen.astype(np.uint8))
+            gray = gray[y : y + h, x : x + w]
+        small = cv2.resize(gray, (32, 32), interpolation=cv2.INTER_AREA).astype(np.float64).ravel()
         thumbnails.append((small - small.mean()) / (small.std() + 1e-9))
     problems = []
     for i, j in combinations(range(len(photos)), 2):
@@ -269,10 +289,15 @@ def check_board(capture_dir: Path, config: Config) -> list[Problem]:
     return problems
 
 
-def check_masks(capture_dir: Path, photos: list[PhotoSummary], config: Config) -> list[Problem]:
+def check_masks(
+    capture_dir: Path, photos: list[PhotoSummary], config: Config
+) -> tuple[list[Problem], dict[str, np.ndarray | None]]:
+    """Problems with the specimen masks (the user's, or segmented as the masks stage
+    would), and the masks by photo name (None where a user's mask is missing)."""
     conf = config["masks"]
     user_masks = {p.stem: p for p in list_photos(capture_dir / "masks")}
-    problems = []
+    problems: list[Problem] = []
+    masks: dict[str, np.ndarray | None] = {}
     for photo in progress.track(photos, "checking masks"):
         if user_masks:
             if Path(photo.name).stem not in user_masks:
@@ -296,10 +321,10 @@ def check_masks(capture_dir: Path, photos: list[PhotoSummary], config: Config) -
                 conf.grabcut_iterations,
                 MASK_WORKING_SIZE,
             )
-        mask = clean(mask, conf.min_component_fraction, conf.fill_holes)
+        mask = masks[photo.name] = clean(mask, conf.min_component_fraction, conf.fill_holes)
         coverage = float(mask.mean())
         file = f"images/{photo.name}"
-        if coverage < 0.005:
+        if coverage < MIN_MASK_COVERAGE:
             problems.append(
                 Problem(
                     "error",
@@ -330,7 +355,7 @@ def check_masks(capture_dir: Path, photos: list[PhotoSummary], config: Config) -
                     "keep the whole specimen in frame: a cut-off part is lost from the visual hull",
                 )
             )
-    return problems
+    return problems, masks
 
 
 def check_capture(capture_dir: Path, config: Config, features: bool = True) -> list[Problem]:
@@ -383,13 +408,13 @@ def check_capture(capture_dir: Path, config: Config, features: bool = True) -> l
                     "each camera/zoom setting is calibrated on its own; keep the zoom fixed",
                 )
             )
+    mask_problems, masks = check_masks(capture_dir, photos, config)
     for same_size_group in _by_setting(photos).values():
-        problems += check_exposure(same_size_group) + check_blur(same_size_group) + check_duplicates(same_size_group)
+        problems += check_exposure(same_size_group, masks) + check_blur(same_size_group)
+        problems += check_duplicates(same_size_group, masks)
     if features:
         problems += check_strays(photos, {p.file for p in problems if p.check == "blur"})
-    problems += check_board(capture_dir, config)
-    problems += check_masks(capture_dir, photos, config)
-    return problems
+    return problems + check_board(capture_dir, config) + mask_problems
 
 
 def _by_setting(photos: list[PhotoSummary]) -> dict[str, list[PhotoSummary]]:

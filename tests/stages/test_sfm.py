@@ -131,3 +131,23 @@ def test_cameras_from_another_tool_replace_calibration_and_sfm(run_stages, tiny_
         np.testing.assert_allclose(poses[name].R, moved.R, atol=1e-9)
         np.testing.assert_allclose(poses[name].t, moved.t, atol=1e-6)
     assert json.loads(outputs["sfm"]["report"].read_text())["poses_from"] == "[cameras] source = external"
+
+
+def test_without_a_board_the_lens_distortion_is_self_calibrated_and_the_principal_point_held(run_stages, tmp_path):
+    """The sample bird as if no board had been photographed: focal length from EXIF, the
+    lens' barrel distortion left in the photos. Bundle adjustment finds k1 (constrained:
+    adjusted) and tries the principal point, which 30 views on two rings constrain only
+    to a few pixels: held at the centre, with the reason in sfm.json."""
+    capture = Path(shutil.copytree(SAMPLE, tmp_path / "bird", ignore=shutil.ignore_patterns(".pipeline", "output")))
+    outputs = run_stages(capture, "sfm", "board.kind='none'")
+    report = json.loads(outputs["sfm"]["report"].read_text())
+    (calibration,) = report["self_calibration"].values()
+    values = calibration["values"]
+    true_K, truth = read_cameras(capture / "ground_truth" / "cameras.json")
+    assert values["k1"]["adjusted"] and abs(values["k1"]["value"] - true_K.dist[0]) < 0.02
+    assert values["k1"]["std"] < 0.02
+    assert abs(values["f"]["value"] / true_K.fx - 1) < 0.02
+    assert not values["cx"]["adjusted"] and "standard deviation" in calibration["held"]["principal_point"]
+    assert report["residual_distortion"]["k1"] == values["k1"]["value"]
+    metrics, _ = score_cameras({n: pose for n, (_, pose) in read_views(outputs["sfm"]["cameras"]).items()}, truth)
+    assert metrics["registered"] == 30 and metrics["rotation_error_deg_median"] < 1.0

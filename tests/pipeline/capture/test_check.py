@@ -93,3 +93,23 @@ def test_degenerate_matches_count_as_none_instead_of_failing_the_check():
     rng = np.random.default_rng(0)
     points = rng.random((40, 2)).astype(np.float32) * 200
     assert verified_count(points, points + np.float32([5, 0])) >= 30  # a plain translation: all consistent
+
+
+def test_photos_cut_out_on_white_are_neither_overexposed_nor_duplicates(synth_capture):
+    """White around the specimen is clipped and alike in every photo: what matters is
+    the specimen, which is neither."""
+    capture = synth_capture(
+        "white_turntable",
+        views=8,
+        width=128,
+        height=96,
+        spp=4,
+        calibration_shots=0,
+        rig="turntable",
+        rings=(25.0,),
+        table="dots",
+        backdrop="white",
+        seed=2,
+    )
+    problems = check_capture(capture, _config(capture), features=False)
+    assert not _flagged(problems, "exposure") and not _flagged(problems, "duplicates"), problems

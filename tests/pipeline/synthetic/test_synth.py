@@ -122,3 +122,50 @@ def test_refuses_a_non_empty_folder(tmp_path):
     (tmp_path / "x" / "keep.txt").write_text("mine")
     with pytest.raises(PipelineError, match="is not empty"):
         synthesize(tmp_path / "x", SynthOptions(views=2, width=32, height=32))
+
+
+def _hard_turntable(tmp_path, backdrop: str):
+    """The twin of a hard real turntable, tiny: a glossy plain specimen on a dark plate with
+    dots, no board, no EXIF focal length."""
+    options = SynthOptions(
+        views=4,
+        width=64,
+        height=48,
+        spp=2,
+        calibration_shots=0,
+        rig="turntable",
+        rings=(25.0,),
+        material="glossy_paint",
+        texture="plain",
+        table="dots",
+        backdrop=backdrop,
+        exif_focal=False,
+        noise=0.0,
+    )
+    return synthesize(tmp_path / backdrop, options)
+
+
+def test_a_hard_turntable_twin_has_a_room_a_dotted_plate_and_no_board(tmp_path):
+    capture = _hard_turntable(tmp_path, "room")
+    config = load_config(schema(STAGES), capture)
+    assert config["board"].kind == "none" and config["capture"].material == "opaque"
+    assert config["light"].environment_map == "ground_truth/room.exr"
+    room = oiio.ImageBuf(str(capture / "ground_truth" / "room.exr"))
+    assert room.spec().width == 2 * room.spec().height  # an equirectangular map
+    spec = oiio.ImageInput.open(str(capture / "images" / "view_000.jpg")).spec()
+    assert spec.getattribute("Exif:FocalLength") is None
+    material = json.loads((capture / "ground_truth" / "material.json").read_text())
+    assert material["model"] == "opaque" and material["roughness"] < 0.2
+    # The room is still: a fixed camera sees the same background in every photo.
+    first, last = (cv2.imread(str(capture / "images" / f"view_00{i}.jpg")) for i in (0, 3))
+    assert np.abs(first[:8].astype(int) - last[:8]).mean() < 3  # the top rows: room only
+    assert first[:8].std() > 5  # and it is textured
+
+
+def test_photos_cut_out_on_white_are_white_off_the_specimen(tmp_path):
+    capture = _hard_turntable(tmp_path, "white")
+    for photo in sorted((capture / "images").glob("*.jpg")):
+        pixels = cv2.imread(str(photo))
+        mask = cv2.imread(str(capture / "ground_truth" / "masks" / photo.name.replace(".jpg", ".png")), 0) > 0
+        outside = cv2.erode((~mask).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+        assert np.percentile(pixels[outside], 1) >= 250 and pixels[mask].mean() < 200  # JPEG rings at edges
