@@ -113,10 +113,10 @@ def turntable_rows(tmp: Path) -> tuple[list[str], list[str]]:
     outputs, seconds = run_stages(capture, "sfm")
     cameras = pose_errors(capture, outputs["sfm"]["cameras"])
     report = json.loads(outputs["sfm"]["report"].read_text())
-    sources = ", ".join(f"{source} {len(names)}" for source, names in report["turntable"]["pose_source"].items())
+    sources = ", ".join(f"{source} {len(names)}" for source, names in report["circular"]["pose_source"].items())
     rows = [
         f"| turntable: photos posed | {len(read_views(outputs['sfm']['cameras']))} of {cameras['images']} "
-        f"(SfM registered {report['registered']}; poses from: {sources}) |",
+        f"(poses from: {sources}) |",
         f"| turntable: rotation error (aligned) | median {cameras['rotation_error_deg_median']:.2f} deg, "
         f"max {cameras['rotation_error_deg_max']:.2f} deg |",
     ]

@@ -42,6 +42,7 @@ import shutil
 import subprocess
 import sys
 import time
+import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -194,11 +195,13 @@ def main() -> None:
         command = _pipeline("run", str(capture), "--until", "sfm", "--preset", args.preset)
         for override in overrides:
             command += ["-s", override]
+        rig = tomllib.loads((capture / "capture.toml").read_text())["capture"]["rig"]
+        rig = next((o.split("=")[1] for o in overrides if o.startswith("capture.rig=")), rig)
         started = time.perf_counter()
         finished = subprocess.run(command).returncode == 0
         seconds = time.perf_counter() - started
         if not finished:
-            print(f"| {case.name} | {case.rig} | - | failed (see its log) | - | - | - | - | {seconds:.0f} s |")
+            print(f"| {case.name} | {rig} | - | failed (see its log) | - | - | - | - | {seconds:.0f} s |")
             continue
         output = capture / "output"
         _, poses = read_cameras(output / "cameras.json")
@@ -219,7 +222,7 @@ def main() -> None:
                 f"{np.median(directions):.2f} / {directions.max():.2f} deg",
             )
         print(
-            f"| {case.name} | {case.rig} | {report['photos']} | {len(poses)} | {by} | {errors[0]} | {errors[1]} "
+            f"| {case.name} | {rig} | {report['photos']} | {len(poses)} | {by} | {errors[0]} | {errors[1]} "
             f"| {calibration_summary(report)} | {stage_seconds:.0f} s |",
             flush=True,
         )

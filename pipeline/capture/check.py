@@ -11,10 +11,11 @@ count               fewer than MIN_PHOTOS photos (error) or fewer than ENOUGH_PH
 readable            OpenImageIO cannot decode a file (error)
 camera settings     photos differ in camera, zoom or size (each setting gets its
                     own intrinsics, so each needs enough photos)
-exposure            more than CLIPPED_FRACTION of the specimen's pixels clipped (of
-                    the photo's where no mask was found: a photo cut out on white
-                    is not overexposed); a photo more than EXPOSURE_STOPS stops off
-                    the set's median (exposure not locked)
+exposure            more than CLIPPED_FRACTION of the specimen's pixels clipped; the
+                    specimen more than EXPOSURE_STOPS stops off the set's median
+                    (exposure not locked); the whole photo where no mask was found
+                    (a photo cut out on white is not overexposed, and a specimen
+                    filling more of a dark set's frame is not a brighter exposure)
 blur                variance of the Laplacian below BLUR_RATIO x the set's median
 near-duplicates     thumbnails of the specimen's box (of the photo without a mask)
                     correlate above DUPLICATE_CORRELATION
@@ -116,7 +117,8 @@ def check_exposure(photos: list[PhotoSummary], masks: dict[str, np.ndarray | Non
                     "retake it with a shorter exposure; clipped pixels carry no radiance",
                 )
             )
-        brightness[photo.name] = float(np.median(photo.gray)) + 1.0
+        gray = cv2.cvtColor(photo.srgb, cv2.COLOR_RGB2GRAY)
+        brightness[photo.name] = float(np.median(gray[specimen] if specimen is not None else gray)) + 1.0
     median = np.median(list(brightness.values()))
     for name, value in brightness.items():
         # 8-bit sRGB is roughly gamma 2.2: a stop is a factor 2 ** (1 / 2.2) in encoded values.

@@ -264,13 +264,19 @@ def _result(problem: Problem, g, V, X, iterations: int, cost: float, history: li
 def _covariance(S: np.ndarray) -> np.ndarray:
     """The inverse of the reduced system; a parameter the observations leave free (a
     group of views tied to the rest by nothing: its common angle) gets an infinite
-    variance, where a pseudo-inverse would report none."""
+    variance, where a pseudo-inverse would report none. Decided on the system scaled
+    to a unit diagonal: parameters in pixels and in radians differ by ten orders of
+    magnitude in their curvature without being any less determined."""
     if not len(S):
         return np.zeros((0, 0))
-    values, vectors = np.linalg.eigh((S + S.T) / 2)
-    null = values <= 1e-9 * max(values.max(), 1e-300)
-    covariance = (vectors[:, ~null] / values[~null]) @ vectors[:, ~null].T
-    unconstrained = np.any(np.abs(vectors[:, null]) > 1e-6, axis=1)
+    diagonal = np.diag(S).copy()
+    unconstrained = diagonal <= 0
+    scale = 1 / np.sqrt(np.where(unconstrained, 1.0, diagonal))
+    scaled = (S * scale[:, None] * scale[None, :] + (S * scale[:, None] * scale[None, :]).T) / 2
+    values, vectors = np.linalg.eigh(scaled)
+    null = values <= 1e-10 * max(values.max(), 1e-300)
+    covariance = (vectors[:, ~null] / values[~null]) @ vectors[:, ~null].T * scale[:, None] * scale[None, :]
+    unconstrained |= np.any(np.abs(vectors[:, null]) > 1e-3, axis=1)
     covariance[unconstrained, :] = np.inf
     covariance[:, unconstrained] = np.inf
     return covariance

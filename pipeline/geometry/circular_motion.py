@@ -508,9 +508,12 @@ def _initial_axis_and_angles(
     consistent = np.concatenate([explained, np.ones(len(known_pairs), bool)])
     agree = consistent_pairs(n, index[consistent], turns[consistent], weights[consistent], np.radians(3))
     consistent[np.flatnonzero(consistent)[~agree]] = False
-    # The table turns one way: most steps to the next photo in file order are positive.
-    neighbours = consistent & (index[:, 1] - index[:, 0] == 1)
-    if np.sum(np.sign(turns[neighbours])) < 0:
+    # The table turns one way: turns between photos close in file order are mostly
+    # positive (weighted by the pairs' matches; the turn back across the first photo
+    # counted the other way).
+    near = consistent & (index[:, 1] - index[:, 0] < n / 2)
+    across = consistent & ~near
+    if np.sum(weights[near] * np.sign(turns[near])) - np.sum(weights[across] * np.sign(turns[across])) < 0:
         axis, turns = -axis, -turns
     graph = coo_matrix((np.ones(int(consistent.sum())), tuple(index[consistent].T)), shape=(n, n))
     _, labels = connected_components(graph, directed=False)

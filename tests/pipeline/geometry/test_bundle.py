@@ -63,3 +63,17 @@ def test_a_prior_holds_parameters_the_observations_do_not():
     problem.prior = lambda g, v: np.array([(g[1] - 64.0) * 100.0])
     result = adjust(problem, truth, views, points)
     assert abs(result.global_params[1] - 64.0) < 0.05
+
+
+def test_views_tied_to_nothing_get_an_infinite_variance():
+    """Two groups of cameras seeing disjoint points: the second group can slide as a
+    whole, so its positions are unknown, however well its own points fix it inside."""
+    rng = np.random.default_rng(3)
+    problem, truth, views, points = _problem(rng, noise_px=0.2)
+    second = problem.observations.view >= 3
+    keep = (second & (problem.observations.point >= 40)) | (~second & (problem.observations.point < 40))
+    problem.observations = problem.observations.subset(keep)
+    result = adjust(problem, truth, views, points)
+    std = np.sqrt(np.diag(result.covariance))
+    # Free parameters: the focal length, then views 2..5 (x, y, z each).
+    assert np.all(np.isfinite(std[:4])) and np.all(np.isinf(std[4:]))
