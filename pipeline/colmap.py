@@ -210,13 +210,20 @@ def _match(
     # COLMAP seeds RANSAC from the clock by default: the same photos then give
     # different verified matches, and a different model, on every run.
     verification.ransac.random_seed = 0
+    matching = pycolmap.FeatureMatchingOptions()
+    # The CPU matcher's approximate nearest-neighbour search gives other matches when
+    # its threads interleave differently (seen on a loaded machine): one thread keeps
+    # reruns identical for about twice the matching time (3 s for the bird's 30 photos).
+    matching.num_threads = 1
     device = pycolmap.Device.cpu
     if matcher == "exhaustive":
-        pycolmap.match_exhaustive(database, verification_options=verification, device=device)
+        pycolmap.match_exhaustive(database, matching, verification_options=verification, device=device)
     elif matcher == "sequential":
         pairing = pycolmap.SequentialPairingOptions()
         pairing.overlap = sequential_overlap
-        pycolmap.match_sequential(database, pairing_options=pairing, verification_options=verification, device=device)
+        pycolmap.match_sequential(
+            database, matching, pairing_options=pairing, verification_options=verification, device=device
+        )
     else:
         names = sorted(Path(p["srgb"]).name for p in photos.values())
         neighbours = min(ring_neighbours, len(names) // 2)
@@ -229,7 +236,9 @@ def _match(
         pairs_file.write_text("".join(f"{a} {b}\n" for a, b in sorted(pairs)))
         pairing = pycolmap.ImportedPairingOptions()
         pairing.match_list_path = pairs_file
-        pycolmap.match_image_pairs(database, pairing_options=pairing, verification_options=verification, device=device)
+        pycolmap.match_image_pairs(
+            database, matching, pairing_options=pairing, verification_options=verification, device=device
+        )
 
 
 def incremental_map(

@@ -106,7 +106,7 @@ class Config:
     material_iterations: Annotated[int, Range(0, None)] = 40
     """Adam steps of each material pass; 0 freezes the material as fit_texture left it."""
     material_spp: Annotated[int, Range(1, None)] = 16
-    """Samples per pixel of each material-pass render (two per view: the dual loss)."""
+    """Samples per pixel of each material-pass render."""
     material_max_size: Annotated[int, Range(16, None)] = 128
     """Longer side, in pixels, of the window each view is rendered in by the material pass."""
     material_min_improvement: Annotated[float, Range(0.0, 1.0)] = 0.02
@@ -149,12 +149,11 @@ def _shape_settings(conf: Config, diagonal: float, seed: int) -> engine.ShapeSet
 
 
 def _material_settings(conf: Config, seed: int) -> engine.FitSettings:
-    """fit_material's loop with the dual loss and no tolerance stop."""
+    """fit_material's loop without its tolerance stop."""
     return engine.FitSettings(
         iterations=conf.material_iterations,
         batch=conf.batch,
         spp=conf.material_spp,
-        loss="dual",
         validate_every=conf.validate_every,
         validation_spp=conf.validation_spp,
         tolerance=0.0,
@@ -295,7 +294,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_geometry",
-    version=6,
+    version=7,
     config=Config,
     main=main,
     needs=(

@@ -34,9 +34,9 @@ specimen. Views whose mask is empty are skipped.
 from __future__ import annotations
 
 import shutil
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated
 
 from pipeline.core.config import Range
 from pipeline.core.errors import PipelineError
@@ -44,6 +44,7 @@ from pipeline.core.stage import Stage, StageInputs, StageResult
 from pipeline.fit import engine
 from pipeline.fit.checkpoint import resumable_stage
 from pipeline.fit.outputs import write_fit_log, write_heldout
+from pipeline.fit.settings import FitSettings
 from pipeline.fit.views import held_out_names, load_views
 from pipeline.formats.cameras import read_views
 from pipeline.formats.masks import read_masks
@@ -53,20 +54,11 @@ from pipeline.render import materials, mitsuba_variant, scene_xml
 
 
 @dataclass(frozen=True)
-class Config:
-    """Material fitting by differentiable rendering."""
+class Config(FitSettings):
+    """Material fitting by differentiable rendering (the loop's settings, and these)."""
 
     iterations: Annotated[int, Range(1, None)] = 100
     """Most Adam steps."""
-    batch: Annotated[int, Range(1, None)] = 2
-    """Views rendered per step; their gradients add up before the step."""
-    spp: Annotated[int, Range(1, None)] = 16
-    """Samples per pixel of each training render."""
-    loss: Literal["l2", "dual"] = "dual"
-    """l2: mean squared error; dual: Deng et al.'s dual-buffer estimator (two renders,
-    unbiased by Monte Carlo noise; twice the cost per view)."""
-    learning_rate_scale: Annotated[float, Range(0.0, None, exclusive_lo=True)] = 1.0
-    """Multiplies every parameter's learning rate (pipeline.render.materials)."""
     bounds: tuple[str, ...] = ()
     """Bounds overriding pipeline.render.materials' defaults, as "name=lower:upper" (e.g. "eta=1.3:1.6")."""
     max_size: Annotated[int, Range(16, None)] = 128
@@ -74,22 +66,8 @@ class Config:
     erode_px: Annotated[int, Range(0, None)] = 2
     """Mask erosion at full resolution before scoring pixels."""
     held_out: Annotated[int, Range(0, None)] = 2
-    """Photos kept out of fitting to measure validation error."""
-    validate_every: Annotated[int, Range(1, None)] = 10
-    """Iterations between validation renders."""
-    validation_spp: Annotated[int, Range(1, None)] = 64
-    """Samples per pixel of validation renders (and 4x that for heldout/)."""
-    tolerance: Annotated[float, Range(0.0, None)] = 1e-3
-    """Stop when the mean loss over ``window`` iterations improves by less than this (relative);
-    0: never (run ``iterations``)."""
-    window: Annotated[int, Range(1, None)] = 20
-    """Iterations per window of the tolerance test."""
-    time_budget_s: Annotated[float, Range(0.0, None)] = 0.0
-    """Stop after this many seconds of fitting; 0 for no limit."""
-    exposure: bool = False
-    """Fit one exposure scale per photo (photos shot with automatic exposure)."""
-    seed: int = 0
-    """Seed of the batch order and the renders."""
+    """Photos kept out of fitting to measure validation error (their renders at 4x
+    validation_spp are written to heldout/)."""
 
 
 def fit_parameters(model: str, bounds: tuple[str, ...]) -> list[engine.FitParameter]:
@@ -125,7 +103,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     held = set(held_out_names([v.name for v in views], conf.held_out))
 
     # 3. The fit.
-    settings = engine.FitSettings(**{f: getattr(conf, f) for f in engine.FitSettings.__dataclass_fields__})
+    settings = FitSettings(**{f.name: getattr(conf, f.name) for f in fields(FitSettings)})
     result = engine.fit(
         parameters, [v for v in views if v.name not in held], [v for v in views if v.name in held], settings
     )
@@ -163,7 +141,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_material",
-    version=5,
+    version=6,
     config=Config,
     main=main,
     needs=("scene.scene_dir", "scene.description", "sfm.cameras", "undistort.pinhole", "masks.masks_json"),

@@ -13,7 +13,7 @@ volumetric                  the medium's albedo as a grid volume over the specim
 
 With ``refit_constants`` the model's other constants (roughness, spec_trans and
 eta; alpha, eta and sigma_t) are fitted again, from fit_material's values and
-within its bounds: first alone (``iterations_per_level`` steps, the colour still
+within its bounds: first alone (``iterations`` steps, the colour still
 constant), then along with the texture at every level. Fitted next to a
 constant colour they absorb some of the colour's variation (on the sample bird
 roughness ended 0.15 off the truth). The texture is fitted by pipeline.fit.engine
@@ -59,7 +59,7 @@ the prior sets. Held-out photos are fit_material's.
 from __future__ import annotations
 
 import shutil
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -72,6 +72,7 @@ from pipeline.core.stage import Stage, StageInputs, StageResult
 from pipeline.fit import engine
 from pipeline.fit.checkpoint import resumable_stage
 from pipeline.fit.outputs import write_fit_log, write_heldout
+from pipeline.fit.settings import FitSettings, LoopSettings
 from pipeline.fit.texture import TextureFit, fit_constants_then_levels, level_shapes, write_texture
 from pipeline.fit.views import load_views
 from pipeline.formats.cameras import read_views
@@ -90,8 +91,13 @@ from pipeline.render import materials, mitsuba_variant, scene_xml
 
 
 @dataclass(frozen=True)
-class Config:
-    """Texture fitting, coarse to fine."""
+class Config(LoopSettings):
+    """Texture fitting, coarse to fine (the loop's settings apply to each level)."""
+
+    iterations: Annotated[int, Range(1, None)] = 30
+    """Most Adam steps per level."""
+    window: Annotated[int, Range(1, None)] = 10
+    """Steps per window of the tolerance test (per level)."""
 
     texture: Literal["auto", "on", "off"] = "auto"
     """auto: keep the texture only when it lowers the held-out error by
@@ -104,35 +110,17 @@ class Config:
     """Texels per side of the finest bitmap."""
     max_grid_resolution: Annotated[int, Range(4, None)] = 32
     """Voxels along the longest side of the finest albedo grid (volumetric model)."""
-    iterations_per_level: Annotated[int, Range(1, None)] = 30
-    """Most Adam steps per level."""
     smoothness: Annotated[float, Range(0.0, None)] = 0.05
     """Weight of the neighbour-difference prior (see the module docstring)."""
     learning_rate: Annotated[float, Range(0.0, None, exclusive_lo=True)] = 0.03
     """Adam step of every texel (colour units)."""
-    batch: Annotated[int, Range(1, None)] = 2
-    """Views rendered per step; their gradients add up before the step."""
-    spp: Annotated[int, Range(1, None)] = 16
-    """Samples per pixel of each training render."""
-    loss: Literal["l2", "dual"] = "dual"
-    """l2 or Deng et al.'s dual-buffer estimator (see fit_material)."""
     max_size: Annotated[int, Range(16, None)] = 128
     """Longer side, in pixels, of the window each view is rendered in."""
     erode_px: Annotated[int, Range(0, None)] = 2
     """Mask erosion at full resolution before scoring pixels."""
-    validate_every: Annotated[int, Range(1, None)] = 10
-    """Iterations between validation renders."""
-    validation_spp: Annotated[int, Range(1, None)] = 64
-    """Samples per pixel of validation renders (and 4x that for heldout/)."""
-    tolerance: Annotated[float, Range(0.0, None)] = 1e-3
-    """Stop a level when its mean loss over ``window`` iterations improves by less than this."""
-    window: Annotated[int, Range(1, None)] = 10
-    """Iterations per window of the tolerance test."""
     refit_constants: bool = True
     """Fit the model's other constants again, alone and then along with the texture
     (see the module docstring); off: they stay as fit_material left them."""
-    seed: int = 0
-    """Seed of the batch order and the renders."""
 
 
 def _keep_texture(conf: Config, constant_error: float | None, texture_error: float) -> tuple[bool, str]:
@@ -159,17 +147,7 @@ def _finish_report(report: dict, material: dict, constants: dict, texture_mean: 
 def _texture_fit(conf: Config, model: str, bounds: dict, views: list[engine.FitView], held: set[str]) -> TextureFit:
     """The views split by fit_material's held-out photos, the texture's and constants'
     parameters, and the loop's settings for one level."""
-    settings = engine.FitSettings(
-        iterations=conf.iterations_per_level,
-        batch=conf.batch,
-        spp=conf.spp,
-        loss=conf.loss,
-        validate_every=conf.validate_every,
-        validation_spp=conf.validation_spp,
-        tolerance=conf.tolerance,
-        window=conf.window,
-        seed=conf.seed,
-    )
+    settings = FitSettings(**{f.name: getattr(conf, f.name) for f in fields(LoopSettings)})
     parameters = materials.refit_parameters(model, bounds, (conf.learning_rate, conf.smoothness), conf.refit_constants)
     training, validation = [v for v in views if v.name not in held], [v for v in views if v.name in held]
     return TextureFit(training=training, validation=validation, parameters=parameters, settings=settings)
@@ -274,7 +252,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_texture",
-    version=6,
+    version=7,
     config=Config,
     main=main,
     needs=(

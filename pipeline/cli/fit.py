@@ -26,6 +26,9 @@ class FitOptions:
     """Regular expressions selecting mi.traverse keys, e.g. 'bsdf.roughness'."""
     list: bool = False
     """List the scene's parameter keys and exit."""
+    max_size: Annotated[int, Range(0, None)] = 64
+    """Fit at films of at most this many pixels along the longer side, the references
+    averaged down to them (0: at the films' own size). The written scene keeps its films."""
     settings: FitSettings = field(default_factory=FitSettings)
     """The loop's settings."""
     lr: Annotated[float | None, Range(0.0, None, exclusive_lo=True)] = None
@@ -56,6 +59,7 @@ def fit(options: FitOptions) -> int:
         options.lr,
         Path(options.out),
         options.variant,
+        options.max_size,
     )
     print(params_json.read_text())
     return 0

@@ -17,12 +17,19 @@ from pipeline.render.materials by the property's name (base_color, eta,
 sigma_t, ...), else ``--bound`` must give them. Only plain values can be fitted
 (a float or an RGB colour, not a bitmap).
 
+The fit renders each sensor with its film reduced to ``max_size`` pixels along the
+longer side and compares with the reference averaged down to the same pixels: a
+plain value is one number for the whole image, and on the benchmark kit 64 px
+reach the targets in a fraction of the time 256 px take (docs/benchmarks.md,
+"Fitting speed"). The written scene keeps its films.
+
 params.json and log.jsonl are written first: a scene that cannot be written
 back (a value given by a texture, say) keeps them and says what failed.
 """
 
 from __future__ import annotations
 
+import copy
 import json
 import re
 import xml.etree.ElementTree as ET
@@ -110,7 +117,13 @@ def _load(scene_path: Path, tree):
         raise PipelineError(f"Mitsuba cannot load {scene_path}: {error}") from error
 
 
-def _views(scene, scene_path: Path, references: Path, integrator) -> list[engine.FitView]:
+def _views(
+    scene, scene_path: Path, references: Path, integrator, full_sizes: list[tuple[int, int]]
+) -> list[engine.FitView]:
+    """One view per sensor; each reference must be its sensor's film size in the scene
+    file (``full_sizes``) and is averaged down to the film it is fitted at."""
+    import cv2
+
     sensors = scene.sensors()
     files = list_photos(references) if references.is_dir() else []
     if len(files) != len(sensors):
@@ -118,15 +131,19 @@ def _views(scene, scene_path: Path, references: Path, integrator) -> list[engine
             f"{references} holds {len(files)} reference images but {scene_path} has {len(sensors)} "
             "sensors: give one image per sensor (matched by sorted file name)"
         )
+    if len(full_sizes) != len(sensors):
+        raise PipelineError(f"{scene_path}: {len(sensors)} sensors load, but {len(full_sizes)} are declared at its top")
     views = []
-    for index, (path, sensor) in enumerate(zip(files, sensors)):
-        size = tuple(int(v) for v in sensor.film().crop_size())
+    for index, (path, sensor, size) in enumerate(zip(files, sensors, full_sizes)):
         pixels = read_photo(path, "linear" if path.suffix.lower() in EXR_SUFFIXES else "srgb").pixels
         if pixels.shape[:2] != size[::-1]:
             raise PipelineError(
                 f"{path} is {pixels.shape[1]}x{pixels.shape[0]} but sensor {index} renders "
                 f"{size[0]}x{size[1]}: resize it or fix the film"
             )
+        fitted = tuple(int(v) for v in sensor.film().crop_size())
+        if fitted != size:
+            pixels = cv2.resize(pixels, fitted, interpolation=cv2.INTER_AREA)
         views.append(engine.FitView(path.stem, scene, sensor, pixels, integrator=integrator))
     return views
 
@@ -140,18 +157,22 @@ def fit_scene(
     learning_rate: float | None,
     out_dir: Path,
     variant: str = "auto",
+    max_size: int = 0,
 ) -> Path:
-    """Fit and write the results into ``out_dir``; returns its params.json."""
+    """Fit (films reduced to ``max_size`` px, 0: as they are) and write the results
+    into ``out_dir``; returns its params.json."""
     if out_dir.exists() and not out_dir.is_dir():
         raise ConfigError(f"--out {out_dir} is a file: name a folder")
     _check_patterns(patterns)
     mitsuba_variant.activate(variant)
     import mitsuba as mi
 
-    # 1. The scene as Mitsuba loads it with stable keys, and the references.
+    # 1. The scene as Mitsuba loads it with stable keys (its films reduced), and the references.
     tree = user_scene.normalised(scene_path)
-    scene = _load(scene_path, tree)
-    views = _views(scene, scene_path, references, user_scene.differentiable_integrator(tree))
+    reduced = copy.deepcopy(tree)
+    full_sizes = user_scene.reduce_films(reduced, max_size)
+    scene = _load(scene_path, reduced)
+    views = _views(scene, scene_path, references, user_scene.differentiable_integrator(tree), full_sizes)
     parameters = select_parameters(
         mi.traverse(scene), patterns, engine.parse_bounds(bound_entries, "--bound"), learning_rate, tree
     )

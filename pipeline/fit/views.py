@@ -17,7 +17,7 @@ import numpy as np
 
 from pipeline import logger
 from pipeline.camera.model import Intrinsics, Pose, resize_exact, scaled
-from pipeline.fit import engine
+from pipeline.fit.loop import FitView
 from pipeline.formats.scene_folder import SCENE_XML
 from pipeline.imaging.photo_io import read_photo
 from pipeline.render import scene_xml
@@ -47,7 +47,7 @@ def load_views(
     spp: int,
     sample_border: bool = False,
     names: set[str] | None = None,
-) -> list[tuple[engine.FitView, tuple]]:
+) -> list[tuple[FitView, tuple]]:
     """Every photo (or those in ``names``) as a FitView in its window (longer side at most
     ``max_size`` px), with the window's scaled camera and crop; weights are the mask
     eroded by ``erode_px``."""
@@ -82,7 +82,7 @@ def load_views(
         sensor = scene_xml.load_sensor(
             scene_xml.sensor_properties(small, pose, spp, description["near_clip"], crop, sample_border)
         )
-        view = engine.FitView(name, scene, sensor, np.ascontiguousarray(reference), weight, integrator)
+        view = FitView(name, scene, sensor, np.ascontiguousarray(reference), weight, integrator)
         views.append((view, (small, crop)))
     return views
 

@@ -22,7 +22,8 @@ a plugin without an id      ``id="<tag>_<n>"``, numbered in document order
 ==========================  =========================================================
 
 ``differentiable_integrator`` swaps a render integrator for its differentiable
-counterpart at fit time; the file keeps the one it had.
+counterpart at fit time; the file keeps the one it had. ``reduce_films`` makes
+the films of a copy to fit with smaller (pixels are most of a fit's cost on a CPU).
 
 Limitations: the written scene is one file (includes are not written back
 separately); ``-D`` command-line parameters of the ``mitsuba`` tool are not
@@ -122,6 +123,40 @@ def normalised(path: Path) -> ET.ElementTree:
     _name_unnamed(root)
     _ior_numbers(root)
     return ET.ElementTree(root)
+
+
+FILM_DEFAULT_SIZE = (768, 576)
+"""Mitsuba's film size when a sensor names none (hdrfilm's width and height)."""
+FILM_PIXEL_COUNTS = ("width", "height", "crop_width", "crop_height", "crop_offset_x", "crop_offset_y")
+"""A film's integers that count pixels (and scale with it)."""
+
+
+def reduce_films(tree: ET.ElementTree, max_size: int) -> list[tuple[int, int]]:
+    """Scale every sensor's film in ``tree`` (in place; a sensor without one gets
+    Mitsuba's default film first) so that its longer side has at most ``max_size``
+    pixels, crop windows with it; 0 keeps them. Returns each sensor's crop size
+    before, in document order (the order of ``scene.sensors()``)."""
+    defaults = {d.get("name"): d.get("value") for d in tree.getroot().iter("default")}
+    sizes = []
+    for sensor in tree.getroot().iter("sensor"):
+        film = sensor.find("film")
+        if film is None:
+            film = ET.SubElement(sensor, "film", type="hdrfilm")
+        elements = {child.get("name"): child for child in film if child.get("name") in FILM_PIXEL_COUNTS}
+        for name, default in zip(("width", "height"), FILM_DEFAULT_SIZE):
+            if name not in elements:
+                elements[name] = ET.SubElement(film, "integer", name=name, value=str(default))
+        pixels = {name: int(_substituted(element.get("value"), defaults)) for name, element in elements.items()}
+        sizes.append((pixels.get("crop_width", pixels["width"]), pixels.get("crop_height", pixels["height"])))
+        scale = min(1.0, max_size / max(pixels["width"], pixels["height"])) if max_size else 1.0
+        for name, element in elements.items():
+            element.set("value", str(max(0 if name.startswith("crop_offset") else 1, round(pixels[name] * scale))))
+    return sizes
+
+
+def _substituted(value: str, defaults: dict[str, str]) -> str:
+    """``value`` with a ``$name`` replaced by its ``<default>``."""
+    return defaults.get(value[1:], value) if value.startswith("$") else value
 
 
 def relative_filenames(tree: ET.ElementTree, folder: Path) -> None:

@@ -216,13 +216,13 @@ def test_pipeline_fit_needs_one_reference_per_sensor(mi, references, tmp_path):
 
 
 def test_neighbour_pairs_link_each_texel_to_its_right_and_lower_neighbour_per_channel():
-    from pipeline.fit.engine import _neighbour_pairs
+    from pipeline.fit.variables import neighbour_pairs
 
-    first, second = _neighbour_pairs((2, 3, 1))
+    first, second = neighbour_pairs((2, 3, 1))
     pairs = set(zip(first.tolist(), second.tolist()))
     # rows (axis 0): 0-3, 1-4, 2-5; columns (axis 1): 0-1, 1-2, 3-4, 4-5
     assert pairs == {(0, 3), (1, 4), (2, 5), (0, 1), (1, 2), (3, 4), (4, 5)}
-    first, second = _neighbour_pairs((2, 2, 2, 3))
+    first, second = neighbour_pairs((2, 2, 2, 3))
     assert len(first) == 3 * 4 * 3 and np.all((second - first) % 3 == 0)
 
 

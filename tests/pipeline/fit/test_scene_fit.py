@@ -160,3 +160,36 @@ def test_a_pattern_that_is_no_regular_expression_is_a_usage_error(mi, references
     scene = _write_scene(tmp_path / "start", rough=0.7, colour="0.7, 0.4, 0.2", floor="0.6, 0.6, 0.6")
     assert _fit(scene, references, tmp_path / "out", "(") == 2
     assert "--params '('" in capsys.readouterr().err
+
+
+def test_films_are_reduced_with_their_crop_windows_and_defaults(mi):
+    import xml.etree.ElementTree as ET
+
+    from pipeline.render.user_scene import reduce_films
+
+    tree = ET.ElementTree(
+        ET.fromstring(
+            '<scene version="3.0.0"><default name="w" value="400"/>'
+            '<sensor type="perspective"><film type="hdrfilm"><integer name="width" value="$w"/>'
+            '<integer name="height" value="300"/><integer name="crop_offset_x" value="100"/>'
+            '<integer name="crop_width" value="200"/></film></sensor>'
+            '<sensor type="perspective"/>'
+            '<sensor type="perspective"><film type="hdrfilm"><integer name="width" value="32"/>'
+            '<integer name="height" value="24"/></film></sensor></scene>'
+        )
+    )
+    assert reduce_films(tree, 100) == [(200, 300), (768, 576), (32, 24)]
+    sensors = mi.load_string(ET.tostring(tree.getroot(), encoding="unicode")).sensors()
+    assert [tuple(s.film().size()) for s in sensors] == [(100, 75), (100, 75), (32, 24)]
+    assert [tuple(s.film().crop_size()) for s in sensors] == [(50, 75), (100, 75), (32, 24)]
+    assert tuple(sensors[0].film().crop_offset()) == (25, 0)
+
+
+def test_a_fit_at_reduced_films_writes_the_scene_with_its_own(mi, references, tmp_path):
+    scene = _write_scene(tmp_path / "start", rough=0.7, colour="0.5, 0.5, 0.5", floor="0.6, 0.6, 0.6")
+    out = tmp_path / "out"
+    assert _fit(scene, references, out, "roughness", "--max-size", "24") == 0
+    rough = json.loads((out / "params.json").read_text())["params"]["mat.roughness.value"][0]
+    assert abs(rough - 0.3) < 0.7 - 0.3
+    written = mi.load_file(str(out / "scene.xml"))
+    assert [tuple(s.film().size()) for s in written.sensors()] == [(48, 36)] * 3

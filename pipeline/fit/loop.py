@@ -1,0 +1,332 @@
+"""The one fitting loop (Mitsuba 3, Dr.Jit, Adam) behind every fit stage and `pipeline fit`.
+
+Per step:
+
+1. draw ``batch`` views (a seeded permutation of the training views sorted by
+   name, so the result does not depend on the order views are given in);
+2. per view: write the variables (pipeline.fit.variables) into its scene, render
+   once (``l2``) or twice (``dual``), and backpropagate the loss on linear
+   radiance over the view's weight mask; the batch's gradients add up;
+3. non-finite gradient entries are zeroed (and counted: one would turn Adam's
+   state into NaN for good); the variables' priors add their gradients; one Adam
+   step; the variables are clamped to their bounds;
+4. every ``validate_every`` steps the held-out views are rendered with fixed seeds
+   and their error (the dual estimator: plain MSE would reward parameters that
+   merely render with less noise) recorded; the state with the lowest one is kept
+   and the variables end in it.
+
+It stops at ``iterations``, when the time budget is spent, or when the mean
+training loss over the last ``window`` steps improved by less than ``tolerance``
+(relative) on the window before; each view's loss counts relative to its first,
+so that a batch of bright views does not look like a setback.
+
+What the loop costs, and why it is written this way (docs/benchmarks.md, "Fitting
+speed"): render seeds are passed as opaque Dr.Jit variables, so the kernels
+compiled for the first step serve every later one (a Python integer seed is baked
+into the kernel as a literal: every step compiled its kernels again, 2.5 s of a
+3.3 s step on the sample bird); one render per view suffices for an unbiased
+gradient, since Mitsuba renders the adjoint with independent samples; the losses
+are read from the device once per step, not once per view.
+
+Long fits checkpoint (pipeline.fit.checkpoint) and resume; a progress bar shows
+the step, the loss, the held-out error and the time left.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from pipeline import logger
+from pipeline.core import progress
+from pipeline.core.errors import PipelineError
+from pipeline.fit.checkpoint import next_checkpoint
+from pipeline.fit.settings import LoopSettings
+
+
+@dataclass
+class FitView:
+    """A view to fit or validate on."""
+
+    name: str
+    scene: Any
+    """The loaded Mitsuba scene (views may share one)."""
+    sensor: Any
+    """The sensor to render (may be outside the scene: a crop window)."""
+    reference: np.ndarray
+    """(h, w, 3) linear radiance of the photo, the sensor's film size."""
+    weight: np.ndarray | None = None
+    """(h, w) pixel weights (the specimen's mask), or None for every pixel."""
+    integrator: Any = None
+    """The integrator to render with; None: the scene's own (which must then be differentiable)."""
+
+
+@dataclass
+class LoopResult:
+    best: dict[str, np.ndarray]
+    """The variables' values at the best held-out error (the last ones without held-out views)."""
+    best_iteration: int
+    best_error: float | None
+    start_error: float | None
+    stopped: str
+    log: list[dict] = field(default_factory=list)
+    skipped_gradients: int = 0
+    """Non-finite gradient entries zeroed before a step."""
+
+
+def seed(value: int):
+    """A render seed as an opaque Dr.Jit variable: the kernels do not change with it."""
+    import drjit as dr
+    import mitsuba as mi
+
+    return dr.opaque(mi.UInt32, value)
+
+
+class Target:
+    """A view's reference and pixel weights as Dr.Jit tensors, converted once rather
+    than at every render."""
+
+    def __init__(self, view: FitView, mi):
+        self.reference = mi.TensorXf(view.reference.astype(np.float32))
+        self.weight = None
+        if view.weight is not None:
+            self.weight = mi.TensorXf(np.repeat(view.weight[..., None], 3, axis=2).astype(np.float32))
+            self.weight_sum = float(3 * view.weight.sum())
+
+    def mean(self, values, dr):
+        """Mean of a per-pixel tensor over the weights (all pixels without them)."""
+        if self.weight is None:
+            return dr.mean(values, axis=None)
+        return dr.sum(values * self.weight, axis=None) / self.weight_sum
+
+    def mse(self, image, dr):
+        return self.mean(dr.square(image - self.reference), dr)
+
+    def dual(self, image, second, dr):
+        """Deng et al.'s dual-buffer estimator of the squared error of the expected image."""
+        return self.mean((image - self.reference) * (second - self.reference), dr)
+
+    def heldout_error(self, view: FitView, index: int, spp: int, mi, dr, integrator=None) -> float:
+        """The dual estimator's error of ``view`` (this target's) rendered with fixed
+        seeds (2 * index and 2 * index + 1); ``integrator`` None renders with the view's."""
+        integrator = integrator or view.integrator
+        image = mi.render(view.scene, sensor=view.sensor, integrator=integrator, spp=spp, seed=seed(2 * index))
+        second = mi.render(view.scene, sensor=view.sensor, integrator=integrator, spp=spp, seed=seed(2 * index + 1))
+        return float(self.dual(image, second, dr).array[0])
+
+
+class _Batches:
+    """Views to render per step: a seeded permutation of the views (sorted by name by
+    the caller), drawn ``batch`` at a time, so results do not depend on the order
+    views were given in; each draw carries its own render seed (even: a second,
+    independent render uses seed + 1)."""
+
+    def __init__(self, views: list[FitView], batch: int, seed_value: int):
+        self.views, self.size = views, min(batch, len(views))
+        self.rng = np.random.default_rng(seed_value)
+        self.order: list[int] = []
+
+    def draw(self, iteration: int) -> list[tuple[FitView, int]]:
+        batch = []
+        for _ in range(self.size):
+            if not self.order:
+                self.order = [int(i) for i in self.rng.permutation(len(self.views))]
+            index = self.order.pop()
+            batch.append((self.views[index], (iteration * len(self.views) + index) * 2))
+        return batch
+
+
+class _Loop:
+    """One run of the loop: its views, variables, targets and state."""
+
+    def __init__(self, variables, training, validation, settings: LoopSettings, integrator, label: str):
+        import drjit as dr
+        import mitsuba as mi
+
+        self.dr, self.mi = dr, mi
+        self.variables, self.settings, self.integrator, self.label = variables, settings, integrator, label
+        self.training = sorted(training, key=lambda v: v.name)
+        self.validation = sorted(validation, key=lambda v: v.name)
+        self.targets = {v.name: Target(v, mi) for v in self.training + self.validation}
+        self.batches = _Batches(self.training, settings.batch, settings.seed)
+        self.skipped = 0
+
+    def render(self, view: FitView, render_seed: int, spp: int):
+        return self.mi.render(
+            view.scene,
+            self.variables.traversed[id(view.scene)],
+            sensor=view.sensor,
+            integrator=self.integrator or view.integrator,
+            spp=spp,
+            seed=seed(render_seed),
+        )
+
+    def step(self, iteration: int) -> list[tuple[str, Any]]:
+        """One step's renders, losses and backpropagation; the losses stay on the device."""
+        dr, settings = self.dr, self.settings
+        losses = []
+        for view, render_seed in self.batches.draw(iteration):
+            self.variables.apply(id(view.scene))
+            image = self.variables.scale(view.name, self.render(view, render_seed, settings.spp))
+            target = self.targets[view.name]
+            if settings.loss == "dual":
+                second = self.variables.scale(view.name, self.render(view, render_seed + 1, settings.spp))
+                loss = target.dual(image, second, dr)
+            else:
+                loss = target.mse(image, dr)
+            dr.backward(loss / self.batches.size)
+            losses.append((view.name, loss))
+        return losses
+
+    def drop_non_finite_gradients(self, iteration: int) -> None:
+        """Zero NaN or infinite gradient entries (counted, with a warning) before the
+        step: a degenerate configuration causes them (Mitsuba's dielectric at eta = 1)."""
+        dr, optimizer = self.dr, self.variables.optimizer
+        for key in optimizer.keys():
+            value = optimizer[key]
+            gradient = dr.grad(value)
+            finite = dr.isfinite(gradient)
+            if not dr.all(finite, axis=None):
+                self.skipped += int(np.count_nonzero(~np.isfinite(np.array(gradient))))
+                dr.set_grad(value, dr.select(finite, gradient, 0))
+                logger.warning("%s, step %d: non-finite gradient of %s dropped", self.label, iteration, key)
+
+    def validate(self) -> float:
+        errors = []
+        with self.dr.suspend_grad():
+            for scene_key in {id(view.scene) for view in self.validation}:
+                self.variables.apply(scene_key)
+            for index, view in enumerate(self.validation):
+                spp = self.settings.validation_spp
+                errors.append(
+                    self.targets[view.name].heldout_error(view, index, spp, self.mi, self.dr, self.integrator)
+                )
+        return float(np.mean(errors))
+
+
+def run(
+    variables,
+    training: list[FitView],
+    validation: list[FitView],
+    settings: LoopSettings,
+    integrator=None,
+    on_iteration: Callable[[dict], None] | None = None,
+    label: str = "fit",
+) -> LoopResult:
+    """Fit ``variables`` (pipeline.fit.variables, registered in their optimiser) to the
+    training views; the scenes end in the best state. ``integrator`` overrides the
+    views' own; ``on_iteration`` sees each step's log entry."""
+    # Longer than 60 lines: the loop's steps in their order (resume, step, validate,
+    # stop, checkpoint); split further, the order would hide.
+    if not training:
+        raise PipelineError("no views to fit: every view is held out")
+    loop = _Loop(variables, training, validation, settings, integrator, label)
+    checkpoint = next_checkpoint()
+    resumed = checkpoint.restore(variables.optimizer) if checkpoint is not None else None
+    if resumed is None:
+        start_error = loop.validate() if loop.validation else None
+        record = {"iteration": 0, "seconds": 0.0, "losses": [], "first_loss": {}, "log": [], "stopped": None}
+        record["start_error"] = start_error
+        best = {"values": variables.snapshot(), "iteration": 0, "error": start_error}
+    else:
+        record = resumed.record
+        names = [name[len("best/") :] for name in resumed.arrays if name.startswith("best/")]
+        best = {
+            "values": {name: resumed.arrays[f"best/{name}"] for name in names},
+            "iteration": record["best_iteration"],
+            "error": record["best_error"],
+        }
+        for iteration in range(1, record["iteration"] + 1):
+            loop.batches.draw(iteration)  # replayed: the views each later step draws stay the same
+    losses, first_loss, log = record["losses"], record["first_loss"], record["log"]
+    started = time.perf_counter() - record["seconds"]
+    stopped = record["stopped"]
+
+    def save(iteration: int, why: str | None) -> None:
+        checkpoint.save_loop(variables.optimizer, record, iteration, started, why, best | {"arrays": best["values"]})
+
+    last = settings.iterations if stopped is None else record["iteration"]
+    with progress.steps(last - record["iteration"], label) as advance:
+        for iteration in range(record["iteration"] + 1, last + 1):
+            step_losses = loop.step(iteration)
+            variables.add_priors()
+            loop.drop_non_finite_gradients(iteration)
+            variables.optimizer.step()
+            variables.clamp()
+            # One read of the device per step: the batch's losses together.
+            loop.dr.eval([loss for _, loss in step_losses])
+            values = [float(loss.array[0]) for _, loss in step_losses]
+            relative = 0.0
+            for (name, _), value in zip(step_losses, values):
+                # Views differ in brightness and size: the stopping rule compares each
+                # view's loss with its first one.
+                first_loss.setdefault(name, max(abs(value), 1e-12))
+                relative += value / first_loss[name]
+            losses.append(relative / len(values))
+            entry = {
+                "iteration": iteration,
+                "loss": float(np.mean(values)),
+                "relative_loss": losses[-1],
+                "seconds": time.perf_counter() - started,
+            }
+            summary = variables.summary()
+            if summary is not None:
+                entry["params"] = summary
+            if loop.validation and (iteration % settings.validate_every == 0 or iteration == settings.iterations):
+                entry["validation_error"] = loop.validate()
+                if entry["validation_error"] < best["error"]:
+                    best = {"values": variables.snapshot(), "iteration": iteration, "error": entry["validation_error"]}
+            elif not loop.validation:
+                best = {"values": variables.snapshot(), "iteration": iteration, "error": None}
+            log.append(entry)
+            advance(_status(entry, best))
+            if on_iteration is not None:
+                on_iteration(entry)
+            stopped = _stop_reason(settings, losses, entry)
+            if stopped:
+                break
+            if checkpoint is not None and checkpoint.due():
+                save(iteration, None)
+    stopped = stopped or "iterations"
+    if checkpoint is not None:
+        save(len(log), stopped)
+    variables.restore(best["values"])
+    with loop.dr.suspend_grad():
+        for scene_key in variables.traversed:
+            variables.apply(scene_key)
+    logger.info(
+        "%s stopped (%s) after %d steps in %.0f s; best at step %d (held-out error %s -> %s)",
+        label,
+        stopped,
+        len(log),
+        time.perf_counter() - started,
+        best["iteration"],
+        _number(record["start_error"]),
+        _number(best["error"]),
+    )
+    return LoopResult(
+        best["values"], best["iteration"], best["error"], record["start_error"], stopped, log, loop.skipped
+    )
+
+
+def _stop_reason(settings: LoopSettings, losses: list[float], entry: dict) -> str | None:
+    window = settings.window
+    if settings.tolerance > 0 and len(losses) >= 2 * window:
+        previous, recent = np.mean(losses[-2 * window : -window]), np.mean(losses[-window:])
+        if previous > 0 and (previous - recent) / previous < settings.tolerance:
+            return f"loss improved by less than {settings.tolerance:g} over {window} steps"
+    if settings.time_budget_s and entry["seconds"] > settings.time_budget_s:
+        return f"time budget of {settings.time_budget_s:g} s spent"
+    return None
+
+
+def _number(value: float | None) -> str:
+    return "-" if value is None else f"{value:.4g}"
+
+
+def _status(entry: dict, best: dict) -> str:
+    heldout = f", held-out {_number(entry['validation_error'])}" if "validation_error" in entry else ""
+    return f"loss {entry['loss']:.4g}{heldout} (best {_number(best['error'])})"

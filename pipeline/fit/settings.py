@@ -1,0 +1,73 @@
+"""The fitting loop's settings: what every fit shares (``LoopSettings``), and what a
+material fit (``FitSettings``) and a shape fit (``ShapeSettings``) add. The fit
+stages' config sections and `pipeline fit`'s options hold these fields."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Annotated, Literal
+
+from pipeline.core.config import Range
+
+
+@dataclass(frozen=True)
+class LoopSettings:
+    """How the loop runs."""
+
+    iterations: Annotated[int, Range(1, None)] = 100
+    """Most steps."""
+    batch: Annotated[int, Range(1, None)] = 2
+    """Views rendered per step; their gradients add up before the step."""
+    spp: Annotated[int, Range(1, None)] = 16
+    """Samples per pixel of each training render."""
+    loss: Literal["l2", "dual"] = "l2"
+    """l2: one render per view and its squared error; Mitsuba renders the gradient with
+    independent samples, so it is that of the expected image's error, unbiased by Monte
+    Carlo noise. dual: Deng et al.'s dual-buffer estimator from two renders (an unbiased
+    loss value too, at twice the cost per view)."""
+    validate_every: Annotated[int, Range(1, None)] = 10
+    """Steps between renders of the held-out views."""
+    validation_spp: Annotated[int, Range(1, None)] = 64
+    """Samples per pixel of the held-out renders."""
+    tolerance: Annotated[float, Range(0.0, None)] = 1e-3
+    """Stop when the mean loss over ``window`` steps improves by less than this (relative);
+    0: never (run ``iterations``)."""
+    window: Annotated[int, Range(1, None)] = 20
+    """Steps per window of the tolerance test."""
+    time_budget_s: Annotated[float, Range(0.0, None)] = 0.0
+    """Stop after this many seconds of fitting; 0 for no limit."""
+    seed: int = 0
+    """Seed of the batch order and the renders."""
+
+
+@dataclass(frozen=True)
+class FitSettings(LoopSettings):
+    """How a fit of material parameters (plain values or textures) runs."""
+
+    learning_rate_scale: Annotated[float, Range(0.0, None, exclusive_lo=True)] = 1.0
+    """Multiplies every parameter's learning rate."""
+    exposure: bool = False
+    """Fit one exposure scale per view (photos shot with automatic exposure)."""
+
+
+@dataclass(frozen=True)
+class ShapeSettings(LoopSettings):
+    """How a fit of a mesh's vertices runs (the loss is always l2)."""
+
+    iterations: Annotated[int, Range(1, None)] = 40
+    """Most steps."""
+    spp: Annotated[int, Range(1, None)] = 8
+    """Samples per pixel of each training render."""
+    validation_spp: Annotated[int, Range(1, None)] = 32
+    """Samples per pixel of the held-out renders."""
+    tolerance: Annotated[float, Range(0.0, None)] = 0.0
+    """Stop when the mean loss over ``window`` steps improves by less than this (relative);
+    0: never (run ``iterations``)."""
+    step: Annotated[float, Range(0.0, None, exclusive_lo=True)] = 1e-3
+    """Adam step (uniform) on the differential coordinates, in world units."""
+    smoothing: Annotated[float, Range(0.0, None)] = 20.0
+    """LargeSteps' lambda: how far a vertex's gradient spreads over the surface."""
+    symbolic_loops: bool = True
+    """False renders with evaluated loops: Dr.Jit 1.5's LLVM backend cannot compile
+    ``prbvolpath``'s symbolic loop once vertex positions carry gradients ("module could
+    not be verified"); evaluated loops compile and give finite gradients."""

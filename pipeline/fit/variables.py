@@ -1,0 +1,205 @@
+"""What a fit changes: the variables the loop (pipeline.fit.loop) steps with Adam.
+
+Both kinds share one protocol: they hold their latents in the loop's optimiser
+(``mi.ad.Adam``), write them into every view's scene (``apply``), keep them
+inside their bounds after each step (``clamp``), add their priors' gradients
+(``add_priors``), and give (``snapshot``) and take back (``restore``) their values
+as NumPy arrays, which the loop keeps as the best state and checkpoints.
+
+=================  ===========================================================  ==========================
+kind               latents                                                      bounds, priors
+=================  ===========================================================  ==========================
+MaterialVariables  one per FitParameter: the value, or its logarithm for        box per parameter;
+                   positive quantities spanning decades; plain values, or a     smoothness on textures
+                   texture's data tensor; optionally an exposure per view
+ShapeVariables     a mesh's vertices as LargeSteps' differential coordinates    none (the Laplacian
+                   (Nicolet et al. 2021, seams welded)                          spreads each step)
+=================  ===========================================================  ==========================
+
+Limitations: the same key must exist in every view's scene; a texture's
+resolution is fixed during one fit (coarse to fine is the caller's loop).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from pipeline.core.errors import PipelineError
+
+
+@dataclass(frozen=True)
+class FitParameter:
+    """One scene parameter to fit."""
+
+    name: str
+    key: str
+    """Key in ``mi.traverse`` of every view's scene."""
+    lower: float
+    upper: float
+    log: bool = False
+    learning_rate: float = 0.02
+    smoothness: float = 0.0
+    """Weight of the neighbour-difference prior (textures only)."""
+
+
+def summarize(value: np.ndarray) -> list[float]:
+    """A plain value as a list; a texture as its per-channel mean."""
+    if value.ndim > 1:
+        value = value.reshape(-1, value.shape[-1]).mean(axis=0)
+    return [float(v) for v in np.ravel(value)]
+
+
+def neighbour_pairs(shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Flat indices (i, j) of every pair of texels adjacent along a spatial axis,
+    channel by channel, of a C-ordered array of ``shape`` (spatial..., channels)."""
+    index = np.arange(int(np.prod(shape))).reshape(shape)
+    first, second = [], []
+    for axis in range(len(shape) - 1):
+        count = shape[axis] - 1
+        first.append(np.take(index, range(count), axis=axis).ravel())
+        second.append(np.take(index, range(1, count + 1), axis=axis).ravel())
+    return np.concatenate(first), np.concatenate(second)
+
+
+class MaterialVariables:
+    """Scene parameters (plain values or textures), in log space where they span decades,
+    and optionally one exposure scale per training view."""
+
+    def __init__(self, parameters: list[FitParameter], traversed: dict[int, Any], exposure_views: list[str]):
+        import drjit as dr
+        import mitsuba as mi
+
+        self.parameters, self.traversed, self.dr, self.mi = parameters, traversed, dr, mi
+        self.exposure_views = exposure_views
+        self.optimizer = mi.ad.Adam(lr=0.01)
+
+    def register(self, learning_rate_scale: float) -> None:
+        """The latents in the optimiser, from the first scene's values."""
+        dr, optimizer = self.dr, self.optimizer
+        first = next(iter(self.traversed.values()))
+        for parameter in self.parameters:
+            value = first[parameter.key]
+            optimizer[parameter.name] = dr.log(value) if parameter.log else type(value)(value)
+            optimizer.set_learning_rate({parameter.name: parameter.learning_rate * learning_rate_scale})
+        for name in self.exposure_views:
+            optimizer[f"exposure:{name}"] = self.mi.Float(0.0)
+            optimizer.set_learning_rate({f"exposure:{name}": 0.01 * learning_rate_scale})
+        self.textured = {p.name for p in self.parameters if dr.is_tensor_v(optimizer[p.name])}
+        self.priors = []
+        for parameter in self.parameters:
+            if parameter.smoothness > 0 and parameter.name in self.textured:
+                first_index, second_index = neighbour_pairs(tuple(optimizer[parameter.name].shape))
+                self.priors.append((parameter, self.mi.UInt32(first_index), self.mi.UInt32(second_index)))
+        self.clamp()
+
+    def check_keys(self, views) -> None:
+        """Every parameter's key in every view's scene, or a PipelineError naming the views."""
+        for parameter in self.parameters:
+            missing = [v.name for v in views if parameter.key not in self.traversed[id(v.scene)]]
+            if missing:
+                raise PipelineError(
+                    f"parameter {parameter.name}: key {parameter.key} is not in the scene of {', '.join(missing[:3])}"
+                )
+
+    def clamp(self) -> None:
+        for parameter in self.parameters:
+            lo, hi = (parameter.lower, parameter.upper)
+            if parameter.log:
+                lo, hi = np.log(lo), np.log(hi)
+            self.optimizer[parameter.name] = self.dr.clip(self.optimizer[parameter.name], lo, hi)
+
+    def apply(self, scene_key: int) -> None:
+        dr, params = self.dr, self.traversed[scene_key]
+        for parameter in self.parameters:
+            latent = self.optimizer[parameter.name]
+            if parameter.log:
+                # exp of a float32 log-bound can land a hair outside the bound; clip
+                # the value, but pass the gradient straight through (a clip's gradient
+                # is zero there, which would pin the parameter to its bound for good)
+                value = dr.exp(latent)
+                latent = value + dr.detach(dr.clip(value, parameter.lower, parameter.upper) - value)
+            params[parameter.key] = latent
+        params.update()
+
+    def scale(self, view_name: str, image):
+        """The render of a training view times its exposure (when fitted)."""
+        if view_name not in self.exposure_views:
+            return image
+        return image * self.dr.exp(self.optimizer[f"exposure:{view_name}"])
+
+    def add_priors(self) -> None:
+        dr = self.dr
+        for parameter, first_index, second_index in self.priors:
+            texels = self.optimizer[parameter.name].array
+            if parameter.log:
+                texels = dr.exp(texels)
+            difference = dr.gather(self.mi.Float, texels, first_index) - dr.gather(self.mi.Float, texels, second_index)
+            dr.backward(parameter.smoothness * dr.mean(dr.square(difference)))
+
+    def snapshot(self) -> dict[str, np.ndarray]:
+        """Values as arrays: a texture (..., channels), else flat."""
+        arrays = {p.name: np.array(self.optimizer[p.name], dtype=np.float64) for p in self.parameters}
+        arrays = {n: a if n in self.textured else np.ravel(a) for n, a in arrays.items()}
+        return {
+            p.name: np.clip(np.exp(arrays[p.name]), p.lower, p.upper) if p.log else arrays[p.name]
+            for p in self.parameters
+        }
+
+    def summary(self) -> dict[str, list[float]]:
+        """Each parameter's value for the log: a texture's per-channel mean."""
+        return {name: summarize(value) for name, value in self.snapshot().items()}
+
+    def restore(self, values: dict[str, np.ndarray]) -> None:
+        for parameter in self.parameters:
+            value = values[parameter.name]
+            latent = (np.log(value) if parameter.log else value).astype(np.float32)
+            kind = type(self.optimizer[parameter.name])
+            self.optimizer[parameter.name] = kind(latent) if value.ndim > 1 else kind(*[float(v) for v in latent])
+
+    def exposures(self) -> dict[str, float]:
+        return {n: float(np.exp(np.ravel(self.optimizer[f"exposure:{n}"])[0])) for n in self.exposure_views}
+
+
+class ShapeVariables:
+    """A mesh's vertex positions in every view's scene, as LargeSteps' differential
+    coordinates stepped by a uniform Adam."""
+
+    def __init__(self, shape_id: str, traversed: dict[int, Any], step: float, smoothing: float):
+        import drjit as dr
+        import mitsuba as mi
+
+        self.dr, self.traversed = dr, traversed
+        self.key = f"{shape_id}.vertex_positions"
+        first = next(iter(traversed.values()))
+        self.steps = mi.ad.LargeSteps(first[self.key], first[f"{shape_id}.faces"], smoothing)
+        self.optimizer = mi.ad.Adam(lr=step, uniform=True)
+        self.optimizer["u"] = self.steps.to_differential(first[self.key])
+        self.mi = mi
+
+    def clamp(self) -> None:
+        pass
+
+    def apply(self, scene_key: int) -> None:
+        self.traversed[scene_key][self.key] = self.dr.ravel(self.steps.from_differential(self.optimizer["u"]))
+        self.traversed[scene_key].update()
+
+    def scale(self, view_name: str, image):
+        return image
+
+    def add_priors(self) -> None:
+        pass
+
+    def summary(self) -> None:
+        """Nothing per step for the log: reading every vertex would cost a device sync."""
+        return None
+
+    def snapshot(self) -> dict[str, np.ndarray]:
+        with self.dr.suspend_grad():
+            positions = self.steps.from_differential(self.optimizer["u"])
+            return {"positions": np.array(positions, dtype=np.float32).reshape(-1, 3)}
+
+    def restore(self, values: dict[str, np.ndarray]) -> None:
+        self.optimizer["u"] = self.steps.to_differential(self.mi.Float(values["positions"].ravel()))
