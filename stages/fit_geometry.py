@@ -154,6 +154,7 @@ def _material_settings(conf: Config, seed: int) -> engine.FitSettings:
         iterations=conf.material_iterations,
         batch=conf.batch,
         spp=conf.material_spp,
+        learning_rate_scale=1.0,
         validate_every=conf.validate_every,
         validation_spp=conf.validation_spp,
         tolerance=0.0,

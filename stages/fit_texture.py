@@ -147,7 +147,9 @@ def _finish_report(report: dict, material: dict, constants: dict, texture_mean: 
 def _texture_fit(conf: Config, model: str, bounds: dict, views: list[engine.FitView], held: set[str]) -> TextureFit:
     """The views split by fit_material's held-out photos, the texture's and constants'
     parameters, and the loop's settings for one level."""
-    settings = FitSettings(**{f.name: getattr(conf, f.name) for f in fields(LoopSettings)})
+    # The texture's own learning rate (conf.learning_rate) is the scale's measure.
+    loop = {f.name: getattr(conf, f.name) for f in fields(LoopSettings)}
+    settings = FitSettings(**loop, learning_rate_scale=1.0)
     parameters = materials.refit_parameters(model, bounds, (conf.learning_rate, conf.smoothness), conf.refit_constants)
     training, validation = [v for v in views if v.name not in held], [v for v in views if v.name in held]
     return TextureFit(training=training, validation=validation, parameters=parameters, settings=settings)

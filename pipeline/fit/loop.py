@@ -85,21 +85,28 @@ def seed(value: int):
     return dr.opaque(mi.UInt32, value)
 
 
+@dataclass
 class Target:
-    """A view's reference and pixel weights as Dr.Jit tensors, converted once rather
-    than at every render."""
+    """A view's reference and pixel weights as Dr.Jit values, converted once rather
+    than at every render (every pixel weighs 1 without a mask). A dataclass: Dr.Jit
+    traverses it, so a frozen step replays with each view's own (the weight sum is
+    opaque for the same reason: a Python number would be baked into the recording)."""
 
-    def __init__(self, view: FitView, mi):
-        self.reference = mi.TensorXf(view.reference.astype(np.float32))
-        self.weight = None
-        if view.weight is not None:
-            self.weight = mi.TensorXf(np.repeat(view.weight[..., None], 3, axis=2).astype(np.float32))
-            self.weight_sum = float(3 * view.weight.sum())
+    reference: Any
+    weight: Any
+    weight_sum: Any
+
+    @staticmethod
+    def of(view: FitView, mi, dr) -> Target:
+        weight = view.weight if view.weight is not None else np.ones(view.reference.shape[:2], np.float32)
+        return Target(
+            mi.TensorXf(view.reference.astype(np.float32)),
+            mi.TensorXf(np.repeat(weight[..., None], 3, axis=2).astype(np.float32)),
+            dr.opaque(mi.Float, float(3 * weight.sum())),
+        )
 
     def mean(self, values, dr):
-        """Mean of a per-pixel tensor over the weights (all pixels without them)."""
-        if self.weight is None:
-            return dr.mean(values, axis=None)
+        """Mean of a per-pixel tensor over the weights."""
         return dr.sum(values * self.weight, axis=None) / self.weight_sum
 
     def mse(self, image, dr):
@@ -116,6 +123,24 @@ class Target:
         image = mi.render(view.scene, sensor=view.sensor, integrator=integrator, spp=spp, seed=seed(2 * index))
         second = mi.render(view.scene, sensor=view.sensor, integrator=integrator, spp=spp, seed=seed(2 * index + 1))
         return float(self.dual(image, second, dr).array[0])
+
+
+def view_loss(scene, params, sensor, integrator, spp: int, seeds, scale, target: Target, dual: bool, share):
+    """One view's loss (``dual``: from two renders, else l2 from one), its gradient
+    backpropagated with weight ``share``; ``scale`` multiplies the renders (an exposure).
+    What changes between calls is a Dr.Jit value or holds them, so that ``dr.freeze``
+    replays it correctly."""
+    import drjit as dr
+    import mitsuba as mi
+
+    image = mi.render(scene, params, sensor=sensor, integrator=integrator, spp=spp, seed=seeds[0]) * scale
+    if dual:
+        second = mi.render(scene, params, sensor=sensor, integrator=integrator, spp=spp, seed=seeds[1]) * scale
+        loss = target.dual(image, second, dr)
+    else:
+        loss = target.mse(image, dr)
+    dr.backward(loss * share)
+    return loss
 
 
 class _Batches:
@@ -150,34 +175,31 @@ class _Loop:
         self.variables, self.settings, self.integrator, self.label = variables, settings, integrator, label
         self.training = sorted(training, key=lambda v: v.name)
         self.validation = sorted(validation, key=lambda v: v.name)
-        self.targets = {v.name: Target(v, mi) for v in self.training + self.validation}
+        self.targets = {v.name: Target.of(v, mi, dr) for v in self.training + self.validation}
         self.batches = _Batches(self.training, settings.batch, settings.seed)
+        self.share = dr.opaque(mi.Float, 1.0 / self.batches.size)
+        self.one = dr.opaque(mi.Float, 1.0)
+        # A new frozen function per loop: its recordings belong to this loop's scenes.
+        self.view_loss = dr.freeze(view_loss) if settings.freeze else view_loss
         self.skipped = 0
-
-    def render(self, view: FitView, render_seed: int, spp: int):
-        return self.mi.render(
-            view.scene,
-            self.variables.traversed[id(view.scene)],
-            sensor=view.sensor,
-            integrator=self.integrator or view.integrator,
-            spp=spp,
-            seed=seed(render_seed),
-        )
 
     def step(self, iteration: int) -> list[tuple[str, Any]]:
         """One step's renders, losses and backpropagation; the losses stay on the device."""
-        dr, settings = self.dr, self.settings
         losses = []
         for view, render_seed in self.batches.draw(iteration):
             self.variables.apply(id(view.scene))
-            image = self.variables.scale(view.name, self.render(view, render_seed, settings.spp))
-            target = self.targets[view.name]
-            if settings.loss == "dual":
-                second = self.variables.scale(view.name, self.render(view, render_seed + 1, settings.spp))
-                loss = target.dual(image, second, dr)
-            else:
-                loss = target.mse(image, dr)
-            dr.backward(loss / self.batches.size)
+            loss = self.view_loss(
+                view.scene,
+                self.variables.traversed[id(view.scene)],
+                view.sensor,
+                self.integrator or view.integrator,
+                self.settings.spp,
+                (seed(render_seed), seed(render_seed + 1)),
+                self.variables.scale(view.name, self.one),
+                self.targets[view.name],
+                self.settings.loss == "dual",
+                self.share,
+            )
             losses.append((view.name, loss))
         return losses
 

@@ -38,14 +38,24 @@ class LoopSettings:
     """Stop after this many seconds of fitting; 0 for no limit."""
     seed: int = 0
     """Seed of the batch order and the renders."""
+    freeze: bool = True
+    """Record each view's render, loss and backpropagation once (``dr.freeze``) and
+    replay it on later steps instead of tracing it again: half the time of a step at
+    64 px on a CPU (docs/benchmarks.md, "Fitting speed")."""
 
 
 @dataclass(frozen=True)
 class FitSettings(LoopSettings):
-    """How a fit of material parameters (plain values or textures) runs."""
+    """How a fit of material parameters (plain values or textures) runs. The defaults
+    are `pipeline fit`'s, the fastest to the targets on bench/fit_speed.py's kit; the
+    fit stages' presets set their own."""
 
-    learning_rate_scale: Annotated[float, Range(0.0, None, exclusive_lo=True)] = 1.0
-    """Multiplies every parameter's learning rate."""
+    spp: Annotated[int, Range(1, None)] = 4
+    """Samples per pixel of each training render."""
+    batch: Annotated[int, Range(1, None)] = 4
+    """Views rendered per step; their gradients add up before the step."""
+    learning_rate_scale: Annotated[float, Range(0.0, None, exclusive_lo=True)] = 2.0
+    """Multiplies every parameter's learning rate (pipeline.render.materials)."""
     exposure: bool = False
     """Fit one exposure scale per view (photos shot with automatic exposure)."""
 
@@ -67,6 +77,9 @@ class ShapeSettings(LoopSettings):
     """Adam step (uniform) on the differential coordinates, in world units."""
     smoothing: Annotated[float, Range(0.0, None)] = 20.0
     """LargeSteps' lambda: how far a vertex's gradient spreads over the surface."""
+    freeze: bool = False
+    """Replay recorded renders (``dr.freeze``): not measured on shape fits, whose
+    vertices change the scene's geometry every step."""
     symbolic_loops: bool = True
     """False renders with evaluated loops: Dr.Jit 1.5's LLVM backend cannot compile
     ``prbvolpath``'s symbolic loop once vertex positions carry gradients ("module could
