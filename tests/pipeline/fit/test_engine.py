@@ -409,3 +409,45 @@ def test_an_interrupted_shape_fit_resumes_from_its_checkpoint(mi, tmp_path, monk
     assert "00.npz at iteration 4" in caplog.text
     assert [e["iteration"] for e in resumed.log] == list(range(1, 7))
     np.testing.assert_allclose(resumed.positions, whole.positions, atol=1e-5)
+
+
+def test_later_steps_compile_no_kernel(mi, references, tmp_path):
+    """A Python number that changes every step, baked into a kernel, makes every step
+    compile it again (fit_geometry took 260 s for its first 10 steps on an H100). The
+    first steps meet new kernels (the first pairs of views, the frozen recordings);
+    after them none may be new. Dr.Jit's cache on disk would hide a recompilation
+    from ``cache_hit``: the kernels' hashes tell. (The default, frozen loop; unfrozen,
+    new combinations of views kept producing new fused kernels up to step 12.)"""
+    import drjit as dr
+
+    views = _views(mi, _scene_file(tmp_path, [0.5, 0.5, 0.5], [0.7]), references / "references")
+    seen, compiled = set(), []
+
+    def on_iteration(entry: dict) -> None:
+        hashes = {k["hash"] for k in dr.kernel_history() if "hash" in k}  # reading it clears it
+        if entry["iteration"] > 6:
+            compiled.extend(hashes - seen)
+        seen.update(hashes)
+
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        settings = engine.FitSettings(iterations=12, batch=2, spp=4, tolerance=0.0)
+        engine.fit(PARAMETERS, views, [], settings, on_iteration=on_iteration)
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert compiled == []
+
+
+def test_a_frozen_step_gives_the_unfrozen_fit(mi, references, tmp_path):
+    scene = _scene_file(tmp_path, [0.5, 0.5, 0.5], [0.7])
+    results = [
+        engine.fit(
+            PARAMETERS,
+            _views(mi, scene, references / "references"),
+            [],
+            engine.FitSettings(iterations=5, batch=2, spp=4, tolerance=0.0, freeze=freeze),
+        )
+        for freeze in (True, False)
+    ]
+    for name in results[0].values:
+        np.testing.assert_allclose(results[0].values[name], results[1].values[name], rtol=1e-4)
