@@ -295,7 +295,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_geometry",
-    version=7,
+    version=8,
     config=Config,
     main=main,
     needs=(

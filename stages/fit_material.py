@@ -34,12 +34,18 @@ specimen. Views whose mask is empty are skipped.
 from __future__ import annotations
 
 import shutil
+import time
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Annotated
 
+import numpy as np
+import trimesh
+
+from pipeline import logger
 from pipeline.core.config import Range
 from pipeline.core.errors import PipelineError
+from pipeline.core.sections import LightSection
 from pipeline.core.stage import Stage, StageInputs, StageResult
 from pipeline.fit import engine
 from pipeline.fit.checkpoint import resumable_stage
@@ -49,7 +55,16 @@ from pipeline.fit.views import held_out_names, load_views
 from pipeline.formats.cameras import read_views
 from pipeline.formats.masks import read_masks
 from pipeline.formats.pinhole import linear_photos
-from pipeline.formats.scene_folder import HELDOUT, PARAMS_JSON, SCENE_XML, SPECIMEN_XML, read_json, write_json
+from pipeline.formats.scene_folder import (
+    HELDOUT,
+    MESH_PLY,
+    PARAMS_JSON,
+    SCENE_XML,
+    SPECIMEN_XML,
+    read_json,
+    write_json,
+)
+from pipeline.render import light as estimated_light
 from pipeline.render import materials, mitsuba_variant, scene_xml
 
 
@@ -82,70 +97,173 @@ def fit_parameters(model: str, bounds: tuple[str, ...]) -> list[engine.FitParame
     return materials.fit_parameters(model, overrides)
 
 
+@dataclass
+class Candidate:
+    """One fit: the material alone under the given light, or with one light model."""
+
+    light: estimated_light.EstimatedLight | None
+    result: engine.FitResult
+    views: list
+    seconds: float
+
+    def summary(self) -> dict:
+        return {
+            "model": self.light.model if self.light else "given",
+            "validation_mse": self.result.validation_error,
+            "start_validation_mse": self.result.start_validation_error,
+            "seconds": round(self.seconds, 1),
+        }
+
+
+def light_models(requested: str, estimated: bool) -> list[str]:
+    """The light models to fit, simplest first: none when the light is given."""
+    if not estimated:
+        return []
+    return list(estimated_light.LIGHT_MODELS) if requested == "auto" else [requested]
+
+
+def choose(candidates: list[Candidate], margin: float) -> tuple[Candidate, str]:
+    """The simplest candidate whose held-out error is within ``margin`` (relative) of the
+    best one's, and why."""
+    errors = [c.result.validation_error for c in candidates]
+    if len(candidates) == 1 or any(e is None for e in errors):
+        return candidates[-1], "the only light model fitted" if len(candidates) == 1 else "no held-out photos"
+    best = min(errors)
+    for candidate, error in zip(candidates, errors):
+        if error <= best * (1 + margin):
+            name = candidate.light.model if candidate.light else "given"
+            return candidate, f"{name}: the simplest within {margin:.0%} of the best held-out error ({best:.4g})"
+    raise AssertionError("the best candidate is within any margin of itself")
+
+
 @resumable_stage
 def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
-    # 1. The scene stage's folder, copied: the fitted values are written into it.
+    # 1. The scene stage's folder, copied: the fitted values (and light) are written into it.
     description = read_json(inputs.upstream["scene"]["description"])
     model = description["model"]
     parameters = fit_parameters(model, conf.bounds)
     mitsuba_variant.activate(inputs.shared["mitsuba"].variant)
     fitted = out_dir / "fitted"
     shutil.copytree(inputs.upstream["scene"]["scene_dir"], fitted)
+    light: LightSection = inputs.shared["light"]
 
     # 2. Every photo as a view in its mask's window; a few held out for validation.
     cameras = read_views(inputs.upstream["sfm"]["cameras"])
-    linear = linear_photos(inputs.upstream["undistort"]["pinhole"])
-    masks = read_masks(inputs.upstream["masks"]["masks_json"])
-    views = [
-        view
-        for view, _ in load_views(fitted, description, cameras, linear, masks, conf.max_size, conf.erode_px, conf.spp)
-    ]
-    held = set(held_out_names([v.name for v in views], conf.held_out))
-
-    # 3. The fit.
-    settings = FitSettings(**{f.name: getattr(conf, f.name) for f in fields(FitSettings)})
-    result = engine.fit(
-        parameters, [v for v in views if v.name not in held], [v for v in views if v.name in held], settings
+    photos = (
+        cameras,
+        linear_photos(inputs.upstream["undistort"]["pinhole"]),
+        read_masks(inputs.upstream["masks"]["masks_json"]),
     )
 
-    # 4. The fitted scene, its log, held-out renders and params.json.
-    keys = {p.name: p.key for p in parameters}
-    specimen = fitted / SPECIMEN_XML
-    scene_xml.set_values(specimen, {keys[n]: v for n, v in result.values.items()}, specimen)
+    initial = {name: entry["value"] for name, entry in description["parameters"].items()}
+
+    def fit(start_light: estimated_light.EstimatedLight | None, start_values: dict = initial) -> Candidate:
+        started = time.perf_counter()
+        _write_material(fitted, parameters, start_values)
+        if start_light is not None:
+            estimated_light.write(start_light, fitted, description, {n: pose for n, (_, pose) in cameras.items()})
+        views = [view for view, _ in load_views(fitted, description, *photos, conf.max_size, conf.erode_px, conf.spp)]
+        held = set(held_out_names([v.name for v in views], conf.held_out))
+        fitted_parameters = parameters + (
+            estimated_light.parameters(start_light, light.smoothness) if start_light else []
+        )
+        settings = FitSettings(**{f.name: getattr(conf, f.name) for f in fields(FitSettings)})
+        result = engine.fit(
+            fitted_parameters, [v for v in views if v.name not in held], [v for v in views if v.name in held], settings
+        )
+        end_light = None
+        if start_light is not None:
+            end_light = estimated_light.fitted(start_light, {**result.values, **result.textures})
+            logger.info("light %s: held-out error %.4g", end_light.model, result.validation_error or float("nan"))
+        return Candidate(end_light, result, views, time.perf_counter() - started)
+
+    # 3. The fit: the material under the given light, or with each light model, simplest first.
+    models = light_models(light.model, light.estimated)
+    if not models:
+        candidates = [fit(None)]
+    else:
+        level = np.array(description["light"]["level"], np.float32)
+        candidates = []
+        for light_model in models:
+            if light_model == "envmap+area":
+                envmap = next((c for c in candidates if c.light.model == "envmap"), None) or fit(
+                    estimated_light.start("envmap", light.frame, level, light.environment_width)
+                )
+                area = estimated_light.with_area(envmap.light, *_specimen_sphere(fitted, light.frame, cameras, light))
+                candidates.append(fit(area, envmap.result.values))
+            else:
+                candidates.append(fit(estimated_light.start(light_model, light.frame, level, light.environment_width)))
+    chosen, why = choose(candidates, light.margin)
+    result = chosen.result
+
+    # 4. The fitted scene, its light, log, held-out renders and params.json.
+    if chosen.light is not None:
+        estimated_light.write(chosen.light, fitted, description, {n: pose for n, (_, pose) in cameras.items()})
+    _write_material(fitted, parameters, result.values)
+    held = sorted(set(held_out_names([v.name for v in chosen.views], conf.held_out)))
     write_fit_log(fitted, result.log)
-    write_heldout([v for v in views if v.name in held], 4 * conf.validation_spp, fitted / HELDOUT)
+    write_heldout([v for v in chosen.views if v.name in held], 4 * conf.validation_spp, fitted / HELDOUT)
+    material_values = {p.name: result.values[p.name] for p in parameters}
+    light_report = {
+        "chosen": chosen.light.summary() if chosen.light else {"model": "given"},
+        "why": why,
+        "candidates": [c.summary() for c in candidates],
+        "level": description.get("light", {}).get("level"),
+        "level_from": description.get("light", {}).get("level_from"),
+    }
     params = write_json(
         fitted / PARAMS_JSON,
         {
             "model": model,
-            "params": result.values,
+            "params": material_values,
             "bounds": {p.name: [p.lower, p.upper] for p in parameters},
             "units": {p.name: materials.PARAMETERS[p.name].units for p in parameters},
             "best_iteration": result.best_iteration,
             "iterations": len(result.log),
             "validation_mse": result.validation_error,
-            "held_out": sorted(held),
+            "held_out": held,
             "stopped": result.stopped,
             "exposures": result.exposures,
+            "light": light_report,
+            "skipped_gradients": result.skipped_gradients,
         },
     )
     metrics = {
         "iterations": len(result.log),
         "best_iteration": result.best_iteration,
         "validation_mse": result.validation_error,
-        **{n: v if len(v) > 1 else v[0] for n, v in result.values.items()},
+        "light": light_report["chosen"]["model"],
+        **{n: v if len(v) > 1 else v[0] for n, v in material_values.items()},
     }
     outputs = {"fitted_dir": fitted, "params": params, "heldout": fitted / HELDOUT, "scene": fitted / SCENE_XML}
     return StageResult(outputs, metrics)
 
 
+def _write_material(fitted: Path, parameters: list[engine.FitParameter], values: dict) -> None:
+    specimen = fitted / SPECIMEN_XML
+    scene_xml.set_values(specimen, {p.key: values[p.name] for p in parameters}, specimen)
+
+
+def _specimen_sphere(fitted: Path, frame: str, cameras: dict, light: LightSection) -> tuple[np.ndarray, float]:
+    """(centre in the light's frame, the softbox's distance) for light.with_area: the
+    specimen's bounding-sphere centre (in the first photo's camera coordinates when the
+    light rides with the camera) and ``area_distance`` radii."""
+    mesh = trimesh.load(fitted / MESH_PLY, force="mesh", process=False)
+    centre = mesh.bounding_box.centroid
+    radius = float(np.max(np.linalg.norm(mesh.vertices - centre, axis=1)))
+    if frame == "camera":
+        pose = cameras[sorted(cameras)[0]][1]
+        centre = pose.R @ centre + pose.t
+    return centre, light.area_distance * radius
+
+
 STAGE = Stage(
     name="fit_material",
-    version=6,
+    version=7,
     config=Config,
     main=main,
     needs=("scene.scene_dir", "scene.description", "sfm.cameras", "undistort.pinhole", "masks.masks_json"),
     outputs=("fitted_dir", "params", "heldout", "scene"),
-    shared=("mitsuba",),
+    shared=("mitsuba", "light"),
     exports=("fitted_dir", "params", "heldout"),
 )

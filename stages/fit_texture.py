@@ -254,7 +254,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_texture",
-    version=7,
+    version=8,
     config=Config,
     main=main,
     needs=(

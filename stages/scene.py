@@ -65,10 +65,14 @@ from pipeline.formats.cameras import read_frame, read_views
 from pipeline.formats.masks import read_masks
 from pipeline.formats.pinhole import linear_photos
 from pipeline.formats.scene_folder import DESCRIPTION_JSON, MESH_PLY, SCENE_XML, SPECIMEN_XML, write_json
+from pipeline.render import light as estimated_light
 from pipeline.render import materials, mitsuba_variant
 from pipeline.render.capture_scene import (
-    measure_ground_albedo,
+    board_region,
+    measure_ratio,
     render_preview,
+    specimen_region,
+    table_region,
     write_board_texture,
     write_scene_file,
     write_specimen_file,
@@ -163,6 +167,45 @@ def _write_scene_files(
     return scene, view_files
 
 
+def mi_load(path: Path):
+    import mitsuba as mi
+
+    return mi.load_file(str(path))
+
+
+def _light_level(view_files, views, linear, masks, board, near_clip) -> tuple[tuple[float, ...], str]:
+    """The uniform radiance at which the scene renders like the photos, measured on the
+    board's print (known reflectance: absolute) when the photos show it, else on the
+    specimen with its starting material (relative)."""
+    unit = {}
+
+    def load(name: str):
+        if name not in unit:
+            unit[name] = estimated_light.render_unit_light(view_files[name])
+        return unit[name]
+
+    if board is not None:
+        level = measure_ratio(load, views, linear, masks, board_region(board), near_clip)
+        if level is not None:
+            return level, "board"
+    level = measure_ratio(load, views, linear, masks, specimen_region, near_clip)
+    if level is None:
+        raise PipelineError("the masks show too little of the specimen to measure the light's level: check the masks")
+    return (float(np.mean(level)),) * 3, "specimen (grey)"
+
+
+def _view_entries(view_files: dict[str, Path], out_dir: Path) -> dict:
+    return {name: {"xml": str(path.relative_to(out_dir))} for name, path in view_files.items()}
+
+
+def _poses(views: dict) -> dict:
+    return {name: pose for name, (_, pose) in views.items()}
+
+
+def _rgb(values) -> str:
+    return "(" + ", ".join(f"{v:.3g}" for v in values) + ")"
+
+
 def _description(
     model: str,
     integrator: tuple,
@@ -213,7 +256,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     integrator = materials.INTEGRATORS[model]
     if conf.max_depth:
         integrator = (integrator[0], conf.max_depth)
-    if not frame.get("metric"):
+    if not frame.get("metric") and not light.estimated and light.area_light:
         logger.warning(
             "the world frame is not metric (%s): the light positions in [light] are used as they are",
             frame.get("source", "unknown"),
@@ -243,22 +286,34 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     mitsuba_variant.activate(inputs.shared["mitsuba"].variant)
     _load_all([scene, *view_files.values()])
 
-    # 4. The ground's albedo, measured in the photos.
+    # 4. An estimated light's start: uniform, at the level the photos show.
+    linear = linear_photos(inputs.upstream["undistort"]["pinhole"])
+    masks = read_masks(inputs.upstream["masks"]["masks_json"])
+    light_json = {"model": light.model if light.estimated else "given"}
+    if light.estimated:
+        level, source = _light_level(view_files, views, linear, masks, board, near_clip)
+        start = estimated_light.start("constant", light.frame, np.array(level), 1)
+        estimated_light.write(start, out_dir, {"views": _view_entries(view_files, out_dir)}, _poses(views))
+        light_json |= {"level": list(level), "level_from": source}
+        logger.info("light: starts uniform at %s, measured on the %s", _rgb(level), source)
+
+    # 5. The ground's albedo, measured in the photos under that light.
     ground_albedo = None
     if ground_radius:
-        linear = linear_photos(inputs.upstream["undistort"]["pinhole"])
-        masks = read_masks(inputs.upstream["masks"]["masks_json"])
-        ground_albedo = measure_ground_albedo(view_files, views, linear, masks, board, ground_radius, near_clip)
+        region = table_region(ground_radius, board)
+        ratio = measure_ratio(lambda n: mi_load(view_files[n]), views, linear, masks, region, near_clip)
+        ground_albedo = None if ratio is None else tuple(float(v) for v in np.clip(ratio, 0.01, 1.0))
         if ground_albedo is None:
             logger.warning("too little of the table is seen to measure its albedo: no ground in the scene")
         measured = (ground_radius, ground_albedo) if ground_albedo else None
         write_specimen_file(out_dir / SPECIMEN_XML, model, values, board, measured)
 
-    # 5. A preview, and the description the fit stages read.
+    # 6. A preview, and the description the fit stages read.
     first = sorted(views)[0]
     render_preview(view_files[first], *views[first], near_clip, mesh, conf.preview_spp, out_dir / "preview.png")
     ground = {"radius": ground_radius, "albedo": ground_albedo} if ground_albedo else None
     description = _description(model, integrator, light, near_clip, board, ground, values, view_files, out_dir)
+    description["light"] = light_json
     scene_json = write_json(out_dir / DESCRIPTION_JSON, description)
     outputs = {"scene_dir": out_dir, "scene": scene, "description": scene_json, "preview": out_dir / "preview.png"}
     return StageResult(outputs, {"model": model, "views": len(views), "integrator": f"{integrator[0]}/{integrator[1]}"})
@@ -266,7 +321,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="scene",
-    version=2,
+    version=3,
     config=Config,
     main=main,
     needs=("uv.mesh", "sfm.cameras", "undistort.pinhole", "masks.masks_json"),

@@ -62,8 +62,15 @@ class BoardSection:
 
 @dataclass(frozen=True)
 class LightSection:
-    """The light rig: an environment plus at most one rectangular area light."""
+    """The light rig: an environment plus at most one rectangular area light, given, or
+    estimated from the photos along with the material (pipeline.render.light)."""
 
+    model: Literal["auto", "constant", "envmap", "envmap+area", "given"] = "auto"
+    """given: the rig below as it is (a measured light; an environment_map always is).
+    constant, envmap (a lat-long map), envmap+area (and a softbox on the map's brightest
+    lobe): estimated by fit_material, jointly with the material, then kept for texture and
+    geometry. auto: each of those, simplest first, and the simplest whose held-out error is
+    within ``margin`` of the best is kept."""
     environment_radiance: tuple[float, float, float] = (0.5, 0.5, 0.5)
     """Constant environment radiance (linear RGB), used when environment_map is empty."""
     environment_map: Annotated[str, InputFile()] = ""
@@ -82,6 +89,29 @@ class LightSection:
     frame: Literal["world", "camera"] = "world"
     """world: the light is fixed in the specimen's frame (handheld capture).
     camera: it stays fixed relative to the camera (turntable capture)."""
+    environment_width: Annotated[int, Range(4, 512)] = 32
+    """Texels along an estimated envmap's width (its height is half)."""
+    smoothness: Annotated[float, Range(0.0, None)] = 1e-3
+    """Weight of the prior on differences of neighbouring texels' log radiance."""
+    margin: Annotated[float, Range(0.0, 1.0)] = 0.05
+    """auto: a richer light model is kept only when it lowers the held-out error by more
+    than this fraction."""
+    area_distance: Annotated[float, Range(1.0, None)] = 10.0
+    """Distance of an estimated softbox from the specimen's centre, in specimen radii."""
+
+    def validate(self, name: str) -> None:
+        from pipeline.core.errors import ConfigError
+
+        if self.environment_map and self.model not in ("given", "auto"):
+            raise ConfigError(
+                f'{name}.environment_map is set, so the light is given: set {name}.model = "given" '
+                f'(or "auto"), or empty environment_map to estimate the light'
+            )
+
+    @property
+    def estimated(self) -> bool:
+        """Whether the fit estimates the light (an environment map, when given, wins)."""
+        return self.model != "given" and not self.environment_map
 
 
 @dataclass(frozen=True)

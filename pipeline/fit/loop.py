@@ -179,16 +179,27 @@ class _Loop:
         self.batches = _Batches(self.training, settings.batch, settings.seed)
         self.share = dr.opaque(mi.Float, 1.0 / self.batches.size)
         self.one = dr.opaque(mi.Float, 1.0)
-        # A new frozen function per loop: its recordings belong to this loop's scenes.
-        self.view_loss = dr.freeze(view_loss) if settings.freeze else view_loss
+        # Frozen functions per loop: their recordings belong to this loop's scenes.
+        self.frozen: dict[tuple[int, ...], Callable] = {}
         self.skipped = 0
+
+    def view_loss(self, view: FitView) -> Callable:
+        """view_loss, or its frozen form for the view's film size: a recording replays
+        only at the size it was made at (for another, Dr.Jit's dry run fails and it
+        records again, at every call: the fit stages' views each have their own window)."""
+        if not self.settings.freeze:
+            return view_loss
+        size = view.reference.shape[:2]
+        if size not in self.frozen:
+            self.frozen[size] = self.dr.freeze(view_loss)
+        return self.frozen[size]
 
     def step(self, iteration: int) -> list[tuple[str, Any]]:
         """One step's renders, losses and backpropagation; the losses stay on the device."""
         losses = []
         for view, render_seed in self.batches.draw(iteration):
             self.variables.apply(id(view.scene))
-            loss = self.view_loss(
+            loss = self.view_loss(view)(
                 view.scene,
                 self.variables.traversed[id(view.scene)],
                 view.sensor,

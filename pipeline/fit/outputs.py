@@ -15,7 +15,9 @@ from pipeline.render import materials
 
 
 def write_heldout(views: list[engine.FitView], spp: int, folder: Path) -> None:
-    """Each view's render at ``spp`` (fixed seeds), its reference and the pixels scored."""
+    """Each view's render at ``spp`` (fixed seeds), its reference and the pixels scored;
+    and to look at, the reference, the render and their absolute difference (four times
+    brighter) as sRGB PNGs."""
     import mitsuba as mi
 
     folder.mkdir()
@@ -26,6 +28,9 @@ def write_heldout(views: list[engine.FitView], spp: int, folder: Path) -> None:
         write_image(render_path, image)
         write_image(reference_path, view.reference)
         cv2.imwrite(str(mask_path), (view.weight > 0).astype(np.uint8) * 255)
+        pictures = {"reference": view.reference, "render": image, "difference": 4 * np.abs(image - view.reference)}
+        for kind, picture in pictures.items():
+            cv2.imwrite(str(folder / f"{view.name}.{kind}.png"), to_uint8(np.clip(picture, 0, 1))[..., ::-1])
 
 
 def write_texture_files(folder: Path, slot: materials.TextureSlot, texture: np.ndarray) -> None:

@@ -43,6 +43,28 @@ class FitParameter:
     learning_rate: float = 0.02
     smoothness: float = 0.0
     """Weight of the neighbour-difference prior (textures only)."""
+    smooth_logarithm: bool = False
+    """The prior compares the logarithms of neighbours (a ``log`` parameter's latents), not
+    their values: radiance, whose bright lobes are real."""
+    fixed_mean: bool = False
+    """Keep each channel's mean of a texture's latent (of the log values when ``log``) at
+    its start: only ratios between texels are fitted. A light's scale and colour trade
+    off exactly against a diffuse albedo's; they are fixed elsewhere (pipeline.render.light)."""
+    layout: Layout | None = None
+    """How the latent maps onto the scene's value when their shapes differ; None: the same."""
+
+
+@dataclass(frozen=True)
+class Layout:
+    """A latent of ``shape`` taken from, and spread onto, a scene value of another shape:
+    an environment map's data repeats its first and last columns for wrapping, and
+    those copies must stay copies."""
+
+    shape: tuple[int, ...]
+    take: tuple[int, ...]
+    """Flat index in the scene's value of each latent element (where it starts from)."""
+    give: tuple[int, ...]
+    """Flat index in the latent of each element of the scene's value."""
 
 
 def summarize(value: np.ndarray) -> list[float]:
@@ -80,10 +102,21 @@ class MaterialVariables:
         """The latents in the optimiser, from the first scene's values."""
         dr, optimizer = self.dr, self.optimizer
         first = next(iter(self.traversed.values()))
+        self.start_means = {}
         for parameter in self.parameters:
             value = first[parameter.key]
-            optimizer[parameter.name] = dr.log(value) if parameter.log else type(value)(value)
+            if parameter.layout is not None:
+                taken = np.ravel(np.array(value, dtype=np.float32))[list(parameter.layout.take)]
+                value = self.mi.TensorXf(taken.reshape(parameter.layout.shape))
+            latent = dr.log(value) if parameter.log else type(value)(value)
+            optimizer[parameter.name] = latent
             optimizer.set_learning_rate({parameter.name: parameter.learning_rate * learning_rate_scale})
+            if parameter.fixed_mean:
+                start = np.array(latent, dtype=np.float64)
+                self.start_means[parameter.name] = start.reshape(-1, start.shape[-1]).mean(axis=0)
+        self.gives = {
+            p.name: self.mi.UInt32(np.array(p.layout.give, np.uint32)) for p in self.parameters if p.layout is not None
+        }
         for name in self.exposure_views:
             optimizer[f"exposure:{name}"] = self.mi.Float(0.0)
             optimizer.set_learning_rate({f"exposure:{name}": 0.01 * learning_rate_scale})
@@ -115,14 +148,30 @@ class MaterialVariables:
         dr, params = self.dr, self.traversed[scene_key]
         for parameter in self.parameters:
             latent = self.optimizer[parameter.name]
+            if parameter.fixed_mean:
+                latent = self._channel_mean_fixed(parameter.name, latent)
             if parameter.log:
                 # exp of a float32 log-bound can land a hair outside the bound; clip
                 # the value, but pass the gradient straight through (a clip's gradient
                 # is zero there, which would pin the parameter to its bound for good)
                 value = dr.exp(latent)
                 latent = value + dr.detach(dr.clip(value, parameter.lower, parameter.upper) - value)
+            if parameter.layout is not None:
+                spread = dr.gather(self.mi.Float, latent.array, self.gives[parameter.name])
+                latent = type(params[parameter.key])(spread, params[parameter.key].shape)
             params[parameter.key] = latent
         params.update()
+
+    def _channel_mean_fixed(self, name: str, latent):
+        """``latent`` (channels last) shifted so that each channel's mean is its start's."""
+        dr, mi = self.dr, self.mi
+        start = self.start_means[name]
+        count = dr.width(latent.array)
+        channel = dr.arange(mi.UInt32, count) % len(start)
+        sums = dr.zeros(mi.Float, len(start))
+        dr.scatter_reduce(dr.ReduceOp.Add, sums, latent.array, channel)
+        shift = mi.Float(start.astype(np.float32)) - sums * (len(start) / count)
+        return type(latent)(latent.array + dr.gather(mi.Float, shift, channel), latent.shape)
 
     def scale(self, view_name: str, image):
         """The render of a training view times its exposure (when fitted)."""
@@ -134,7 +183,7 @@ class MaterialVariables:
         dr = self.dr
         for parameter, first_index, second_index in self.priors:
             texels = self.optimizer[parameter.name].array
-            if parameter.log:
+            if parameter.log and not parameter.smooth_logarithm:
                 texels = dr.exp(texels)
             difference = dr.gather(self.mi.Float, texels, first_index) - dr.gather(self.mi.Float, texels, second_index)
             dr.backward(parameter.smoothness * dr.mean(dr.square(difference)))
@@ -142,6 +191,9 @@ class MaterialVariables:
     def snapshot(self) -> dict[str, np.ndarray]:
         """Values as arrays: a texture (..., channels), else flat."""
         arrays = {p.name: np.array(self.optimizer[p.name], dtype=np.float64) for p in self.parameters}
+        for name, start in self.start_means.items():
+            channels = arrays[name].reshape(-1, len(start))
+            arrays[name] = arrays[name] - channels.mean(axis=0) + start
         arrays = {n: a if n in self.textured else np.ravel(a) for n, a in arrays.items()}
         return {
             p.name: np.clip(np.exp(arrays[p.name]), p.lower, p.upper) if p.log else arrays[p.name]

@@ -16,7 +16,9 @@ params.json         (fit stages) the fitted values with bounds and units
 log.jsonl           (fit stages) one JSON object per iteration
 loss.png            (fit stages) loss and held-out error against iteration
 heldout/            (fit stages) per held-out photo NAME.render.exr,
-                    NAME.reference.exr and NAME.mask.png (the pixels scored)
+                    NAME.reference.exr and NAME.mask.png (the pixels scored), and
+                    NAME.reference.png, NAME.render.png, NAME.difference.png to look at
+environment.exr     (estimated light) the fitted lat-long environment map
 ==================  =============================================================
 """
 

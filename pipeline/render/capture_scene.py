@@ -6,6 +6,7 @@ measured in the photos, and a preview render."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -115,18 +116,56 @@ def write_scene_file(
     return scene_xml.write(root, path, comment)
 
 
-def measure_ground_albedo(
-    view_files: dict[str, Path],
+Region = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+"""Pixels to compare, from (hits on the ground plane (h, w, 3), ray reaches the plane
+(h, w), specimen mask (h, w)): a boolean image."""
+
+
+def table_region(radius: float, board: BoardSection | None) -> Region:
+    """The table: inside the ground disk, off the board, away from the specimen."""
+
+    def region(hits, reached, specimen):
+        seen = reached & (np.linalg.norm(hits[..., :2], axis=-1) < 0.9 * radius)
+        if board is not None:
+            seen &= np.any(np.abs(hits[..., :2]) > _board_half(board) + 0.01, axis=-1)
+        return seen & ~_dilated(specimen)
+
+    return region
+
+
+def board_region(board: BoardSection) -> Region:
+    """The board's print, away from its edges and the specimen."""
+
+    def region(hits, reached, specimen):
+        return reached & np.all(np.abs(hits[..., :2]) < _board_half(board) - 0.005, axis=-1) & ~_dilated(specimen)
+
+    return region
+
+
+def specimen_region(hits, reached, specimen) -> np.ndarray:
+    """The specimen, eroded off its silhouette."""
+    return cv2.erode(specimen.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+
+
+def _board_half(board: BoardSection) -> np.ndarray:
+    return np.array([board.squares_x, board.squares_y]) * board.square_mm / 2000
+
+
+def _dilated(mask: np.ndarray) -> np.ndarray:
+    return cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+
+
+def measure_ratio(
+    load_scene: Callable[[str], object],
     views: dict[str, tuple[Intrinsics, Pose]],
     linear: dict[str, Path],
     masks: dict[str, Path],
-    board: BoardSection | None,
-    radius: float,
+    region: Region,
     near_clip: float,
 ) -> tuple[float, float, float] | None:
-    """The table's diffuse albedo: photo radiance over the radiance of a white table
-    rendered in the same scene, median over the pixels that see the table (inside
-    the disk, off the board, away from the specimen) in up to four photos."""
+    """Photo radiance over rendered radiance (``load_scene(photo name)`` from the photo's
+    camera, at most 160 px), median over ``region``'s pixels in up to four photos; None
+    when they show fewer than 50 of them."""
     import mitsuba as mi
 
     ratios = []
@@ -142,22 +181,18 @@ def measure_ground_albedo(
         with np.errstate(divide="ignore", invalid="ignore"):
             distance = -pose.center[2] / rays[..., 2]
         hits = pose.center + distance[..., None] * rays
-        seen = (distance > 0) & (np.linalg.norm(hits[..., :2], axis=-1) < 0.9 * radius)
-        if board is not None:
-            half = np.array([board.squares_x, board.squares_y]) * board.square_mm / 2000 + 0.01
-            seen &= np.any(np.abs(hits[..., :2]) > half, axis=-1)
         specimen = cv2.imread(str(masks[name]), cv2.IMREAD_GRAYSCALE) > 127
-        specimen = cv2.dilate(specimen.astype(np.uint8), np.ones((15, 15), np.uint8))
-        seen &= resize_exact(specimen.astype(np.float32), scale)[: small.height, : small.width] == 0
+        specimen = resize_exact(specimen.astype(np.float32), scale)[: small.height, : small.width] > 0.5
+        seen = region(hits, distance > 0, specimen)
         if np.count_nonzero(seen) < 50:
             continue
         sensor = scene_xml.load_sensor(scene_xml.sensor_properties(small, pose, 64, near_clip))
-        white = np.asarray(mi.render(mi.load_file(str(view_files[name])), sensor=sensor, spp=64), dtype=np.float32)
+        rendered = np.asarray(mi.render(load_scene(name), sensor=sensor, spp=64), dtype=np.float32)
         photo = resize_exact(read_photo(linear[name]).pixels, scale)
-        ratios.append(photo[: small.height, : small.width][seen] / np.maximum(white[seen], 1e-4))
+        ratios.append(photo[: small.height, : small.width][seen] / np.maximum(rendered[seen], 1e-4))
     if not ratios:
         return None
-    return tuple(float(v) for v in np.clip(np.median(np.vstack(ratios), axis=0), 0.01, 1.0))
+    return tuple(float(v) for v in np.median(np.vstack(ratios), axis=0))
 
 
 def render_preview(

@@ -350,10 +350,12 @@ class _Studio:
 
 
 def default_light(options: SynthOptions) -> LightSection:
-    """The rig's light: a softbox fixed in the world, or riding with a turntable's camera."""
+    """The rig's light: a softbox fixed in the world, or riding with a turntable's camera;
+    given (the synthetic capture knows it; ``-s light.model=auto`` makes the fit estimate it)."""
     if options.rig == "turntable":
         # Camera frame: x right, y down, z forward; softbox up and to the right, aimed at the bird.
         return LightSection(
+            model="given",
             environment_radiance=(0.3, 0.3, 0.3),
             area_position=(0.25, -0.30, 0.05),
             area_target=(0.0, 0.0, options.distance),
@@ -362,6 +364,7 @@ def default_light(options: SynthOptions) -> LightSection:
             frame="camera",
         )
     return LightSection(
+        model="given",
         environment_radiance=(0.3, 0.3, 0.3),
         area_position=(0.30, 0.35, 0.50),
         area_target=(0.0, 0.0, 0.04),

@@ -74,3 +74,28 @@ def test_a_fit_killed_midway_resumes_where_it_was(run_stages, bird_capture, capl
     log = [json.loads(line) for line in (outputs["fitted_dir"] / "log.jsonl").read_text().splitlines()]
     assert [e["iteration"] for e in log] == list(range(1, 9))
     assert not list((bird_capture / ".pipeline" / "checkpoints").glob("fit_material-*"))  # removed once committed
+
+
+def test_an_estimated_light_is_chosen_by_held_out_error_and_written_into_the_scene(run_stages, bird_capture, mi):
+    """light.model = auto: each light model fitted with the material, the simplest within
+    the margin of the best kept, and every candidate's error and time reported."""
+    overrides = (*TINY_FIT, "light.model=auto", "fit_material.iterations=16")
+    outputs = run_stages(bird_capture, "fit_material", *overrides)["fit_material"]
+    params = json.loads(outputs["params"].read_text())
+    report = params["light"]
+    assert [c["model"] for c in report["candidates"]] == ["constant", "envmap", "envmap+area"]
+    errors = {c["model"]: c["validation_mse"] for c in report["candidates"]}
+    assert all(c["seconds"] > 0 and c["validation_mse"] < c["start_validation_mse"] for c in report["candidates"])
+    chosen = report["chosen"]["model"]
+    assert errors[chosen] <= min(errors.values()) * 1.05
+    simpler = list(errors)[: list(errors).index(chosen)]
+    assert all(errors[m] > min(errors.values()) * 1.05 for m in simpler)
+    assert report["level_from"] == "board" and params["validation_mse"] == errors[chosen]
+    # The material's parameters only in "params"; the scene renders with the chosen light.
+    assert set(params["params"]) == {"base_color", "roughness", "spec_trans", "eta"}
+    keys = set(mi.traverse(mi.load_file(str(outputs["scene"]))).keys())
+    assert ("environment.data" in keys) == (chosen != "constant")
+    assert ("softbox.emitter.radiance.value" in keys) == (chosen == "envmap+area")
+    for name in params["held_out"]:
+        for kind in ("reference", "render", "difference"):
+            assert (outputs["heldout"] / f"{name}.{kind}.png").is_file()

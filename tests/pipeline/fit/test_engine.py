@@ -451,3 +451,23 @@ def test_a_frozen_step_gives_the_unfrozen_fit(mi, references, tmp_path):
     ]
     for name in results[0].values:
         np.testing.assert_allclose(results[0].values[name], results[1].values[name], rtol=1e-4)
+
+
+def test_views_of_different_sizes_each_replay_their_own_recording(mi, references, tmp_path, monkeypatch):
+    """The fit stages render each view in its own window: one recording per film size,
+    each made once (a recording replayed at another size records again at every call)."""
+    import drjit as dr
+
+    views = _views(mi, _scene_file(tmp_path, [0.5, 0.5, 0.5], [0.7]), references / "references")
+    eyes = ([0.6, 0.0, 0.25], [0.0, 0.6, 0.3], [-0.5, -0.3, 0.35])
+    for view, eye in zip(views[1:], eyes[1:]):  # two windows of their own size
+        crop = (4, 2, 30, 24) if view.name == "ref_1" else (0, 0, 36, 28)
+        pose = Pose.look_at(eye, [0.0, 0.0, 0.0], up=[0.0, 0.0, 1.0])
+        view.sensor = scene_xml.load_sensor(scene_xml.sensor_properties(K, pose, 4, 0.01, crop))
+        view.reference = view.reference[crop[1] : crop[1] + crop[3], crop[0] : crop[0] + crop[2]]
+    recordings = []
+    freeze = dr.freeze
+    monkeypatch.setattr(dr, "freeze", lambda f: recordings.append(freeze(f)) or recordings[-1])
+    settings = engine.FitSettings(iterations=6, batch=3, spp=4, tolerance=0.0)
+    engine.fit(PARAMETERS, views, [], settings)
+    assert [r.n_recordings for r in recordings] == [1, 1, 1]

@@ -1,0 +1,280 @@
+"""The light of a capture estimated from its photos: the models a fit chooses from,
+their fitted parameters, the scene files rewritten with a light, and the irradiance
+a light casts.
+
+============  ==============================================  ==================================
+model         emitters (ids)                                  fitted (pipeline.fit.variables)
+============  ==============================================  ==================================
+constant      ``constant`` environment (environment)          nothing (its level is measured)
+envmap        ``envmap``, a lat-long map of W x W/2 texels    every texel, as log radiance with a
+              (environment)                                   smoothness prior on the logarithms
+envmap+area   the envmap, and a square ``area`` light         the texels and the softbox's
+              (softbox) on the map's brightest lobe           radiance
+============  ==============================================  ==================================
+
+The light is fixed to the world for a handheld capture and rides with the camera
+for a turntable (``frame``, as pipeline.render.capture_scene places it): there the
+specimen turns under a still light, and each photo sees it from another side.
+
+Scale and colour: a light's scale and colour trade off exactly against a diffuse
+albedo's, so they are not fitted: each channel's mean log radiance of the map keeps
+its start (``fixed_mean``), a uniform level the scene stage measures on a surface of
+known albedo when the photos show one (the board's print: its colour too), else on
+the specimen as if it had its starting material, in grey (the camera's white
+balance taken as right). With the board, radiance and albedos are absolute (in the
+photos' linear units); without, albedos are relative to that guess, and what is
+measured is the light's distribution over directions, the softbox's share, and
+the materials' other parameters (roughness, transmission, eta, ...).
+
+Limitations: the softbox's position and size come from the envmap's lobe (its
+direction and solid angle, at ``area_distance`` times the specimen's radius) and
+are not refined by gradients; the map's 2 pi seam is not smoothed across.
+"""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from pipeline.camera.model import Pose
+from pipeline.core.sections import LightSection
+from pipeline.fit.variables import FitParameter, Layout
+from pipeline.imaging.photo_io import write_image
+from pipeline.render import capture_scene, scene_xml
+
+LightModel = Literal["constant", "envmap", "envmap+area"]
+LIGHT_MODELS: tuple[LightModel, ...] = ("constant", "envmap", "envmap+area")
+"""Simplest first: the order in which `auto` tries them."""
+ENVIRONMENT_FILE = "environment.exr"
+LIGHT_IDS = ("environment", "softbox")
+
+
+@dataclass(frozen=True)
+class AreaLight:
+    position: tuple[float, float, float]
+    """Centre, in the light's frame (world, or the camera's coordinates)."""
+    target: tuple[float, float, float]
+    size: float
+    radiance: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class EstimatedLight:
+    """A light of one model, as a fit starts or ends it."""
+
+    model: LightModel
+    frame: Literal["world", "camera"]
+    environment: np.ndarray
+    """(h, w, 3) lat-long radiance; for ``constant`` (1, 1, 3)."""
+    area: AreaLight | None = None
+
+    def section(self) -> LightSection:
+        """As a [light] section, for pipeline.render.capture_scene.lights."""
+        area = self.area
+        return LightSection(
+            environment_radiance=tuple(float(v) for v in self.environment.reshape(-1, 3).mean(axis=0)),
+            environment_map=ENVIRONMENT_FILE if self.model != "constant" else "",
+            area_light=area is not None,
+            area_position=area.position if area else LightSection.area_position,
+            area_target=area.target if area else LightSection.area_target,
+            area_size=area.size if area else LightSection.area_size,
+            area_radiance=area.radiance if area else LightSection.area_radiance,
+            frame=self.frame,
+        )
+
+    def summary(self) -> dict:
+        """For the stage's JSON."""
+        summary = {
+            "model": self.model,
+            "frame": self.frame,
+            "environment_mean": [float(v) for v in self.environment.reshape(-1, 3).mean(axis=0)],
+        }
+        if self.model != "constant":
+            summary["environment_map"] = ENVIRONMENT_FILE
+            summary["environment_texels"] = list(self.environment.shape[:2])
+        if self.area is not None:
+            summary["area"] = {
+                "position": list(self.area.position),
+                "target": list(self.area.target),
+                "size": self.area.size,
+                "radiance": list(self.area.radiance),
+            }
+        return summary
+
+
+def start(model: LightModel, frame: str, level: np.ndarray, width: int) -> EstimatedLight:
+    """A uniform light of radiance ``level`` (RGB) in ``model``'s form (an area light is
+    added later, from a fitted envmap's lobe: with_area)."""
+    shape = (1, 1) if model == "constant" else (width // 2, width)
+    environment = np.broadcast_to(np.asarray(level, np.float32), (*shape, 3)).copy()
+    return EstimatedLight("envmap" if model == "envmap+area" else model, frame, environment)
+
+
+def parameters(light: EstimatedLight, smoothness: float) -> list[FitParameter]:
+    """The fitted parameters of ``light``'s model (names prefixed ``light_``)."""
+    if light.model == "constant":
+        return []  # its level and colour are the start's
+    height, width = light.environment.shape[:2]
+    environment = FitParameter(
+        "light_environment",
+        "environment.data",
+        1e-6,
+        1e6,
+        log=True,
+        learning_rate=0.1,
+        smoothness=smoothness,
+        smooth_logarithm=True,
+        fixed_mean=True,
+        layout=envmap_layout(height, width),
+    )
+    if light.area is None:
+        return [environment]
+    area = FitParameter(
+        "light_area_radiance", "softbox.emitter.radiance.value", 1e-6, 1e6, log=True, learning_rate=0.05
+    )
+    return [environment, area]
+
+
+def envmap_layout(height: int, width: int) -> Layout:
+    """Mitsuba's envmap stores W + 2 columns: the last texel column first and the first
+    one last, for wrapping; the latent holds the W real ones."""
+    rows, columns, channels = np.meshgrid(np.arange(height), np.arange(width), np.arange(3), indexing="ij")
+    take = (rows * (width + 2) + columns + 1) * 3 + channels
+    rows, padded, channels = np.meshgrid(np.arange(height), np.arange(width + 2), np.arange(3), indexing="ij")
+    give = (rows * width + (padded - 1) % width) * 3 + channels
+    return Layout((height, width, 3), tuple(int(i) for i in take.ravel()), tuple(int(i) for i in give.ravel()))
+
+
+def fitted(light: EstimatedLight, values: dict[str, np.ndarray]) -> EstimatedLight:
+    """``light`` with a fit's values (pipeline.fit.engine.FitResult: plain values flat,
+    textures as arrays)."""
+    if "light_environment" not in values:
+        return light
+    environment = np.asarray(values["light_environment"], np.float32).reshape(light.environment.shape)
+    area = light.area
+    if area is not None:
+        area = replace(area, radiance=tuple(float(v) for v in values["light_area_radiance"]))
+    return replace(light, environment=environment, area=area)
+
+
+def write(light: EstimatedLight, scene_dir: Path, description: dict, poses: dict[str, Pose]) -> None:
+    """Put ``light`` into scene.xml and every view-NAME.xml of ``scene_dir`` (the
+    environment map written beside them), in place of the lights they had."""
+    section = light.section()
+    environment_file = None
+    if light.model != "constant":
+        write_image(scene_dir / ENVIRONMENT_FILE, light.environment.astype(np.float32))
+        environment_file = ENVIRONMENT_FILE
+    first = sorted(description["views"])[0]
+    files = [("scene.xml", first)] + [(v["xml"], name) for name, v in sorted(description["views"].items())]
+    for filename, photo in files:
+        path = scene_dir / filename
+        tree = ET.parse(path)
+        root = tree.getroot()
+        for element in [e for e in root if e.get("id") in LIGHT_IDS]:
+            root.remove(element)
+        capture_scene.lights(root, section, poses[photo], environment_file)
+        ET.indent(root)
+        tree.write(path, encoding="unicode", xml_declaration=True)
+
+
+def directions(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each texel's direction in the map's own frame and its solid angle. Mitsuba's
+    envmap maps u = atan2(x, -z) / 2 pi and v = acos(y) / pi, with column centres at
+    (c + 0.5) / w but rows at r / (h - 1): the first and last rows sit on the poles."""
+    theta = np.arange(height) / (height - 1) * np.pi
+    phi = (np.arange(width) + 0.5) / width * 2 * np.pi
+    edges = np.clip((np.arange(height + 1) - 0.5) / (height - 1) * np.pi, 0, np.pi)
+    band = np.cos(edges[:-1]) - np.cos(edges[1:])
+    theta, phi = np.meshgrid(theta, phi, indexing="ij")
+    local = np.stack([np.sin(phi) * np.sin(theta), np.cos(theta), -np.cos(phi) * np.sin(theta)], -1)
+    solid_angle = np.broadcast_to((2 * np.pi / width) * band[:, None], theta.shape)
+    return local, solid_angle
+
+
+def map_to_frame(frame: str) -> np.ndarray:
+    """Rotation from the map's frame to the light's (world, or the camera's coordinates)."""
+    return capture_scene.environment_to_world(frame, Pose(np.eye(3), np.zeros(3)))[:3, :3]
+
+
+def with_area(light: EstimatedLight, centre: np.ndarray, distance: float) -> EstimatedLight:
+    """The envmap's brightest lobe (texels above half the peak's luminance within 45
+    degrees of it) as a square softbox at ``distance`` from ``centre`` (in the light's
+    frame) subtending the lobe's solid angle, with the lobe's radiance above the rest of
+    the map; the lobe's texels fall to the rest's median."""
+    environment = light.environment
+    height, width = environment.shape[:2]
+    local, solid_angle = directions(height, width)
+    luminance = environment @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+    peak = np.unravel_index(int(np.argmax(luminance)), luminance.shape)
+    near = local @ local[peak] > np.cos(np.radians(45))
+    lobe = near & (luminance > 0.5 * luminance[peak])
+    rest = np.median(environment[~lobe], axis=0)
+    weights = solid_angle[lobe]
+    lobe_radiance = np.clip((environment[lobe] * weights[:, None]).sum(axis=0) / weights.sum() - rest, 1e-4, None)
+    direction = map_to_frame(light.frame) @ ((local[lobe] * weights[:, None]).sum(axis=0))
+    direction /= np.linalg.norm(direction)
+    size = distance * float(np.sqrt(weights.sum()))
+    position = np.asarray(centre, float) + distance * direction
+    cleared = environment.copy()
+    cleared[lobe] = rest
+    area = AreaLight(
+        tuple(float(v) for v in position),
+        tuple(float(v) for v in centre),
+        size,
+        tuple(float(v) for v in lobe_radiance),
+    )
+    return replace(light, model="envmap+area", environment=cleared, area=area)
+
+
+def irradiance(light: EstimatedLight, normals: np.ndarray, point: np.ndarray) -> np.ndarray:
+    """(n, 3) RGB irradiance at ``point`` on surfaces facing ``normals`` (n, 3), in the
+    light's frame, with nothing in the way: the envmap summed over its texels, the
+    softbox as a small patch."""
+    height, width = light.environment.shape[:2]
+    if light.model == "constant":
+        return np.pi * np.broadcast_to(light.environment.reshape(1, 3), (len(normals), 3)).copy()
+    local, solid_angle = directions(height, width)
+    world = local.reshape(-1, 3) @ map_to_frame(light.frame).T
+    cosines = np.clip(normals @ world.T, 0, None) * solid_angle.ravel()
+    result = cosines @ light.environment.reshape(-1, 3)
+    if light.area is not None:
+        area = light.area
+        offset = np.asarray(area.position) - np.asarray(point)
+        distance = np.linalg.norm(offset)
+        towards = offset / distance
+        facing = (np.asarray(area.target) - np.asarray(area.position)) / np.linalg.norm(
+            np.asarray(area.target) - np.asarray(area.position)
+        )
+        emitted = max(0.0, float(-towards @ facing)) * area.size**2 / distance**2
+        result = result + np.clip(normals @ towards, 0, None)[:, None] * emitted * np.asarray(area.radiance)
+    return result
+
+
+def exposure_level(photo_means: list[np.ndarray], render_means: list[np.ndarray]) -> np.ndarray:
+    """The uniform radiance (RGB) at which renders under a unit light match the photos:
+    the median over views of their ratio."""
+    ratios = np.array([p / np.maximum(r, 1e-6) for p, r in zip(photo_means, render_means)])
+    return np.clip(np.median(ratios, axis=0), 1e-4, None)
+
+
+def render_unit_light(scene_file: Path):
+    """``scene_file`` loaded with every emitter made a unit constant environment, for
+    exposure_level (the caller renders it)."""
+    import mitsuba as mi
+
+    tree = ET.parse(scene_file)
+    root = tree.getroot()
+    for element in [e for e in root if e.get("id") in LIGHT_IDS]:
+        root.remove(element)
+    scene_xml.plugin(root, "emitter", {"type": "constant", "id": "environment", "radiance": (1.0, 1.0, 1.0)})
+    unit = scene_file.with_name(f".unit-{scene_file.name}")
+    scene_xml.write(root, unit)
+    try:
+        return mi.load_file(str(unit))
+    finally:
+        unit.unlink()

@@ -1,0 +1,122 @@
+"""pipeline.render.light: the estimated light's layout in Mitsuba, its scene files, its
+lobe turned into a softbox and the irradiance it casts."""
+
+import numpy as np
+import pytest
+
+from pipeline.camera.model import Pose
+from pipeline.fit.variables import FitParameter, MaterialVariables
+from pipeline.render import light, scene_xml
+
+
+def _scene_with_map(mi, folder, environment):
+    mi.Bitmap(environment.astype(np.float32)).write(str(folder / light.ENVIRONMENT_FILE))
+    root = scene_xml.new_scene()
+    scene_xml.plugin(root, "emitter", {"type": "envmap", "id": "environment", "filename": light.ENVIRONMENT_FILE})
+    return mi.load_file(str(scene_xml.write(root, folder / "scene.xml")))
+
+
+def test_the_layout_spreads_the_texels_as_mitsuba_pads_them(mi, tmp_path):
+    environment = np.random.default_rng(0).uniform(0.1, 2.0, (8, 16, 3)).astype(np.float32)
+    data = np.array(mi.traverse(_scene_with_map(mi, tmp_path, environment))["environment.data"])
+    layout = light.envmap_layout(8, 16)
+    np.testing.assert_allclose(data.ravel()[list(layout.take)].reshape(layout.shape), environment, rtol=1e-6)
+    np.testing.assert_allclose(environment.ravel()[list(layout.give)], data.ravel(), rtol=1e-6)
+
+
+def test_the_light_keeps_each_channels_mean_and_its_padding_while_it_is_stepped(mi, tmp_path):
+    """The scale and colour of an estimated light are fixed (they trade off against the
+    albedo); the wrapped columns stay copies of the texels they repeat."""
+    start = light.start("envmap", "world", np.array([0.2, 0.5, 1.0]), 16)
+    scene = _scene_with_map(mi, tmp_path, start.environment)
+    (parameter,) = light.parameters(start, smoothness=0.0)
+    variables = MaterialVariables([parameter], {id(scene): mi.traverse(scene)}, [])
+    variables.register(1.0)
+    gradient = np.random.default_rng(1).normal(size=(8, 16, 3)).astype(np.float32)
+    import drjit as dr
+
+    for _ in range(5):
+        dr.set_grad(variables.optimizer[parameter.name], mi.TensorXf(gradient))
+        variables.optimizer.step()
+        variables.apply(id(scene))
+    fitted = variables.snapshot()[parameter.name]
+    assert np.ptp(fitted) > 0.01  # it moved
+    np.testing.assert_allclose(np.log(fitted).reshape(-1, 3).mean(axis=0), np.log([0.2, 0.5, 1.0]), atol=1e-4)
+    data = np.array(mi.traverse(scene)["environment.data"])
+    np.testing.assert_allclose(data[:, 0], data[:, -2], rtol=1e-5)
+    np.testing.assert_allclose(data[:, -1], data[:, 1], rtol=1e-5)
+    np.testing.assert_allclose(data[:, 1:-1], fitted, rtol=1e-4)
+
+
+def test_a_uniform_map_and_a_constant_light_give_pi_times_their_radiance_on_any_surface():
+    normals = np.array([[0, 0, 1.0], [1, 0, 0], [0, -1, 0], [0.6, 0, -0.8]])
+    for model, width in (("constant", 1), ("envmap", 64)):
+        uniform = light.start(model, "world", np.array([0.5, 1.0, 2.0]), width)
+        np.testing.assert_allclose(
+            light.irradiance(uniform, normals, np.zeros(3)), np.pi * np.array([[0.5, 1.0, 2.0]] * 4), rtol=0.01
+        )
+
+
+@pytest.mark.parametrize("frame", ["world", "camera"])
+def test_the_brightest_lobe_becomes_a_softbox_in_its_direction(frame):
+    start = light.start("envmap", frame, np.array([0.1, 0.1, 0.1]), 32)
+    local, _ = light.directions(16, 32)
+    towards = np.array([0.3, 0.4, 0.8]) / np.linalg.norm([0.3, 0.4, 0.8])  # in the light's frame
+    in_map = light.map_to_frame(frame).T @ towards
+    lobe = local @ in_map > np.cos(np.radians(12))
+    environment = start.environment.copy()
+    environment[lobe] = 5.0
+    lit = light.with_area(light.EstimatedLight("envmap", frame, environment), np.array([0, 0, 0.1]), 2.0)
+    position = np.array(lit.area.position) - [0, 0, 0.1]
+    assert np.degrees(np.arccos(position @ towards / np.linalg.norm(position))) < 5
+    assert np.linalg.norm(position) == pytest.approx(2.0)
+    # The softbox subtends about the lobe's solid angle and carries its radiance.
+    assert lit.area.size / 2.0 == pytest.approx(np.sqrt(2 * np.pi * (1 - np.cos(np.radians(12)))), rel=0.3)
+    np.testing.assert_allclose(lit.area.radiance, [4.9] * 3, rtol=0.05)
+    np.testing.assert_allclose(lit.environment, 0.1)
+    # Its irradiance on a surface facing it is the lobe's, within the map's discretisation.
+    facing = towards[None]
+    np.testing.assert_allclose(
+        light.irradiance(lit, facing, np.array([0, 0, 0.1])),
+        light.irradiance(light.EstimatedLight("envmap", frame, environment), facing, np.zeros(3)),
+        rtol=0.15,
+    )
+
+
+def test_written_lights_replace_the_old_ones_and_load(mi, tmp_path):
+    pose = Pose.look_at([0.5, 0.0, 0.3], [0, 0, 0], up=[0, 0, 1])
+    for name in ("scene.xml", "view-a.xml"):
+        root = scene_xml.new_scene()
+        scene_xml.plugin(root, "emitter", {"type": "constant", "id": "environment", "radiance": (0.5, 0.5, 0.5)})
+        scene_xml.area_light(root, "softbox", [0.4, 0.4, 0.6], [0, 0, 0], [0, 0, 1], 0.3, (8.0, 8.0, 8.0))
+        scene_xml.write(root, tmp_path / name)
+    description = {"views": {"a.jpg": {"xml": "view-a.xml"}}}
+    envmap = light.start("envmap", "world", np.array([0.3, 0.3, 0.3]), 16)
+    light.write(envmap, tmp_path, description, {"a.jpg": pose})
+    for name in ("scene.xml", "view-a.xml"):
+        keys = set(mi.traverse(mi.load_file(str(tmp_path / name))).keys())
+        assert "environment.data" in keys and not any(k.startswith("softbox") for k in keys)
+    lit = light.with_area(envmap, np.zeros(3), 1.0)
+    light.write(lit, tmp_path, description, {"a.jpg": pose})
+    keys = set(mi.traverse(mi.load_file(str(tmp_path / "view-a.xml"))).keys())
+    assert {"environment.data", "softbox.emitter.radiance.value"} <= keys
+    assert isinstance(light.parameters(lit, 0.01)[1], FitParameter)
+
+
+def test_texel_directions_are_mitsubas(mi, tmp_path):
+    """Where Mitsuba's envmap, placed as the scene files place it, shows each texel."""
+    from pipeline.render.capture_scene import environment_to_world
+
+    environment = np.random.default_rng(2).uniform(0.1, 2.0, (8, 16, 3)).astype(np.float32)
+    mi.Bitmap(environment).write(str(tmp_path / "map.exr"))
+    to_world = environment_to_world("world", Pose(np.eye(3), np.zeros(3)))
+    emitter = mi.load_dict(
+        {"type": "envmap", "filename": str(tmp_path / "map.exr"), "to_world": mi.ScalarTransform4f(to_world)}
+    )
+    local, _ = light.directions(8, 16)
+    world = local.reshape(-1, 3) @ light.map_to_frame("world").T
+    interaction = mi.SurfaceInteraction3f()
+    interaction.wi = mi.Vector3f(-world.T)
+    seen = np.array(emitter.eval(interaction)).T.reshape(environment.shape)
+    # Off the poles, where a row's texels all share one direction.
+    np.testing.assert_allclose(seen[1:-1], environment[1:-1], rtol=1e-3)
