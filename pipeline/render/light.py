@@ -231,28 +231,37 @@ def with_area(light: EstimatedLight, centre: np.ndarray, distance: float) -> Est
     return replace(light, model="envmap+area", environment=cleared, area=area)
 
 
-def irradiance(light: EstimatedLight, normals: np.ndarray, point: np.ndarray) -> np.ndarray:
+def irradiance(light: EstimatedLight, normals: np.ndarray, point: np.ndarray, above: bool = False) -> np.ndarray:
     """(n, 3) RGB irradiance at ``point`` on surfaces facing ``normals`` (n, 3), in the
-    light's frame, with nothing in the way: the envmap summed over its texels, the
-    softbox as a small patch."""
-    height, width = light.environment.shape[:2]
-    if light.model == "constant":
-        return np.pi * np.broadcast_to(light.environment.reshape(1, 3), (len(normals), 3)).copy()
-    local, solid_angle = directions(height, width)
+    light's frame, with nothing in the way: the environment summed over its texels (a
+    constant one over a fine grid), the softbox as a small patch. ``above``: only light
+    arriving from above (+z: what a table leaves of a world-fixed light)."""
+    environment = light.environment
+    if environment.shape[:2] == (1, 1):
+        environment = np.broadcast_to(environment, (129, 256, 3))
+    local, solid_angle = directions(*environment.shape[:2])
     world = local.reshape(-1, 3) @ map_to_frame(light.frame).T
-    cosines = np.clip(normals @ world.T, 0, None) * solid_angle.ravel()
-    result = cosines @ light.environment.reshape(-1, 3)
+    weights = solid_angle.ravel() * (world[:, 2] > 0 if above else 1.0)
+    result = (np.clip(normals @ world.T, 0, None) * weights) @ environment.reshape(-1, 3)
     if light.area is not None:
         area = light.area
         offset = np.asarray(area.position) - np.asarray(point)
         distance = np.linalg.norm(offset)
         towards = offset / distance
-        facing = (np.asarray(area.target) - np.asarray(area.position)) / np.linalg.norm(
-            np.asarray(area.target) - np.asarray(area.position)
-        )
-        emitted = max(0.0, float(-towards @ facing)) * area.size**2 / distance**2
+        facing = np.asarray(area.target) - np.asarray(area.position)
+        emitted = max(0.0, float(-towards @ facing) / np.linalg.norm(facing)) * area.size**2 / distance**2
         result = result + np.clip(normals @ towards, 0, None)[:, None] * emitted * np.asarray(area.radiance)
     return result
+
+
+def from_section(section: LightSection) -> EstimatedLight:
+    """A [light] section's constant environment and softbox as an EstimatedLight (for
+    comparing an estimate with a known light)."""
+    area = None
+    if section.area_light:
+        area = AreaLight(section.area_position, section.area_target, section.area_size, section.area_radiance)
+    environment = np.asarray(section.environment_radiance, np.float32).reshape(1, 1, 3)
+    return EstimatedLight("constant", section.frame, environment, area)
 
 
 def exposure_level(photo_means: list[np.ndarray], render_means: list[np.ndarray]) -> np.ndarray:

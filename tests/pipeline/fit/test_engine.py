@@ -454,8 +454,10 @@ def test_a_frozen_step_gives_the_unfrozen_fit(mi, references, tmp_path):
 
 
 def test_views_of_different_sizes_each_replay_their_own_recording(mi, references, tmp_path, monkeypatch):
-    """The fit stages render each view in its own window: one recording per film size,
-    each made once (a recording replayed at another size records again at every call)."""
+    """The fit stages render each view in its own window: one frozen function per film
+    size, each recorded a few times at most (Dr.Jit records again when it meets a changed
+    literal). One function for every size recorded again at nearly every call on
+    temple-ring (88 warnings in one fit_material run; 6 in three fits per size)."""
     import drjit as dr
 
     views = _views(mi, _scene_file(tmp_path, [0.5, 0.5, 0.5], [0.7]), references / "references")
@@ -468,6 +470,6 @@ def test_views_of_different_sizes_each_replay_their_own_recording(mi, references
     recordings = []
     freeze = dr.freeze
     monkeypatch.setattr(dr, "freeze", lambda f: recordings.append(freeze(f)) or recordings[-1])
-    settings = engine.FitSettings(iterations=6, batch=3, spp=4, tolerance=0.0)
+    settings = engine.FitSettings(iterations=16, batch=3, spp=4, tolerance=0.0)
     engine.fit(PARAMETERS, views, [], settings)
-    assert [r.n_recordings for r in recordings] == [1, 1, 1]
+    assert len(recordings) == 3 and all(r.n_recordings <= 3 for r in recordings)
