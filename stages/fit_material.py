@@ -10,6 +10,12 @@ at most ``max_size`` pixels. ``held_out`` photos, evenly spread over the sorted
 names, are never fitted: they measure validation error, and the best-validation
 state is kept.
 
+When ``[light] model`` is not given, the light is fitted with the material
+(pipeline.render.light): each model asked for (auto: constant, envmap,
+envmap+area, simplest first) in a fit of its own, the envmap+area one continuing
+the envmap's; the simplest within ``light.margin`` of the best held-out error is
+kept and written into every scene file.
+
 All in one folder, fitted/ (exported to CAPTURE/output/fitted/, with params.json
 and heldout/ also exported on their own for ``pipeline score``):
 
@@ -19,11 +25,14 @@ file                content
 scene.xml, ...      the scene folder with the fitted values written into
                     specimen.xml; renders as-is
 params.json         model, fitted values, bounds, units, best iteration,
-                    validation error, why it stopped, exposures (when fitted)
+                    validation error, why it stopped, exposures (when fitted), the
+                    light (chosen model, why, every candidate's error and seconds)
+environment.exr     the fitted environment map (an envmap light)
 log.jsonl           per iteration: loss, validation error, values, seconds
 loss.png            training loss and validation error against iteration
 heldout/            per held-out photo: NAME.render.exr, NAME.reference.exr (the
-                    window fitted) and NAME.mask.png (the pixels scored)
+                    window fitted), NAME.mask.png (the pixels scored), and
+                    NAME.reference/render/difference.png to look at
 ==================  =============================================================
 
 Limitations: a constant material; texture is fit_texture's job. The table beyond

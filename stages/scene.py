@@ -3,7 +3,9 @@
 The scene holds one perspective sensor per registered photo (its pinhole
 intrinsics, principal point included, and pose from sfm), the UV-mapped mesh
 from uv with the chosen material model (pipeline.render.materials: only what that
-model needs), the light rig from capture.toml's ``[light]``, and, when the world
+model needs), the light rig from capture.toml's ``[light]`` (or, when fit_material
+estimates the light, a uniform start at the level measured in the photos, on the
+board's print when they show it), and, when the world
 frame is the board's, the printed board under the specimen, and the table
 around it (they light the specimen from below and show through a translucent
 one).
