@@ -169,12 +169,6 @@ def _write_scene_files(
     return scene, view_files
 
 
-def mi_load(path: Path):
-    import mitsuba as mi
-
-    return mi.load_file(str(path))
-
-
 def _light_level(view_files, views, linear, masks, board, near_clip) -> tuple[tuple[float, ...], str]:
     """The uniform radiance at which the scene renders like the photos, measured on the
     board's print (known reflectance: absolute) when the photos show it, else on the
@@ -202,10 +196,6 @@ def _view_entries(view_files: dict[str, Path], out_dir: Path) -> dict:
 
 def _poses(views: dict) -> dict:
     return {name: pose for name, (_, pose) in views.items()}
-
-
-def _rgb(values) -> str:
-    return "(" + ", ".join(f"{v:.3g}" for v in values) + ")"
 
 
 def _description(
@@ -297,13 +287,15 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         start = estimated_light.start("constant", light.frame, np.array(level), 1)
         estimated_light.write(start, out_dir, {"views": _view_entries(view_files, out_dir)}, _poses(views))
         light_json |= {"level": list(level), "level_from": source}
-        logger.info("light: starts uniform at %s, measured on the %s", _rgb(level), source)
+        logger.info("light: starts uniform at %s, measured on the %s", np.round(level, 3).tolist(), source)
 
     # 5. The ground's albedo, measured in the photos under that light.
+    import mitsuba as mi
+
     ground_albedo = None
     if ground_radius:
         region = table_region(ground_radius, board)
-        ratio = measure_ratio(lambda n: mi_load(view_files[n]), views, linear, masks, region, near_clip)
+        ratio = measure_ratio(lambda n: mi.load_file(str(view_files[n])), views, linear, masks, region, near_clip)
         ground_albedo = None if ratio is None else tuple(float(v) for v in np.clip(ratio, 0.01, 1.0))
         if ground_albedo is None:
             logger.warning("too little of the table is seen to measure its albedo: no ground in the scene")
