@@ -254,26 +254,9 @@ def irradiance(light: EstimatedLight, normals: np.ndarray, point: np.ndarray, ab
     return result
 
 
-def from_section(section: LightSection) -> EstimatedLight:
-    """A [light] section's constant environment and softbox as an EstimatedLight (for
-    comparing an estimate with a known light)."""
-    area = None
-    if section.area_light:
-        area = AreaLight(section.area_position, section.area_target, section.area_size, section.area_radiance)
-    environment = np.asarray(section.environment_radiance, np.float32).reshape(1, 1, 3)
-    return EstimatedLight("constant", section.frame, environment, area)
-
-
-def exposure_level(photo_means: list[np.ndarray], render_means: list[np.ndarray]) -> np.ndarray:
-    """The uniform radiance (RGB) at which renders under a unit light match the photos:
-    the median over views of their ratio."""
-    ratios = np.array([p / np.maximum(r, 1e-6) for p, r in zip(photo_means, render_means)])
-    return np.clip(np.median(ratios, axis=0), 1e-4, None)
-
-
 def render_unit_light(scene_file: Path):
-    """``scene_file`` loaded with every emitter made a unit constant environment, for
-    exposure_level (the caller renders it)."""
+    """``scene_file`` loaded with its lights replaced by a unit constant environment: its
+    renders measure the level at which the scene looks like the photos."""
     import mitsuba as mi
 
     tree = ET.parse(scene_file)
