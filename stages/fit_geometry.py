@@ -256,6 +256,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         read_views(inputs.upstream["sfm"]["cameras"]),
         linear_photos(inputs.upstream["undistort"]["pinhole"]),
         read_masks(inputs.upstream["masks"]["masks_json"]),
+        material.get("photo_gains"),
     )
     held = set(material["held_out"])
     diagonal = float(np.linalg.norm(hull.extents))
@@ -266,7 +267,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     rounds, log = _rounds(conf, geometry, description, loss, views_inputs, held, parameters, diagonal, values)
 
     # 3. Held-out renders of the final scene, the log and params.json.
-    cameras, linear, masks = views_inputs
+    cameras, linear, masks, _ = views_inputs
     final = load_views(
         geometry, description, cameras, linear, masks, conf.max_size, conf.erode_px, conf.validation_spp, names=held
     )
@@ -295,7 +296,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_geometry",
-    version=8,
+    version=9,
     config=Config,
     main=main,
     needs=(

@@ -25,7 +25,9 @@ file                content
 scene.xml, ...      the scene folder with the fitted values written into
                     specimen.xml; renders as-is
 params.json         model, fitted values, bounds, units, best iteration,
-                    validation error, why it stopped, exposures (when fitted), the
+                    validation error, why it stopped, photo_gains (each training
+                    photo's RGB gain, when exposure or white_balance is fitted;
+                    fit_texture and fit_geometry divide the photos by them), the
                     light (chosen model, why, every candidate's error and seconds)
 environment.exr     the fitted environment map (an envmap light)
 log.jsonl           per iteration: loss, validation error, values, seconds
@@ -232,7 +234,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
             "validation_mse": result.validation_error,
             "held_out": held,
             "stopped": result.stopped,
-            "exposures": result.exposures,
+            "photo_gains": result.photo_gains,
             "light": light_report,
             "skipped_gradients": result.skipped_gradients,
         },
@@ -268,7 +270,7 @@ def _specimen_sphere(fitted: Path, frame: str, cameras: dict, light: LightSectio
 
 STAGE = Stage(
     name="fit_material",
-    version=7,
+    version=8,
     config=Config,
     main=main,
     needs=("scene.scene_dir", "scene.description", "sfm.cameras", "undistort.pinhole", "masks.masks_json"),

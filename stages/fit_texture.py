@@ -204,7 +204,10 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     masks = read_masks(inputs.upstream["masks"]["masks_json"])
     views = [
         view
-        for view, _ in load_views(textured, description, cameras, linear, masks, conf.max_size, conf.erode_px, conf.spp)
+        for view, _ in load_views(
+            *(textured, description, cameras, linear, masks, conf.max_size, conf.erode_px, conf.spp),
+            gains=material.get("photo_gains"),
+        )
     ]
     held = set(material["held_out"])
     fit = _texture_fit(conf, model, material["bounds"], views, held)
@@ -254,7 +257,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_texture",
-    version=8,
+    version=9,
     config=Config,
     main=main,
     needs=(

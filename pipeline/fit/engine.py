@@ -2,7 +2,7 @@
 stages and `pipeline fit` call, on the one loop of pipeline.fit.loop.
 
 ``fit`` steps material parameters (pipeline.fit.variables.MaterialVariables:
-plain values or textures, optionally an exposure per view) and reports their
+plain values or textures, optionally a gain per photo: exposure, white balance) and reports their
 best-held-out values; ``fit_shape`` steps a mesh's vertices (ShapeVariables) with
 everything else frozen. Both leave the scenes in the best state.
 
@@ -36,7 +36,9 @@ class FitResult:
     validation_error: float | None
     stopped: str
     log: list[dict] = field(default_factory=list)
-    exposures: dict[str, float] = field(default_factory=dict)
+    photo_gains: dict[str, list[float]] = field(default_factory=dict)
+    """Each training photo's RGB gain when exposure or white balance is fitted: the
+    render times it matches the photo (centred: their logarithms average 0)."""
     start_validation_error: float | None = None
     """Validation error of the starting values."""
     textures: dict[str, np.ndarray] = field(default_factory=dict)
@@ -71,8 +73,10 @@ def fit(
     """Fit ``parameters`` to the training views; the scenes end in the best state."""
     if not training:
         raise PipelineError("no views to fit: every view is held out")
-    exposure = sorted(v.name for v in training) if settings.exposure else []
-    variables = MaterialVariables(parameters, _traversed(training + validation), exposure)
+    gained = sorted(v.name for v in training) if settings.exposure or settings.white_balance else []
+    variables = MaterialVariables(
+        parameters, _traversed(training + validation), gained, 3 if settings.white_balance else 1
+    )
     variables.check_keys(training + validation)
     variables.register(settings.learning_rate_scale)
     result = loop.run(variables, training, validation, settings, on_iteration=on_iteration)
@@ -83,7 +87,7 @@ def fit(
         result.best_error,
         result.stopped,
         result.log,
-        variables.exposures(),
+        variables.gains(),
         result.start_error,
         textures,
         result.skipped_gradients,

@@ -127,7 +127,7 @@ class Target:
 
 def view_loss(scene, params, sensor, integrator, spp: int, seeds, scale, target: Target, dual: bool, share):
     """One view's loss (``dual``: from two renders, else l2 from one), its gradient
-    backpropagated with weight ``share``; ``scale`` multiplies the renders (an exposure).
+    backpropagated with weight ``share``; ``scale`` multiplies the renders (the photo's gains).
     What changes between calls is a Dr.Jit value or holds them, so that ``dr.freeze``
     replays it correctly."""
     import drjit as dr

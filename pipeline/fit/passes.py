@@ -59,11 +59,14 @@ def shape_pass(
 ) -> engine.ShapeResult:
     """Vertices of the scene folder's mesh.ply refined with the scene's material
     frozen, compared by ``loss`` (photometric or silhouette) in windows of at most
-    ``max_size`` px; the mesh written back. ``photos``: (cameras, linear photos, masks)."""
+    ``max_size`` px; the mesh written back. ``photos``: (cameras, linear photos, masks,
+    fit_material's photo gains or None)."""
     import mitsuba as mi
 
-    cameras, linear, masks = photos
-    windowed = load_views(geometry, description, cameras, linear, masks, max_size, 0, settings.spp, sample_border=True)
+    cameras, linear, masks, gains = photos
+    windowed = load_views(
+        *(geometry, description, cameras, linear, masks, max_size, 0, settings.spp), sample_border=True, gains=gains
+    )
     if loss == "silhouette":
         views = silhouette_views(windowed, geometry / MESH_PLY, masks, cameras)
         integrator = {"type": "direct_projective", "sppi": 0}
@@ -103,8 +106,8 @@ def material_pass(
     geometry frozen; written back into specimen.xml (and the texture's files) when the
     held-out error drops by ``min_improvement`` (relative). Returns the fit and
     whether it was kept."""
-    cameras, linear, masks = photos
-    windowed = load_views(geometry, description, cameras, linear, masks, max_size, erode_px, settings.spp)
+    cameras, linear, masks, gains = photos
+    windowed = load_views(geometry, description, cameras, linear, masks, max_size, erode_px, settings.spp, gains=gains)
     views = [v for v, _ in windowed]
     result = engine.fit(
         parameters, [v for v in views if v.name not in held], [v for v in views if v.name in held], settings

@@ -57,7 +57,10 @@ class FitSettings(LoopSettings):
     learning_rate_scale: Annotated[float, Range(0.0, None, exclusive_lo=True)] = 2.0
     """Multiplies every parameter's learning rate (pipeline.render.materials)."""
     exposure: bool = False
-    """Fit one exposure scale per view (photos shot with automatic exposure)."""
+    """Fit one exposure scale per photo (photos shot with automatic exposure)."""
+    white_balance: bool = False
+    """Fit one gain per colour channel per photo (automatic white balance, as phones
+    shoot): exposure and white balance at once."""
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,8 @@ kind               latents                                                      
 =================  ===========================================================  ==========================
 MaterialVariables  one per FitParameter: the value, or its logarithm for        box per parameter;
                    positive quantities spanning decades; plain values, or a     smoothness on textures
-                   texture's data tensor; optionally an exposure per view
+                   texture's data tensor; optionally a gain per view (exposure,
+                   or exposure and white balance: one per channel)
 ShapeVariables     a mesh's vertices as LargeSteps' differential coordinates    none (the Laplacian
                    (Nicolet et al. 2021, seams welded)                          spreads each step)
 =================  ===========================================================  ==========================
@@ -88,14 +89,19 @@ def neighbour_pairs(shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
 
 class MaterialVariables:
     """Scene parameters (plain values or textures), in log space where they span decades,
-    and optionally one exposure scale per training view."""
+    and optionally a gain per training view: one (its exposure) or one per colour channel
+    (exposure and white balance). The gains' logarithms are centred over the views, so
+    that they move each photo against the others and leave the overall level and colour
+    to the light and the albedo (with which they would trade off exactly)."""
 
-    def __init__(self, parameters: list[FitParameter], traversed: dict[int, Any], exposure_views: list[str]):
+    def __init__(
+        self, parameters: list[FitParameter], traversed: dict[int, Any], gain_views: list[str], gain_channels: int = 1
+    ):
         import drjit as dr
         import mitsuba as mi
 
         self.parameters, self.traversed, self.dr, self.mi = parameters, traversed, dr, mi
-        self.exposure_views = exposure_views
+        self.gain_views, self.gain_channels = gain_views, gain_channels
         self.optimizer = mi.ad.Adam(lr=0.01)
 
     def register(self, learning_rate_scale: float) -> None:
@@ -117,9 +123,9 @@ class MaterialVariables:
         self.gives = {
             p.name: self.mi.UInt32(np.array(p.layout.give, np.uint32)) for p in self.parameters if p.layout is not None
         }
-        for name in self.exposure_views:
-            optimizer[f"exposure:{name}"] = self.mi.Float(0.0)
-            optimizer.set_learning_rate({f"exposure:{name}": 0.01 * learning_rate_scale})
+        for name in self.gain_views:
+            optimizer[f"gain:{name}"] = dr.zeros(self.mi.Float, self.gain_channels)
+            optimizer.set_learning_rate({f"gain:{name}": 0.01 * learning_rate_scale})
         self.textured = {p.name for p in self.parameters if dr.is_tensor_v(optimizer[p.name])}
         self.priors = []
         for parameter in self.parameters:
@@ -173,11 +179,16 @@ class MaterialVariables:
         shift = mi.Float(start.astype(np.float32)) - sums * (len(start) / count)
         return type(latent)(latent.array + dr.gather(mi.Float, shift, channel), latent.shape)
 
-    def scale(self, view_name: str, image):
-        """The render of a training view times its exposure (when fitted)."""
-        if view_name not in self.exposure_views:
-            return image
-        return image * self.dr.exp(self.optimizer[f"exposure:{view_name}"])
+    def scale(self, view_name: str, one):
+        """What a training view's render is multiplied by: its gains as a tensor of
+        ``gain_channels`` values (broadcast over the image's channels), or ``one``."""
+        if view_name not in self.gain_views:
+            return one
+        return self.mi.TensorXf(self.dr.exp(self._centred_log_gain(view_name)), (self.gain_channels,))
+
+    def _centred_log_gain(self, view_name: str):
+        latents = [self.optimizer[f"gain:{name}"] for name in self.gain_views]
+        return self.optimizer[f"gain:{view_name}"] - sum(latents[1:], latents[0]) / len(latents)
 
     def add_priors(self) -> None:
         dr = self.dr
@@ -211,8 +222,13 @@ class MaterialVariables:
             kind = type(self.optimizer[parameter.name])
             self.optimizer[parameter.name] = kind(latent) if value.ndim > 1 else kind(*[float(v) for v in latent])
 
-    def exposures(self) -> dict[str, float]:
-        return {n: float(np.exp(np.ravel(self.optimizer[f"exposure:{n}"])[0])) for n in self.exposure_views}
+    def gains(self) -> dict[str, list[float]]:
+        """Each view's RGB gain (render times gain matches the photo)."""
+        with self.dr.suspend_grad():
+            return {
+                name: np.broadcast_to(np.exp(np.array(self._centred_log_gain(name), np.float64)), 3).tolist()
+                for name in self.gain_views
+            }
 
 
 class ShapeVariables:

@@ -47,10 +47,12 @@ def load_views(
     spp: int,
     sample_border: bool = False,
     names: set[str] | None = None,
+    gains: dict[str, list[float]] | None = None,
 ) -> list[tuple[FitView, tuple]]:
     """Every photo (or those in ``names``) as a FitView in its window (longer side at most
     ``max_size`` px), with the window's scaled camera and crop; weights are the mask
-    eroded by ``erode_px``."""
+    eroded by ``erode_px``. ``gains``: photos' RGB gains fitted by fit_material (exposure,
+    white balance); those photos are divided by theirs, as that fit saw them."""
     import mitsuba as mi
 
     shared_scene = mi.load_file(str(scene_dir / SCENE_XML)) if description["light_frame"] == "world" else None
@@ -74,6 +76,8 @@ def load_views(
         crop = (x, y, w, h)
         photo = read_photo(linear[name]).pixels
         reference = resize_exact(photo, scale)[y : y + h, x : x + w]
+        if gains and name in gains:
+            reference = reference / np.asarray(gains[name], np.float32)
         if erode_px:
             mask = cv2.erode(mask.astype(np.uint8), np.ones((2 * erode_px + 1,) * 2, np.uint8)) > 0
         coverage = resize_exact(mask.astype(np.float32), scale)

@@ -34,6 +34,34 @@ def test_fit_material_moves_base_colour_toward_the_truth_within_bounds(run_stage
     assert len(log) == params["iterations"] and "validation_error" in log[3]
 
 
+def test_white_balance_writes_centred_gains_by_which_the_views_divide_their_photos(run_stages, bird_capture, mi):
+    from pipeline.fit.views import load_views
+    from pipeline.formats.cameras import read_views
+    from pipeline.formats.masks import read_masks
+    from pipeline.formats.pinhole import linear_photos
+
+    outputs = run_stages(bird_capture, "fit_material", *TINY_FIT, "fit_material.white_balance=true")
+    params = json.loads(outputs["fit_material"]["params"].read_text())
+    gains = params["photo_gains"]
+    assert set(gains).isdisjoint(params["held_out"]) and len(gains) >= 3
+    logarithms = np.log(np.array(list(gains.values())))
+    assert logarithms.shape[1] == 3 and np.all(np.isfinite(logarithms))
+    np.testing.assert_allclose(logarithms.mean(axis=0), 0.0, atol=1e-5)  # centred: the light keeps the level
+    name = sorted(gains)[0]
+    photos = (
+        read_views(outputs["sfm"]["cameras"]),
+        linear_photos(outputs["undistort"]["pinhole"]),
+        read_masks(outputs["masks"]["masks_json"]),
+    )
+    description = json.loads(outputs["scene"]["description"].read_text())
+    folder = outputs["fit_material"]["fitted_dir"]
+    plain, divided = (
+        load_views(folder, description, *photos, 32, 0, 4, names={name}, gains=given)[0][0].reference
+        for given in (None, {name: [2.0, 4.0, 0.5]})
+    )
+    np.testing.assert_allclose(divided * [2.0, 4.0, 0.5], plain, rtol=1e-5)
+
+
 def test_fit_material_rejects_bounds_of_unknown_parameters(run_stages, bird_capture):
     from pipeline.core.errors import PipelineError
 

@@ -473,3 +473,27 @@ def test_views_of_different_sizes_each_replay_their_own_recording(mi, references
     settings = engine.FitSettings(iterations=16, batch=3, spp=4, tolerance=0.0)
     engine.fit(PARAMETERS, views, [], settings)
     assert len(recordings) == 3 and all(r.n_recordings <= 3 for r in recordings)
+
+
+def test_white_balance_recovers_each_photos_gains_and_the_true_colour(mi, references, tmp_path):
+    """Photos taken with automatic white balance (one RGB gain each, logarithms averaging
+    0 over the photos): fitting a gain per photo and channel finds them and the true base
+    colour; without, the colour is a compromise and the loss stays higher."""
+    gains = {"ref_0": [1.25, 1.0, 0.8], "ref_1": [0.8, 1.0, 1.25], "ref_2": [1.0, 1.0, 1.0]}
+    scene = _scene_file(tmp_path, [0.5, 0.5, 0.5], [0.7])
+    results = {}
+    for white_balance in (True, False):
+        views = _views(mi, scene, references / "references")
+        for view in views:
+            view.reference = view.reference * np.float32(gains[view.name])
+        settings = engine.FitSettings(
+            iterations=80, batch=3, spp=8, loss="dual", tolerance=0.0, white_balance=white_balance
+        )
+        results[white_balance] = engine.fit(PARAMETERS, views, [], settings)
+    balanced, unbalanced = results[True], results[False]
+    assert set(balanced.photo_gains) == set(gains) and unbalanced.photo_gains == {}
+    for name, truth in gains.items():
+        np.testing.assert_allclose(balanced.photo_gains[name], truth, rtol=0.06)
+    np.testing.assert_allclose(balanced.values["base_color"], TRUTH["base_color"], atol=0.05)
+    late = slice(-20, None)
+    assert np.mean([e["loss"] for e in balanced.log[late]]) < 0.5 * np.mean([e["loss"] for e in unbalanced.log[late]])
