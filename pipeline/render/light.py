@@ -43,7 +43,7 @@ import numpy as np
 from pipeline.camera.model import Pose
 from pipeline.core.sections import LightSection
 from pipeline.fit.variables import FitParameter, Layout
-from pipeline.imaging.photo_io import write_image
+from pipeline.imaging.photo_io import read_photo, write_image
 from pipeline.render import capture_scene, scene_xml
 
 LightModel = Literal["constant", "envmap", "envmap+area"]
@@ -159,6 +159,31 @@ def fitted(light: EstimatedLight, values: dict[str, np.ndarray]) -> EstimatedLig
     if area is not None:
         area = replace(area, radiance=tuple(float(v) for v in values["light_area_radiance"]))
     return replace(light, environment=environment, area=area)
+
+
+def from_section(section: LightSection, environment: np.ndarray | None = None) -> EstimatedLight:
+    """A [light] rig (a known light) in this module's form: ``environment`` the map of
+    its environment_map (loaded by the caller), else its constant radiance."""
+    area = None
+    if section.area_light:
+        area = AreaLight(section.area_position, section.area_target, section.area_size, section.area_radiance)
+    constant = np.asarray(section.environment_radiance, np.float32).reshape(1, 1, 3)
+    environment = constant if environment is None else np.asarray(environment, np.float32)
+    model: LightModel = "constant" if environment.shape[:2] == (1, 1) else "envmap"
+    return EstimatedLight("envmap+area" if area and model == "envmap" else model, section.frame, environment, area)
+
+
+def read(summary: dict, scene_dir: Path) -> EstimatedLight:
+    """The light a fit chose, from its summary (EstimatedLight.summary, in fit_material's
+    params.json) and the environment map in ``scene_dir``."""
+    if summary.get("environment_map"):
+        environment = read_photo(scene_dir / summary["environment_map"]).pixels
+    else:
+        environment = np.asarray(summary["environment_mean"], np.float32).reshape(1, 1, 3)
+    area = summary.get("area")
+    if area is not None:
+        area = AreaLight(tuple(area["position"]), tuple(area["target"]), area["size"], tuple(area["radiance"]))
+    return EstimatedLight(summary["model"], summary["frame"], environment, area)
 
 
 def write(light: EstimatedLight, scene_dir: Path, description: dict, poses: dict[str, Pose]) -> None:

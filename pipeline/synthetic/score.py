@@ -20,6 +20,10 @@ textured/params.json       fit_texture      the same for the constants fit_textu
                                             refitted (a kept texture's mean for it)
 heldout/NAME.render.exr    fit_material     PSNR against NAME.reference.exr on views
                                             held out from fitting
+fitted/environment.exr     fit_material     an estimated light (params.json's light, a
+                                            world-fixed one) against the true rig:
+                                            irradiance at the specimen's centre on the
+                                            true surface's normals, from above the table
 textured/base_color.exr    fit_texture      a kept base-colour texture against the true
                                             mesh's vertex colours: mean and 90th percentile
                                             absolute error per channel at points on the
@@ -40,6 +44,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import OpenImageIO as oiio
 import trimesh
@@ -336,6 +341,56 @@ def score_heldout(folder: Path) -> dict[str, Any]:
     return {"views": len(values), "psnr_db_mean": float(np.mean(values)) if values else None, "per_view": per_view}
 
 
+TRUE_MAP_WIDTH = 128
+"""A wider true map (the room's is 2048 x 1024) is box-filtered to this many texels
+across for the irradiance sum: 2.8 degrees a texel, far finer than a cosine lobe."""
+
+
+def score_light(capture: Path, chosen: dict, fitted_dir: Path, similarity: Similarity) -> dict[str, Any]:
+    """An estimated light (``chosen``: fit_material's summary; its map in
+    ``fitted_dir``) against the capture's true rig: the irradiance each vertex normal
+    of the true mesh would receive at the mesh's centre from above the table (the
+    table hides the rest in both), unoccluded. ``irradiance_rel_error``: the mean
+    absolute luminance difference over the surface (area-weighted) relative to the
+    mean true luminance; ``irradiance_ratio``: estimated over true mean, per channel."""
+    from pipeline.core.sections import LightSection
+    from pipeline.imaging.photo_io import read_photo
+    from pipeline.render import light
+
+    section = LightSection(**json.loads((capture / "ground_truth" / "light.json").read_text()))
+    if section.frame != "world" or chosen["frame"] != "world":
+        return {"model": chosen["model"], "note": "a light riding with the camera is not scored"}
+    true_map = None
+    if section.environment_map:
+        true_map = read_photo(capture / section.environment_map).pixels
+        if true_map.shape[1] > TRUE_MAP_WIDTH:
+            true_map = cv2.resize(true_map, (TRUE_MAP_WIDTH, TRUE_MAP_WIDTH // 2), interpolation=cv2.INTER_AREA)
+    truth = light.from_section(section, true_map)
+    estimate = light.read(chosen, fitted_dir)
+    mesh = trimesh.load(capture / "ground_truth" / "mesh.ply", force="mesh", process=False)
+    weights = np.zeros(len(mesh.vertices))
+    np.add.at(weights, mesh.faces.ravel(), np.repeat(mesh.area_faces / 3, 3))
+    centre = mesh.bounding_box.centroid
+    true_irradiance = light.irradiance(truth, mesh.vertex_normals, centre, above=True)
+    # Into the estimate's frame: x_truth = s R x_est + t.
+    estimated_irradiance = light.irradiance(
+        estimate,
+        mesh.vertex_normals @ similarity.R,
+        similarity.R.T @ (centre - similarity.t) / similarity.scale,
+        above=True,
+    )
+    luminance = np.array([0.2126, 0.7152, 0.0722])
+    true_luminance, estimated_luminance = true_irradiance @ luminance, estimated_irradiance @ luminance
+    return {
+        "model": chosen["model"],
+        "irradiance_rel_error": float(
+            weights @ np.abs(estimated_luminance - true_luminance) / (weights @ true_luminance)
+        ),
+        "irradiance_ratio": (weights @ estimated_irradiance / (weights @ true_irradiance)).tolist(),
+        "true_irradiance_mean": (weights @ true_irradiance / weights.sum()).tolist(),
+    }
+
+
 def score_capture(capture: Path) -> dict[str, Any]:
     """Score whatever the capture's output/ holds; missing parts are listed, not fatal."""
     truth_dir, out_dir = capture / "ground_truth", capture / "output"
@@ -392,6 +447,9 @@ def score_capture(capture: Path) -> dict[str, Any]:
                     report[part] = score_texture(
                         textured, read_linear_image(out_dir / folder / "base_color.exr"), constant, surface
                     )
+    fitted = json.loads(out_dir.joinpath("params.json").read_text()) if (out_dir / "params.json").is_file() else {}
+    if fitted.get("light", {}).get("chosen", {}).get("model", "given") != "given":
+        report["light"] = score_light(capture, fitted["light"]["chosen"], out_dir / "fitted", similarity)
     for folder, stage, part in (
         ("heldout", "fit_material", "heldout"),
         ("textured/heldout", "fit_texture", "heldout_textured"),

@@ -262,3 +262,62 @@ def test_texture_score_splits_off_what_no_view_sees(mi):
     assert report["well_seen_views"] == 2 and report["seen_fraction"] > 0.75  # both halves, less their rims
     assert 0.4 < report["well_seen_fraction"] < 0.55
     assert max(report["well_seen_mean_abs_error"]) < 0.01 < min(report["seen_mean_abs_error"])
+
+
+def test_an_estimated_light_in_another_frame_scores_its_irradiance_error(tmp_path):
+    """The true rig (a room map wider than the scorer filters to, and a softbox) written
+    as the scorer reads it; the estimate is the same light in a frame turned 90 degrees
+    about the vertical, scaled and moved: exact, it scores 0; 10 % too bright, 10 %."""
+    from dataclasses import asdict
+
+    from pipeline.camera.model import Similarity
+    from pipeline.core.sections import LightSection
+    from pipeline.render import light
+    from pipeline.synthetic.score import TRUE_MAP_WIDTH, score_light
+
+    truth = tmp_path / "capture" / "ground_truth"
+    truth.mkdir(parents=True)
+    trimesh.creation.icosphere(subdivisions=3, radius=0.05).export(truth / "mesh.ply")
+    room = np.full((256, 512, 3), (0.2, 0.25, 0.3), np.float32)
+    room[40:90, 100:180] = (4.0, 3.5, 3.0)  # a window above the horizon, off to one side
+    write_exr(truth / "room.exr", room)
+    section = LightSection(
+        model="given",
+        environment_map="ground_truth/room.exr",
+        area_position=(0.3, 0.2, 0.4),
+        area_target=(0.0, 0.0, 0.0),
+        area_size=0.2,
+        area_radiance=(5.0, 4.0, 3.0),
+    )
+    (truth / "light.json").write_text(json.dumps(asdict(section)))
+
+    # x_truth = s R x_est + t; turning about the vertical (the map's y) shifts columns.
+    scale, rotation, shift = 2.0, Rotation.from_euler("z", 90, degrees=True).as_matrix(), np.array([0.1, -0.2, 0.0])
+    filtered = room.reshape(64, 4, TRUE_MAP_WIDTH, 4, 3).mean(axis=(1, 3))
+    local, _ = light.directions(64, TRUE_MAP_WIDTH)
+    seen = (local @ light.map_to_frame("world").T) @ rotation.T @ light.map_to_frame("world")  # truth's map frame
+    columns = np.round((np.arctan2(seen[..., 0], -seen[..., 2]) / (2 * np.pi)) % 1 * TRUE_MAP_WIDTH - 0.5)
+    estimate_map = filtered[np.arange(64)[:, None], columns.astype(int) % TRUE_MAP_WIDTH]
+
+    def in_estimate_frame(point):
+        return tuple(rotation.T @ (np.asarray(point) - shift) / scale)
+
+    similarity = Similarity(scale, rotation, shift)
+    for brightness in (1.0, 1.1):
+        fitted = tmp_path / f"fitted-{brightness}"
+        fitted.mkdir()
+        estimate = light.EstimatedLight(
+            "envmap+area",
+            "world",
+            estimate_map * brightness,
+            light.AreaLight(
+                in_estimate_frame(section.area_position),
+                in_estimate_frame(section.area_target),
+                section.area_size / scale,
+                tuple(brightness * np.array(section.area_radiance)),
+            ),
+        )
+        write_exr(fitted / light.ENVIRONMENT_FILE, estimate.environment)
+        scored = score_light(tmp_path / "capture", estimate.summary(), fitted, similarity)
+        assert scored["irradiance_rel_error"] == pytest.approx(brightness - 1, abs=0.01), scored
+        np.testing.assert_allclose(scored["irradiance_ratio"], brightness, rtol=0.01)
