@@ -11,6 +11,7 @@ from typing import Annotated
 from rich.table import Table
 
 from pipeline import logger
+from pipeline import report as html_report
 from pipeline.cli import registry
 from pipeline.cli.options import Arg
 from pipeline.cli.registry import ConfigLayers, capture_dir, command
@@ -47,6 +48,16 @@ class RunOptions:
     """Fail at once when another run holds the capture, instead of waiting for it."""
     json: bool = False
     """Print a machine-readable summary."""
+
+
+@dataclass(frozen=True)
+class ReportOptions:
+    """Rewrite CAPTURE/output/report.html from what is cached for the current settings."""
+
+    capture: Capture
+    """Capture folder."""
+    config: ConfigLayers = field(default_factory=ConfigLayers)
+    """Preset and overrides (the report shows the results of these settings)."""
 
 
 @dataclass(frozen=True)
@@ -112,6 +123,8 @@ def run(options: RunOptions) -> int:
             progress.console.print(_describe(item), highlight=False)
 
     plan = runner.run(selection, on_stage_done=report)
+    ran = {p.stage.name for p in plan if p.action == "run"}
+    html_report.write(runner.capture_dir, html_report.records(runner.plan(), ran))
     logger.info(
         "%d stage(s) ran, %d cached, in %.1f s; results in %s",
         sum(p.action == "run" for p in plan),
@@ -121,6 +134,14 @@ def run(options: RunOptions) -> int:
     )
     if options.json:
         print(json.dumps({"stages": [summary(p) for p in plan]}, indent=2))
+    return 0
+
+
+@command("report", ReportOptions, "write output/report.html from what is cached")
+def report(options: ReportOptions) -> int:
+    runner = make_runner(options.capture, options.config)
+    path = html_report.write(runner.capture_dir, html_report.records(runner.plan()))
+    print(path)
     return 0
 
 

@@ -1,4 +1,5 @@
 import json
+import re
 
 import pytest
 
@@ -25,6 +26,21 @@ def test_json_summary(tmp_path, toy_cli, capsys):
     summary = json.loads(capsys.readouterr().out)
     assert [s["action"] for s in summary["stages"]] == ["run"] * 4
     assert summary["stages"][0]["metrics"] == {"files": 3}
+
+
+def test_run_and_report_write_a_page_of_every_stage_and_its_state(tmp_path, toy_cli, capsys):
+    capture = make_capture(tmp_path)
+    assert toy_cli(["--quiet", "run", str(capture)]) == 0
+    page = capture / "output" / "report.html"
+
+    def states() -> dict[str, str]:
+        return dict(re.findall(r"<tr><td>(\w+)</td><td>([\w ]+)</td>", page.read_text()))
+
+    assert states() == {"ingest": "ran", "double": "ran", "meta": "ran", "report": "ran"}
+    page.unlink()
+    assert toy_cli(["report", str(capture), "-s", "double.factor=5"]) == 0
+    assert capsys.readouterr().out.strip() == str(page)
+    assert states() == {"ingest": "cached", "double": "to run", "meta": "cached", "report": "to run"}
 
 
 def test_config_error_exits_2_and_runs_nothing(tmp_path, toy_cli, capsys):
@@ -67,7 +83,7 @@ def test_status_and_clean_keep_latest(tmp_path, toy_cli, capsys):
     assert (capture / "output" / "report.txt").exists()  # results survive a clean
 
 
-@pytest.mark.parametrize("command", [[], ["run"], ["status"], ["clean"], ["config"]])
+@pytest.mark.parametrize("command", [[], ["run"], ["report"], ["status"], ["clean"], ["config"]])
 def test_help_on_every_command(toy_cli, command, capsys):
     with pytest.raises(SystemExit) as exit_info:
         toy_cli([*command, "--help"])

@@ -1,0 +1,46 @@
+"""pipeline.report on the bundled sample bird through export (tiny fits): the page is
+self-contained and a headless Chromium (Debian's chromium package, which bin/test
+installs) renders it with every image decoded."""
+
+import re
+import shutil
+import subprocess
+
+import pytest
+
+from pipeline.cli import main as cli_main
+from tests.support.tiny_fits import TINY_FIT, TINY_TEXTURE
+
+pytestmark = pytest.mark.slow
+OVERRIDES = (*TINY_FIT, *TINY_TEXTURE, "fit_geometry.enabled=false")  # as tests/stages/test_export.py
+
+
+def test_the_report_opens_offline_in_chromium_with_every_image_loaded(run_stages, bird_capture, tmp_path):
+    run_stages(bird_capture, "export", *OVERRIDES)
+    assert cli_main(["--quiet", "report", str(bird_capture), *(a for o in OVERRIDES for a in ("-s", o))]) == 0
+    text = (bird_capture / "output" / "report.html").read_text()
+    for heading in ("Stages", "Cameras and mesh", "Choices", "Parameters (fit_geometry)", "Held-out photos"):
+        assert f"<h2>{heading}</h2>" in text, heading
+    assert "<h2>Trajectories</h2>" in text and "<h2>Warnings</h2>" in text
+    # Held-out reference, render and difference of 2 photos after each of the three fit
+    # stages; the cameras; the trajectories of fit_material and fit_texture.
+    images = text.count("<img ")
+    assert images == 3 * 2 * 3 + 1 + 2
+    assert not re.search(r"""(src|href)=['"](?!data:)""", text)  # nothing fetched: self-contained
+    alone = tmp_path / "report.html"  # a copy alone in a folder: opens offline
+    shutil.copy2(bird_capture / "output" / "report.html", alone)
+
+    chromium = shutil.which("chromium")
+    if chromium is None:
+        pytest.skip("chromium is not installed (bin/test installs Debian's package)")
+    dom = subprocess.run(
+        [chromium, "--headless", "--no-sandbox", "--disable-gpu", "--virtual-time-budget=10000", "--dump-dom"]
+        + [alone.as_uri()],
+        capture_output=True,
+        text=True,
+        timeout=180,
+        check=True,
+    ).stdout
+    counted = re.search(r'data-images="(\d+)" data-images-loaded="(\d+)"', dom)
+    assert counted is not None, dom[:500]
+    assert int(counted.group(1)) == images and int(counted.group(2)) == images
