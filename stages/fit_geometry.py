@@ -35,7 +35,8 @@ choices: docs/fit_geometry.md.
 Outputs, in geometry/ (exported to CAPTURE/output/geometry/), a scene folder
 (pipeline.formats.scene_folder): the scene with the refined mesh.ply (UVs kept)
 and material; params.json (loss, start, per round each pass's held-out error
-before and after, best iteration, whether the material pass was kept;
+before and after, best iteration, non-finite gradient entries dropped
+(skipped_gradients), whether the material pass was kept;
 ``params`` and ``bounds`` as in fit_texture's; vertices, seconds); log.jsonl
 (every iteration with its round and pass); loss.png; heldout/ rendered with
 the final scene (with ``enabled = false``, the start scene's passed through).
@@ -132,6 +133,7 @@ def _pass_summary(result: engine.ShapeResult | engine.FitResult) -> dict:
         "best_iteration": result.best_iteration,
         "validation_start": result.start_validation_error,
         "validation": result.validation_error,
+        "skipped_gradients": result.skipped_gradients,
     }
 
 

@@ -40,7 +40,8 @@ base_color.exr/.png  the bitmap, linear EXR (what the scene loads) and sRGB PNG
 albedo.vol/.png      the grid volume (Mitsuba's format) and its z slices as PNG
 params.json          kept or not and why, validation error with and without the
                      texture, per level (and for the constants alone):
-                     resolution, iterations, best iteration; ``params`` and
+                     resolution, iterations, best iteration, non-finite gradient
+                     entries dropped (skipped_gradients); ``params`` and
                      ``bounds``: the scene's values as in fit_material's
                      params.json (a kept texture's mean for the textured one);
                      the texture's ``smoothness`` and ``learning_rate``, which

@@ -3,6 +3,8 @@
 Anything else that escapes a stage is a bug and keeps its traceback.
 """
 
+import numpy as np
+
 
 class PipelineError(Exception):
     """A problem the user can fix (bad photos, failed registration, ...): exit code 1."""
@@ -14,3 +16,24 @@ class ConfigError(PipelineError):
     """Bad usage or configuration, detected before anything runs: exit code 2."""
 
     exit_code = 2
+
+
+class NonFiniteOutput(ValueError):
+    """A NaN or infinity about to be written into a result file. The fits catch them
+    at the source (non-finite gradients are dropped, parameters clamped), so this is
+    a bug, raised instead of writing the value silently."""
+
+
+def require_finite(values, where: str) -> None:
+    """Raise NonFiniteOutput naming ``where`` when ``values`` (an array, or nested dicts
+    and lists of numbers) holds a NaN or infinity."""
+    if isinstance(values, dict):
+        for key, value in values.items():
+            require_finite(value, f"{where}: {key}")
+    elif isinstance(values, (list, tuple)) and not all(isinstance(v, (int, float)) for v in values):
+        for index, value in enumerate(values):
+            require_finite(value, f"{where}[{index}]")
+    elif isinstance(values, (int, float, list, tuple)) or hasattr(values, "dtype"):
+        array = np.asarray(values, dtype=np.float64)
+        if not np.all(np.isfinite(array)):
+            raise NonFiniteOutput(f"{where} is not finite ({np.ravel(array)[:6].tolist()})")

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline import logger
 from pipeline.core.errors import PipelineError
 from pipeline.fit import loop
 from pipeline.fit.loop import FitView
@@ -55,6 +56,20 @@ class ShapeResult:
     validation_error: float | None
     start_validation_error: float | None
     log: list[dict] = field(default_factory=list)
+    skipped_gradients: int = 0
+    """Non-finite gradient entries zeroed before a step."""
+
+
+def _with_pixels(views: list[FitView]) -> list[FitView]:
+    """The views with at least one pixel that counts: an empty mask (or one eroded
+    away) would divide its loss by a zero weight."""
+    kept = []
+    for view in views:
+        if view.weight is None or np.any(view.weight > 0):
+            kept.append(view)
+        else:
+            logger.warning("%s: no pixel of its mask counts, left out of fitting", view.name)
+    return kept
 
 
 def _traversed(views: list[FitView]) -> dict:
@@ -71,6 +86,7 @@ def fit(
     on_iteration=None,
 ) -> FitResult:
     """Fit ``parameters`` to the training views; the scenes end in the best state."""
+    training, validation = _with_pixels(training), _with_pixels(validation)
     if not training:
         raise PipelineError("no views to fit: every view is held out")
     gained = sorted(v.name for v in training) if settings.exposure or settings.white_balance else []
@@ -104,11 +120,17 @@ def fit_shape(
     refracts, reflects and bounds the medium where it is seen."""
     import drjit as dr
 
+    training, validation = _with_pixels(training), _with_pixels(validation)
     variables = ShapeVariables(shape_id, _traversed(training + validation), settings.step, settings.smoothing)
     with dr.scoped_set_flag(dr.JitFlag.SymbolicLoops, settings.symbolic_loops):
         result = loop.run(variables, training, validation, settings, integrator, label="shape fit")
     return ShapeResult(
-        result.best["positions"], result.best_iteration, result.best_error, result.start_error, result.log
+        result.best["positions"],
+        result.best_iteration,
+        result.best_error,
+        result.start_error,
+        result.log,
+        result.skipped_gradients,
     )
 
 

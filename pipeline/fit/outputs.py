@@ -8,6 +8,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pipeline.core.errors import require_finite
 from pipeline.fit import engine
 from pipeline.formats.scene_folder import LOG_JSONL, LOSS_PNG, heldout_files, write_log
 from pipeline.imaging.photo_io import to_uint8, write_image
@@ -37,6 +38,7 @@ def write_texture_files(folder: Path, slot: materials.TextureSlot, texture: np.n
     """The texture's data file (what the scene loads) and a PNG to look at, in ``folder``."""
     import mitsuba as mi
 
+    require_finite(texture, str(folder / slot.parameter))
     name = slot.parameter
     if slot.kind == "bitmap":
         # float32, not write_image's half: the scene loads this file as the

@@ -97,6 +97,7 @@ def fit_constants_then_levels(
             "best_iteration": result.best_iteration,
             "validation_mse": result.validation_error,
             "stopped": result.stopped,
+            "skipped_gradients": result.skipped_gradients,
         }
 
     constants = [p.name for p in fit.parameters[1:]]

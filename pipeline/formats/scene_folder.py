@@ -29,6 +29,8 @@ import shutil
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
+from pipeline.core.errors import require_finite
+
 SCENE_XML = "scene.xml"
 SPECIMEN_XML = "specimen.xml"
 MESH_PLY = "mesh.ply"
@@ -47,7 +49,9 @@ def read_json(path: Path) -> dict:
 
 
 def write_json(path: Path, data: dict) -> Path:
-    """scene.json or params.json, in the layout every stage has always written."""
+    """scene.json or params.json, in the layout every stage has always written; a NaN
+    or infinity in it is refused (errors.require_finite)."""
+    require_finite(data, str(path))
     path.write_text(json.dumps(data, indent=1))
     return path
 

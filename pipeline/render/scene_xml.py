@@ -18,7 +18,7 @@ from typing import Sequence
 import numpy as np
 
 from pipeline.camera.model import Intrinsics, Pose
-from pipeline.core.errors import PipelineError
+from pipeline.core.errors import PipelineError, require_finite
 
 
 def _number(value: float) -> str:
@@ -257,6 +257,7 @@ def write_values(
     for key, value in values.items():
         element, factor = _property_of(by_id, key, path)
         numbers = [factor * float(v) for v in np.ravel(value)]
+        require_finite(numbers, f"{out}: {key}")
         if element.tag == "float":
             element.set("value", _number(numbers[0]))
         else:

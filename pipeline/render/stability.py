@@ -46,6 +46,8 @@ class ProbeResult:
     """The parameter after the steps."""
     toward_reference: bool
     seconds_per_step: float
+    skipped_gradients: int
+    """Non-finite gradient entries the fit dropped (and counted) before its steps."""
 
 
 def sphere_scene(folder: Path, model: materials.MaterialModel, width: int, spp: int, mesh: str | None = None) -> Path:
@@ -139,6 +141,7 @@ def probe(
         after,
         abs(after - initial) < abs(value - initial),
         seconds,
+        result.skipped_gradients,
     )
 
 

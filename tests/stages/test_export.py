@@ -44,3 +44,37 @@ def test_export_writes_gltf_with_the_models_extensions(run_stages, bird_capture)
     # y up: the bird stands on y = 0.
     positions = tree["accessors"][tree["meshes"][0]["primitives"][0]["attributes"]["POSITION"]]
     assert positions["min"][1] > -0.005 and positions["max"][1] > 0.05
+
+
+@pytest.mark.slow
+def test_no_result_file_holds_a_nan_or_an_infinity(run_stages, bird_capture):
+    """Every JSON (strictly parsed), scene file, EXR and the glTF's JSON of the fit
+    stages and export: the writers refuse non-finite values (pipeline.core.errors)."""
+    import re
+
+    from pipeline.synthetic.score import read_linear_image
+
+    outputs = run_stages(bird_capture, "export", *TINY_FIT, *TINY_TEXTURE, "fit_geometry.enabled=false")
+
+    def refuse(constant):
+        raise AssertionError(f"non-finite constant {constant} in JSON")
+
+    files = [
+        path
+        for stage in ("scene", "fit_material", "fit_texture", "fit_geometry", "export")
+        for output in outputs[stage].values()
+        for path in ([output] if output.is_file() else sorted(output.rglob("*")))
+        if path.is_file()
+    ]
+    kinds = {p.suffix for p in files}
+    assert {".json", ".xml", ".exr", ".glb"} <= kinds, kinds
+    for path in files:
+        if path.suffix == ".json":
+            json.loads(path.read_text(), parse_constant=refuse)
+        elif path.suffix == ".xml":
+            assert not re.search(r"\b(nan|inf)\b", path.read_text(), re.IGNORECASE), path
+        elif path.suffix == ".exr":
+            assert np.all(np.isfinite(read_linear_image(path))), path
+        elif path.suffix == ".glb":
+            data = path.read_bytes()
+            json.loads(data[20 : 20 + struct.unpack("<I", data[12:16])[0]], parse_constant=refuse)

@@ -497,3 +497,38 @@ def test_white_balance_recovers_each_photos_gains_and_the_true_colour(mi, refere
     np.testing.assert_allclose(balanced.values["base_color"], TRUTH["base_color"], atol=0.05)
     late = slice(-20, None)
     assert np.mean([e["loss"] for e in balanced.log[late]]) < 0.5 * np.mean([e["loss"] for e in unbalanced.log[late]])
+
+
+@pytest.mark.parametrize("case", ["black reference", "nearly saturated reference", "1 spp", "one-pixel mask"])
+def test_extreme_photos_and_settings_keep_every_step_finite_and_inside_the_bounds(mi, references, tmp_path, case):
+    views = _views(mi, _scene_file(tmp_path, [0.5, 0.5, 0.5], [0.7]), references / "references")
+    spp = 1 if case == "1 spp" else 4
+    for view in views:
+        if case == "black reference":
+            view.reference = np.zeros_like(view.reference)
+        elif case == "nearly saturated reference":
+            view.reference = np.full_like(view.reference, 0.99)
+        elif case == "one-pixel mask":
+            view.weight = np.zeros(view.reference.shape[:2], np.float32)
+            view.weight[15, 20] = 1.0  # on the sphere
+    result = engine.fit(PARAMETERS, views, [], engine.FitSettings(iterations=6, batch=3, spp=spp, tolerance=0.0))
+    for entry in result.log:
+        assert np.isfinite(entry["loss"]), entry
+        for parameter in PARAMETERS:
+            values = np.asarray(entry["params"][parameter.name])
+            assert np.all(np.isfinite(values)) and np.all((parameter.lower <= values) & (values <= parameter.upper))
+    if case == "black reference":
+        assert max(result.values["base_color"]) < 0.5  # towards black
+    if case == "nearly saturated reference":
+        assert min(result.values["base_color"]) > 0.5
+
+
+def test_a_view_whose_mask_is_empty_is_left_out_with_a_warning(mi, references, tmp_path, caplog):
+    views = _views(mi, _scene_file(tmp_path, [0.5, 0.5, 0.5], [0.7]), references / "references")
+    views[1].weight = np.zeros(views[1].reference.shape[:2], np.float32)
+    result = engine.fit(PARAMETERS, views[:2], views[2:], engine.FitSettings(iterations=4, batch=2, spp=4))
+    assert "ref_1: no pixel of its mask counts, left out of fitting" in caplog.text
+    assert all(np.isfinite(e["loss"]) for e in result.log) and np.isfinite(result.validation_error)
+    views[2].weight = np.zeros(views[2].reference.shape[:2], np.float32)  # the only held-out view
+    result = engine.fit(PARAMETERS, views[:1], views[2:], engine.FitSettings(iterations=4, batch=2, spp=4))
+    assert result.validation_error is None and all(np.isfinite(e["loss"]) for e in result.log)

@@ -45,3 +45,41 @@ def test_a_log_parameter_at_its_lower_bound_can_leave_it(sphere):
     # the reference is rendered at the initial value, decades above the bound
     result = stability.probe(scene_file, reference, model, "sigma_t", lower, spp=4, steps=5)
     assert result.after > 1.05 * lower, result
+
+
+# Issue 27's extremes, the default bounds widened where a value lies outside them.
+ISSUE_EXTREMES = {
+    "principled": [
+        ("roughness", 0.001),
+        ("roughness", 1.0),
+        ("eta", 1.0),
+        ("eta", 1.0001),
+        ("eta", 3.0),
+        ("spec_trans", 0.0),
+        ("spec_trans", 1.0),
+        ("base_color", 0.0),
+        ("base_color", 1.0),
+    ],
+    "volumetric": [
+        ("alpha", 0.001),
+        ("alpha", 1.0),
+        ("eta", 1.0),
+        ("eta", 1.0001),
+        ("eta", 3.0),
+        ("sigma_t", 1e-3),
+        ("sigma_t", 1e3),
+        ("albedo", 0.0),
+        ("albedo", 1.0),
+    ],
+}
+
+
+def test_the_extremes_render_differentiate_and_step_finitely_or_are_caught_and_counted(sphere):
+    model, scene_file, reference = sphere
+    for name, value in ISSUE_EXTREMES[model]:
+        spec = materials.PARAMETERS[name]
+        bounds = {name: (min(spec.lower, value), max(spec.upper, value))}
+        result = stability.probe(scene_file, reference, model, name, value, spp=4, steps=3, bounds=bounds)
+        assert result.steps_finite and result.in_bounds and np.isfinite(result.after), result
+        if not (result.render_finite and np.isfinite(result.gradient)):
+            assert result.skipped_gradients > 0, result  # caught: dropped before the step, and counted
