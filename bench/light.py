@@ -5,8 +5,8 @@ Parts (``--parts``, both by default; each rewrites its own section of docs/bench
 
 synthetic  `pipeline synth --backdrop room` (the bird in a textured room whose map also
            lights it, plus the softbox; handheld, 30 views at 560x420, the board) with a
-           plain, opaque glossy paint (fitted with the principled model: does it stay
-           opaque?) and the translucent principled bird (``--materials``). Each runs
+           plain, opaque glossy paint (the material model left open, capture.material =
+           auto: does it stay opaque?) and the translucent principled bird (``--materials``). Each runs
            fit_material on the standard preset twice: told the light (the capture.toml
            synth writes: the room map and the softbox) and estimating it
            (``light.model = auto``, no map). Scored: the material's errors against the
@@ -73,7 +73,7 @@ def synthetic_part(work: Path, materials: list[str]) -> None:
         capture = work / f"room-{material}"
         if not (capture / "capture.toml").is_file():
             synthesize(capture, SynthOptions(backdrop="room", texture="plain", material=material))
-        model = ("scene.model=principled",) if material == "glossy_paint" else ()
+        model = ("capture.material=auto",) if material == "glossy_paint" else ()
         truth = json.loads((capture / "ground_truth" / "material.json").read_text())
         _, true_poses = read_cameras(capture / "ground_truth" / "cameras.json")
         for label, overrides in (("told", ()), ("estimated", ESTIMATED)):
@@ -115,8 +115,8 @@ def synthetic_part(work: Path, materials: list[str]) -> None:
                 "`pipeline synth --backdrop room --texture plain` (a textured room whose map lights the",
                 "bird, plus the softbox; 30 views at 560x420; the board, so the level is absolute),",
                 "fit_material on the standard preset told the light and estimating it (`light.model = auto`).",
-                "The opaque glossy paint is fitted with the principled model, which could make it",
-                f"translucent (opaque: spec_trans below {OPAQUE_SPEC_TRANS}). Irradiance error: mean absolute",
+                "The opaque glossy paint's model is left open (`capture.material = auto`: opaque or",
+                f"principled by held-out error; opaque: spec_trans below {OPAQUE_SPEC_TRANS}). Irradiance error: mean absolute",
                 "luminance difference over the true surface's normals at the specimen's centre,",
                 "light from above the table (pipeline.synthetic.score.score_light).",
                 "Reproduce: `.venv/bin/python bench/light.py --parts synthetic`.",
@@ -143,22 +143,27 @@ def _psnr(outputs: dict, stage: str) -> str:
     return f"{score_heldout(outputs[stage]['heldout'])['psnr_db_mean']:.1f} dB"
 
 
-def real_part(work: Path, captures: Path) -> None:
+def real_part(work: Path, captures: Path, names: list[str]) -> None:
+    """One section per capture (each can run in a process of its own)."""
+    for name in names:
+        _real_capture(work, captures, name, REAL[name])
+
+
+def _real_capture(work: Path, captures: Path, name: str, overrides: tuple[str, ...]) -> None:
     rows, timing = [], []
-    for name, overrides in REAL.items():
-        if not (captures / name).is_dir():
-            rows.append(f"| {name} | not found in {captures} | | | |")
-            continue
+    if not (captures / name).is_dir():
+        rows.append(f"| {name} | not found in {captures} | | | |")
+    else:
         capture = _prepare_real(name, captures, work)
         outputs, seconds = run_stages(capture, "export", *overrides)
         template, template_seconds = run_stages(capture, "fit_material", *overrides, "light.model=given")
         estimated = json.loads(outputs["fit_material"]["params"].read_text())
-        final = json.loads(outputs["fit_geometry"]["params"].read_text())["params"]
-        material = ", ".join(f"{k} {v[0]:.2f}" for k, v in final.items() if len(v) == 1)
+        final = json.loads(outputs["fit_geometry"]["params"].read_text())
+        material = ", ".join(f"{k} {v[0]:.2f}" for k, v in final["params"].items() if len(v) == 1)
         rows.append(
             f"| {name} | {_psnr(template, 'fit_material')} ({template_seconds['fit_material']:.0f} s) | "
             f"{_psnr(outputs, 'fit_material')}, {_psnr(outputs, 'fit_texture')}, {_psnr(outputs, 'fit_geometry')} | "
-            f"{_light_cells(estimated)} | {material} |"
+            f"{_light_cells(estimated)} | {final['model']}: {material} ({estimated['model_choice']['why']}) |"
         )
         timing.append(
             f"| {name} | {sum(seconds[s] for s in STAGES):.0f} s | "
@@ -167,14 +172,14 @@ def real_part(work: Path, captures: Path) -> None:
         )
     print(
         write_section(
-            "light-real",
+            f"light-real-{name}",
             [
-                "### Real captures end to end with the light estimated (issue 26, point 4)",
+                f"### {name} end to end with the light estimated (issue 26, point 4)",
                 "",
                 "Standard preset; settings per capture in bench/light.py (REAL). Held-out PSNR over the",
                 f"specimen's eroded mask on the 2 photos fit_material holds out (target {PSNR_TARGET:.0f} dB);",
                 "the template light is what `pipeline new` writes (a constant 0.5 and a 0.4 m softbox).",
-                "Reproduce: `.venv/bin/python bench/light.py --parts real`.",
+                f"Reproduce: `.venv/bin/python bench/light.py --parts real --real {name}`.",
                 "",
                 "| capture | template light: after fit_material | estimated: after fit_material, fit_texture,"
                 " fit_geometry | light chosen | final material |",
@@ -197,6 +202,7 @@ def main() -> None:
     parser.add_argument("--workdir", type=Path, help="keep captures and caches here (default: a temporary folder)")
     parser.add_argument("--captures", type=Path, default=ROOT.parent / "shared" / "captures")
     parser.add_argument("--materials", default="glossy_paint,principled", help="synthetic part's specimens")
+    parser.add_argument("--real", default=",".join(REAL), help="real part's captures")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as folder:
         work = args.workdir or Path(folder)
@@ -204,7 +210,7 @@ def main() -> None:
         if "synthetic" in args.parts.split(","):
             synthetic_part(work, args.materials.split(","))
         if "real" in args.parts.split(","):
-            real_part(work, args.captures)
+            real_part(work, args.captures, args.real.split(","))
 
 
 if __name__ == "__main__":

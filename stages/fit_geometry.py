@@ -237,7 +237,8 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     source = "fit_material" if conf.start == "sphere" else "fit_texture"
     source_dir = inputs.upstream[source]["fitted_dir" if source == "fit_material" else "textured_dir"]
     source_params = material if source == "fit_material" else read_json(inputs.upstream["fit_texture"]["params"])
-    description = read_json(inputs.upstream["scene"]["description"])
+    # fit_material's model: it may have chosen opaque over the scene's principled.
+    description = read_json(inputs.upstream["scene"]["description"]) | {"model": material["model"]}
     model = description["model"]
     loss = conf.loss if conf.loss != "auto" else ("silhouette" if model == "volumetric" else "photometric")
     geometry = copy_scene(source_dir, out_dir / "geometry")
@@ -298,7 +299,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_geometry",
-    version=9,
+    version=10,
     config=Config,
     main=main,
     needs=(

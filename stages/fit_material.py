@@ -16,6 +16,15 @@ envmap+area, simplest first) in a fit of its own, the envmap+area one continuing
 the envmap's; the simplest within ``light.margin`` of the best held-out error is
 kept and written into every scene file.
 
+Model only what the photos show: when the scene leaves the material model open
+(scene.json's ``model_choice``: the capture and the scene stage both say auto),
+the light models are fitted with principled, then opaque is fitted under the
+chosen light, starting from principled's colour, roughness and the specular
+reflectance of its eta; the simplest within ``model_margin`` of the best held-out
+error is kept (an opaque specimen is not given translucency that only absorbs
+the light's or the mesh's error). fit_texture and fit_geometry take the model
+from params.json. Volumetric is never chosen, only named.
+
 All in one folder, fitted/ (exported to CAPTURE/output/fitted/, with params.json
 and heldout/ also exported on their own for ``pipeline score``):
 
@@ -24,7 +33,9 @@ file                content
 ==================  =============================================================
 scene.xml, ...      the scene folder with the fitted values written into
                     specimen.xml; renders as-is
-params.json         model, fitted values, bounds, units, best iteration,
+params.json         model (and model_choice: every candidate's held-out error and
+                    seconds, and why the winner won), fitted values, bounds,
+                    units, best iteration,
                     validation error, why it stopped, photo_gains (each training
                     photo's RGB gain, when exposure or white_balance is fitted;
                     fit_texture and fit_geometry divide the photos by them), the
@@ -46,6 +57,7 @@ from __future__ import annotations
 
 import shutil
 import time
+import xml.etree.ElementTree as ET
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Annotated
@@ -94,32 +106,44 @@ class Config(FitSettings):
     held_out: Annotated[int, Range(0, None)] = 2
     """Photos kept out of fitting to measure validation error (their renders at 4x
     validation_spp are written to heldout/)."""
+    model_margin: Annotated[float, Range(0.0, 1.0)] = 0.05
+    """When the scene leaves the material model open (scene.json's model_choice), the
+    simplest model whose held-out error is within this fraction of the best one's is
+    kept: principled's translucency must earn its place over opaque."""
 
 
-def fit_parameters(model: str, bounds: tuple[str, ...]) -> list[engine.FitParameter]:
-    """The model's parameters with their bounds, ``bounds`` overriding them."""
+def fit_parameters(model: str, bounds: tuple[str, ...], models: list[str]) -> list[engine.FitParameter]:
+    """The model's parameters with their bounds, ``bounds`` overriding them; ``bounds``
+    may name any parameter of ``models`` (those fit_material chooses between)."""
     overrides = engine.parse_bounds(bounds, "fit_material.bounds")
-    unknown = set(overrides) - set(materials.MODEL_PARAMETERS[model])
+    known = [n for m in models for n in materials.MODEL_PARAMETERS[m]]
+    unknown = set(overrides) - set(known)
     if unknown:
         raise PipelineError(
-            f"fit_material.bounds names {', '.join(sorted(unknown))}, not parameters of the {model} "
-            f"model ({', '.join(materials.MODEL_PARAMETERS[model])})"
+            f"fit_material.bounds names {', '.join(sorted(unknown))}, not parameters of the "
+            f"{' or '.join(models)} model ({', '.join(dict.fromkeys(known))})"
         )
     return materials.fit_parameters(model, overrides)
 
 
 @dataclass
 class Candidate:
-    """One fit: the material alone under the given light, or with one light model."""
+    """One fit: a material model under the given light, or with one light model."""
 
+    model: str
+    """The material model."""
     light: estimated_light.EstimatedLight | None
     result: engine.FitResult
     views: list
     seconds: float
 
-    def summary(self) -> dict:
+    def name(self, of: str) -> str:
+        """What the candidate is, as a ``light`` or a ``material`` model."""
+        return self.model if of == "material" else self.light.model if self.light else "given"
+
+    def summary(self, of: str) -> dict:
         return {
-            "model": self.light.model if self.light else "given",
+            "model": self.name(of),
             "validation_mse": self.result.validation_error,
             "start_validation_mse": self.result.start_validation_error,
             "seconds": round(self.seconds, 1),
@@ -133,26 +157,35 @@ def light_models(requested: str, estimated: bool) -> list[str]:
     return list(estimated_light.LIGHT_MODELS) if requested == "auto" else [requested]
 
 
-def choose(candidates: list[Candidate], margin: float) -> tuple[Candidate, str]:
-    """The simplest candidate whose held-out error is within ``margin`` (relative) of the
-    best one's, and why."""
+def choose(candidates: list[Candidate], margin: float, of: str) -> tuple[Candidate, str]:
+    """The simplest candidate (the first) whose held-out error is within ``margin``
+    (relative) of the best one's, and why; ``of``: a choice of light or material model."""
     errors = [c.result.validation_error for c in candidates]
     if len(candidates) == 1 or any(e is None for e in errors):
-        return candidates[-1], "the only light model fitted" if len(candidates) == 1 else "no held-out photos"
+        return candidates[-1], f"the only {of} model fitted" if len(candidates) == 1 else "no held-out photos"
     best = min(errors)
     for candidate, error in zip(candidates, errors):
         if error <= best * (1 + margin):
-            name = candidate.light.model if candidate.light else "given"
-            return candidate, f"{name}: the simplest within {margin:.0%} of the best held-out error ({best:.4g})"
+            return candidate, (
+                f"{candidate.name(of)}: the simplest within {margin:.0%} of the best held-out error ({best:.4g})"
+            )
     raise AssertionError("the best candidate is within any margin of itself")
+
+
+def opaque_start(values: dict) -> dict:
+    """Opaque values from principled ones: the same colour and roughness, and the
+    specular reflectance of the fitted eta (Disney's specular = F0 / 0.08)."""
+    eta = values["eta"][0]
+    specular = float(np.clip(((eta - 1) / (eta + 1)) ** 2 / 0.08, 0.0, 1.0))
+    return {"base_color": values["base_color"], "roughness": values["roughness"], "specular": [specular]}
 
 
 @resumable_stage
 def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     # 1. The scene stage's folder, copied: the fitted values (and light) are written into it.
     description = read_json(inputs.upstream["scene"]["description"])
-    model = description["model"]
-    parameters = fit_parameters(model, conf.bounds)
+    models = description.get("model_choice", [description["model"]])
+    parameters = {m: fit_parameters(m, conf.bounds, models) for m in models}
     mitsuba_variant.activate(inputs.shared["mitsuba"].variant)
     fitted = out_dir / "fitted"
     shutil.copytree(inputs.upstream["scene"]["scene_dir"], fitted)
@@ -168,14 +201,14 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
     initial = {name: entry["value"] for name, entry in description["parameters"].items()}
 
-    def fit(start_light: estimated_light.EstimatedLight | None, start_values: dict = initial) -> Candidate:
+    def fit(model: str, start_light: estimated_light.EstimatedLight | None, start_values: dict = initial) -> Candidate:
         started = time.perf_counter()
-        _write_material(fitted, parameters, start_values)
+        _write_model(fitted, model, start_values)
         if start_light is not None:
             estimated_light.write(start_light, fitted, description, {n: pose for n, (_, pose) in cameras.items()})
         views = [view for view, _ in load_views(fitted, description, *photos, conf.max_size, conf.erode_px, conf.spp)]
         held = set(held_out_names([v.name for v in views], conf.held_out))
-        fitted_parameters = parameters + (
+        fitted_parameters = parameters[model] + (
             estimated_light.parameters(start_light, light.smoothness) if start_light else []
         )
         settings = FitSettings(**{f.name: getattr(conf, f.name) for f in fields(FitSettings)})
@@ -186,39 +219,48 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         if start_light is not None:
             end_light = estimated_light.fitted(start_light, {**result.values, **result.textures})
             logger.info("light %s: held-out error %.4g", end_light.model, result.validation_error or float("nan"))
-        return Candidate(end_light, result, views, time.perf_counter() - started)
+        return Candidate(model, end_light, result, views, time.perf_counter() - started)
 
-    # 3. The fit: the material under the given light, or with each light model, simplest first.
-    models = light_models(light.model, light.estimated)
-    if not models:
-        candidates = [fit(None)]
+    # 3. The fit: the richest model under the given light, or with each light model, simplest first.
+    richest = models[-1]
+    light_candidates = light_models(light.model, light.estimated)
+    if not light_candidates:
+        candidates = [fit(richest, None)]
     else:
         level = np.array(description["light"]["level"], np.float32)
         candidates = []
-        for light_model in models:
+        for light_model in light_candidates:
             if light_model == "envmap+area":
                 envmap = next((c for c in candidates if c.light.model == "envmap"), None) or fit(
-                    estimated_light.start("envmap", light.frame, level, light.environment_width)
+                    richest, estimated_light.start("envmap", light.frame, level, light.environment_width)
                 )
                 area = estimated_light.with_area(envmap.light, *_specimen_sphere(fitted, light.frame, cameras, light))
-                candidates.append(fit(area, envmap.result.values))
+                candidates.append(fit(richest, area, envmap.result.values))
             else:
-                candidates.append(fit(estimated_light.start(light_model, light.frame, level, light.environment_width)))
-    chosen, why = choose(candidates, light.margin)
-    result = chosen.result
+                start = estimated_light.start(light_model, light.frame, level, light.environment_width)
+                candidates.append(fit(richest, start))
+    chosen, why = choose(candidates, light.margin, "light")
 
-    # 4. The fitted scene, its light, log, held-out renders and params.json.
-    if chosen.light is not None:
-        estimated_light.write(chosen.light, fitted, description, {n: pose for n, (_, pose) in cameras.items()})
-    _write_material(fitted, parameters, result.values)
-    held = sorted(set(held_out_names([v.name for v in chosen.views], conf.held_out)))
+    # 4. The material model, when the scene leaves it open: opaque under the chosen light,
+    # from principled's fit; the simplest within model_margin of the best is kept.
+    material_candidates = [chosen]
+    if models == ["opaque", "principled"]:
+        material_candidates.insert(0, fit("opaque", chosen.light, opaque_start(chosen.result.values)))
+    material, model_why = choose(material_candidates, conf.model_margin, "material")
+    model, result = material.model, material.result
+
+    # 5. The fitted scene, its light, log, held-out renders and params.json.
+    if material.light is not None:
+        estimated_light.write(material.light, fitted, description, {n: pose for n, (_, pose) in cameras.items()})
+    _write_model(fitted, model, result.values)
+    held = sorted(set(held_out_names([v.name for v in material.views], conf.held_out)))
     write_fit_log(fitted, result.log)
-    write_heldout([v for v in chosen.views if v.name in held], 4 * conf.validation_spp, fitted / HELDOUT)
-    material_values = {p.name: result.values[p.name] for p in parameters}
+    write_heldout([v for v in material.views if v.name in held], 4 * conf.validation_spp, fitted / HELDOUT)
+    material_values = {p.name: result.values[p.name] for p in parameters[model]}
     light_report = {
-        "chosen": chosen.light.summary() if chosen.light else {"model": "given"},
+        "chosen": material.light.summary() if material.light else {"model": "given"},
         "why": why,
-        "candidates": [c.summary() for c in candidates],
+        "candidates": [c.summary("light") for c in candidates],
         "level": description.get("light", {}).get("level"),
         "level_from": description.get("light", {}).get("level_from"),
     }
@@ -227,8 +269,13 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         {
             "model": model,
             "params": material_values,
-            "bounds": {p.name: [p.lower, p.upper] for p in parameters},
-            "units": {p.name: materials.PARAMETERS[p.name].units for p in parameters},
+            "bounds": {p.name: [p.lower, p.upper] for p in parameters[model]},
+            "units": {p.name: materials.PARAMETERS[p.name].units for p in parameters[model]},
+            "model_choice": {
+                "chosen": model,
+                "why": model_why,
+                "candidates": [c.summary("material") for c in material_candidates],
+            },
             "best_iteration": result.best_iteration,
             "iterations": len(result.log),
             "validation_mse": result.validation_error,
@@ -243,6 +290,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         "iterations": len(result.log),
         "best_iteration": result.best_iteration,
         "validation_mse": result.validation_error,
+        "model": model,
         "light": light_report["chosen"]["model"],
         **{n: v if len(v) > 1 else v[0] for n, v in material_values.items()},
     }
@@ -250,9 +298,18 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     return StageResult(outputs, metrics)
 
 
-def _write_material(fitted: Path, parameters: list[engine.FitParameter], values: dict) -> None:
+def _write_model(fitted: Path, model: str, values: dict) -> None:
+    """specimen.xml's BSDF (and interior medium) as ``model``'s, with ``values``."""
     specimen = fitted / SPECIMEN_XML
-    scene_xml.set_values(specimen, {p.key: values[p.name] for p in parameters}, specimen)
+    tree = ET.parse(specimen)
+    shape = next(e for e in tree.getroot().iter("shape") if e.get("id") == materials.SPECIMEN)
+    for child in [c for c in shape if c.tag in ("bsdf", "medium")]:
+        shape.remove(child)
+    bsdf, medium = materials.bsdf_and_medium(model, values)
+    scene_xml.plugin(shape, "bsdf", bsdf)
+    if medium is not None:
+        scene_xml.plugin(shape, "medium", medium, name="interior")
+    scene_xml.write(tree.getroot(), specimen)
 
 
 def _specimen_sphere(fitted: Path, frame: str, cameras: dict, light: LightSection) -> tuple[np.ndarray, float]:
@@ -270,7 +327,7 @@ def _specimen_sphere(fitted: Path, frame: str, cameras: dict, light: LightSectio
 
 STAGE = Stage(
     name="fit_material",
-    version=8,
+    version=9,
     config=Config,
     main=main,
     needs=("scene.scene_dir", "scene.description", "sfm.cameras", "undistort.pinhole", "masks.masks_json"),

@@ -170,7 +170,8 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     # 1. fit_material's scene, without its fit results.
     material_dir = inputs.upstream["fit_material"]["fitted_dir"]
     material = read_json(inputs.upstream["fit_material"]["params"])
-    description = read_json(inputs.upstream["scene"]["description"])
+    # fit_material's model: it may have chosen opaque over the scene's principled.
+    description = read_json(inputs.upstream["scene"]["description"]) | {"model": material["model"]}
     model = description["model"]
     slot = materials.TEXTURE_SLOTS[model]
     textured = copy_scene(material_dir, out_dir / "textured")
@@ -258,7 +259,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_texture",
-    version=9,
+    version=10,
     config=Config,
     main=main,
     needs=(

@@ -24,7 +24,8 @@ view-NAME.xml       one file per photo (NAME without extension): its sensor and 
                     carries the first photo's light
 mesh.ply            the mesh with UVs (a copy of uv's)
 board.png           the board's print, when the board is in the scene
-scene.json          model, integrator (the render one the files name, its depth,
+scene.json          model, model_choice (the models fit_material chooses between),
+                    integrator (the render one the files name, its depth,
                     and the differentiable one the fit uses), fitted parameters
                     (Mitsuba key, value, bounds, units) and per photo its view
                     file and sensor id
@@ -86,8 +87,9 @@ class Config:
     """The Mitsuba scene."""
 
     model: Literal["auto", "opaque", "principled", "volumetric"] = "auto"
-    """Material model (pipeline.render.materials); auto takes capture.material, and principled
-    when that is auto too (it covers opaque surfaces, with spec_trans at 0)."""
+    """Material model (pipeline.render.materials); auto takes capture.material. When that is
+    auto too, the scene starts principled and fit_material chooses opaque or principled
+    by held-out error (scene.json's model_choice; fit_material.model_margin)."""
     max_depth: Annotated[int, Range(0, 1024)] = 0
     """Longest light path; 0 takes the model's (opaque 4, principled 8, volumetric 32)."""
     spp: Annotated[int, Range(1, None)] = 64
@@ -104,10 +106,11 @@ class Config:
     """Samples per pixel of preview.png."""
 
 
-def choose_model(conf: Config, capture: CaptureSection) -> materials.MaterialModel:
-    if conf.model != "auto":
-        return conf.model
-    return capture.material if capture.material != "auto" else "principled"
+def model_choice(conf: Config, capture: CaptureSection) -> list[materials.MaterialModel]:
+    """The models fit_material chooses between, simplest first (the scene is written with
+    the last): opaque and principled when neither the stage nor the capture names one."""
+    named = conf.model if conf.model != "auto" else capture.material
+    return ["opaque", "principled"] if named == "auto" else [named]
 
 
 def _environment_file(light: LightSection, capture_dir: Path, out_dir: Path) -> str | None:
@@ -244,7 +247,8 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     light: LightSection = inputs.shared["light"]
     cameras_json = inputs.upstream["sfm"]["cameras"]
     frame, views = read_frame(cameras_json), read_views(cameras_json)
-    model = choose_model(conf, inputs.shared["capture"])
+    choice = model_choice(conf, inputs.shared["capture"])
+    model = choice[-1]
     integrator = materials.INTEGRATORS[model]
     if conf.max_depth:
         integrator = (integrator[0], conf.max_depth)
@@ -307,6 +311,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     render_preview(view_files[first], *views[first], near_clip, mesh, conf.preview_spp, out_dir / "preview.png")
     ground = {"radius": ground_radius, "albedo": ground_albedo} if ground_albedo else None
     description = _description(model, integrator, light, near_clip, board, ground, values, view_files, out_dir)
+    description["model_choice"] = choice
     description["light"] = light_json
     scene_json = write_json(out_dir / DESCRIPTION_JSON, description)
     outputs = {"scene_dir": out_dir, "scene": scene, "description": scene_json, "preview": out_dir / "preview.png"}
@@ -315,7 +320,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="scene",
-    version=3,
+    version=4,
     config=Config,
     main=main,
     needs=("uv.mesh", "sfm.cameras", "undistort.pinhole", "masks.masks_json"),

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from pipeline.synthetic.score import score_heldout, score_material
-from tests.support.tiny_fits import TINY_FIT
+from tests.support.tiny_fits import TINY_FIT, TINY_TEXTURE
 from tests.support.toy_stages import run_python
 
 pytestmark = pytest.mark.slow
@@ -127,3 +127,31 @@ def test_an_estimated_light_is_chosen_by_held_out_error_and_written_into_the_sce
     for name in params["held_out"]:
         for kind in ("reference", "render", "difference"):
             assert (outputs["heldout"] / f"{name}.{kind}.png").is_file()
+
+
+def test_a_material_model_left_open_is_chosen_by_held_out_error_and_carried_downstream(run_stages, bird_capture, mi):
+    """capture.material = auto: fit_material fits principled, then opaque from it, and
+    keeps the simplest within model_margin of the best (margin 1: opaque, unless it is
+    twice as bad). The scene file, params.json and fit_texture follow the choice."""
+    margin = 1.0
+    overrides = (*TINY_FIT, "capture.material=auto", f"fit_material.model_margin={margin}", *TINY_TEXTURE)
+    outputs = run_stages(bird_capture, "fit_texture", *overrides, "fit_texture.texture=off")
+    assert json.loads(outputs["scene"]["description"].read_text())["model_choice"] == ["opaque", "principled"]
+    params = json.loads(outputs["fit_material"]["params"].read_text())
+    choice = params["model_choice"]
+    errors = {c["model"]: c["validation_mse"] for c in choice["candidates"]}
+    assert list(errors) == ["opaque", "principled"] and all(c["seconds"] > 0 for c in choice["candidates"])
+    expected = "opaque" if errors["opaque"] <= (1 + margin) * min(errors.values()) else "principled"
+    assert choice["chosen"] == params["model"] == expected and params["validation_mse"] == errors[expected]
+    names = {
+        "opaque": {"base_color", "roughness", "specular"},
+        "principled": {"base_color", "roughness", "spec_trans", "eta"},
+    }
+    assert set(params["params"]) == names[expected]
+    bsdf = mi.traverse(mi.load_file(str(outputs["fit_material"]["scene"])))
+    assert ("specimen.bsdf.eta" in bsdf.keys()) == (expected == "principled")
+    np.testing.assert_allclose(
+        np.ravel(bsdf["specimen.bsdf.roughness.value"]), params["params"]["roughness"], rtol=1e-5
+    )
+    texture = json.loads(outputs["fit_texture"]["params"].read_text())
+    assert texture["model"] == expected and set(texture["params"]) == names[expected]
