@@ -184,15 +184,17 @@ class _Loop:
         self.skipped = 0
 
     def view_loss(self, view: FitView) -> Callable:
-        """view_loss, or its frozen form for the view's film size: a recording replays
-        only at the size it was made at (for another, Dr.Jit's dry run fails and it
-        records again, at every call: the fit stages' views each have their own window)."""
+        """view_loss, or its frozen form for the view's window (film size and crop
+        offset): the offset is a literal in the recorded kernels, so a recording replays
+        only for the window it was made in; for another, Dr.Jit's dry run fails and it
+        records again (the fit stages' views each have their own window: three crops of
+        one size recorded 6 times in 16 steps through one function, once each apart)."""
         if not self.settings.freeze:
             return view_loss
-        size = view.reference.shape[:2]
-        if size not in self.frozen:
-            self.frozen[size] = self.dr.freeze(view_loss)
-        return self.frozen[size]
+        window = (*view.reference.shape[:2], *view.sensor.film().crop_offset())
+        if window not in self.frozen:
+            self.frozen[window] = self.dr.freeze(view_loss)
+        return self.frozen[window]
 
     def step(self, iteration: int) -> list[tuple[str, Any]]:
         """One step's renders, losses and backpropagation; the losses stay on the device."""

@@ -453,11 +453,11 @@ def test_a_frozen_step_gives_the_unfrozen_fit(mi, references, tmp_path):
         np.testing.assert_allclose(results[0].values[name], results[1].values[name], rtol=1e-4)
 
 
-def test_views_of_different_sizes_each_replay_their_own_recording(mi, references, tmp_path, monkeypatch):
-    """The fit stages render each view in its own window: one frozen function per film
-    size, each recorded a few times at most (Dr.Jit records again when it meets a changed
-    literal). One function for every size recorded again at nearly every call on
-    temple-ring (88 warnings in one fit_material run; 6 in three fits per size)."""
+def test_views_of_different_windows_each_replay_their_own_recording(mi, references, tmp_path, monkeypatch):
+    """The fit stages render each view in its own window: one frozen function per window
+    (film size and crop offset, a literal in the kernels), each recorded a few times at
+    most. One function for every window recorded again at nearly every call on
+    temple-ring (88 warnings in one fit_material run)."""
     import drjit as dr
 
     views = _views(mi, _scene_file(tmp_path, [0.5, 0.5, 0.5], [0.7]), references / "references")
