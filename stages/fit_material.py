@@ -57,7 +57,6 @@ from __future__ import annotations
 
 import shutil
 import time
-import xml.etree.ElementTree as ET
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Annotated
@@ -88,7 +87,8 @@ from pipeline.formats.scene_folder import (
     write_json,
 )
 from pipeline.render import light as estimated_light
-from pipeline.render import materials, mitsuba_variant, scene_xml
+from pipeline.render import materials, mitsuba_variant
+from pipeline.render.capture_scene import rewrite_specimen_material
 
 
 @dataclass(frozen=True)
@@ -172,14 +172,6 @@ def choose(candidates: list[Candidate], margin: float, of: str) -> tuple[Candida
     raise AssertionError("the best candidate is within any margin of itself")
 
 
-def opaque_start(values: dict) -> dict:
-    """Opaque values from principled ones: the same colour and roughness, and the
-    specular reflectance of the fitted eta (Disney's specular = F0 / 0.08)."""
-    eta = values["eta"][0]
-    specular = float(np.clip(((eta - 1) / (eta + 1)) ** 2 / 0.08, 0.0, 1.0))
-    return {"base_color": values["base_color"], "roughness": values["roughness"], "specular": [specular]}
-
-
 @resumable_stage
 def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     # 1. The scene stage's folder, copied: the fitted values (and light) are written into it.
@@ -203,7 +195,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
     def fit(model: str, start_light: estimated_light.EstimatedLight | None, start_values: dict = initial) -> Candidate:
         started = time.perf_counter()
-        _write_model(fitted, model, start_values)
+        rewrite_specimen_material(fitted / SPECIMEN_XML, model, start_values)
         if start_light is not None:
             estimated_light.write(start_light, fitted, description, {n: pose for n, (_, pose) in cameras.items()})
         views = [view for view, _ in load_views(fitted, description, *photos, conf.max_size, conf.erode_px, conf.spp)]
@@ -245,14 +237,16 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     # from principled's fit; the simplest within model_margin of the best is kept.
     material_candidates = [chosen]
     if models == ["opaque", "principled"]:
-        material_candidates.insert(0, fit("opaque", chosen.light, opaque_start(chosen.result.values)))
+        material_candidates.insert(
+            0, fit("opaque", chosen.light, materials.opaque_from_principled(chosen.result.values))
+        )
     material, model_why = choose(material_candidates, conf.model_margin, "material")
     model, result = material.model, material.result
 
     # 5. The fitted scene, its light, log, held-out renders and params.json.
     if material.light is not None:
         estimated_light.write(material.light, fitted, description, {n: pose for n, (_, pose) in cameras.items()})
-    _write_model(fitted, model, result.values)
+    rewrite_specimen_material(fitted / SPECIMEN_XML, model, result.values)
     held = sorted(set(held_out_names([v.name for v in material.views], conf.held_out)))
     write_fit_log(fitted, result.log)
     write_heldout([v for v in material.views if v.name in held], 4 * conf.validation_spp, fitted / HELDOUT)
@@ -296,20 +290,6 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     }
     outputs = {"fitted_dir": fitted, "params": params, "heldout": fitted / HELDOUT, "scene": fitted / SCENE_XML}
     return StageResult(outputs, metrics)
-
-
-def _write_model(fitted: Path, model: str, values: dict) -> None:
-    """specimen.xml's BSDF (and interior medium) as ``model``'s, with ``values``."""
-    specimen = fitted / SPECIMEN_XML
-    tree = ET.parse(specimen)
-    shape = next(e for e in tree.getroot().iter("shape") if e.get("id") == materials.SPECIMEN)
-    for child in [c for c in shape if c.tag in ("bsdf", "medium")]:
-        shape.remove(child)
-    bsdf, medium = materials.bsdf_and_medium(model, values)
-    scene_xml.plugin(shape, "bsdf", bsdf)
-    if medium is not None:
-        scene_xml.plugin(shape, "medium", medium, name="interior")
-    scene_xml.write(tree.getroot(), specimen)
 
 
 def _specimen_sphere(fitted: Path, frame: str, cameras: dict, light: LightSection) -> tuple[np.ndarray, float]:

@@ -5,6 +5,7 @@ measured in the photos, and a preview render."""
 
 from __future__ import annotations
 
+import xml.etree.ElementTree as ET
 from pathlib import Path
 from typing import Callable
 
@@ -20,6 +21,9 @@ from pipeline.render import materials, scene_xml
 
 PAPER, TONER = 0.80, 0.04
 """Reflectance of the board's paper and of laser toner."""
+
+
+SPECIMEN_COMMENT = "the specimen and what it stands on; included by scene.xml and view-*.xml"
 
 
 def environment_to_world(frame: str, pose: Pose) -> np.ndarray:
@@ -64,10 +68,7 @@ def write_specimen_file(
     """``ground`` = (radius, albedo) of the table disk, or None."""
     root = scene_xml.new_scene()
     shape = scene_xml.plugin(root, "shape", {"type": "ply", "id": materials.SPECIMEN, "filename": "mesh.ply"})
-    bsdf, medium = materials.bsdf_and_medium(model, values)
-    scene_xml.plugin(shape, "bsdf", bsdf)
-    if medium is not None:
-        scene_xml.plugin(shape, "medium", medium, name="interior")
+    _add_material(shape, model, values)
     if board is not None:
         half = (board.squares_x * board.square_mm / 2000, board.squares_y * board.square_mm / 2000)
         plane = scene_xml.plugin(root, "shape", {"type": "rectangle", "id": "board"})
@@ -86,7 +87,24 @@ def write_specimen_file(
         # Just below the board, so that the two never fight over a pixel.
         scene_xml.transform_matrix(disk, _disk_matrix(radius))
         scene_xml.plugin(disk, "bsdf", {"type": "diffuse", "id": "ground_bsdf", "reflectance": tuple(albedo)})
-    scene_xml.write(root, path, "the specimen and what it stands on; included by scene.xml and view-*.xml")
+    scene_xml.write(root, path, SPECIMEN_COMMENT)
+
+
+def rewrite_specimen_material(path: Path, model: str, values: dict) -> None:
+    """The specimen file's BSDF (and interior medium) replaced by ``model``'s, with ``values``."""
+    tree = ET.parse(path)
+    shape = next(e for e in tree.getroot().iter("shape") if e.get("id") == materials.SPECIMEN)
+    for child in [c for c in shape if c.tag in ("bsdf", "medium")]:
+        shape.remove(child)
+    _add_material(shape, model, values)
+    scene_xml.write(tree.getroot(), path, SPECIMEN_COMMENT)
+
+
+def _add_material(shape, model: str, values: dict) -> None:
+    bsdf, medium = materials.bsdf_and_medium(model, values)
+    scene_xml.plugin(shape, "bsdf", bsdf)
+    if medium is not None:
+        scene_xml.plugin(shape, "medium", medium, name="interior")
 
 
 def _disk_matrix(radius: float) -> np.ndarray:

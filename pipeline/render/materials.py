@@ -222,5 +222,13 @@ def refit_parameters(
     return parameters
 
 
+def opaque_from_principled(values: dict) -> dict:
+    """Opaque values from principled ones: the same colour and roughness, and the
+    specular reflectance of the principled eta (Disney's specular = F0 / 0.08)."""
+    eta = values["eta"][0]
+    specular = min(max(((eta - 1) / (eta + 1)) ** 2 / 0.08, 0.0), 1.0)
+    return {"base_color": values["base_color"], "roughness": values["roughness"], "specular": [specular]}
+
+
 def initial_values(model: MaterialModel) -> dict[str, tuple[float, ...]]:
     return {name: PARAMETERS[name].initial for name in MODEL_PARAMETERS[model]}
