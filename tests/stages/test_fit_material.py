@@ -107,7 +107,7 @@ def test_a_fit_killed_midway_resumes_where_it_was(run_stages, bird_capture, capl
 def test_an_estimated_light_is_chosen_by_held_out_error_and_written_into_the_scene(run_stages, bird_capture, mi):
     """light.model = auto: each light model fitted with the material, the simplest within
     the margin of the best kept, and every candidate's error and time reported."""
-    overrides = (*TINY_FIT, "light.model=auto", "fit_material.iterations=16")
+    overrides = (*TINY_FIT, "light.model=auto")
     outputs = run_stages(bird_capture, "fit_material", *overrides)["fit_material"]
     params = json.loads(outputs["params"].read_text())
     report = params["light"]
