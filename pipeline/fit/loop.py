@@ -35,7 +35,7 @@ the step, the loss, the held-out error and the time left.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Callable
 
 import numpy as np
@@ -201,7 +201,7 @@ class _Loop:
         losses = []
         for view, render_seed in self.batches.draw(iteration):
             self.variables.apply(id(view.scene))
-            loss = self.view_loss(view)(
+            arguments = (
                 view.scene,
                 self.variables.traversed[id(view.scene)],
                 view.sensor,
@@ -213,6 +213,20 @@ class _Loop:
                 self.settings.loss == "dual",
                 self.share,
             )
+            try:
+                loss = self.view_loss(view)(*arguments)
+            except RuntimeError as error:
+                # Dr.Jit 1.5 now and then refuses to replay a recording whose registry
+                # of Mitsuba objects it miscounts ("assign_with_registry(): The number of
+                # registry entries (132) did not match ... (132)!", seen once in a fit_geometry
+                # material pass); it fails before running anything, so the step is traced.
+                if "registry" not in str(error):
+                    raise
+                logger.warning(
+                    "%s: Dr.Jit could not replay a recording (%s); going on without freezing", self.label, error
+                )
+                self.settings = replace(self.settings, freeze=False)
+                loss = view_loss(*arguments)
             losses.append((view.name, loss))
         return losses
 

@@ -532,3 +532,31 @@ def test_a_view_whose_mask_is_empty_is_left_out_with_a_warning(mi, references, t
     views[2].weight = np.zeros(views[2].reference.shape[:2], np.float32)  # the only held-out view
     result = engine.fit(PARAMETERS, views[:1], views[2:], engine.FitSettings(iterations=4, batch=2, spp=4))
     assert result.validation_error is None and all(np.isfinite(e["loss"]) for e in result.log)
+
+
+def test_a_recording_dr_jit_refuses_to_replay_is_traced_instead(mi, references, tmp_path, monkeypatch, caplog):
+    """Dr.Jit 1.5 once refused to replay a fit_geometry recording ("The number of registry
+    entries (132) did not match ... (132)!"): the loop warns and goes on unfrozen, with the
+    same result as a fit that never froze."""
+    import drjit as dr
+
+    scene = _scene_file(tmp_path, [0.5, 0.5, 0.5], [0.7])
+    unfrozen = engine.fit(
+        PARAMETERS,
+        _views(mi, scene, references / "references"),
+        [],
+        engine.FitSettings(iterations=4, batch=2, spp=4, tolerance=0.0, freeze=False),
+    )
+
+    def refusing(function):
+        def call(*arguments):
+            raise RuntimeError("assign_with_registry(): The number of registry entries (132) did not match")
+
+        return call
+
+    monkeypatch.setattr(dr, "freeze", refusing)
+    views = _views(mi, scene, references / "references")
+    result = engine.fit(PARAMETERS, views, [], engine.FitSettings(iterations=4, batch=2, spp=4, tolerance=0.0))
+    assert "could not replay a recording" in caplog.text
+    for name in unfrozen.values:
+        np.testing.assert_allclose(result.values[name], unfrozen.values[name], rtol=1e-4)
