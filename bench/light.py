@@ -98,10 +98,9 @@ def synthetic_part(work: Path, materials: list[str]) -> None:
                     f"({met}, target {100 * IRRADIANCE_TARGET:.0f} %), estimated/true RGB {ratio}"
                 )
             if truth["model"] == "opaque":
-                spec_trans = params["params"]["spec_trans"][0]
-                errors += (
-                    f"; spec_trans {spec_trans:.3f} ({'opaque' if spec_trans < OPAQUE_SPEC_TRANS else 'not opaque'})"
-                )
+                spec_trans = params["params"].get("spec_trans", [0.0])[0]  # none in the opaque model
+                verdict = "opaque" if spec_trans < OPAQUE_SPEC_TRANS else "not opaque"
+                errors += f"; model {params['model']}, spec_trans {spec_trans:.3f} ({verdict})"
             psnr = score_heldout(outputs["fit_material"]["heldout"])["psnr_db_mean"]
             rows.append(
                 f"| {material} | {label} | {light} | {errors} | {psnr:.1f} dB | {seconds['fit_material']:.0f} s |"
