@@ -54,6 +54,7 @@ td, th { border: 1px solid #ccc; padding: 3px 8px; text-align: left; vertical-al
 th { background: #f0f0f0; }
 figure { display: inline-block; margin: 0 0.5em 0.5em 0; }
 figure img { max-width: 260px; image-rendering: pixelated; border: 1px solid #ccc; }
+figure.plot img { max-width: 100%; image-rendering: auto; }
 figcaption { font-size: 0.8em; color: #555; }
 .warning { color: #a40; font-family: monospace; font-size: 0.85em; }
 """
@@ -156,9 +157,13 @@ def _table(header: list[str], rows: list[list[Any]]) -> str:
     return f"<table><tr>{head}</tr>{body}</table>"
 
 
-def _image(data: bytes, caption: str) -> str:
+def _image(data: bytes, caption: str, plot: bool = False) -> str:
+    """An embedded PNG: a photo-sized thumbnail, or (``plot``) a figure at full width."""
     source = "data:image/png;base64," + base64.b64encode(data).decode("ascii")
-    return f"<figure><img src='{source}' alt='{_text(caption)}'><figcaption>{_text(caption)}</figcaption></figure>"
+    kind = " class='plot'" if plot else ""
+    return (
+        f"<figure{kind}><img src='{source}' alt='{_text(caption)}'><figcaption>{_text(caption)}</figcaption></figure>"
+    )
 
 
 def _figure_png(figure) -> bytes:
@@ -213,7 +218,7 @@ def _cameras_section(by_name: dict[str, StageRecord]) -> str:
     caption = f"{len(poses)} cameras (blue: centre and viewing direction)" + (
         f" over {mesh_stage}'s mesh" if mesh_path else ""
     )
-    return "<h2>Cameras and mesh</h2>" + _image(_figure_png(figure), caption)
+    return "<h2>Cameras and mesh</h2>" + _image(_figure_png(figure), caption, plot=True)
 
 
 def _last_mesh(by_name: dict[str, StageRecord]) -> tuple[str, Path | None]:
@@ -320,7 +325,7 @@ def _trajectories_section(by_name: dict[str, StageRecord]) -> str:
             axis.plot(steps, _padded(values), lw=0.8)
             axis.set_title(name, fontsize=8)
             axis.set_xlabel("step")
-        parts.append(_image(_figure_png(figure), f"{stage}: loss, held-out error and parameters per step"))
+        parts.append(_image(_figure_png(figure), f"{stage}: loss, held-out error and parameters per step", plot=True))
     return "<h2>Trajectories</h2>" + "".join(parts) if parts else ""
 
 
