@@ -204,10 +204,10 @@ def _cameras_section(by_name: dict[str, StageRecord]) -> str:
     centres = np.array([p.center for p in poses])
     axes_z = np.array([p.R[2] for p in poses])
     mesh_stage, mesh_path = _last_mesh(by_name)
+    mesh = trimesh.load(mesh_path, force="mesh", process=False) if mesh_path is not None else None
     figure, views = plt.subplots(1, 2, figsize=(10, 5))
     for view, (a, b, label) in zip(views, ((0, 1, "from above (x, y)"), (0, 2, "from the side (x, z)"))):
-        if mesh_path is not None:
-            mesh = trimesh.load(mesh_path, force="mesh", process=False)
+        if mesh is not None:
             view.triplot(mesh.vertices[:, a], mesh.vertices[:, b], mesh.faces, lw=0.2, color="0.6")
         length = 0.1 * float(np.ptp(centres, axis=0).max() or 1.0)
         view.quiver(centres[:, a], centres[:, b], axes_z[:, a], axes_z[:, b], color="tab:blue", angles="xy",
