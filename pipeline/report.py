@@ -232,16 +232,27 @@ def _last_mesh(by_name: dict[str, StageRecord]) -> tuple[str, Path | None]:
     return "", None
 
 
+def _candidates_table(what: str, candidates: list[dict]) -> str:
+    """pipeline.fit.candidates' summaries as a table."""
+    rows = [[c["model"], c["validation_mse"], c["start_validation_mse"], c["seconds"]] for c in candidates]
+    return _table([what, "held-out MSE", "at the start", "seconds"], rows)
+
+
 def _choices_section(by_name: dict[str, StageRecord]) -> str:
     material = _json(by_name.get("fit_material"), "params")
     if material is None:
         return ""
     parts = [f"<h2>Choices</h2><p>Material model: {_text(material['model'])}.</p>"]
+    choice = material.get("model_choice", {})
+    if len(choice.get("candidates", [])) > 1:
+        parts.append(f"<p>{_text(choice['why'])}.</p>")
+        parts.append(_candidates_table("material model", choice["candidates"]))
+    if choice.get("depth"):
+        parts.append(f"<p>Path depth: {_text(choice['depth']['why'])}.</p>")
     light = material.get("light")
     if light:
         parts.append(f"<p>Light: {_text(light['chosen']['model'])} ({_text(light['why'])}).</p>")
-        rows = [[c["model"], c["validation_mse"], c["start_validation_mse"], c["seconds"]] for c in light["candidates"]]
-        parts.append(_table(["light model", "held-out MSE", "at the start", "seconds"], rows))
+        parts.append(_candidates_table("light model", light["candidates"]))
     texture = _json(by_name.get("fit_texture"), "params")
     if texture is not None:
         kept = "kept" if texture.get("kept") else "not kept"

@@ -76,6 +76,7 @@ from pipeline.formats.scene_folder import (
     MESH_PLY,
     PARAMS_JSON,
     copy_scene,
+    fitted_description,
     read_json,
     write_json,
 )
@@ -238,7 +239,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     source_dir = inputs.upstream[source]["fitted_dir" if source == "fit_material" else "textured_dir"]
     source_params = material if source == "fit_material" else read_json(inputs.upstream["fit_texture"]["params"])
     # fit_material's model: it may have chosen opaque over the scene's principled.
-    description = read_json(inputs.upstream["scene"]["description"]) | {"model": material["model"]}
+    description = fitted_description(read_json(inputs.upstream["scene"]["description"]), material)
     model = description["model"]
     loss = conf.loss if conf.loss != "auto" else ("silhouette" if model == "volumetric" else "photometric")
     geometry = copy_scene(source_dir, out_dir / "geometry")

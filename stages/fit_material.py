@@ -16,14 +16,18 @@ envmap+area, simplest first) in a fit of its own, the envmap+area one continuing
 the envmap's; the simplest within ``light.margin`` of the best held-out error is
 kept and written into every scene file.
 
-Model only what the photos show: when the scene leaves the material model open
-(scene.json's ``model_choice``: the capture and the scene stage both say auto),
-the light models are fitted with principled, then opaque is fitted under the
-chosen light, starting from principled's colour, roughness and the specular
-reflectance of its eta; the simplest within ``model_margin`` of the best held-out
-error is kept (an opaque specimen is not given translucency that only absorbs
-the light's or the mesh's error). fit_texture and fit_geometry take the model
-from params.json. Volumetric is never chosen, only named.
+Model only what the photos show (pipeline.fit.candidates): when the scene leaves
+the material model open (scene.json's ``model_choice``: the capture and the scene
+stage both say auto), the light models are fitted with principled, then opaque is
+fitted under the chosen light, starting from principled's colour, roughness and
+the specular reflectance of its eta; volumetric (from principled's eta, colour as
+albedo and roughness) only when principled beat opaque by more than
+``model_margin``. The simplest within ``model_margin`` of the best held-out error
+is kept (an opaque specimen is not given translucency that only absorbs the
+light's or the mesh's error). Then the path depth: the held-out photos are
+rendered at twice the chosen model's depth, and only when that changes their
+error by more than the margin is the model refitted deeper. fit_texture and
+fit_geometry take the model and integrator from params.json.
 
 All in one folder, fitted/ (exported to CAPTURE/output/fitted/, with params.json
 and heldout/ also exported on their own for ``pipeline score``):
@@ -34,7 +38,8 @@ file                content
 scene.xml, ...      the scene folder with the fitted values written into
                     specimen.xml; renders as-is
 params.json         model (and model_choice: every candidate's held-out error and
-                    seconds, and why the winner won), fitted values, bounds,
+                    seconds, why the winner won, and the depth check), the
+                    integrator fitted with, fitted values, bounds,
                     units, best iteration,
                     validation error, why it stopped, photo_gains (each training
                     photo's RGB gain, when exposure or white_balance is fitted;
@@ -70,6 +75,7 @@ from pipeline.core.errors import PipelineError
 from pipeline.core.sections import LightSection
 from pipeline.core.stage import Stage, StageInputs, StageResult
 from pipeline.fit import engine
+from pipeline.fit.candidates import Candidate, choose, improves
 from pipeline.fit.checkpoint import resumable_stage
 from pipeline.fit.outputs import write_fit_log, write_heldout
 from pipeline.fit.settings import FitSettings
@@ -88,7 +94,7 @@ from pipeline.formats.scene_folder import (
 )
 from pipeline.render import light as estimated_light
 from pipeline.render import materials, mitsuba_variant
-from pipeline.render.capture_scene import rewrite_specimen_material
+from pipeline.render.capture_scene import rewrite_integrator, rewrite_specimen_material
 
 
 @dataclass(frozen=True)
@@ -126,50 +132,11 @@ def fit_parameters(model: str, bounds: tuple[str, ...], models: list[str]) -> li
     return materials.fit_parameters(model, overrides)
 
 
-@dataclass
-class Candidate:
-    """One fit: a material model under the given light, or with one light model."""
-
-    model: str
-    """The material model."""
-    light: estimated_light.EstimatedLight | None
-    result: engine.FitResult
-    views: list
-    seconds: float
-
-    def name(self, of: str) -> str:
-        """What the candidate is, as a ``light`` or a ``material`` model."""
-        return self.model if of == "material" else self.light.model if self.light else "given"
-
-    def summary(self, of: str) -> dict:
-        return {
-            "model": self.name(of),
-            "validation_mse": self.result.validation_error,
-            "start_validation_mse": self.result.start_validation_error,
-            "seconds": round(self.seconds, 1),
-        }
-
-
 def light_models(requested: str, estimated: bool) -> list[str]:
     """The light models to fit, simplest first: none when the light is given."""
     if not estimated:
         return []
     return list(estimated_light.LIGHT_MODELS) if requested == "auto" else [requested]
-
-
-def choose(candidates: list[Candidate], margin: float, of: str) -> tuple[Candidate, str]:
-    """The simplest candidate (the first) whose held-out error is within ``margin``
-    (relative) of the best one's, and why; ``of``: a choice of light or material model."""
-    errors = [c.result.validation_error for c in candidates]
-    if len(candidates) == 1 or any(e is None for e in errors):
-        return candidates[-1], f"the only {of} model fitted" if len(candidates) == 1 else "no held-out photos"
-    best = min(errors)
-    for candidate, error in zip(candidates, errors):
-        if error <= best * (1 + margin):
-            return candidate, (
-                f"{candidate.name(of)}: the simplest within {margin:.0%} of the best held-out error ({best:.4g})"
-            )
-    raise AssertionError("the best candidate is within any margin of itself")
 
 
 @resumable_stage
@@ -193,12 +160,14 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
     initial = {name: entry["value"] for name, entry in description["parameters"].items()}
 
-    def fit(model: str, start_light: estimated_light.EstimatedLight | None, start_values: dict = initial) -> Candidate:
+    def fit(model: str, start_light, start_values: dict = initial, integrator: dict | None = None) -> Candidate:
         started = time.perf_counter()
+        integrator = integrator or description.get("integrators", {}).get(model, description["integrator"])
         rewrite_specimen_material(fitted / SPECIMEN_XML, model, start_values)
         if start_light is not None:
             estimated_light.write(start_light, fitted, description, {n: pose for n, (_, pose) in cameras.items()})
-        views = [view for view, _ in load_views(fitted, description, *photos, conf.max_size, conf.erode_px, conf.spp)]
+        seen = description | {"model": model, "integrator": integrator}
+        views = [view for view, _ in load_views(fitted, seen, *photos, conf.max_size, conf.erode_px, conf.spp)]
         held = set(held_out_names([v.name for v in views], conf.held_out))
         fitted_parameters = parameters[model] + (
             estimated_light.parameters(start_light, light.smoothness) if start_light else []
@@ -211,42 +180,51 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         if start_light is not None:
             end_light = estimated_light.fitted(start_light, {**result.values, **result.textures})
             logger.info("light %s: held-out error %.4g", end_light.model, result.validation_error or float("nan"))
-        return Candidate(model, end_light, result, views, time.perf_counter() - started)
+        return Candidate(model, end_light, integrator, result, views, time.perf_counter() - started)
 
-    # 3. The fit: the richest model under the given light, or with each light model, simplest first.
-    richest = models[-1]
+    # 3. The fit: the scene's model under the given light, or with each light model, simplest first.
+    scene_model = description["model"]
     light_candidates = light_models(light.model, light.estimated)
     if not light_candidates:
-        candidates = [fit(richest, None)]
+        candidates = [fit(scene_model, None)]
     else:
         level = np.array(description["light"]["level"], np.float32)
         candidates = []
         for light_model in light_candidates:
             if light_model == "envmap+area":
                 envmap = next((c for c in candidates if c.light.model == "envmap"), None) or fit(
-                    richest, estimated_light.start("envmap", light.frame, level, light.environment_width)
+                    scene_model, estimated_light.start("envmap", light.frame, level, light.environment_width)
                 )
                 area = estimated_light.with_area(envmap.light, *_specimen_sphere(fitted, light.frame, cameras, light))
-                candidates.append(fit(richest, area, envmap.result.values))
+                candidates.append(fit(scene_model, area, envmap.result.values))
             else:
                 start = estimated_light.start(light_model, light.frame, level, light.environment_width)
-                candidates.append(fit(richest, start))
+                candidates.append(fit(scene_model, start))
     chosen, why = choose(candidates, light.margin, "light")
 
-    # 4. The material model, when the scene leaves it open: opaque under the chosen light,
-    # from principled's fit; the simplest within model_margin of the best is kept.
-    material_candidates = [chosen]
-    if models == ["opaque", "principled"]:
+    # 4. The material model, when the scene leaves it open: opaque under the chosen light
+    # (from principled's fit), volumetric only when principled beat opaque by more than
+    # model_margin; the simplest within the margin of the best is kept. Then the path depth.
+    material_candidates, depth = [chosen], None
+    if len(models) > 1:
         material_candidates.insert(
             0, fit("opaque", chosen.light, materials.opaque_from_principled(chosen.result.values))
         )
+        if "volumetric" in models and improves(chosen, material_candidates[0], conf.model_margin):
+            start = materials.volumetric_from_principled(chosen.result.values)
+            material_candidates.append(fit("volumetric", chosen.light, start))
     material, model_why = choose(material_candidates, conf.model_margin, "material")
+    if len(models) > 1:
+        material, depth = _deeper(
+            material, conf, lambda i: fit(material.model, material.light, material.result.values, i)
+        )
     model, result = material.model, material.result
 
     # 5. The fitted scene, its light, log, held-out renders and params.json.
     if material.light is not None:
         estimated_light.write(material.light, fitted, description, {n: pose for n, (_, pose) in cameras.items()})
     rewrite_specimen_material(fitted / SPECIMEN_XML, model, result.values)
+    rewrite_integrator(fitted, material.integrator)
     held = sorted(set(held_out_names([v.name for v in material.views], conf.held_out)))
     write_fit_log(fitted, result.log)
     write_heldout([v for v in material.views if v.name in held], 4 * conf.validation_spp, fitted / HELDOUT)
@@ -269,7 +247,9 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
                 "chosen": model,
                 "why": model_why,
                 "candidates": [c.summary("material") for c in material_candidates],
+                "depth": depth,
             },
+            "integrator": material.integrator,
             "best_iteration": result.best_iteration,
             "iterations": len(result.log),
             "validation_mse": result.validation_error,
@@ -292,6 +272,30 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     return StageResult(outputs, metrics)
 
 
+def _deeper(material: Candidate, conf: Config, refit) -> tuple[Candidate, dict]:
+    """The chosen fit, or one at twice its path depth: the held-out photos rendered
+    deeper with the chosen values first (a few renders); only when that changes their
+    error by more than model_margin is the model refitted deeper (``refit(integrator)``)
+    and the simplest within the margin kept. Returns the winner and what was measured."""
+    import mitsuba as mi
+
+    deeper = material.integrator | {"max_depth": 2 * material.integrator["max_depth"]}
+    held = [v for v in material.views if v.name in set(held_out_names([v.name for v in material.views], conf.held_out))]
+    shallow_error = material.result.validation_error
+    if not held or shallow_error is None:
+        return material, {"why": "no held-out photos"}
+    integrator = mi.load_dict({"type": deeper["differentiable"], "max_depth": deeper["max_depth"]})
+    deep_error = engine.heldout_error(held, conf.validation_spp, integrator)
+    report = {"max_depth": material.integrator["max_depth"], "deeper_validation_mse": deep_error}
+    change = abs(deep_error - shallow_error) / shallow_error
+    if change <= conf.model_margin:
+        why = f"rendered at max_depth {deeper['max_depth']}, the held-out error changes by {change:.1%}: kept"
+        return material, report | {"why": why}
+    candidates = [material, refit(deeper)]
+    winner, why = choose(candidates, conf.model_margin, "depth")
+    return winner, report | {"why": why, "candidates": [c.summary("depth") for c in candidates]}
+
+
 def _specimen_sphere(fitted: Path, frame: str, cameras: dict, light: LightSection) -> tuple[np.ndarray, float]:
     """(centre in the light's frame, the softbox's distance) for light.with_area: the
     specimen's bounding-sphere centre (in the first photo's camera coordinates when the
@@ -307,7 +311,7 @@ def _specimen_sphere(fitted: Path, frame: str, cameras: dict, light: LightSectio
 
 STAGE = Stage(
     name="fit_material",
-    version=9,
+    version=10,
     config=Config,
     main=main,
     needs=("scene.scene_dir", "scene.description", "sfm.cameras", "undistort.pinhole", "masks.masks_json"),

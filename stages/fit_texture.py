@@ -85,6 +85,7 @@ from pipeline.formats.scene_folder import (
     PARAMS_JSON,
     SPECIMEN_XML,
     copy_scene,
+    fitted_description,
     read_json,
     write_json,
 )
@@ -171,7 +172,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     material_dir = inputs.upstream["fit_material"]["fitted_dir"]
     material = read_json(inputs.upstream["fit_material"]["params"])
     # fit_material's model: it may have chosen opaque over the scene's principled.
-    description = read_json(inputs.upstream["scene"]["description"]) | {"model": material["model"]}
+    description = fitted_description(read_json(inputs.upstream["scene"]["description"]), material)
     model = description["model"]
     slot = materials.TEXTURE_SLOTS[model]
     textured = copy_scene(material_dir, out_dir / "textured")

@@ -26,7 +26,8 @@ mesh.ply            the mesh with UVs (a copy of uv's)
 board.png           the board's print, when the board is in the scene
 scene.json          model, model_choice (the models fit_material chooses between),
                     integrator (the render one the files name, its depth,
-                    and the differentiable one the fit uses), fitted parameters
+                    and the differentiable one the fit uses; integrators: one per
+                    model of model_choice), fitted parameters
                     (Mitsuba key, value, bounds, units) and per photo its view
                     file and sensor id
 preview.png         the first view rendered from its view file, cropped to the
@@ -88,8 +89,8 @@ class Config:
 
     model: Literal["auto", "opaque", "principled", "volumetric"] = "auto"
     """Material model (pipeline.render.materials); auto takes capture.material. When that is
-    auto too, the scene starts principled and fit_material chooses opaque or principled
-    by held-out error (scene.json's model_choice; fit_material.model_margin)."""
+    auto too, the scene starts principled and fit_material chooses opaque, principled or
+    volumetric by held-out error (scene.json's model_choice; fit_material.model_margin)."""
     max_depth: Annotated[int, Range(0, 1024)] = 0
     """Longest light path; 0 takes the model's (opaque 4, principled 8, volumetric 32)."""
     spp: Annotated[int, Range(1, None)] = 64
@@ -107,10 +108,10 @@ class Config:
 
 
 def model_choice(conf: Config, capture: CaptureSection) -> list[materials.MaterialModel]:
-    """The models fit_material chooses between, simplest first (the scene is written with
-    the last): opaque and principled when neither the stage nor the capture names one."""
+    """The models fit_material chooses between, simplest first: materials.MODEL_LADDER
+    when neither the stage nor the capture names one."""
     named = conf.model if conf.model != "auto" else capture.material
-    return ["opaque", "principled"] if named == "auto" else [named]
+    return list(materials.MODEL_LADDER) if named == "auto" else [named]
 
 
 def _environment_file(light: LightSection, capture_dir: Path, out_dir: Path) -> str | None:
@@ -203,7 +204,7 @@ def _poses(views: dict) -> dict:
 
 def _description(
     model: str,
-    integrator: tuple,
+    integrator: dict,
     light: LightSection,
     near_clip: float,
     board,
@@ -225,11 +226,7 @@ def _description(
     }
     return {
         "model": model,
-        "integrator": {
-            "type": materials.RENDER_INTEGRATORS[integrator[0]],
-            "max_depth": integrator[1],
-            "differentiable": integrator[0],
-        },
+        "integrator": integrator,
         "light_frame": light.frame,
         "near_clip": near_clip,
         "board_in_scene": board is not None,
@@ -248,10 +245,9 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     cameras_json = inputs.upstream["sfm"]["cameras"]
     frame, views = read_frame(cameras_json), read_views(cameras_json)
     choice = model_choice(conf, inputs.shared["capture"])
-    model = choice[-1]
-    integrator = materials.INTEGRATORS[model]
-    if conf.max_depth:
-        integrator = (integrator[0], conf.max_depth)
+    model = materials.OPEN_SCENE_MODEL if len(choice) > 1 else choice[0]
+    integrators = {m: materials.integrator_description(m, conf.max_depth) for m in choice}
+    integrator = (integrators[model]["differentiable"], integrators[model]["max_depth"])
     if not frame.get("metric") and not light.estimated and light.area_light:
         logger.warning(
             "the world frame is not metric (%s): the light positions in [light] are used as they are",
@@ -310,8 +306,9 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     first = sorted(views)[0]
     render_preview(view_files[first], *views[first], near_clip, mesh, conf.preview_spp, out_dir / "preview.png")
     ground = {"radius": ground_radius, "albedo": ground_albedo} if ground_albedo else None
-    description = _description(model, integrator, light, near_clip, board, ground, values, view_files, out_dir)
+    description = _description(model, integrators[model], light, near_clip, board, ground, values, view_files, out_dir)
     description["model_choice"] = choice
+    description["integrators"] = integrators
     description["light"] = light_json
     scene_json = write_json(out_dir / DESCRIPTION_JSON, description)
     outputs = {"scene_dir": out_dir, "scene": scene, "description": scene_json, "preview": out_dir / "preview.png"}
@@ -320,7 +317,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="scene",
-    version=4,
+    version=5,
     config=Config,
     main=main,
     needs=("uv.mesh", "sfm.cameras", "undistort.pinhole", "masks.masks_json"),

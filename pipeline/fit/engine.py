@@ -134,6 +134,19 @@ def fit_shape(
     )
 
 
+def heldout_error(validation: list[FitView], spp: int, integrator) -> float:
+    """The held-out error of the views' scenes as they stand, rendered with
+    ``integrator``: the dual estimator with the seeds a fit's validation uses, so it is
+    comparable with the FitResult.validation_error of the same views at the same spp."""
+    import drjit as dr
+    import mitsuba as mi
+
+    views = _with_pixels(validation)
+    with dr.suspend_grad():
+        errors = [loop.Target.of(v, mi, dr).heldout_error(v, i, spp, mi, dr, integrator) for i, v in enumerate(views)]
+    return float(np.mean(errors))
+
+
 def parse_bounds(entries: tuple[str, ...] | list[str], where: str) -> dict[str, tuple[float, float]]:
     """Entries "name=lower:upper" (config or command line) as {name: (lower, upper)}."""
     result = {}

@@ -73,7 +73,7 @@ def shape_pass(
     else:
         # The silhouette and its surroundings carry the shape: every window pixel counts.
         views = [engine.FitView(v.name, v.scene, v.sensor, v.reference) for v, _ in windowed]
-        kind, depth = materials.INTEGRATORS[description["model"]]
+        kind, depth = description["integrator"]["differentiable"], description["integrator"]["max_depth"]
         integrator = (
             {"type": "prb_projective", "max_depth": depth, "sppi": 0}
             if kind == "prb"

@@ -56,6 +56,15 @@ def write_json(path: Path, data: dict) -> Path:
     return path
 
 
+def fitted_description(description: dict, material: dict) -> dict:
+    """scene.json's description with fit_material's choices (its params.json): the
+    material model, and the integrator it was fitted with."""
+    return description | {
+        "model": material["model"],
+        "integrator": material.get("integrator", description["integrator"]),
+    }
+
+
 def copy_scene(source: Path, target: Path) -> Path:
     """``source``'s scene into the new folder ``target``, without fit results."""
     shutil.copytree(source, target, ignore=shutil.ignore_patterns(*FIT_RESULTS))

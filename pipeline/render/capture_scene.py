@@ -100,6 +100,22 @@ def rewrite_specimen_material(path: Path, model: str, values: dict) -> None:
     scene_xml.write(tree.getroot(), path, SPECIMEN_COMMENT)
 
 
+def rewrite_integrator(folder: Path, integrator: dict) -> None:
+    """Every scene file in ``folder`` made to render with ``integrator`` (scene.json's
+    form: the render type and max_depth), comments kept."""
+    for path in sorted(folder.glob("*.xml")):
+        root = ET.parse(path, ET.XMLParser(target=ET.TreeBuilder(insert_comments=True))).getroot()
+        old = root.find("integrator")
+        if old is None:
+            continue
+        properties = {"type": integrator["type"], "id": "integrator", "max_depth": integrator["max_depth"]}
+        new = scene_xml.plugin(root, "integrator", properties)
+        root.remove(new)
+        root.insert(list(root).index(old), new)
+        root.remove(old)
+        scene_xml.write(root, path)
+
+
 def _add_material(shape, model: str, values: dict) -> None:
     bsdf, medium = materials.bsdf_and_medium(model, values)
     scene_xml.plugin(shape, "bsdf", bsdf)

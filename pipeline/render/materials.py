@@ -134,6 +134,25 @@ RENDER_INTEGRATORS: dict[str, str] = {"prb": "path", "prbvolpath": "volpath"}
 """The integrator a scene file names for a differentiable one: the same image, and one
 the ``mitsuba`` command-line renderer has (prb and prbvolpath exist only in Python)."""
 
+MODEL_LADDER: tuple[MaterialModel, ...] = ("opaque", "principled", "volumetric")
+"""The models a scene that leaves the model open chooses between, simplest first."""
+
+OPEN_SCENE_MODEL: MaterialModel = "principled"
+"""The model a scene that leaves the model open is written with and its light fitted
+with: rich enough to take up what an opaque surface cannot show, and several times
+cheaper to render than a medium."""
+
+
+def integrator_description(model: MaterialModel, max_depth: int = 0) -> dict:
+    """scene.json's integrator entry for ``model``: the render integrator the files
+    name, the differentiable one the fits use, and the path depth (0: the model's)."""
+    differentiable, depth = INTEGRATORS[model]
+    return {
+        "type": RENDER_INTEGRATORS[differentiable],
+        "max_depth": max_depth or depth,
+        "differentiable": differentiable,
+    }
+
 
 @dataclass(frozen=True)
 class TextureSlot:
@@ -228,6 +247,15 @@ def opaque_from_principled(values: dict) -> dict:
     eta = values["eta"][0]
     specular = min(max(((eta - 1) / (eta + 1)) ** 2 / 0.08, 0.0), 1.0)
     return {"base_color": values["base_color"], "roughness": values["roughness"], "specular": [specular]}
+
+
+def volumetric_from_principled(values: dict) -> dict:
+    """Volumetric start values from principled ones: the same eta, the colour as the
+    medium's albedo, GGX alpha = roughness squared (Disney's mapping), the default
+    extinction."""
+    alpha = min(max(values["roughness"][0] ** 2, PARAMETERS["alpha"].lower), PARAMETERS["alpha"].upper)
+    albedo = [min(max(c, PARAMETERS["albedo"].lower), 1.0) for c in values["base_color"]]
+    return {"alpha": [alpha], "eta": values["eta"], "albedo": albedo, "sigma_t": list(PARAMETERS["sigma_t"].initial)}
 
 
 def initial_values(model: MaterialModel) -> dict[str, tuple[float, ...]]:

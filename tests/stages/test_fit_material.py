@@ -130,28 +130,42 @@ def test_an_estimated_light_is_chosen_by_held_out_error_and_written_into_the_sce
 
 
 def test_a_material_model_left_open_is_chosen_by_held_out_error_and_carried_downstream(run_stages, bird_capture, mi):
-    """capture.material = auto: fit_material fits principled, then opaque from it, and
-    keeps the simplest within model_margin of the best (margin 1: opaque, unless it is
-    twice as bad). The scene file, params.json and fit_texture follow the choice."""
-    margin = 1.0
-    overrides = (*TINY_FIT, "capture.material=auto", f"fit_material.model_margin={margin}", *TINY_TEXTURE)
+    """capture.material = auto: fit_material fits principled, then opaque from it, then
+    volumetric only when principled beat opaque by more than model_margin; keeps the
+    simplest within the margin of the best (margin 0: the best), then checks twice the
+    path depth. The scene files, params.json and fit_texture follow the choice."""
+    overrides = (*TINY_FIT, "capture.material=auto", "fit_material.model_margin=0", *TINY_TEXTURE)
     outputs = run_stages(bird_capture, "fit_texture", *overrides, "fit_texture.texture=off")
-    assert json.loads(outputs["scene"]["description"].read_text())["model_choice"] == ["opaque", "principled"]
+    description = json.loads(outputs["scene"]["description"].read_text())
+    assert description["model_choice"] == ["opaque", "principled", "volumetric"]
+    assert description["model"] == "principled" and set(description["integrators"]) == set(description["model_choice"])
     params = json.loads(outputs["fit_material"]["params"].read_text())
     choice = params["model_choice"]
     errors = {c["model"]: c["validation_mse"] for c in choice["candidates"]}
-    assert list(errors) == ["opaque", "principled"] and all(c["seconds"] > 0 for c in choice["candidates"])
-    expected = "opaque" if errors["opaque"] <= (1 + margin) * min(errors.values()) else "principled"
-    assert choice["chosen"] == params["model"] == expected and params["validation_mse"] == errors[expected]
+    climbed = errors["principled"] < errors["opaque"]
+    assert list(errors) == ["opaque", "principled", *(["volumetric"] if climbed else [])]
+    assert all(c["seconds"] > 0 for c in choice["candidates"])
+    expected = min(errors, key=errors.get)
+    assert choice["chosen"] == params["model"] == expected
     names = {
         "opaque": {"base_color", "roughness", "specular"},
         "principled": {"base_color", "roughness", "spec_trans", "eta"},
+        "volumetric": {"alpha", "eta", "albedo", "sigma_t"},
     }
     assert set(params["params"]) == names[expected]
-    bsdf = mi.traverse(mi.load_file(str(outputs["fit_material"]["scene"])))
-    assert ("specimen.bsdf.eta" in bsdf.keys()) == (expected == "principled")
-    np.testing.assert_allclose(
-        np.ravel(bsdf["specimen.bsdf.roughness.value"]), params["params"]["roughness"], rtol=1e-5
-    )
+    # The depth: the chosen model's own, or twice it when a deeper refit won.
+    depth = choice["depth"]
+    own = description["integrators"][expected]["max_depth"]
+    assert depth["max_depth"] == own and depth["deeper_validation_mse"] > 0
+    deeper = {c["model"]: c["validation_mse"] for c in depth.get("candidates", [])}
+    assert not deeper or list(deeper) == [f"max_depth {own}", f"max_depth {2 * own}"]
+    chosen_depth = 2 * own if deeper and deeper[f"max_depth {2 * own}"] < deeper[f"max_depth {own}"] else own
+    assert params["integrator"] == description["integrators"][expected] | {"max_depth": chosen_depth}
+    assert params["validation_mse"] == (deeper[f"max_depth {chosen_depth}"] if deeper else errors[expected])
+    scene = mi.load_file(str(outputs["fit_material"]["scene"]))
+    assert f"max_depth = {chosen_depth}" in str(scene.integrator())
+    values = mi.traverse(scene)
+    assert ("specimen.bsdf.spec_trans.value" in values.keys()) == (expected == "principled")
+    assert ("specimen.interior_medium.sigma_t.value.value" in values.keys()) == (expected == "volumetric")
     texture = json.loads(outputs["fit_texture"]["params"].read_text())
     assert texture["model"] == expected and set(texture["params"]) == names[expected]

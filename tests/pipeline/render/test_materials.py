@@ -1,8 +1,9 @@
 """pipeline.render.materials and the specimen file rewritten with another model."""
 
 import pytest
+import trimesh
 
-from pipeline.render import capture_scene, materials
+from pipeline.render import capture_scene, materials, scene_xml
 
 
 def test_opaque_from_principled_keeps_colour_and_roughness_and_the_reflectance_of_eta():
@@ -24,3 +25,31 @@ def test_the_specimen_file_takes_another_models_material_and_keeps_what_it_stand
     capture_scene.rewrite_specimen_material(path, "opaque", materials.opaque_from_principled(principled))
     text = path.read_text()
     assert "specular" in text and "homogeneous" not in text and "spec_trans" not in text
+
+
+def test_volumetric_from_principled_keeps_eta_and_colour_and_squares_roughness_inside_the_bounds():
+    values = materials.volumetric_from_principled({"base_color": [0.2, 0.0, 0.4], "roughness": [0.5], "eta": [1.4]})
+    assert values["eta"] == [1.4] and values["alpha"] == [pytest.approx(0.25)]
+    assert values["albedo"] == [0.2, materials.PARAMETERS["albedo"].lower, 0.4]  # 0 would never come back
+    assert values["sigma_t"] == list(materials.PARAMETERS["sigma_t"].initial)
+    tiny = materials.volumetric_from_principled({"base_color": [0.5] * 3, "roughness": [0.001], "eta": [1.5]})
+    assert tiny["alpha"] == [materials.PARAMETERS["alpha"].lower]
+
+
+def test_scene_files_are_rewritten_to_another_integrator_and_still_load(tmp_path, mi):
+    """The scene and view files name the render integrator of the model fit_material
+    chose (a medium needs volpath), at its depth; comments and sensors stay."""
+    trimesh.creation.icosphere(subdivisions=1, radius=0.05).export(tmp_path / "mesh.ply")
+    specimen = tmp_path / "specimen.xml"
+    capture_scene.write_specimen_file(specimen, "volumetric", materials.initial_values("volumetric"), None, None)
+    root = scene_xml.new_scene()
+    scene_xml.plugin(root, "integrator", {"type": "path", "id": "integrator", "max_depth": 8})
+    scene_xml.include(root, "specimen.xml")
+    scene_xml.write(root, tmp_path / "scene.xml", "the scene stage's note")
+    volumetric = materials.integrator_description("volumetric")
+    assert volumetric == {"type": "volpath", "max_depth": 32, "differentiable": "prbvolpath"}
+    capture_scene.rewrite_integrator(tmp_path, volumetric | {"max_depth": 64})
+    text = (tmp_path / "scene.xml").read_text()
+    assert "the scene stage's note" in text and text.count("<integrator") == 1
+    integrator = mi.load_file(str(tmp_path / "scene.xml")).integrator()
+    assert str(integrator).startswith("VolumetricSimplePathIntegrator[") and "max_depth = 64" in str(integrator)
