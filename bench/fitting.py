@@ -1,5 +1,5 @@
-"""Benchmark of the fitting stages (issue 6): accuracy, time, the speed/accuracy trade
-and numerical stability at the extremes.
+"""Benchmark of the fitting stages (issue 6): accuracy, time, and numerical stability
+at the extremes.
 
 Parts (``--parts``, all by default; each rewrites its own section of docs/benchmarks.md):
 
@@ -17,10 +17,9 @@ oracle     fit_material again on bird_volumetric with the visual hull's shading 
 texture-oracle
            uv, scene, fit_material and fit_texture on the bird's true mesh: whether the
            texture's error is the mesh's or the fit's
-trade      fit_material on the bird for a grid of window size, spp and loss; fit_texture
-           for a grid of texture resolution, smoothness prior and window size
+(The speed/accuracy trade has a benchmark of its own: bench/trade.py.)
 
-Usage: ``.venv/bin/python bench/fitting.py [--parts extremes,accuracy,oracle,texture-oracle,trade]
+Usage: ``.venv/bin/python bench/fitting.py [--parts extremes,accuracy,oracle,texture-oracle]
 [--workdir DIR] [--samples bird,bird_volumetric]`` (after bin/bootstrap). About 50
 minutes on 2 cores (the oracles about 20 more); a ``--workdir`` keeps the stage caches, so an interrupted run
 resumes where it stopped. A sample whose pipeline run fails is reported as failed.
@@ -69,10 +68,6 @@ TARGETS = {
 PSNR_TARGET = 30.0
 FRONT_STAGES = ("calibrate", "undistort", "masks", "sfm", "mesh", "cleanup", "uv")
 FIT_STAGES = ("scene", "fit_material", "fit_texture", "fit_geometry", "export")
-# (max_size, spp, loss) of fit_material; the standard preset is (128, 16, dual)
-TRADE = ((64, 4, "dual"), (64, 16, "dual"), (128, 4, "dual"), (128, 16, "dual"), (128, 16, "l2"), (256, 16, "dual"))
-# (max_resolution, smoothness, max_size) of fit_texture; the standard preset is (128, 0.05, 128)
-TEXTURE_TRADE = ((64, 0.05, 128), (128, 0.05, 128), (256, 0.05, 128), (256, 0.01, 128), (256, 0.05, 192))
 EXTRA_PROBES = {
     "principled": [("eta", 1.0, {"eta": (1.0, 3.0)})],
     "volumetric": [("eta", 1.0, {"eta": (1.0, 3.0)}), ("albedo", 0.0, {"albedo": (0.0, 1.0)}), ("sigma_t", 1e4, None)],
@@ -420,79 +415,9 @@ def texture_oracle_part(work: Path) -> None:
     )
 
 
-def trade_part(work: Path) -> None:
-    capture = _copy_sample("bird", work)
-    truth = json.loads((capture / "ground_truth" / "material.json").read_text())
-    rows = []
-    for max_size, spp, loss in TRADE:
-        outputs, seconds = run_stages(
-            capture,
-            "fit_material",
-            f"fit_material.max_size={max_size}",
-            f"fit_material.spp={spp}",
-            f"fit_material.loss={loss}",
-        )
-        params = json.loads(outputs["fit_material"]["params"].read_text())
-        cells = _error_cells(score_material(params, truth))
-        psnr = score_heldout(outputs["fit_material"]["heldout"])["psnr_db_mean"]
-        rows.append(
-            f"| {max_size} | {spp} | {loss} | {seconds['fit_material']:.0f} s | "
-            + " | ".join(cells[n][1] for n in ("base_color", "roughness", "spec_trans", "eta"))
-            + f" | {psnr:.1f} dB |"
-        )
-    texture_rows = []
-    for resolution, smoothness, max_size in TEXTURE_TRADE:
-        outputs, seconds = run_stages(
-            capture,
-            "fit_texture",
-            f"fit_texture.max_resolution={resolution}",
-            f"fit_texture.smoothness={smoothness}",
-            f"fit_texture.max_size={max_size}",
-        )
-        fitted = json.loads((outputs["fit_texture"]["textured_dir"] / "params.json").read_text())
-        iterations = " + ".join(str(level["iterations"]) for level in [fitted["constants_fit"], *fitted["levels"]])
-        report = score_capture(capture)
-        texture, constants = report["texture"], _error_cells(report["material_fit_texture"])
-        texture_cell, other_cells = _texture_cells(texture, constants, report["heldout_textured"]["psnr_db_mean"])
-        texture_rows.append(
-            f"| {resolution} | {smoothness:g} | {max_size} | {seconds['fit_texture']:.0f} s | {iterations} | "
-            f"{texture_cell} | {other_cells} |"
-        )
-    print(
-        write_section(
-            "fitting-trade",
-            [
-                "### Speed against accuracy (fit_material)",
-                "",
-                "fit_material on the bird (principled) with the standard preset's 150 iterations,",
-                "for window sizes (longer side, px), samples per pixel and losses; the standard",
-                "preset is 128 / 16 / dual. Errors as in the accuracy table (base colour against the",
-                "texture's mean). Reproduce: `.venv/bin/python bench/fitting.py --parts trade`.",
-                "",
-                "| max_size | spp | loss | fit_material time | base_color | roughness | spec_trans | eta "
-                "| held-out PSNR |",
-                "|---|---|---|---|---|---|---|---|---|",
-                *rows,
-                "",
-                "fit_texture on the bird after the standard fit_material, for the finest texture",
-                "resolution (3 levels, 30 iterations each, constants refitted), the smoothness",
-                "prior's weight and the training window; texture error as in the accuracy table",
-                "(largest channel's mean, and p90), then the refitted constants' errors. Iterations:",
-                "constants alone + each level; a level stops early when its loss flattens",
-                "(fit_texture.tolerance), so time is not a function of the resolution alone.",
-                "",
-                "| max_resolution | smoothness | max_size | fit_texture time | iterations | texture error (p90) "
-                "| roughness | spec_trans | eta | held-out PSNR |",
-                "|---|---|---|---|---|---|---|---|---|---|",
-                *texture_rows,
-            ],
-        )
-    )
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--parts", default="extremes,accuracy,oracle,texture-oracle,trade")
+    parser.add_argument("--parts", default="extremes,accuracy,oracle,texture-oracle")
     parser.add_argument("--workdir", type=Path, help="keep captures and caches here (default: a temporary folder)")
     parser.add_argument("--samples", default="bird,bird_volumetric", help="sample captures of the accuracy part")
     args = parser.parse_args()
@@ -508,8 +433,6 @@ def main() -> None:
             oracle_part(work)
         if "texture-oracle" in parts:
             texture_oracle_part(work)
-        if "trade" in parts:
-            trade_part(work)
 
 
 if __name__ == "__main__":

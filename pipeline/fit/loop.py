@@ -182,6 +182,22 @@ class _Loop:
         # Frozen functions per loop: their recordings belong to this loop's scenes.
         self.frozen: dict[tuple[int, ...], Callable] = {}
         self.skipped = 0
+        windows = len({self.window(v) for v in self.training})
+        replays = settings.iterations * self.batches.size / max(windows, 1)
+        if settings.freeze and replays < settings.freeze_min_replays:
+            logger.info(
+                "%s: %d view windows replayed %.0f times each at most: traced, not frozen (freeze_min_replays %d)",
+                label,
+                windows,
+                replays,
+                settings.freeze_min_replays,
+            )
+            self.settings = replace(settings, freeze=False)
+
+    @staticmethod
+    def window(view: FitView) -> tuple[int, ...]:
+        """What a recording is made for: film size and crop offset (see view_loss)."""
+        return (*view.reference.shape[:2], *view.sensor.film().crop_offset())
 
     def view_loss(self, view: FitView) -> Callable:
         """view_loss, or its frozen form for the view's window (film size and crop
@@ -191,7 +207,7 @@ class _Loop:
         one size recorded 6 times in 16 steps through one function, once each apart)."""
         if not self.settings.freeze:
             return view_loss
-        window = (*view.reference.shape[:2], *view.sensor.film().crop_offset())
+        window = self.window(view)
         if window not in self.frozen:
             self.frozen[window] = self.dr.freeze(view_loss)
         return self.frozen[window]

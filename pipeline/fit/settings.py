@@ -41,7 +41,12 @@ class LoopSettings:
     freeze: bool = True
     """Record each view's render, loss and backpropagation once (``dr.freeze``) and
     replay it on later steps instead of tracing it again: half the time of a step at
-    64 px on a CPU (docs/benchmarks.md, "Fitting speed")."""
+    64 px on a CPU (docs/benchmarks.md, "Fitting speed"), when a recording is replayed
+    often enough to pay for itself (``freeze_min_replays``)."""
+    freeze_min_replays: Annotated[int, Range(0, None)] = 30
+    """Freeze only when each recording (one per view window) would be replayed at least
+    this many times on average (iterations x batch / distinct windows): a recording
+    costs about as much as tracing the step tens of times."""
 
 
 @dataclass(frozen=True)

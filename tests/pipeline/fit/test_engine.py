@@ -431,7 +431,7 @@ def test_later_steps_compile_no_kernel(mi, references, tmp_path):
 
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     try:
-        settings = engine.FitSettings(iterations=12, batch=2, spp=4, tolerance=0.0)
+        settings = engine.FitSettings(iterations=12, batch=2, spp=4, tolerance=0.0, freeze_min_replays=0)
         engine.fit(PARAMETERS, views, [], settings, on_iteration=on_iteration)
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, False)
@@ -445,7 +445,7 @@ def test_a_frozen_step_gives_the_unfrozen_fit(mi, references, tmp_path):
             PARAMETERS,
             _views(mi, scene, references / "references"),
             [],
-            engine.FitSettings(iterations=5, batch=2, spp=4, tolerance=0.0, freeze=freeze),
+            engine.FitSettings(iterations=5, batch=2, spp=4, tolerance=0.0, freeze=freeze, freeze_min_replays=0),
         )
         for freeze in (True, False)
     ]
@@ -470,9 +470,16 @@ def test_views_of_different_windows_each_replay_their_own_recording(mi, referenc
     recordings = []
     freeze = dr.freeze
     monkeypatch.setattr(dr, "freeze", lambda f: recordings.append(freeze(f)) or recordings[-1])
-    settings = engine.FitSettings(iterations=16, batch=3, spp=4, tolerance=0.0)
+    settings = engine.FitSettings(iterations=16, batch=3, spp=4, tolerance=0.0, freeze_min_replays=0)
     engine.fit(PARAMETERS, views, [], settings)
     assert len(recordings) == 3 and all(r.n_recordings <= 3 for r in recordings)
+    # A recording per window pays only when replayed often: 16 steps over 3 windows is
+    # 16 replays each, fewer than the default's 30, so nothing is recorded.
+    recordings.clear()
+    engine.fit(PARAMETERS, views, [], engine.FitSettings(iterations=16, batch=3, spp=4, tolerance=0.0))
+    assert recordings == []
+    engine.fit(PARAMETERS, views, [], engine.FitSettings(iterations=30, batch=3, spp=4, tolerance=0.0))
+    assert len(recordings) == 3
 
 
 def test_white_balance_recovers_each_photos_gains_and_the_true_colour(mi, references, tmp_path):
@@ -556,7 +563,8 @@ def test_a_recording_dr_jit_refuses_to_replay_is_traced_instead(mi, references, 
 
     monkeypatch.setattr(dr, "freeze", refusing)
     views = _views(mi, scene, references / "references")
-    result = engine.fit(PARAMETERS, views, [], engine.FitSettings(iterations=4, batch=2, spp=4, tolerance=0.0))
+    settings = engine.FitSettings(iterations=4, batch=2, spp=4, tolerance=0.0, freeze_min_replays=0)
+    result = engine.fit(PARAMETERS, views, [], settings)
     assert "could not replay a recording" in caplog.text
     for name in unfrozen.values:
         np.testing.assert_allclose(result.values[name], unfrozen.values[name], rtol=1e-4)
