@@ -115,6 +115,9 @@ class MaterialVariables:
                 taken = np.ravel(np.array(value, dtype=np.float32))[list(parameter.layout.take)]
                 value = self.mi.TensorXf(taken.reshape(parameter.layout.shape))
             latent = dr.log(value) if parameter.log else type(value)(value)
+            # A start value read from a scene file is a literal, which Dr.Jit would bake
+            # into the first renders' kernels (compiled anew for every start value).
+            dr.make_opaque(latent)
             optimizer[parameter.name] = latent
             optimizer.set_learning_rate({parameter.name: parameter.learning_rate * learning_rate_scale})
             if parameter.fixed_mean:
