@@ -59,7 +59,7 @@ def choose(candidates: list[Candidate], margin: float, of: Choice) -> tuple[Cand
     (relative) of the best one's, and why."""
     errors = [c.result.validation_error for c in candidates]
     if len(candidates) == 1 or any(e is None for e in errors):
-        return candidates[-1], f"the only {of} fitted" if len(candidates) == 1 else "no held-out photos"
+        return candidates[-1], f"the only {of} candidate fitted" if len(candidates) == 1 else "no held-out photos"
     best = min(errors)
     for candidate, error in zip(candidates, errors):
         if error <= best * (1 + margin):

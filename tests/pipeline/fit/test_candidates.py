@@ -23,7 +23,7 @@ def test_without_held_out_errors_the_last_candidate_is_kept_and_said_why():
     assert choose([_candidate("opaque", None), _candidate("principled", None)], 0.05, "material")[1] == (
         "no held-out photos"
     )
-    assert choose([_candidate("principled", 0.1)], 0.05, "material")[1] == "the only material fitted"
+    assert choose([_candidate("principled", 0.1)], 0.05, "material")[1] == "the only material candidate fitted"
 
 
 @pytest.mark.parametrize(
