@@ -162,7 +162,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
     def fit(model: str, start_light, start_values: dict = initial, integrator: dict | None = None) -> Candidate:
         started = time.perf_counter()
-        integrator = integrator or description.get("integrators", {}).get(model, description["integrator"])
+        integrator = integrator or description["integrators"][model]
         rewrite_specimen_material(fitted / SPECIMEN_XML, model, start_values)
         if start_light is not None:
             estimated_light.write(start_light, fitted, description, {n: pose for n, (_, pose) in cameras.items()})

@@ -260,16 +260,19 @@ class _Loop:
                 logger.warning("%s, step %d: non-finite gradient of %s dropped", self.label, iteration, key)
 
     def validate(self) -> float:
-        errors = []
         with self.dr.suspend_grad():
             for scene_key in {id(view.scene) for view in self.validation}:
                 self.variables.apply(scene_key)
-            for index, view in enumerate(self.validation):
-                spp = self.settings.validation_spp
-                errors.append(
-                    self.targets[view.name].heldout_error(view, index, spp, self.mi, self.dr, self.integrator)
-                )
-        return float(np.mean(errors))
+        spp = self.settings.validation_spp
+        return heldout_error(self.validation, self.targets, spp, self.integrator, self.mi, self.dr)
+
+
+def heldout_error(views: list[FitView], targets: dict[str, Target], spp: int, integrator, mi, dr) -> float:
+    """The mean of the views' held-out errors (the i-th view with seeds 2i and 2i + 1),
+    their scenes as they stand; ``integrator`` None renders each with its own."""
+    with dr.suspend_grad():
+        errors = [targets[v.name].heldout_error(v, i, spp, mi, dr, integrator) for i, v in enumerate(views)]
+    return float(np.mean(errors))
 
 
 def run(

@@ -61,7 +61,7 @@ def fitted_description(description: dict, material: dict) -> dict:
     material model, and the integrator it was fitted with."""
     return description | {
         "model": material["model"],
-        "integrator": material.get("integrator", description["integrator"]),
+        "integrator": material["integrator"],
     }
 
 
