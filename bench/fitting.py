@@ -39,6 +39,7 @@ from report import ROOT, run_stages, truth_in_reconstruction, write_section
 
 from pipeline.core.config import load_config
 from pipeline.core.errors import PipelineError
+from pipeline.core.runner import shared_inputs
 from pipeline.core.sections import schema
 from pipeline.core.stage import StageInputs
 from pipeline.formats.cameras import read_cameras
@@ -307,7 +308,7 @@ def oracle_part(work: Path) -> None:
             capture,
             (),
             {**outputs, "scene": {**outputs["scene"], "scene_dir": scene_dir}},
-            {"mitsuba": config["mitsuba"]},
+            shared_inputs(config, fit_material.STAGE),
         )
         (work / "oracle" / name / "out").mkdir()
         result = fit_material.main(config["fit_material"], inputs, work / "oracle" / name / "out")
@@ -360,7 +361,7 @@ def texture_oracle_part(work: Path) -> None:
     for module in (uv, scene, fit_material, fit_texture):
         name = module.STAGE.name
         (folder / name).mkdir()
-        inputs = StageInputs(capture, (), upstream, {s: config[s] for s in module.STAGE.shared})
+        inputs = StageInputs(capture, (), upstream, shared_inputs(config, module.STAGE))
         upstream[name] = module.main(config[name], inputs, folder / name).outputs
     material = json.loads(outputs["fit_material"]["params"].read_text())
     truth_material = json.loads((capture / "ground_truth" / "material.json").read_text())

@@ -63,7 +63,7 @@ import trimesh
 from pipeline import logger
 from pipeline.core.config import Range, input_file_path
 from pipeline.core.errors import PipelineError
-from pipeline.core.sections import CaptureSection, LightSection
+from pipeline.core.sections import LightSection
 from pipeline.core.stage import Stage, StageInputs, StageResult
 from pipeline.formats.cameras import read_frame, read_views
 from pipeline.formats.masks import read_masks
@@ -107,10 +107,10 @@ class Config:
     """Samples per pixel of preview.png."""
 
 
-def model_choice(conf: Config, capture: CaptureSection) -> list[materials.MaterialModel]:
+def model_choice(conf: Config, capture_material: str) -> list[materials.MaterialModel]:
     """The models fit_material chooses between, simplest first: materials.MODEL_LADDER
-    when neither the stage nor the capture names one."""
-    named = conf.model if conf.model != "auto" else capture.material
+    when neither the stage nor the capture (``capture.material``) names one."""
+    named = conf.model if conf.model != "auto" else capture_material
     return list(materials.MODEL_LADDER) if named == "auto" else [named]
 
 
@@ -244,7 +244,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     light: LightSection = inputs.shared["light"]
     cameras_json = inputs.upstream["sfm"]["cameras"]
     frame, views = read_frame(cameras_json), read_views(cameras_json)
-    choice = model_choice(conf, inputs.shared["capture"])
+    choice = model_choice(conf, inputs.shared["capture.material"])
     model = materials.OPEN_SCENE_MODEL if len(choice) > 1 else choice[0]
     integrators = {m: materials.integrator_description(m, conf.max_depth) for m in choice}
     integrator = (integrators[model]["differentiable"], integrators[model]["max_depth"])
@@ -322,6 +322,6 @@ STAGE = Stage(
     main=main,
     needs=("uv.mesh", "sfm.cameras", "undistort.pinhole", "masks.masks_json"),
     outputs=("scene_dir", "scene", "description", "preview"),
-    shared=("capture", "light", "board", "mitsuba"),
+    shared=("capture.material", "light", "board", "mitsuba"),
     exports=("scene_dir",),
 )

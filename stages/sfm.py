@@ -68,7 +68,7 @@ from pipeline.camera.model import Intrinsics, Similarity
 from pipeline.camera.self_calibration import SelfCalibrationSettings, outline_shift_px
 from pipeline.core.config import Range, input_file_path
 from pipeline.core.errors import PipelineError
-from pipeline.core.sections import BoardSection, CamerasSection, CaptureSection
+from pipeline.core.sections import BoardSection, CamerasSection
 from pipeline.core.stage import Stage, StageInputs, StageResult
 from pipeline.formats.cameras import write_cameras
 from pipeline.formats.external_cameras import external_poses
@@ -116,7 +116,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     # Longer than 60 lines on purpose: the stage's steps in their order, each a few
     # calls into pipeline.colmap and pipeline.geometry; split further, the order would hide.
     # 1. The photos, their cameras and masks; the board's poses with the cameras as calibrated.
-    capture: CaptureSection = inputs.shared["capture"]
+    rig: str = inputs.shared["capture.rig"]
     pinhole_json = inputs.upstream["undistort"]["pinhole"]
     cameras = read_camera_settings(pinhole_json)
     photos = read_photos(pinhole_json, "images")
@@ -128,7 +128,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     board_found, board_errors = board_poses(board, photos, intrinsics, conf.board_min_corners, conf.board_max_error_px)
     # A camera the board calibrated stays as it is; a guessed one (EXIF, prior) is refined.
     refine_focal = any(c["calibrated_by"] not in ("board", "external") for c in cameras)
-    circular = capture.rig in ("turntable", "ring")
+    circular = rig in ("turntable", "ring")
 
     # 2. The poses: another tool's, the rig's circular motion, or COLMAP's incremental model.
     external: CamerasSection = inputs.shared["cameras"]
@@ -140,22 +140,22 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         poses, causes = external_poses(input_file_path(inputs.capture_dir, external.source), external.source, order)
         report["poses_from"] = f"[cameras] source = {external.source}"
     elif circular:
-        database = colmap.features_and_matches(conf, capture.rig, photos, cameras, masks, work)
+        database = colmap.features_and_matches(conf, rig, photos, cameras, masks, work)
         keypoints, matches = colmap.verified_matches(database, order, stem_of)
-        settings = PlacementSettings.of(conf, conf, capture.rig == "turntable", conf.min_pose_inliers, refine_focal)
+        settings = PlacementSettings.of(conf, conf, rig == "turntable", conf.min_pose_inliers, refine_focal)
         table, poses, solution, report["circular"] = circular_poses(
             settings, order, intrinsics, masks, keypoints, matches, board_found
         )
         intrinsics = {name: solution.intrinsics.without_distortion() for name in order}
         causes, points = report["circular"]["unplaced"], solution.points
-        report |= {"poses_from": f"circular motion ({capture.rig})", "points": len(points)}
+        report |= {"poses_from": f"circular motion ({rig})", "points": len(points)}
         report["mean_reprojection_error_px"] = report["circular"]["reprojection_error_px_median"]
         report["mean_track_length"] = float(np.mean([len(t) for t in solution.tracks])) if solution.tracks else None
         residual_k1 = [
             (solution.intrinsics.fx, solution.intrinsics.cx, solution.intrinsics.cy, solution.intrinsics.dist[0])
         ]
     else:
-        database = colmap.features_and_matches(conf, capture.rig, photos, cameras, masks, work)
+        database = colmap.features_and_matches(conf, rig, photos, cameras, masks, work)
         image_dir = next(iter(photos.values()))["srgb"].parent
         model = colmap.incremental_map(database, image_dir, work / "models", refine_focal, conf.min_pose_inliers)
         if model is not None and refine_focal and conf.self_calibrate:
@@ -264,6 +264,6 @@ STAGE = Stage(
     main=main,
     needs=("undistort.pinhole", "masks.masks_json"),
     outputs=("cameras", "sparse", "report"),
-    shared=("capture", "board", "cameras"),
+    shared=("capture.rig", "board", "cameras"),
     exports=("cameras",),
 )

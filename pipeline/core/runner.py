@@ -1,7 +1,7 @@
 """Plans and runs the stage DAG over one capture.
 
 Cache key of a stage = SHA-256 of (stage name, version, its config section, the
-shared sections it declared, the keys of its upstream stages, the content hashes
+shared sections or single shared settings it declared, the keys of its upstream stages, the content hashes
 of the capture files it reads): a Merkle chain, so a change anywhere reruns
 exactly the stages downstream of it, and reverting the change finds the old
 entries again.
@@ -9,6 +9,7 @@ entries again.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import logging
@@ -87,6 +88,23 @@ def check_contract(stages: Sequence[Stage]) -> None:
         undeclared = set(s.exports) - set(s.outputs)
         if undeclared:
             raise ValueError(f"stage {s.name} exports {', '.join(sorted(undeclared))}, which it does not declare")
+
+
+def shared_inputs(config: Config, stage: Stage) -> dict[str, Any]:
+    """What ``stage`` declared in ``shared``: a section (``"board"``) or one setting of it
+    (``"capture.rig"``), by that name."""
+    values = {}
+    for name in stage.shared:
+        section, _, setting = name.partition(".")
+        values[name] = getattr(config[section], setting) if setting else config[section]
+    return values
+
+
+def _plain(value: Any) -> Any:
+    """A shared section or setting as JSON-ready values, for the cache key."""
+    if dataclasses.is_dataclass(value):
+        return section_dict(value)
+    return list(value) if isinstance(value, tuple) else value
 
 
 def topological_order(stages: Sequence[Stage]) -> list[Stage]:
@@ -225,13 +243,14 @@ class Runner:
         setting_files = {
             f"{section}.{key}": self.hasher.hash_input(input_file_path(self.capture_dir, value))
             for section in (stage.name, *stage.shared)
-            for key, value in input_file_settings(self.config[section]).items()
+            for key, value in input_file_settings(self.config[section.split(".")[0]]).items()
+            if "." not in section or section.endswith(f".{key}")
         }
         return {
             "stage": stage.name,
             "version": stage.version,
             "config": section_dict(self.config[stage.name]),
-            "shared": {name: section_dict(self.config[name]) for name in stage.shared},
+            "shared": {name: _plain(value) for name, value in shared_inputs(self.config, stage).items()},
             "upstream": {up: upstream_keys[up] for up in stage.upstream},
             "files": {f.relative_to(self.capture_dir).as_posix(): self.hasher.hash(f) for f in files},
             "setting_files": setting_files,
@@ -332,7 +351,7 @@ class Runner:
             capture_dir=self.capture_dir,
             files=tuple(self.capture_dir / f for f in item.components["files"]),
             upstream=self._needed_outputs(stage, results),
-            shared={name: self.config[name] for name in stage.shared},
+            shared=shared_inputs(self.config, stage),
             checkpoint_dir=self.cache.checkpoint_dir(stage.name, item.key),
         )
         tmp = self.cache.begin(stage.name, item.key)

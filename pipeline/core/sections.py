@@ -2,11 +2,13 @@
 
 A stage's own section is its ``Config`` dataclass; the sections here describe the
 capture (rig, board, light) and the machine (Mitsuba variant). A stage lists the
-ones it reads in ``Stage.shared`` so that they enter its cache key.
+sections, or single settings (``capture.rig``), it reads in ``Stage.shared`` so that
+they, and only they, enter its cache key.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Annotated, Literal, Sequence
 
@@ -151,4 +153,11 @@ def schema(stages: Sequence[Stage]) -> dict[str, type]:
         if stage.name in sections:
             raise ValueError(f"stage {stage.name} clashes with a shared config section")
         sections[stage.name] = stage.config
+    for stage in stages:
+        for name in stage.shared:
+            section, _, setting = name.partition(".")
+            if section not in SHARED_SECTIONS or (
+                setting and setting not in {f.name for f in dataclasses.fields(SHARED_SECTIONS[section])}
+            ):
+                raise ValueError(f"stage {stage.name} shares {name}: no such shared section or setting")
     return sections

@@ -32,7 +32,8 @@ class StageInputs:
     upstream: Mapping[str, Mapping[str, Path]]
     """The outputs the stage needs: stage name -> output name -> path."""
     shared: Mapping[str, Any]
-    """Shared config sections the stage declared in ``shared`` (e.g. ``capture``)."""
+    """What the stage declared in ``shared``: a section by its name (``board``), a single
+    setting by its dotted name (``capture.rig``: the value)."""
     checkpoint_dir: Path | None = None
     """A folder for state that lets a killed run of this stage resume (long fits,
     pipeline.fit.checkpoint): kept across killed runs with the same cache key,
@@ -66,7 +67,8 @@ class Stage:
     reads: tuple[str, ...] = ()
     """Glob patterns, relative to the capture folder, of the capture files it reads."""
     shared: tuple[str, ...] = ()
-    """Shared config sections (not its own) whose values change its results."""
+    """Shared config sections (``"board"``) or single settings of one (``"capture.rig"``)
+    whose values change its results: only these enter its cache key and ``inputs.shared``."""
     exports: tuple[str, ...] = ()
     """Outputs (a subset of ``outputs``) copied to ``CAPTURE/output/`` after a successful run."""
     enabled: Callable[[Any], bool] | None = None

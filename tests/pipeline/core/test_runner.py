@@ -12,6 +12,7 @@ from pipeline.core.config import load_config
 from pipeline.core.errors import ConfigError
 from pipeline.core.runner import Runner, Selection
 from pipeline.core.sections import schema
+from pipeline.core.stage import StageResult
 from tests.support.toy_stages import RUNS, make_capture, make_stages, run_toy, toy_runner
 
 
@@ -240,3 +241,47 @@ def test_a_stage_returning_undeclared_outputs_fails_and_commits_nothing(tmp_path
     with pytest.raises(RuntimeError, match=r"stage ingest returned outputs \['total'\] but declares"):
         Runner(capture, stages, config).run(Selection(until="ingest"))
     assert not list((capture / ".pipeline" / "cache" / "ingest").glob("[!.]*"))
+
+
+SEEN_SHARED: dict[str, dict] = {}
+
+
+def _records_shared(conf, inputs, out_dir):
+    SEEN_SHARED["double"] = dict(inputs.shared)
+    (out_dir / "doubled.txt").write_text("0")
+    RUNS.append("double")
+    return StageResult({"doubled": out_dir / "doubled.txt"})
+
+
+def test_a_stage_sharing_one_setting_sees_it_and_reruns_only_when_it_changes(tmp_path, presets_dir):
+    """sfm reads capture.rig, not the capture's free-text description or material:
+    editing those must not recompute the poses."""
+    capture = make_capture(tmp_path)
+    stages = tuple(
+        replace(s, main=_records_shared, shared=("capture.rig",))
+        if s.name == "double"
+        else replace(s, shared=("capture",))
+        if s.name == "meta"
+        else s
+        for s in make_stages()
+    )
+
+    def rerun(*overrides):
+        RUNS.clear()
+        config = load_config(schema(stages), capture, "standard", list(overrides), presets_dir)
+        return {p.stage.name: p for p in Runner(capture, stages, config).run()}
+
+    rerun()
+    assert SEEN_SHARED["double"] == {"capture.rig": "handheld"}
+    rerun("capture.material=opaque", "capture.description=edited")
+    assert RUNS == ["meta"]  # the stage sharing the whole section, only
+    plan = rerun("capture.rig=turntable")
+    assert RUNS == ["double", "meta", "report"]
+    assert plan["double"].reason == "setting capture.rig: 'handheld' -> 'turntable'"
+    assert SEEN_SHARED["double"] == {"capture.rig": "turntable"}
+
+
+def test_sharing_a_setting_no_section_has_is_refused():
+    stages = tuple(replace(s, shared=("capture.colour",)) if s.name == "double" else s for s in make_stages())
+    with pytest.raises(ValueError, match="stage double shares capture.colour: no such shared section or setting"):
+        schema(stages)
