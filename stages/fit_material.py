@@ -63,6 +63,7 @@ from __future__ import annotations
 import shutil
 import time
 from dataclasses import dataclass, fields
+from functools import partial
 from pathlib import Path
 from typing import Annotated
 
@@ -159,15 +160,23 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     )
 
     initial = {name: entry["value"] for name, entry in description["parameters"].items()}
+    poses = {name: pose for name, (_, pose) in cameras.items()}
+
+    def write_scene(model: str, values: dict, fitted_light) -> None:
+        """The material's values and the light (None: the given one) into fitted/."""
+        rewrite_specimen_material(fitted / SPECIMEN_XML, model, values)
+        if fitted_light is not None:
+            estimated_light.write(fitted_light, fitted, description, poses)
+
+    def views_of(model: str, integrator: dict, names: set[str] | None = None) -> list[engine.FitView]:
+        seen = description | {"model": model, "integrator": integrator}
+        return [v for v, _ in load_views(fitted, seen, *photos, conf.max_size, conf.erode_px, conf.spp, names=names)]
 
     def fit(model: str, start_light, start_values: dict = initial, integrator: dict | None = None) -> Candidate:
         started = time.perf_counter()
         integrator = integrator or description["integrators"][model]
-        rewrite_specimen_material(fitted / SPECIMEN_XML, model, start_values)
-        if start_light is not None:
-            estimated_light.write(start_light, fitted, description, {n: pose for n, (_, pose) in cameras.items()})
-        seen = description | {"model": model, "integrator": integrator}
-        views = [view for view, _ in load_views(fitted, seen, *photos, conf.max_size, conf.erode_px, conf.spp)]
+        write_scene(model, start_values, start_light)
+        views = views_of(model, integrator)
         held = set(held_out_names([v.name for v in views], conf.held_out))
         fitted_parameters = parameters[model] + (
             estimated_light.parameters(start_light, light.smoothness) if start_light else []
@@ -180,7 +189,12 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         if start_light is not None:
             end_light = estimated_light.fitted(start_light, {**result.values, **result.textures})
             logger.info("light %s: held-out error %.4g", end_light.model, result.validation_error or float("nan"))
-        return Candidate(model, end_light, integrator, result, views, time.perf_counter() - started)
+        return Candidate(model, end_light, integrator, result, sorted(held), time.perf_counter() - started)
+
+    def heldout_views(candidate: Candidate, integrator: dict) -> list[engine.FitView]:
+        """The candidate's held-out photos, its values and light written into fitted/."""
+        write_scene(candidate.model, candidate.result.values, candidate.light)
+        return views_of(candidate.model, integrator, set(candidate.held))
 
     # 3. The fit: the scene's model under the given light, or with each light model, simplest first.
     scene_model = description["model"]
@@ -215,19 +229,15 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
             material_candidates.append(fit("volumetric", chosen.light, start))
     material, model_why = choose(material_candidates, conf.model_margin, "material")
     if len(models) > 1:
-        material, depth = _deeper(
-            material, conf, lambda i: fit(material.model, material.light, material.result.values, i)
-        )
+        deeper = material.integrator | {"max_depth": 2 * material.integrator["max_depth"]}
+        refit = partial(fit, material.model, material.light, material.result.values, deeper)
+        material, depth = _deeper(material, heldout_views(material, deeper), conf, refit)
     model, result = material.model, material.result
 
     # 5. The fitted scene, its light, log, held-out renders and params.json.
-    if material.light is not None:
-        estimated_light.write(material.light, fitted, description, {n: pose for n, (_, pose) in cameras.items()})
-    rewrite_specimen_material(fitted / SPECIMEN_XML, model, result.values)
+    write_heldout(heldout_views(material, material.integrator), 4 * conf.validation_spp, fitted / HELDOUT)
     rewrite_integrator(fitted, material.integrator)
-    held = sorted(set(held_out_names([v.name for v in material.views], conf.held_out)))
     write_fit_log(fitted, result.log)
-    write_heldout([v for v in material.views if v.name in held], 4 * conf.validation_spp, fitted / HELDOUT)
     material_values = {p.name: result.values[p.name] for p in parameters[model]}
     light_report = {
         "chosen": material.light.summary() if material.light else {"model": "given"},
@@ -253,7 +263,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
             "best_iteration": result.best_iteration,
             "iterations": len(result.log),
             "validation_mse": result.validation_error,
-            "held_out": held,
+            "held_out": material.held,
             "stopped": result.stopped,
             "photo_gains": result.photo_gains,
             "light": light_report,
@@ -272,26 +282,23 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     return StageResult(outputs, metrics)
 
 
-def _deeper(material: Candidate, conf: Config, refit) -> tuple[Candidate, dict]:
-    """The chosen fit, or one at twice its path depth: the held-out photos rendered
-    deeper with the chosen values first (a few renders); only when that changes their
-    error by more than model_margin is the model refitted deeper (``refit(integrator)``)
-    and the simplest within the margin kept. Returns the winner and what was measured."""
-    import mitsuba as mi
-
-    deeper = material.integrator | {"max_depth": 2 * material.integrator["max_depth"]}
-    held = [v for v in material.views if v.name in set(held_out_names([v.name for v in material.views], conf.held_out))]
+def _deeper(material: Candidate, held: list[engine.FitView], conf: Config, refit) -> tuple[Candidate, dict]:
+    """The chosen fit, or one at twice its path depth: the ``held`` photos (the chosen
+    values, the deeper integrator) rendered first; only when that changes their error by
+    more than model_margin is the model refitted deeper (``refit()``) and the simplest
+    within the margin kept. Returns the winner and what was measured."""
     shallow_error = material.result.validation_error
     if not held or shallow_error is None:
         return material, {"why": "no held-out photos"}
-    integrator = mi.load_dict({"type": deeper["differentiable"], "max_depth": deeper["max_depth"]})
-    deep_error = engine.heldout_error(held, conf.validation_spp, integrator)
+    max_depth = 2 * material.integrator["max_depth"]
+    deep_error = engine.heldout_error(held, conf.validation_spp, held[0].integrator)
+    del held  # their scenes, before the refit's (see Candidate.held)
     report = {"max_depth": material.integrator["max_depth"], "deeper_validation_mse": deep_error}
     change = abs(deep_error - shallow_error) / shallow_error
     if change <= conf.model_margin:
-        why = f"rendered at max_depth {deeper['max_depth']}, the held-out error changes by {change:.1%}: kept"
+        why = f"rendered at max_depth {max_depth}, the held-out error changes by {change:.1%}: kept"
         return material, report | {"why": why}
-    candidates = [material, refit(deeper)]
+    candidates = [material, refit()]
     winner, why = choose(candidates, conf.model_margin, "depth")
     return winner, report | {"why": why, "candidates": [c.summary("depth") for c in candidates]}
 
@@ -311,7 +318,7 @@ def _specimen_sphere(fitted: Path, frame: str, cameras: dict, light: LightSectio
 
 STAGE = Stage(
     name="fit_material",
-    version=10,
+    version=11,
     config=Config,
     main=main,
     needs=("scene.scene_dir", "scene.description", "sfm.cameras", "undistort.pinhole", "masks.masks_json"),

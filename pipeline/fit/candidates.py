@@ -34,7 +34,10 @@ class Candidate:
     integrator: dict
     """scene.json's integrator entry the fit rendered with (type, max_depth, differentiable)."""
     result: FitResult
-    views: list
+    held: list[str]
+    """The held-out photos its error was measured on. The fit's scenes are not kept:
+    Dr.Jit traces every live BSDF and emitter into each render's kernels, so a
+    candidate's scenes left alive would slow and recompile the next candidate's fit."""
     seconds: float
 
     def name(self, of: Choice) -> str:

@@ -203,8 +203,9 @@ class _Loop:
         """view_loss, or its frozen form for the view's window (film size and crop
         offset): the offset is a literal in the recorded kernels, so a recording replays
         only for the window it was made in; for another, Dr.Jit's dry run fails and it
-        records again (the fit stages' views each have their own window: three crops of
-        one size recorded 6 times in 16 steps through one function, once each apart)."""
+        records again (three crops of one size recorded 6 times in 16 steps through one
+        function, once each apart). The fit stages' views share one window size and no
+        crop (pipeline.fit.views.mask_windows): one recording serves them all."""
         if not self.settings.freeze:
             return view_loss
         window = self.window(view)

@@ -11,16 +11,15 @@ import cv2
 import numpy as np
 import trimesh
 
-from pipeline.camera.model import resize_exact
 from pipeline.fit import engine
 from pipeline.fit.outputs import write_texture_files
-from pipeline.fit.views import load_views
+from pipeline.fit.views import Window, load_views
 from pipeline.formats.scene_folder import MESH_PLY, SPECIMEN_XML
 from pipeline.render import materials, scene_xml
 
 
 def silhouette_views(
-    views: list[tuple[engine.FitView, tuple]], mesh_file: Path, masks: dict[str, Path], cameras: dict
+    views: list[tuple[engine.FitView, Window]], mesh_file: Path, masks: dict[str, Path]
 ) -> list[engine.FitView]:
     """The same windows, with a scene holding only the specimen (black, under a white
     sky) and the mask's complement as reference: coverage, material-free."""
@@ -39,12 +38,10 @@ def silhouette_views(
         }
     )
     result = []
-    for view, (small, crop) in views:
+    for view, window in views:
         mask = (cv2.imread(str(masks[view.name]), cv2.IMREAD_GRAYSCALE) > 127).astype(np.float32)
-        x, y, w, h = crop
-        coverage = resize_exact(mask, small.fx / cameras[view.name][0].fx)[y : y + h, x : x + w]
-        reference = np.repeat(1.0 - coverage[..., None], 3, axis=2).astype(np.float32)
-        result.append(engine.FitView(view.name, scene, view.sensor, reference))
+        reference = np.repeat(1.0 - window.cut(mask)[..., None], 3, axis=2).astype(np.float32)
+        result.append(engine.FitView(view.name, scene, view.sensor, reference, window.inside()))
     return result
 
 
@@ -68,11 +65,11 @@ def shape_pass(
         *(geometry, description, cameras, linear, masks, max_size, 0, settings.spp), sample_border=True, gains=gains
     )
     if loss == "silhouette":
-        views = silhouette_views(windowed, geometry / MESH_PLY, masks, cameras)
+        views = silhouette_views(windowed, geometry / MESH_PLY, masks)
         integrator = {"type": "direct_projective", "sppi": 0}
     else:
         # The silhouette and its surroundings carry the shape: every window pixel counts.
-        views = [engine.FitView(v.name, v.scene, v.sensor, v.reference) for v, _ in windowed]
+        views = [engine.FitView(v.name, v.scene, v.sensor, v.reference, window.inside()) for v, window in windowed]
         kind, depth = description["integrator"]["differentiable"], description["integrator"]["max_depth"]
         integrator = (
             {"type": "prb_projective", "max_depth": depth, "sppi": 0}

@@ -3,13 +3,15 @@ its specimen mask, with the window's sensor and the pixels that count, and the
 choice of the photos held out for validation.
 
 Each view is rendered only in a window around its mask, scaled so that its
-longer side has at most ``max_size`` pixels: pixels are the budget on a CPU. The
-weights are the mask eroded by ``erode_px`` at full resolution, so that
+longer side has at most ``max_size`` pixels: pixels are the budget on a CPU. Every
+window of a capture has the same size (mask_windows), so that every view renders
+with the same kernels. The weights are the mask eroded by ``erode_px`` at full resolution, so that
 silhouette pixels, where the mesh's error shows, do not count.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -23,17 +25,66 @@ from pipeline.imaging.photo_io import read_photo
 from pipeline.render import scene_xml
 
 
-def mask_window(mask: np.ndarray, max_size: int, margin: int = 8) -> tuple[float, tuple[int, int, int, int]] | None:
-    """(scale, crop in scaled pixels) of the mask's bounding box plus ``margin``."""
-    rows, cols = np.nonzero(mask)
-    if len(rows) == 0:
-        return None
-    lo = np.maximum([cols.min() - margin, rows.min() - margin], 0)
-    hi = np.minimum([cols.max() + margin + 1, rows.max() + margin + 1], mask.shape[::-1])
-    scale = min(1.0, max_size / float(max(hi - lo)))
-    lo_s = np.floor((lo + 0.5) * scale - 0.5).clip(0).astype(int)
-    hi_s = np.ceil((hi + 0.5) * scale - 0.5).astype(int)
-    return scale, (int(lo_s[0]), int(lo_s[1]), int(hi_s[0] - lo_s[0]), int(hi_s[1] - lo_s[1]))
+@dataclass(frozen=True)
+class Window:
+    """Where a view is rendered: the photo scaled by ``scale`` (square pixels), then the
+    ``width`` x ``height`` pixels from column ``x``, row ``y``, which may reach past the
+    photo's edge (pixels there are not scored)."""
+
+    scale: float
+    x: int
+    y: int
+    width: int
+    height: int
+    photo_shape: tuple[int, int]
+    """The photo's (height, width) at full resolution."""
+
+    def intrinsics(self, full: Intrinsics) -> Intrinsics:
+        """The pinhole camera whose whole image is the window: a film of exactly the
+        window's size with the principal point moved, not a crop of a larger film."""
+        small = scaled(full, self.scale, exact=True)
+        return Intrinsics(self.width, self.height, small.fx, small.fy, small.cx - self.x, small.cy - self.y)
+
+    def cut(self, image: np.ndarray) -> np.ndarray:
+        """``image`` (the photo's resolution) scaled and cut to the window; zero past the
+        photo's edge."""
+        small = resize_exact(image, self.scale)
+        window = np.zeros((self.height, self.width, *small.shape[2:]), small.dtype)
+        x0, y0 = max(self.x, 0), max(self.y, 0)
+        x1, y1 = min(self.x + self.width, small.shape[1]), min(self.y + self.height, small.shape[0])
+        if x1 > x0 and y1 > y0:
+            window[y0 - self.y : y1 - self.y, x0 - self.x : x1 - self.x] = small[y0:y1, x0:x1]
+        return window
+
+    def inside(self) -> np.ndarray:
+        """(height, width) float weights: 1 on the window's pixels inside the photo."""
+        return (self.cut(np.ones(self.photo_shape, np.float32)) > 0.999).astype(np.float32)
+
+
+def mask_windows(masks: dict[str, np.ndarray], max_size: int, margin: int = 8) -> dict[str, Window]:
+    """Each mask's window, all of one size (masks with no pixel have none): each photo
+    scaled so that its mask's bounding box plus ``margin`` has at most ``max_size`` px
+    along its longer side, the window centred on that box and as large as the largest
+    box. One film size for every view means one set of kernels (Dr.Jit bakes the film
+    size and a crop offset into them as literals; the principal point it does not) and
+    one dr.freeze recording replayed for every view."""
+    boxes = {}
+    for name, mask in masks.items():
+        rows, cols = np.nonzero(mask)
+        if len(rows) == 0:
+            continue
+        lo = np.maximum([cols.min() - margin, rows.min() - margin], 0)
+        hi = np.minimum([cols.max() + margin + 1, rows.max() + margin + 1], mask.shape[::-1])
+        boxes[name] = (lo, hi, min(1.0, max_size / float(max(hi - lo))))
+    if not boxes:
+        return {}
+    width, height = np.max([np.ceil((hi - lo) * scale) for lo, hi, scale in boxes.values()], axis=0).astype(int)
+    windows = {}
+    for name, (lo, hi, scale) in boxes.items():
+        centre = (lo + hi) / 2 * scale
+        x, y = (int(round(c)) for c in centre - [width / 2, height / 2])
+        windows[name] = Window(scale, x, y, int(width), int(height), masks[name].shape[:2])
+    return windows
 
 
 def load_views(
@@ -48,11 +99,12 @@ def load_views(
     sample_border: bool = False,
     names: set[str] | None = None,
     gains: dict[str, list[float]] | None = None,
-) -> list[tuple[FitView, tuple]]:
-    """Every photo (or those in ``names``) as a FitView in its window (longer side at most
-    ``max_size`` px), with the window's scaled camera and crop; weights are the mask
-    eroded by ``erode_px``. ``gains``: photos' RGB gains fitted by fit_material (exposure,
-    white balance); those photos are divided by theirs, as that fit saw them."""
+) -> list[tuple[FitView, Window]]:
+    """Every photo (or those in ``names``) as a FitView in its window (mask_windows over
+    every photo of the scene, so a view's window does not depend on ``names``); weights
+    are the mask eroded by ``erode_px``. ``gains``: photos' RGB gains fitted by
+    fit_material (exposure, white balance); those photos are divided by theirs, as that
+    fit saw them."""
     import mitsuba as mi
 
     shared_scene = mi.load_file(str(scene_dir / SCENE_XML)) if description["light_frame"] == "world" else None
@@ -61,33 +113,29 @@ def load_views(
     integrator = mi.load_dict(
         {"type": description["integrator"]["differentiable"], "max_depth": description["integrator"]["max_depth"]}
     )
+    every = {name: cv2.imread(str(masks[name]), cv2.IMREAD_GRAYSCALE) > 127 for name in sorted(description["views"])}
+    windows = mask_windows(every, max_size)
     views = []
-    for name in sorted(description["views"] if names is None else set(description["views"]) & names):
-        mask = cv2.imread(str(masks[name]), cv2.IMREAD_GRAYSCALE) > 127
-        window = mask_window(mask, max_size)
-        if window is None:
+    for name in sorted(every if names is None else set(every) & names):
+        if name not in windows:
             logger.warning("%s: empty mask, left out of fitting", name)
             continue
-        scale, crop = window
+        window, mask = windows[name], every[name]
         intrinsics, pose = cameras[name]
-        small = scaled(intrinsics, scale, exact=True)
-        x, y, w, h = crop
-        w, h = min(w, small.width - x), min(h, small.height - y)
-        crop = (x, y, w, h)
-        photo = read_photo(linear[name]).pixels
-        reference = resize_exact(photo, scale)[y : y + h, x : x + w]
+        reference = window.cut(read_photo(linear[name]).pixels)
         if gains and name in gains:
             reference = reference / np.asarray(gains[name], np.float32)
         if erode_px:
             mask = cv2.erode(mask.astype(np.uint8), np.ones((2 * erode_px + 1,) * 2, np.uint8)) > 0
-        coverage = resize_exact(mask.astype(np.float32), scale)
-        weight = (coverage[y : y + h, x : x + w] > 0.999).astype(np.float32)
+        weight = window.inside() * (window.cut(mask.astype(np.float32)) > 0.999)
         scene = shared_scene or mi.load_file(str(scene_dir / description["views"][name]["xml"]))
         sensor = scene_xml.load_sensor(
-            scene_xml.sensor_properties(small, pose, spp, description["near_clip"], crop, sample_border)
+            scene_xml.sensor_properties(
+                window.intrinsics(intrinsics), pose, spp, description["near_clip"], sample_border=sample_border
+            )
         )
         view = FitView(name, scene, sensor, np.ascontiguousarray(reference), weight, integrator)
-        views.append((view, (small, crop)))
+        views.append((view, window))
     return views
 
 

@@ -8,7 +8,8 @@ from pipeline.fit.engine import FitResult
 
 def _candidate(model: str, error: float | None, depth: int = 8) -> Candidate:
     result = FitResult({}, 1, error, "iterations", start_validation_error=1.0)
-    return Candidate(model, None, {"type": "path", "max_depth": depth, "differentiable": "prb"}, result, [], 2.0)
+    integrator = {"type": "path", "max_depth": depth, "differentiable": "prb"}
+    return Candidate(model, None, integrator, result, ["view_002"], 2.0)
 
 
 def test_the_simplest_within_the_margin_of_the_best_wins():
