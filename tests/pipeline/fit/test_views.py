@@ -1,0 +1,73 @@
+"""pipeline.fit.views: every view's window one size, cut from its photo and rendered
+by a camera whose whole film is the window."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from pipeline.camera.model import Pose, scaled
+from pipeline.fit.views import mask_windows
+from pipeline.render import scene_xml
+from tests.support.sphere_views import K, sphere_mask
+
+
+def _box_mask(shape, x0, y0, x1, y1):
+    mask = np.zeros(shape, bool)
+    mask[y0:y1, x0:x1] = True
+    return mask
+
+
+def test_every_window_has_one_size_and_holds_its_mask():
+    shape = (300, 400)
+    masks = {
+        "wide": _box_mask(shape, 50, 100, 350, 160),
+        "tall": _box_mask(shape, 180, 20, 220, 280),
+        "small": _box_mask(shape, 10, 10, 30, 40),
+        "empty": np.zeros(shape, bool),
+    }
+    windows = mask_windows(masks, max_size=64)
+    assert set(windows) == {"wide", "tall", "small"}
+    assert len({(w.width, w.height) for w in windows.values()}) == 1
+    assert max(windows["wide"].width, windows["wide"].height) <= 64
+    for name, window in windows.items():
+        covered = window.cut(masks[name].astype(np.float32)).sum() / window.scale**2
+        assert covered == pytest.approx(masks[name].sum(), rel=0.02), name
+
+
+def test_a_window_past_the_photos_edge_is_zero_there_and_scores_nothing_there():
+    shape = (120, 160)
+    corner = _box_mask(shape, 0, 0, 20, 20)
+    windows = mask_windows({"corner": corner, "middle": _box_mask(shape, 40, 30, 120, 90)}, max_size=200)
+    window = windows["corner"]
+    assert window.x < 0 and window.y < 0
+    inside = window.inside()
+    assert inside[0, 0] == 0 and inside[-1, -1] == 1
+    assert window.cut(np.ones(shape, np.float32))[0, 0] == 0
+
+
+@pytest.mark.slow
+def test_the_windows_camera_renders_the_window_of_the_whole_photo(mi):
+    """The principal point moved instead of a film crop: the same pixels as cutting the
+    window out of a render of the whole (scaled) photo."""
+    pose = Pose.look_at([0.25, 0.1, 0.12], [0.0, 0.0, 0.0], up=[0.0, 0.0, 1.0])
+    scene = mi.load_dict(
+        {
+            "type": "scene",
+            "integrator": {"type": "path", "max_depth": 3},
+            "sky": {"type": "constant", "radiance": {"type": "rgb", "value": 0.5}},
+            "ball": {"type": "sphere", "radius": 0.05, "bsdf": {"type": "diffuse"}},
+        }
+    )
+    window = mask_windows({"view": sphere_mask(pose)}, max_size=48)["view"]
+    assert window.scale < 1
+
+    def render(intrinsics):
+        sensor = scene_xml.load_sensor(scene_xml.sensor_properties(intrinsics, pose, 64, 0.01))
+        return np.asarray(mi.render(scene, sensor=sensor, spp=64, seed=1))
+
+    whole = render(scaled(K, window.scale, exact=True))
+    expected = replace(window, scale=1.0, photo_shape=whole.shape[:2]).cut(whole)  # only the cut
+    rendered = render(window.intrinsics(K))
+    inside = window.inside() > 0
+    assert np.abs(rendered - expected)[inside].mean() < 0.01
