@@ -70,4 +70,5 @@ def test_the_windows_camera_renders_the_window_of_the_whole_photo(mi):
     expected = replace(window, scale=1.0, photo_shape=whole.shape[:2]).cut(whole)  # only the cut
     rendered = render(window.intrinsics(K))
     inside = window.inside() > 0
-    assert np.abs(rendered - expected)[inside].mean() < 0.01
+    # Right: 0.016 (noise); the principal point 0.3 px off: 0.052, 1 px off: 0.148.
+    assert np.percentile(np.abs(rendered - expected)[inside], 99) < 0.03
