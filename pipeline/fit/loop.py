@@ -180,38 +180,31 @@ class _Loop:
         self.share = dr.opaque(mi.Float, 1.0 / self.batches.size)
         self.one = dr.opaque(mi.Float, 1.0)
         # Frozen functions per loop: their recordings belong to this loop's scenes.
-        self.frozen: dict[tuple[int, ...], Callable] = {}
+        self.frozen: dict[int, Callable] = {}
         self.skipped = 0
-        windows = len({self.window(v) for v in self.training})
-        replays = settings.iterations * self.batches.size / max(windows, 1)
+        replays = settings.iterations * self.batches.size / max(len(self.training), 1)
         if settings.freeze and replays < settings.freeze_min_replays:
             logger.info(
-                "%s: %d view windows replayed %.0f times each at most: traced, not frozen (freeze_min_replays %d)",
+                "%s: %d views replayed %.0f times each at most: traced, not frozen (freeze_min_replays %d)",
                 label,
-                windows,
+                len(self.training),
                 replays,
                 settings.freeze_min_replays,
             )
             self.settings = replace(settings, freeze=False)
 
-    @staticmethod
-    def window(view: FitView) -> tuple[int, ...]:
-        """What a recording is made for: film size and crop offset (see view_loss)."""
-        return (*view.reference.shape[:2], *view.sensor.film().crop_offset())
-
     def view_loss(self, view: FitView) -> Callable:
-        """view_loss, or its frozen form for the view's window (film size and crop
-        offset): the offset is a literal in the recorded kernels, so a recording replays
-        only for the window it was made in; for another, Dr.Jit's dry run fails and it
-        records again (three crops of one size recorded 6 times in 16 steps through one
-        function, once each apart). The fit stages' views share one window size and no
-        crop (pipeline.fit.views.mask_windows): one recording serves them all."""
+        """view_loss, or its frozen form for this view: one recording per view's sensor.
+        Dr.Jit 1.5's dr.freeze keys a recording on the sensor object and on its values
+        (measured: two sensors of identical settings, or one sensor whose parameters were
+        updated between calls, each record anew), and a film size or crop offset is a
+        literal in the kernels; one function for every view records again at nearly
+        every call (88 warnings in one fit_material run on temple-ring)."""
         if not self.settings.freeze:
             return view_loss
-        window = self.window(view)
-        if window not in self.frozen:
-            self.frozen[window] = self.dr.freeze(view_loss)
-        return self.frozen[window]
+        if id(view.sensor) not in self.frozen:
+            self.frozen[id(view.sensor)] = self.dr.freeze(view_loss)
+        return self.frozen[id(view.sensor)]
 
     def step(self, iteration: int) -> list[tuple[str, Any]]:
         """One step's renders, losses and backpropagation; the losses stay on the device."""

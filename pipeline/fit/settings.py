@@ -44,8 +44,8 @@ class LoopSettings:
     64 px on a CPU (docs/benchmarks.md, "Fitting speed"), when a recording is replayed
     often enough to pay for itself (``freeze_min_replays``)."""
     freeze_min_replays: Annotated[int, Range(0, None)] = 30
-    """Freeze only when each recording (one per view window) would be replayed at least
-    this many times on average (iterations x batch / distinct windows): a recording
+    """Freeze only when each recording (one per view) would be replayed at least this
+    many times on average (iterations x batch / training views): a recording
     costs about as much as tracing the step tens of times."""
 
 
