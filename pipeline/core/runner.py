@@ -242,9 +242,9 @@ class Runner:
         files = glob_capture_files(self.capture_dir, stage.reads)
         setting_files = {
             f"{section}.{key}": self.hasher.hash_input(input_file_path(self.capture_dir, value))
-            for section in (stage.name, *stage.shared)
-            for key, value in input_file_settings(self.config[section.split(".")[0]]).items()
-            if "." not in section or section.endswith(f".{key}")
+            for section, _, setting in (name.partition(".") for name in (stage.name, *stage.shared))
+            for key, value in input_file_settings(self.config[section]).items()
+            if setting in ("", key)
         }
         return {
             "stage": stage.name,
