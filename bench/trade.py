@@ -33,10 +33,15 @@ docs/benchmarks.md.
 
 Usage: ``.venv/bin/python bench/trade.py [--samples bird,bird_volumetric,temple-ring]
 [--groups material,mesh,texture,geometry,presets,scaling] [--presets draft,standard,final]
-[--workdir DIR] [--captures ../shared/captures]`` (after bin/bootstrap). temple-ring runs
-with the template light (``light.model = given``), as estimating it costs 12 minutes a
-point here. With a ``--workdir`` finished points are kept (their memory figures in
-points/), so an interrupted run resumes.
+[--only fit_material.spp=4,...] [--workdir DIR] [--captures ../shared/captures]`` (after
+bin/bootstrap). temple-ring runs with the template light (``light.model = given``), as
+estimating it costs 12 minutes a point here. ``--only`` keeps, of the swept points, those
+whose every change is listed (each group's unchanged point and the presets always run):
+a volumetric fit costs five times a principled one here, so a capture can be swept on the
+knobs another capture showed to matter. With a ``--workdir`` finished points are kept
+(their memory figures in points/), so an interrupted run resumes; each capture's points
+are added to ``trade-CAPTURE.json`` there, each with the commit that measured it, and the
+section and plot show every point kept in the folder.
 """
 
 from __future__ import annotations
@@ -110,9 +115,11 @@ class Measured:
     errors: dict[str, str] = field(default_factory=dict)
     worst_over_target: float | None = None
     iteration_seconds: float | None = None
+    commit: str = ""
+    """The commit that measured it (``git describe --dirty``)."""
 
 
-def points_for(groups: list[str], presets: list[str]) -> list[Point]:
+def points_for(groups: list[str], presets: list[str], only: set[str] | None = None) -> list[Point]:
     grid = {
         "material": [
             Point("material", "fit_material"),
@@ -152,7 +159,8 @@ def points_for(groups: list[str], presets: list[str]) -> list[Point]:
             ),
         ],
     }
-    return [p for g in groups for p in grid[g]]
+    chosen = [p for g in groups for p in grid[g]]
+    return [p for p in chosen if only is None or p.group == "presets" or set(p.overrides) <= only]
 
 
 class MemorySampler(threading.Thread):
@@ -194,7 +202,9 @@ def _iteration_seconds(fitted_dir: Path) -> float:
     return float(np.median(np.diff([r["seconds"] for r in rows])[5:]))
 
 
-def measure(capture: Path, point: Point, extra: tuple[str, ...], work: Path, truth: dict | None) -> Measured:
+def measure(
+    capture: Path, point: Point, extra: tuple[str, ...], work: Path, truth: dict | None, commit: str
+) -> Measured:
     record = work / "points" / capture.name / f"{point.slug}.json"
     if record.is_file():
         kept = json.loads(record.read_text())
@@ -206,7 +216,7 @@ def measure(capture: Path, point: Point, extra: tuple[str, ...], work: Path, tru
         record.write_text(json.dumps({"peak_rss_mb": peak, "rss_mb": samples}))
     outputs, seconds = run_stages(capture, point.until, *extra, *point.overrides, preset=point.preset)
     last = [s for s in FIT_STAGES if s in outputs][-1]
-    measured = Measured(point, sum(seconds.values()), seconds, peak, samples)
+    measured = Measured(point, sum(seconds.values()), seconds, peak, samples, commit=commit)
     measured.psnr_db = score_heldout(outputs[last]["heldout"])["psnr_db_mean"]
     if point.group == "scaling":
         measured.iteration_seconds = _iteration_seconds(outputs["fit_material"]["fitted_dir"])
@@ -217,6 +227,16 @@ def measure(capture: Path, point: Point, extra: tuple[str, ...], work: Path, tru
         ratios = [error / TARGETS[name][1] for name, (error, _) in cells.items() if TARGETS[name][1]]
         measured.worst_over_target = max(ratios) if ratios else None
     return measured
+
+
+def kept(path: Path) -> list[Measured]:
+    """The points of one ``trade-CAPTURE.json`` (none when it is absent)."""
+    if not path.is_file():
+        return []
+    return [
+        Measured(**(m | {"point": Point(**(m["point"] | {"overrides": tuple(m["point"]["overrides"])}))}))
+        for m in json.loads(path.read_text())
+    ]
 
 
 def pareto(points: list[Measured], value) -> set[int]:
@@ -336,7 +356,7 @@ def table(sample: str, measured: list[Measured]) -> list[str]:
         errors = ", ".join(f"{k} {v}" for k, v in m.errors.items()) or "-"
         worst = f"{m.worst_over_target:.2f}" if m.worst_over_target is not None else "-"
         lines.append(
-            f"| {sample} | {m.point.label} | {m.seconds:.0f} s ({stages}) | {m.peak_rss_mb:.0f} MiB | "
+            f"| {sample} ({m.commit}) | {m.point.label} | {m.seconds:.0f} s ({stages}) | {m.peak_rss_mb:.0f} MiB | "
             f"{m.psnr_db:.1f} dB{' (front)' if index in fronts else ''} | {errors} | {worst} |"
         )
     return lines
@@ -347,10 +367,14 @@ def main() -> None:
     parser.add_argument("--samples", default="bird,bird_volumetric,temple-ring")
     parser.add_argument("--groups", default="material,mesh,texture,geometry,presets,scaling")
     parser.add_argument("--presets", default="draft,standard,final")
+    parser.add_argument("--only", help="comma-separated changes: sweep only points made of these")
     parser.add_argument("--workdir", type=Path, help="keep captures, caches and points here")
     parser.add_argument("--captures", type=Path, default=ROOT.parent / "shared" / "captures")
     args = parser.parse_args()
-    results, lines = {}, []
+    only = set(args.only.split(",")) if args.only else None
+    commit = subprocess.run(
+        ["git", "describe", "--always", "--dirty"], cwd=ROOT, capture_output=True, text=True, check=True
+    ).stdout.strip()
     with tempfile.TemporaryDirectory() as folder:
         work = args.workdir or Path(folder)
         work.mkdir(parents=True, exist_ok=True)
@@ -363,12 +387,15 @@ def main() -> None:
             else:
                 capture, extra = _copy_sample(sample, work), ()
                 truth = json.loads((capture / "ground_truth" / "material.json").read_text())
-            points = points_for(args.groups.split(","), args.presets.split(","))
-            results[sample] = [measure(capture, p, extra, work, truth) for p in points]
-            (work / f"trade-{sample}.json").write_text(json.dumps([asdict(m) for m in results[sample]], indent=1))
+            points = points_for(args.groups.split(","), args.presets.split(","), only)
+            record = work / f"trade-{sample}.json"
+            measured = {m.point: m for m in kept(record)}
+            for point in points:
+                measured[point] = measure(capture, point, extra, work, truth, commit)
+                record.write_text(json.dumps([asdict(m) for m in measured.values()], indent=1))
+        results = {path.stem.removeprefix("trade-"): kept(path) for path in sorted(work.glob("trade-*.json"))}
     plot(results)
-    for sample, measured in results.items():
-        lines += table(sample, measured)
+    lines = [line for sample, measured in results.items() for line in table(sample, measured)]
     scaling = [line for measured in results.values() for line in slopes(measured)]
     memory = [line for measured in results.values() for line in memory_lines(measured)]
     print(
@@ -377,8 +404,9 @@ def main() -> None:
             [
                 "### The speed/accuracy trade (issue 27, point 1)",
                 "",
-                f"Reproduce: `.venv/bin/python bench/trade.py --samples {args.samples} --groups {args.groups} "
-                f"--presets {args.presets}`.",
+                "Reproduce: `.venv/bin/python bench/trade.py --workdir DIR --samples CAPTURE --groups ... "
+                "[--only ...]`, one command per capture below (docs/benchmarks.md says which); the section",
+                "shows every capture kept in DIR, each with the commit that measured it.",
                 "Machine: the 2-core, 24 GiB VM, no GPU (llvm_ad_rgb). Time: the sum of the wall times of",
                 "every stage the result depends on. Memory: the peak resident memory of the run that",
                 "computed the point. Errors after the last fit stage run (worst: the largest error over its",
