@@ -116,7 +116,7 @@ class Measured:
     worst_over_target: float | None = None
     iteration_seconds: float | None = None
     commit: str = ""
-    """The commit that measured it (``git describe --dirty``)."""
+    """The commit that measured it ("+": with uncommitted changes to code or presets)."""
 
 
 def points_for(groups: list[str], presets: list[str], only: set[str] | None = None) -> list[Point]:
@@ -362,6 +362,17 @@ def table(sample: str, measured: list[Measured]) -> list[str]:
     return lines
 
 
+def _commit() -> str:
+    """HEAD's short hash, with "+" when code or presets differ from it (docs may: the bench writes them)."""
+
+    def git(*args: str) -> str:
+        return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True, check=True).stdout.strip()
+
+    return git("rev-parse", "--short", "HEAD") + (
+        "+" if git("status", "--porcelain", "pipeline", "stages", "configs", "bench") else ""
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--samples", default="bird,bird_volumetric,temple-ring")
@@ -372,9 +383,7 @@ def main() -> None:
     parser.add_argument("--captures", type=Path, default=ROOT.parent / "shared" / "captures")
     args = parser.parse_args()
     only = set(args.only.split(",")) if args.only else None
-    commit = subprocess.run(
-        ["git", "describe", "--always", "--dirty"], cwd=ROOT, capture_output=True, text=True, check=True
-    ).stdout.strip()
+    commit = _commit()
     with tempfile.TemporaryDirectory() as folder:
         work = args.workdir or Path(folder)
         work.mkdir(parents=True, exist_ok=True)
