@@ -208,12 +208,12 @@ def measure(
     record = work / "points" / capture.name / f"{point.slug}.json"
     if record.is_file():
         kept = json.loads(record.read_text())
-        peak, samples = kept["peak_rss_mb"], kept["rss_mb"]
+        peak, samples, commit = kept["peak_rss_mb"], kept["rss_mb"], kept["commit"]
     else:
         record.parent.mkdir(parents=True, exist_ok=True)
         print(f"[trade] {capture.name}: {point.label}", flush=True)
         peak, samples = _run_point(capture, point, extra, record.with_suffix(".log"))
-        record.write_text(json.dumps({"peak_rss_mb": peak, "rss_mb": samples}))
+        record.write_text(json.dumps({"peak_rss_mb": peak, "rss_mb": samples, "commit": commit}))
     outputs, seconds = run_stages(capture, point.until, *extra, *point.overrides, preset=point.preset)
     last = [s for s in FIT_STAGES if s in outputs][-1]
     measured = Measured(point, sum(seconds.values()), seconds, peak, samples, commit=commit)
