@@ -19,6 +19,9 @@ mesh       mesh.resolution, through fit_material
 texture    fit_texture's finest resolution and number of levels
 geometry   fit_geometry's rounds, through fit_geometry
 presets    draft, standard and final end to end (``--presets``)
+candidates the standard preset end to end with one of fit_material's cheaper settings
+           that matched it in the material group, to see whether the whole
+           pipeline's result keeps up before the preset moves
 scaling    fit_material for 30 iterations at several max_size, spp and batch values:
            the median time of one iteration, and the slope of its logarithm against
            that of pixels per view, samples per pixel and views per step
@@ -146,6 +149,10 @@ def points_for(groups: list[str], presets: list[str], only: set[str] | None = No
         ],
         "geometry": [Point("geometry", "fit_geometry", overrides=("fit_geometry.rounds=1",))],
         "presets": [Point("presets", "export", preset=p) for p in presets],
+        "candidates": [
+            Point("candidates", "export", overrides=(change,))
+            for change in ("fit_material.max_size=64", "fit_material.spp=4")
+        ],
         "scaling": [
             Point("scaling", "fit_material", overrides=(f"fit_material.iterations={SCALING_ITERATIONS}",)),
             *(
