@@ -120,6 +120,9 @@ class Measured:
     iteration_seconds: float | None = None
     commit: str = ""
     """The commit that measured it ("+": with uncommitted changes to code or presets)."""
+    computed: bool = True
+    """Whether the point's own run computed its last stage (else that stage came from the
+    cache of another point, and the peak memory is not its)."""
 
 
 def points_for(groups: list[str], presets: list[str], only: set[str] | None = None) -> list[Point]:
@@ -223,7 +226,8 @@ def measure(
         record.write_text(json.dumps({"peak_rss_mb": peak, "rss_mb": samples, "commit": commit}))
     outputs, seconds = run_stages(capture, point.until, *extra, *point.overrides, preset=point.preset)
     last = [s for s in FIT_STAGES if s in outputs][-1]
-    measured = Measured(point, sum(seconds.values()), seconds, peak, samples, commit=commit)
+    computed = f"stage {point.until} done in" in record.with_suffix(".log").read_text()
+    measured = Measured(point, sum(seconds.values()), seconds, peak, samples, commit=commit, computed=computed)
     measured.psnr_db = score_heldout(outputs[last]["heldout"])["psnr_db_mean"]
     if point.group == "scaling":
         measured.iteration_seconds = _iteration_seconds(outputs["fit_material"]["fitted_dir"])
@@ -301,7 +305,7 @@ def plot(results: dict[str, list[Measured]]) -> None:
     plt.close(figure)
 
 
-def slopes(measured: list[Measured]) -> list[str]:
+def slopes(sample: str, measured: list[Measured]) -> list[str]:
     """log-log slope of one iteration's time against each scaling knob's cost measure."""
     lines = []
     scaling = [m for m in measured if m.point.group == "scaling"]
@@ -323,23 +327,24 @@ def slopes(measured: list[Measured]) -> list[str]:
         measure_name = {"fit_material.max_size": "pixels per view", "fit_material.spp": "spp"}.get(
             knob, "views per step"
         )
-        lines.append(f"| {knob} | {times} | {measure_name} | {slope:.2f} |")
+        lines.append(f"| {sample} | {knob} | {times} | {measure_name} | {slope:.2f} |")
     return lines
 
 
-def memory_lines(measured: list[Measured]) -> list[str]:
+def memory_lines(sample: str, measured: list[Measured]) -> list[str]:
     rows = [
         m
         for m in measured
         if m.point.group == "material"
+        and m.computed
         and (m.point.overrides or ("",))[0].startswith("fit_material.iterations")
         and len(m.point.overrides) == 1
     ]
-    standard = next((m for m in measured if m.point.group == "material" and not m.point.overrides), None)
+    standard = next((m for m in measured if m.point.group == "material" and not m.point.overrides and m.computed), None)
     lines = []
     for m in sorted([*rows, *([standard] if standard else [])], key=lambda m: m.stage_seconds["fit_material"]):
         its = m.point.overrides[0].split("=")[1] if m.point.overrides else "150"
-        lines.append(f"- {its} iterations: peak {m.peak_rss_mb:.0f} MiB")
+        lines.append(f"- {sample} ({m.commit}), {its} iterations: peak {m.peak_rss_mb:.0f} MiB")
     longest = max(rows, key=lambda m: m.stage_seconds["fit_material"], default=None)
     if longest and len(longest.rss_mb) > 10:
         t, rss = np.array(longest.rss_mb).T
@@ -347,7 +352,7 @@ def memory_lines(measured: list[Measured]) -> list[str]:
         slope = np.polyfit(t[half] / 60, rss[half], 1)[0]
         quartiles = ", ".join(f"{rss[int(q * (len(rss) - 1))]:.0f}" for q in (0.25, 0.5, 0.75, 1.0))
         lines.append(
-            f"- during the {longest.point.overrides[0].split('=')[1]}-iteration run: resident memory at a quarter, "
+            f"- {sample}, during the {longest.point.overrides[0].split('=')[1]}-iteration run: resident memory at a quarter, "
             f"half, three quarters and the end of its {t[-1]:.0f} s: {quartiles} MiB; over its second half "
             f"{slope:+.1f} MiB a minute"
         )
@@ -362,8 +367,9 @@ def table(sample: str, measured: list[Measured]) -> list[str]:
         stages = ", ".join(f"{s} {m.stage_seconds[s]:.0f}" for s in FIT_STAGES if s in m.stage_seconds)
         errors = ", ".join(f"{k} {v}" for k, v in m.errors.items()) or "-"
         worst = f"{m.worst_over_target:.2f}" if m.worst_over_target is not None else "-"
+        memory = f"{m.peak_rss_mb:.0f} MiB" if m.computed else "cached"
         lines.append(
-            f"| {sample} ({m.commit}) | {m.point.label} | {m.seconds:.0f} s ({stages}) | {m.peak_rss_mb:.0f} MiB | "
+            f"| {sample} ({m.commit}) | {m.point.label} | {m.seconds:.0f} s ({stages}) | {memory} | "
             f"{m.psnr_db:.1f} dB{' (front)' if index in fronts else ''} | {errors} | {worst} |"
         )
     return lines
@@ -412,8 +418,8 @@ def main() -> None:
         results = {path.stem.removeprefix("trade-"): kept(path) for path in sorted(work.glob("trade-*.json"))}
     plot(results)
     lines = [line for sample, measured in results.items() for line in table(sample, measured)]
-    scaling = [line for measured in results.values() for line in slopes(measured)]
-    memory = [line for measured in results.values() for line in memory_lines(measured)]
+    scaling = [line for sample, measured in results.items() for line in slopes(sample, measured)]
+    memory = [line for sample, measured in results.items() for line in memory_lines(sample, measured)]
     print(
         write_section(
             "trade",
@@ -434,8 +440,8 @@ def main() -> None:
                 "",
                 "Cost of one fit_material iteration (median; batch 2, spp 16, 128 px unless varied):",
                 "",
-                "| knob | values -> time per iteration | grows with | log-log slope |",
-                "|---|---|---|---|",
+                "| capture | knob | values -> time per iteration | grows with | log-log slope |",
+                "|---|---|---|---|---|",
                 *scaling,
                 "",
                 "Memory over iterations (fit_material, standard otherwise):",
