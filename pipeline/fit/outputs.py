@@ -3,6 +3,7 @@ log and its plot (file names in pipeline.formats.scene_folder)."""
 
 from __future__ import annotations
 
+import struct
 from pathlib import Path
 
 import cv2
@@ -46,12 +47,21 @@ def write_texture_files(folder: Path, slot: materials.TextureSlot, texture: np.n
         mi.Bitmap(np.ascontiguousarray(texture, dtype=np.float32)).write(str(folder / f"{name}.exr"))
         cv2.imwrite(str(folder / f"{name}.png"), to_uint8(texture)[..., ::-1])
         return
-    mi.VolumeGrid(texture).write(str(folder / f"{name}.vol"))
+    write_volume_grid(folder / f"{name}.vol", texture)
     columns = int(np.ceil(np.sqrt(texture.shape[0])))
     slices = [texture[z] for z in range(texture.shape[0])]
     slices += [np.zeros_like(slices[0])] * (columns * columns - len(slices))
     rows = [np.concatenate(slices[r * columns : (r + 1) * columns], axis=1) for r in range(columns)]
     cv2.imwrite(str(folder / f"{name}.png"), to_uint8(np.concatenate(rows, axis=0)[::-1])[..., ::-1])
+
+
+def write_volume_grid(path: Path, grid: np.ndarray) -> None:
+    """``grid`` (z, y, x, channels) in Mitsuba's .vol format (version 3, float32, the
+    unit box), written without Mitsuba: a stage may write its starting texture before
+    it has chosen a Mitsuba variant, which ``mi.VolumeGrid`` needs."""
+    depth, height, width, channels = grid.shape
+    header = struct.pack("<3sBi4i6f", b"VOL", 3, 1, width, height, depth, channels, 0, 0, 0, 1, 1, 1)
+    path.write_bytes(header + np.ascontiguousarray(grid, dtype="<f4").tobytes())
 
 
 def write_fit_log(folder: Path, log: list[dict]) -> None:
