@@ -346,7 +346,8 @@ def memory_lines(sample: str, measured: list[Measured]) -> list[str]:
         its = m.point.overrides[0].split("=")[1] if m.point.overrides else "150"
         lines.append(f"- {sample} ({m.commit}), {its} iterations: peak {m.peak_rss_mb:.0f} MiB")
     longest = max(rows, key=lambda m: m.stage_seconds["fit_material"], default=None)
-    if longest and len(longest.rss_mb) > 10:
+    # A minute at least: over a shorter run the slope says nothing of growth.
+    if longest and len(longest.rss_mb) > 10 and longest.rss_mb[-1][0] >= 60:
         t, rss = np.array(longest.rss_mb).T
         half = t >= t[-1] / 2
         slope = np.polyfit(t[half] / 60, rss[half], 1)[0]
