@@ -327,7 +327,8 @@ def slopes(sample: str, measured: list[Measured]) -> list[str]:
         measure_name = {"fit_material.max_size": "pixels per view", "fit_material.spp": "spp"}.get(
             knob, "views per step"
         )
-        lines.append(f"| {sample} | {knob} | {times} | {measure_name} | {slope:.2f} |")
+        commits = ", ".join(sorted({m.commit for m in rows}))
+        lines.append(f"| {sample} ({commits}) | {knob} | {times} | {measure_name} | {slope:.2f} |")
     return lines
 
 
