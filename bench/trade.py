@@ -429,8 +429,8 @@ def main() -> None:
                 "### The speed/accuracy trade (issue 27, point 1)",
                 "",
                 "Reproduce: `.venv/bin/python bench/trade.py --workdir DIR --samples CAPTURE --groups ... "
-                "[--only ...]`, one command per capture below (docs/benchmarks.md says which); the section",
-                "shows every capture kept in DIR, each with the commit that measured it.",
+                "[--only ...]`, the commands listed after this section; the section shows every point",
+                "kept in DIR, each with the commit that measured it.",
                 "Machine: the 2-core, 24 GiB VM, no GPU (llvm_ad_rgb). Time: the sum of the wall times of",
                 "every stage the result depends on. Memory: the peak resident memory of the run that",
                 "computed the point. Errors after the last fit stage run (worst: the largest error over its",
