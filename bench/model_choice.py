@@ -27,6 +27,7 @@ from report import run_stages, write_section
 from pipeline.synthetic.options import SynthOptions
 from pipeline.synthetic.score import score_heldout, score_material
 from pipeline.synthetic.synth import synthesize
+from stages.fit_material import Config as FitMaterialConfig
 
 SYNTHESIZED = {"glossy_paint": SynthOptions(material="glossy_paint", seed=3)}
 """Captures rendered here rather than copied from sample_captures/."""
@@ -45,18 +46,20 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--captures", default="bird,bird_volumetric,glossy_paint")
     parser.add_argument("--workdir", type=Path, help="keep captures and caches here")
-    parser.add_argument("--margin", type=float, help="fit_material.model_margin (default: the stage's)")
+    parser.add_argument(
+        "--margin", type=float, default=FitMaterialConfig().model_margin, help="fit_material.model_margin"
+    )
     args = parser.parse_args()
     rows = []
-    margin = [] if args.margin is None else [f"fit_material.model_margin={args.margin}"]
-    margin_text = f"{args.margin:.0%}" if args.margin is not None else "5 %"
     with tempfile.TemporaryDirectory() as folder:
         work = args.workdir or Path(folder)
         work.mkdir(parents=True, exist_ok=True)
         for name in args.captures.split(","):
             capture = _capture(name, work)
             truth = json.loads((capture / "ground_truth" / "material.json").read_text())
-            outputs, seconds = run_stages(capture, "fit_material", "capture.material=auto", *margin)
+            outputs, seconds = run_stages(
+                capture, "fit_material", "capture.material=auto", f"fit_material.model_margin={args.margin}"
+            )
             params = json.loads(outputs["fit_material"]["params"].read_text())
             choice = params["model_choice"]
             candidates = ", ".join(
@@ -78,11 +81,9 @@ def main() -> None:
                 "",
                 "fit_material on the standard preset with `capture.material = auto`: principled (with the",
                 "light) first, then opaque from it, volumetric only when principled beat opaque by more",
-                f"than `fit_material.model_margin` ({margin_text}); the simplest within the margin of the best",
+                f"than `fit_material.model_margin` ({args.margin:.0%}); the simplest within the margin of the best",
                 "held-out MSE kept; then the held-out photos rendered at twice the path depth.",
-                f"Reproduce: `.venv/bin/python bench/model_choice.py --captures {args.captures}"
-                + (f" --margin {args.margin}" if margin else "")
-                + "`.",
+                f"Reproduce: `.venv/bin/python bench/model_choice.py --captures {args.captures} --margin {args.margin}`.",
                 "",
                 "| capture | true model | candidates: held-out MSE (time) | chosen (right?) | why | depth |"
                 " errors | held-out PSNR | fit_material |",
