@@ -3,8 +3,8 @@
 The scene stage's model (pipeline.render.materials) is fitted by pipeline.fit.engine: Adam
 over its parameters with per-parameter learning rates and box constraints, a
 loss on the photos' linear radiance (undistort's EXRs) over each photo's
-specimen mask, eroded by ``erode_px`` so that silhouette pixels, where the
-mesh's error shows, do not count. Pixels are the budget on a CPU: each view is
+specimen mask cut to the mesh's outline (pipeline.fit.views), eroded by ``erode_px``
+so that silhouette pixels, where the mesh's error shows, do not count. Pixels are the budget on a CPU: each view is
 rendered only in a window around its mask, scaled so that its longer side has
 at most ``max_size`` pixels. ``held_out`` photos, evenly spread over the sorted
 names, are never fitted: they measure validation error, and the best-validation
@@ -163,6 +163,10 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
     initial = {name: entry["value"] for name, entry in description["parameters"].items()}
     poses = {name: pose for name, (_, pose) in cameras.items()}
+    measured_on = None  # where the scene stage measured an estimated light's level
+    if light.estimated:
+        mesh = trimesh.load(fitted / MESH_PLY, force="mesh", process=False)
+        measured_on = estimated_light.measured_surface(description["light"]["level_from"], mesh, poses, light.frame)
 
     def write_scene(model: str, values: dict, fitted_light) -> None:
         """The material's values and the light (None: the given one) into fitted/."""
@@ -181,7 +185,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         views = views_of(model, integrator)
         held = set(held_out_names([v.name for v in views], conf.held_out))
         fitted_parameters = parameters[model] + (
-            estimated_light.parameters(start_light, light.smoothness) if start_light else []
+            estimated_light.parameters(start_light, light.smoothness, measured_on) if start_light else []
         )
         settings = FitSettings(**{f.name: getattr(conf, f.name) for f in fields(FitSettings)})
         result = engine.fit(
@@ -320,7 +324,7 @@ def _specimen_sphere(fitted: Path, frame: str, cameras: dict, light: LightSectio
 
 STAGE = Stage(
     name="fit_material",
-    version=11,
+    version=12,
     config=Config,
     main=main,
     needs=("scene.scene_dir", "scene.description", "sfm.cameras", "undistort.pinhole", "masks.masks_json"),

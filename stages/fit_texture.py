@@ -260,7 +260,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_texture",
-    version=11,
+    version=12,
     config=Config,
     main=main,
     needs=(

@@ -47,10 +47,12 @@ class FitParameter:
     smooth_logarithm: bool = False
     """The prior compares the logarithms of neighbours (a ``log`` parameter's latents), not
     their values: radiance, whose bright lobes are real."""
-    fixed_mean: bool = False
-    """Keep each channel's mean of a texture's latent (of the log values when ``log``) at
-    its start: only ratios between texels are fitted. A light's scale and colour trade
-    off exactly against a diffuse albedo's; they are fixed elsewhere (pipeline.render.light)."""
+    mean_weights: tuple[float, ...] | None = None
+    """Keep each channel's weighted mean of a texture's values at its start, with one
+    weight per texel (row-major, summing to 1): only how the values are spread is fitted,
+    not their level. For a light, whose scale and colour trade off exactly against a
+    diffuse albedo's and are measured elsewhere (pipeline.render.light). ``log``
+    parameters only."""
     layout: Layout | None = None
     """How the latent maps onto the scene's value when their shapes differ; None: the same."""
 
@@ -73,6 +75,11 @@ def summarize(value: np.ndarray) -> list[float]:
     if value.ndim > 1:
         value = value.reshape(-1, value.shape[-1]).mean(axis=0)
     return [float(v) for v in np.ravel(value)]
+
+
+def _channels(texture: np.ndarray) -> np.ndarray:
+    """A texture (..., channels) as (texels, channels)."""
+    return texture.reshape(-1, texture.shape[-1])
 
 
 def neighbour_pairs(shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
@@ -108,7 +115,7 @@ class MaterialVariables:
         """The latents in the optimiser, from the first scene's values."""
         dr, optimizer = self.dr, self.optimizer
         first = next(iter(self.traversed.values()))
-        self.start_means = {}
+        self.start_means, self.mean_weights = {}, {}
         for parameter in self.parameters:
             value = first[parameter.key]
             if parameter.layout is not None:
@@ -120,9 +127,10 @@ class MaterialVariables:
             dr.make_opaque(latent)
             optimizer[parameter.name] = latent
             optimizer.set_learning_rate({parameter.name: parameter.learning_rate * learning_rate_scale})
-            if parameter.fixed_mean:
-                start = np.array(latent, dtype=np.float64)
-                self.start_means[parameter.name] = start.reshape(-1, start.shape[-1]).mean(axis=0)
+            if parameter.mean_weights is not None:
+                weights = np.asarray(parameter.mean_weights)
+                self.start_means[parameter.name] = weights @ _channels(np.exp(np.array(latent, np.float64)))
+                self.mean_weights[parameter.name] = self.mi.Float(np.repeat(weights, latent.shape[-1]))
         self.gives = {
             p.name: self.mi.UInt32(np.array(p.layout.give, np.uint32)) for p in self.parameters if p.layout is not None
         }
@@ -157,7 +165,7 @@ class MaterialVariables:
         dr, params = self.dr, self.traversed[scene_key]
         for parameter in self.parameters:
             latent = self.optimizer[parameter.name]
-            if parameter.fixed_mean:
+            if parameter.mean_weights is not None:
                 latent = self._channel_mean_fixed(parameter.name, latent)
             if parameter.log:
                 # exp of a float32 log-bound can land a hair outside the bound; clip
@@ -172,14 +180,14 @@ class MaterialVariables:
         params.update()
 
     def _channel_mean_fixed(self, name: str, latent):
-        """``latent`` (channels last) shifted so that each channel's mean is its start's."""
+        """``latent`` (log values, channels last) shifted so that each channel's weighted
+        mean of the values is its start's."""
         dr, mi = self.dr, self.mi
         start = self.start_means[name]
-        count = dr.width(latent.array)
-        channel = dr.arange(mi.UInt32, count) % len(start)
+        channel = dr.arange(mi.UInt32, dr.width(latent.array)) % len(start)
         sums = dr.zeros(mi.Float, len(start))
-        dr.scatter_reduce(dr.ReduceOp.Add, sums, latent.array, channel)
-        shift = mi.Float(start.astype(np.float32)) - sums * (len(start) / count)
+        dr.scatter_reduce(dr.ReduceOp.Add, sums, dr.exp(latent.array) * self.mean_weights[name], channel)
+        shift = dr.log(mi.Float(start.astype(np.float32)) / sums)
         return type(latent)(latent.array + dr.gather(mi.Float, shift, channel), latent.shape)
 
     def scale(self, view_name: str, one):
@@ -205,9 +213,11 @@ class MaterialVariables:
     def snapshot(self) -> dict[str, np.ndarray]:
         """Values as arrays: a texture (..., channels), else flat."""
         arrays = {p.name: np.array(self.optimizer[p.name], dtype=np.float64) for p in self.parameters}
-        for name, start in self.start_means.items():
-            channels = arrays[name].reshape(-1, len(start))
-            arrays[name] = arrays[name] - channels.mean(axis=0) + start
+        for parameter in self.parameters:
+            if parameter.mean_weights is not None:
+                start, latent = self.start_means[parameter.name], arrays[parameter.name]
+                mean = np.asarray(parameter.mean_weights) @ _channels(np.exp(latent))
+                arrays[parameter.name] = latent + np.log(start / mean)
         arrays = {n: a if n in self.textured else np.ravel(a) for n, a in arrays.items()}
         return {
             p.name: np.clip(np.exp(arrays[p.name]), p.lower, p.upper) if p.log else arrays[p.name]

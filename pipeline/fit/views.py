@@ -5,8 +5,12 @@ choice of the photos held out for validation.
 Each view is rendered only in a window around its mask, scaled so that its
 longer side has at most ``max_size`` pixels: pixels are the budget on a CPU. Every
 window of a capture has the same size (mask_windows), so that every view renders
-with the same kernels. The weights are the mask eroded by ``erode_px`` at full resolution, so that
-silhouette pixels, where the mesh's error shows, do not count.
+with the same kernels. The pixels that count are those inside both the photo's mask
+and the scene mesh's outline in that photo: a segmentation that took in some of a
+busy backdrop is cut back to the specimen (the mesh, a visual hull at first, is
+carved by every mask, so one mask's excess does not reach it). They are then eroded
+by ``erode_px`` at full resolution, so that silhouette pixels, where the mesh's error
+shows, do not count.
 """
 
 from __future__ import annotations
@@ -16,11 +20,12 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import trimesh
 
 from pipeline import logger
-from pipeline.camera.model import Intrinsics, Pose, resize_exact, scaled
+from pipeline.camera.model import Intrinsics, Pose, mesh_coverage, resize_exact, scaled
 from pipeline.fit.loop import FitView
-from pipeline.formats.scene_folder import SCENE_XML
+from pipeline.formats.scene_folder import MESH_PLY, SCENE_XML
 from pipeline.imaging.photo_io import read_photo
 from pipeline.render import scene_xml
 
@@ -113,7 +118,7 @@ def load_views(
     integrator = mi.load_dict(
         {"type": description["integrator"]["differentiable"], "max_depth": description["integrator"]["max_depth"]}
     )
-    every = {name: cv2.imread(str(masks[name]), cv2.IMREAD_GRAYSCALE) > 127 for name in sorted(description["views"])}
+    every = specimen_masks(scene_dir / MESH_PLY, cameras, {n: masks[n] for n in sorted(description["views"])})
     windows = mask_windows(every, max_size)
     views = []
     for name in sorted(every if names is None else set(every) & names):
@@ -137,6 +142,32 @@ def load_views(
         view = FitView(name, scene, sensor, np.ascontiguousarray(reference), weight, integrator)
         views.append((view, window))
     return views
+
+
+def specimen_masks(
+    mesh_file: Path, cameras: dict[str, tuple[Intrinsics, Pose]], masks: dict[str, Path], excess: float = 0.2
+) -> dict[str, np.ndarray]:
+    """Each photo's mask cut to the mesh's outline in it, with a warning naming the
+    photos whose mask reached past that outline by more than ``excess`` of its area."""
+    mesh = trimesh.load(mesh_file, force="mesh", process=False)
+    result, spilled = {}, []
+    for name, path in masks.items():
+        mask = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) > 127
+        intrinsics, pose = cameras[name]
+        # a closed mesh's outline is that of its faces turned towards the camera
+        front = np.einsum("ij,ij->i", mesh.face_normals, pose.center - mesh.triangles_center) > 0
+        outline = mesh_coverage(mesh.vertices, mesh.faces[front], intrinsics, pose, factor=1) > 0.5
+        result[name] = mask & outline
+        if mask.sum() > (1 + excess) * result[name].sum():
+            spilled.append(f"{name} ({mask.sum() / max(result[name].sum(), 1) - 1:.0%})")
+    if spilled:
+        logger.warning(
+            "%d masks reach past the mesh's outline (%s): only pixels inside both count; "
+            "a backdrop the segmentation took in? (masks.segmenter, or masks/ in the capture)",
+            len(spilled),
+            ", ".join(spilled[:4]) + (", ..." if len(spilled) > 4 else ""),
+        )
+    return result
 
 
 def held_out_names(names: list[str], count: int) -> list[str]:

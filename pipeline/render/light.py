@@ -17,14 +17,19 @@ for a turntable (``frame``, as pipeline.render.capture_scene places it): there t
 specimen turns under a still light, and each photo sees it from another side.
 
 Scale and colour: a light's scale and colour trade off exactly against a diffuse
-albedo's, so they are not fitted: each channel's mean log radiance of the map keeps
-its start (``fixed_mean``), a uniform level the scene stage measures on a surface of
-known albedo when the photos show one (the board's print: its colour too), else on
-the specimen as if it had its starting material, in grey (the camera's white
-balance taken as right). With the board, radiance and albedos are absolute (in the
-photos' linear units); without, albedos are relative to that guess, and what is
-measured is the light's distribution over directions, the softbox's share, and
-the materials' other parameters (roughness, transmission, eta, ...).
+albedo's, so they are not fitted. The scene stage measures a level: the uniform
+radiance at which a surface of known albedo renders like the photos (the board's
+print, its colour too, when the photos show it; else the specimen as if it had its
+starting material, in grey: the camera's white balance taken as right). What that
+measures is the irradiance on the surface it was measured on, so the map keeps it:
+each channel's mean radiance weighted by how much each texel lights that surface
+(``level_weights``: the board faces up; the specimen's faces as the cameras saw
+them) stays at its start (pipeline.fit.variables.FitParameter.mean_weights), and
+texels that surface never sees (below the board) do not count. With the board,
+radiance and albedos are absolute (in the photos' linear units); without, albedos
+are relative to that guess, and what is measured is the light's distribution over
+directions, the softbox's share, and the materials' other parameters (roughness,
+transmission, eta, ...).
 
 Limitations: the softbox's position and size come from the envmap's lobe (its
 direction and solid angle, at ``area_distance`` times the specimen's radius) and
@@ -114,11 +119,13 @@ def start(model: LightModel, frame: str, level: np.ndarray, width: int) -> Estim
     return EstimatedLight("envmap" if model == "envmap+area" else model, frame, environment)
 
 
-def parameters(light: EstimatedLight, smoothness: float) -> list[FitParameter]:
-    """The fitted parameters of ``light``'s model (names prefixed ``light_``)."""
+def parameters(light: EstimatedLight, smoothness: float, measured_on: Surface) -> list[FitParameter]:
+    """The fitted parameters of ``light``'s model (names prefixed ``light_``); the map's
+    level on ``measured_on`` (the surface the scene stage measured it on) is kept."""
     if light.model == "constant":
         return []  # its level and colour are the start's
     height, width = light.environment.shape[:2]
+    weights = level_weights(height, width, light.frame, measured_on)
     environment = FitParameter(
         "light_environment",
         "environment.data",
@@ -128,7 +135,7 @@ def parameters(light: EstimatedLight, smoothness: float) -> list[FitParameter]:
         learning_rate=0.1,
         smoothness=smoothness,
         smooth_logarithm=True,
-        fixed_mean=True,
+        mean_weights=tuple(float(w) for w in weights.ravel()),
         layout=envmap_layout(height, width),
     )
     if light.area is None:
@@ -219,6 +226,53 @@ def directions(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
     local = np.stack([np.sin(phi) * np.sin(theta), np.cos(theta), -np.cos(phi) * np.sin(theta)], -1)
     solid_angle = np.broadcast_to((2 * np.pi / width) * band[:, None], theta.shape)
     return local, solid_angle
+
+
+@dataclass(frozen=True)
+class Surface:
+    """Where a light's level was measured, as the light sees it: unit normals (n, 3) in
+    the light's frame, each with the weight of its part in the measurement."""
+
+    normals: np.ndarray
+    weights: np.ndarray
+
+
+def measured_surface(level_from: str, mesh, poses: dict[str, Pose], frame: str, faces: int = 2000) -> Surface:
+    """The surface the scene stage measured the level on (scene.json's ``level_from``):
+    the board, facing up (+z of the world); or the specimen (``mesh``, in world
+    coordinates): up to ``faces`` of its faces, each as often as a camera faces it,
+    weighted by its area as that camera sees it (occlusion ignored). With a light that
+    rides with the camera, each photo's normals in its camera's coordinates."""
+    if level_from == "board":
+        up = (np.array([[0.0, 0.0, 1.0]]), np.ones(1))
+        seen = {name: up for name in poses}
+    else:
+        chosen = np.random.default_rng(0).choice(len(mesh.faces), min(faces, len(mesh.faces)), replace=False)
+        centres, normals, areas = mesh.triangles_center[chosen], mesh.face_normals[chosen], mesh.area_faces[chosen]
+        seen = {}
+        for name, pose in poses.items():
+            towards = pose.center - centres
+            facing = np.einsum("ij,ij->i", normals, towards) / np.linalg.norm(towards, axis=1)
+            seen[name] = (normals[facing > 0], areas[facing > 0] * facing[facing > 0])
+    rotations = {name: np.eye(3) if frame == "world" else pose.R for name, pose in poses.items()}
+    return Surface(
+        np.concatenate([normals @ rotations[name].T for name, (normals, _) in seen.items()]),
+        np.concatenate([weights for normals, weights in seen.values()]),
+    )
+
+
+def level_weights(height: int, width: int, frame: str, surface: Surface) -> np.ndarray:
+    """(height, width) weights summing to 1: each texel's share of the irradiance on
+    ``surface`` under a uniform map (its solid angle times its mean cosine with the
+    surface's normals), so that a uniform map's weighted mean is its radiance."""
+    local, solid_angle = directions(height, width)
+    texel_directions = local.reshape(-1, 3) @ map_to_frame(frame).T
+    cosines = np.zeros(height * width)
+    for chunk in range(0, len(surface.normals), 4096):
+        normals = surface.normals[chunk : chunk + 4096]
+        cosines += surface.weights[chunk : chunk + 4096] @ np.clip(normals @ texel_directions.T, 0, None)
+    weights = cosines.reshape(height, width) * solid_angle
+    return weights / weights.sum()
 
 
 def map_to_frame(frame: str) -> np.ndarray:

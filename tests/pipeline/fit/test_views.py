@@ -3,13 +3,15 @@ by a camera whose whole film is the window."""
 
 from dataclasses import replace
 
+import cv2
 import numpy as np
 import pytest
+import trimesh
 
 from pipeline.camera.model import Pose, scaled
-from pipeline.fit.views import mask_windows
+from pipeline.fit.views import mask_windows, specimen_masks
 from pipeline.render import scene_xml
-from tests.support.sphere_views import K, sphere_mask
+from tests.support.sphere_views import RADIUS, K, sphere_mask, sphere_views
 
 
 def _box_mask(shape, x0, y0, x1, y1):
@@ -72,3 +74,21 @@ def test_the_windows_camera_renders_the_window_of_the_whole_photo(mi):
     inside = window.inside() > 0
     # Right: 0.016 (noise); the principal point 0.3 px off: 0.052, 1 px off: 0.148.
     assert np.percentile(np.abs(rendered - expected)[inside], 99) < 0.03
+
+
+def test_a_mask_that_took_in_backdrop_is_cut_to_the_meshs_outline_with_a_warning(tmp_path, caplog):
+    trimesh.creation.icosphere(subdivisions=4, radius=RADIUS).export(tmp_path / "mesh.ply")
+    views = sphere_views(2)
+    masks = {}
+    for i, view in enumerate(views):
+        mask = view.mask.copy()
+        if i == 1:
+            mask[:, :30] = True  # a strip of coloured wall, taken for specimen
+        masks[f"v{i}.jpg"] = tmp_path / f"v{i}.png"
+        cv2.imwrite(str(masks[f"v{i}.jpg"]), mask.astype(np.uint8) * 255)
+    cameras = {f"v{i}.jpg": (view.intrinsics, view.pose) for i, view in enumerate(views)}
+    cut = specimen_masks(tmp_path / "mesh.ply", cameras, masks)
+    for i, view in enumerate(views):
+        kept = cut[f"v{i}.jpg"]
+        assert (kept & view.mask).sum() / (kept | view.mask).sum() > 0.95
+    assert "v1.jpg" in caplog.text and "v0.jpg" not in caplog.text

@@ -3,6 +3,7 @@ lobe turned into a softbox and the irradiance it casts."""
 
 import numpy as np
 import pytest
+import trimesh
 
 from pipeline.camera.model import Pose
 from pipeline.fit.variables import FitParameter, MaterialVariables
@@ -24,15 +25,22 @@ def test_the_layout_spreads_the_texels_as_mitsuba_pads_them(mi, tmp_path):
     np.testing.assert_allclose(environment.ravel()[list(layout.give)], data.ravel(), rtol=1e-6)
 
 
-def test_the_light_keeps_each_channels_mean_and_its_padding_while_it_is_stepped(mi, tmp_path):
+UP = light.Surface(np.array([[0.0, 0.0, 1.0]]), np.ones(1))
+"""The board, where the scene stage measures a light's level when the photos show it."""
+
+
+def test_the_light_keeps_its_level_on_the_measured_surface_and_its_padding_while_it_is_stepped(mi, tmp_path):
     """The scale and colour of an estimated light are fixed (they trade off against the
-    albedo); the wrapped columns stay copies of the texels they repeat."""
-    start = light.start("envmap", "world", np.array([0.2, 0.5, 1.0]), 16)
+    albedo): its irradiance on the board stays the measured one, whatever the texels
+    below the board do; the wrapped columns stay copies of the texels they repeat."""
+    level = np.array([0.2, 0.5, 1.0])
+    start = light.start("envmap", "world", level, 16)
     scene = _scene_with_map(mi, tmp_path, start.environment)
-    (parameter,) = light.parameters(start, smoothness=0.0)
+    (parameter,) = light.parameters(start, 0.0, UP)
     variables = MaterialVariables([parameter], {id(scene): mi.traverse(scene)}, [])
     variables.register(1.0)
     gradient = np.random.default_rng(1).normal(size=(8, 16, 3)).astype(np.float32)
+    gradient[4:] = -5.0  # below the horizon: brighter and brighter
     import drjit as dr
 
     for _ in range(5):
@@ -41,11 +49,46 @@ def test_the_light_keeps_each_channels_mean_and_its_padding_while_it_is_stepped(
         variables.apply(id(scene))
     fitted = variables.snapshot()[parameter.name]
     assert np.ptp(fitted) > 0.01  # it moved
-    np.testing.assert_allclose(np.log(fitted).reshape(-1, 3).mean(axis=0), np.log([0.2, 0.5, 1.0]), atol=1e-4)
+    assert np.all(fitted[5:] > 1.2 * level)  # the lower texels rose without lowering the rest
+    measured = light.EstimatedLight("envmap", "world", fitted.astype(np.float32))
+    on_board = [light.irradiance(lit, UP.normals, np.zeros(3)) for lit in (measured, start)]
+    np.testing.assert_allclose(*on_board, rtol=1e-4)
     data = np.array(mi.traverse(scene)["environment.data"])
     np.testing.assert_allclose(data[:, 0], data[:, -2], rtol=1e-5)
     np.testing.assert_allclose(data[:, -1], data[:, 1], rtol=1e-5)
     np.testing.assert_allclose(data[:, 1:-1], fitted, rtol=1e-4)
+
+
+@pytest.mark.parametrize("frame", ["world", "camera"])
+def test_level_weights_are_each_texels_share_of_the_measured_surfaces_irradiance(frame):
+    """Weighted, a map's mean is its irradiance on the surface over a uniform map's: on the board, only
+    what comes from above counts; on a specimen seen from every side, the whole sphere."""
+    rng = np.random.default_rng(3)
+    environment = rng.uniform(0.1, 3.0, (16, 32, 3))
+    lit = light.EstimatedLight("envmap", frame, environment.astype(np.float32))
+    poses = {f"v{a}": Pose.look_at([np.cos(a), np.sin(a), 0.5], [0, 0, 0], up=[0, 0, 1]) for a in (0, 2, 4)}
+    board = light.measured_surface("board", None, poses, frame)
+    weights = light.level_weights(16, 32, frame, board)
+    assert weights.sum() == pytest.approx(1.0)
+    white = light.EstimatedLight("envmap", frame, np.ones_like(lit.environment))
+    on_board = [light.irradiance(map_, board.normals, np.zeros(3)) for map_ in (lit, white)]
+    expected = np.mean(on_board[0] / on_board[1], axis=0)
+    np.testing.assert_allclose(weights.ravel() @ environment.reshape(-1, 3), expected, rtol=1e-6)
+    if frame == "world":
+        local, _ = light.directions(16, 32)
+        below = (local @ light.map_to_frame("world").T)[..., 2] < -1e-6
+        assert weights[below].sum() == 0 and weights[~below].min() >= 0
+    # A sphere seen from three sides: its faces turned towards each camera, by their
+    # projected area; a uniform map keeps its radiance as its weighted mean.
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.05)
+    specimen = light.measured_surface("specimen (grey)", sphere, poses, frame, faces=500)
+    assert len(specimen.normals) == len(specimen.weights) > 500
+    weights = light.level_weights(16, 32, frame, specimen)
+    assert weights.ravel() @ np.full(16 * 32, 0.7) == pytest.approx(0.7)
+    local, _ = light.directions(16, 32)
+    world_up = np.array([0, 0, 1.0]) if frame == "world" else poses["v0"].R @ [0, 0, 1.0]
+    up = (local @ light.map_to_frame(frame).T) @ world_up
+    assert weights[up > 0.5].sum() > 2 * weights[up < -0.5].sum() > 0  # seen from above, lit from all round
 
 
 def test_a_uniform_map_and_a_constant_light_give_pi_times_their_radiance_on_any_surface():
@@ -100,7 +143,7 @@ def test_written_lights_replace_the_old_ones_and_load(mi, tmp_path):
     light.write(lit, tmp_path, description, {"a.jpg": pose})
     keys = set(mi.traverse(mi.load_file(str(tmp_path / "view-a.xml"))).keys())
     assert {"environment.data", "softbox.emitter.radiance.value"} <= keys
-    assert isinstance(light.parameters(lit, 0.01)[1], FitParameter)
+    assert isinstance(light.parameters(lit, 0.01, UP)[1], FitParameter)
 
 
 def test_texel_directions_are_mitsubas(mi, tmp_path):
