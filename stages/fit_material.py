@@ -39,9 +39,8 @@ scene.xml, ...      the scene folder with the fitted values written into
                     specimen.xml; renders as-is
 params.json         model (and model_choice: every candidate's held-out error and
                     seconds, why the winner won, and the depth check), the
-                    integrator fitted with, fitted values, bounds,
-                    units, best iteration,
-                    validation error, why it stopped, photo_gains (each training
+                    integrator fitted with, fitted values, bounds, units, best
+                    iteration, validation error, why it stopped, photo_gains (each training
                     photo's RGB gain, when exposure or white_balance is fitted;
                     fit_texture and fit_geometry divide the photos by them), the
                     light (chosen model, why, every candidate's error and seconds)
@@ -53,9 +52,8 @@ heldout/            per held-out photo: NAME.render.exr, NAME.reference.exr (the
                     NAME.reference/render/difference.png to look at
 ==================  =============================================================
 
-Limitations: a constant material; texture is fit_texture's job. The table beyond
-the board is not in the scene, so its bounce light is attributed to the
-specimen. Views whose mask is empty are skipped.
+Limitations: a constant material (texture is fit_texture's job). The table beyond the
+board is not in the scene: its bounce light is attributed to the specimen. Views whose mask is empty are skipped.
 """
 
 from __future__ import annotations
@@ -163,10 +161,9 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
     initial = {name: entry["value"] for name, entry in description["parameters"].items()}
     poses = {name: pose for name, (_, pose) in cameras.items()}
-    measured_on = None  # where the scene stage measured an estimated light's level
-    if light.estimated:
-        mesh = trimesh.load(fitted / MESH_PLY, force="mesh", process=False)
-        measured_on = estimated_light.measured_surface(description["light"]["level_from"], mesh, poses, light.frame)
+    mesh = trimesh.load(fitted / MESH_PLY, force="mesh", process=False)
+    level_from = description.get("light", {}).get("level_from")  # where an estimated light's level was measured
+    measured_on = estimated_light.measured_surface(level_from, mesh, poses, light.frame) if light.estimated else None
 
     def write_scene(model: str, values: dict, fitted_light) -> None:
         """The material's values and the light (None: the given one) into fitted/."""
@@ -215,7 +212,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
                 envmap = next((c for c in candidates if c.light.model == "envmap"), None) or fit(
                     scene_model, estimated_light.start("envmap", light.frame, level, light.environment_width)
                 )
-                area = estimated_light.with_area(envmap.light, *_specimen_sphere(fitted, light.frame, cameras, light))
+                area = estimated_light.with_area(envmap.light, *_specimen_sphere(mesh, light.frame, cameras, light))
                 candidates.append(fit(scene_model, area, envmap.result.values))
             else:
                 start = estimated_light.start(light_model, light.frame, level, light.environment_width)
@@ -250,7 +247,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         "why": why,
         "candidates": [c.summary("light") for c in candidates],
         "level": description.get("light", {}).get("level"),
-        "level_from": description.get("light", {}).get("level_from"),
+        "level_from": level_from,
     }
     params = write_json(
         fitted / PARAMS_JSON,
@@ -309,11 +306,10 @@ def _deeper(material: Candidate, held: list[engine.FitView], conf: Config, refit
     return winner, report | {"why": why, "candidates": [c.summary("depth") for c in candidates]}
 
 
-def _specimen_sphere(fitted: Path, frame: str, cameras: dict, light: LightSection) -> tuple[np.ndarray, float]:
+def _specimen_sphere(mesh: trimesh.Trimesh, frame: str, cameras: dict, light: LightSection) -> tuple[np.ndarray, float]:
     """(centre in the light's frame, the softbox's distance) for light.with_area: the
     specimen's bounding-sphere centre (in the first photo's camera coordinates when the
     light rides with the camera) and ``area_distance`` radii."""
-    mesh = trimesh.load(fitted / MESH_PLY, force="mesh", process=False)
     centre = mesh.bounding_box.centroid
     radius = float(np.max(np.linalg.norm(mesh.vertices - centre, axis=1)))
     if frame == "camera":

@@ -165,7 +165,9 @@ def test_a_material_model_left_open_is_chosen_by_held_out_error_and_carried_down
     scene = mi.load_file(str(outputs["fit_material"]["scene"]))
     assert f"max_depth = {chosen_depth}" in str(scene.integrator())
     values = mi.traverse(scene)
-    assert ("specimen.bsdf.spec_trans.value" in values.keys()) == (expected == "principled")
+    # Both surface models are Mitsuba's principled BSDF: opaque sets its specular, principled its eta.
+    assert ("specimen.bsdf.specular" in values.keys()) == (expected == "opaque")
+    assert ("specimen.bsdf.spec_trans.value" in values.keys()) == (expected != "volumetric")
     assert ("specimen.interior_medium.sigma_t.value.value" in values.keys()) == (expected == "volumetric")
     texture = json.loads(outputs["fit_texture"]["params"].read_text())
     assert texture["model"] == expected and set(texture["params"]) == names[expected]
