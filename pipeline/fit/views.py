@@ -144,6 +144,11 @@ def load_views(
     return views
 
 
+_NAMED: set[tuple[str, ...]] = set()
+"""Warnings of specimen_masks already given in this process: a stage loads its views
+several times (once per candidate), and the same photos need naming once."""
+
+
 def specimen_masks(
     mesh_file: Path, cameras: dict[str, tuple[Intrinsics, Pose]], masks: dict[str, Path], excess: float = 0.2
 ) -> dict[str, np.ndarray]:
@@ -160,7 +165,8 @@ def specimen_masks(
         result[name] = mask & outline
         if mask.sum() > (1 + excess) * result[name].sum():
             spilled.append(f"{name} ({mask.sum() / max(result[name].sum(), 1) - 1:.0%})")
-    if spilled:
+    if spilled and (str(mesh_file), *spilled) not in _NAMED:
+        _NAMED.add((str(mesh_file), *spilled))
         logger.warning(
             "%d masks reach past the mesh's outline (%s): only pixels inside both count; "
             "a backdrop the segmentation took in? (masks.segmenter, or masks/ in the capture)",

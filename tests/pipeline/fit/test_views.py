@@ -92,3 +92,6 @@ def test_a_mask_that_took_in_backdrop_is_cut_to_the_meshs_outline_with_a_warning
         kept = cut[f"v{i}.jpg"]
         assert (kept & view.mask).sum() / (kept | view.mask).sum() > 0.95
     assert "v1.jpg" in caplog.text and "v0.jpg" not in caplog.text
+    caplog.clear()
+    specimen_masks(tmp_path / "mesh.ply", cameras, masks)  # a stage loads its views again
+    assert "v1.jpg" not in caplog.text
