@@ -265,14 +265,21 @@ def level_weights(height: int, width: int, frame: str, surface: Surface) -> np.n
     """(height, width) weights summing to 1: each texel's share of the irradiance on
     ``surface`` under a uniform map (its solid angle times its mean cosine with the
     surface's normals), so that a uniform map's weighted mean is its radiance."""
+    weights = np.zeros(height * width)
+    for chunk in range(0, len(surface.normals), 4096):  # (normals, texels) at a time
+        part = slice(chunk, chunk + 4096)
+        weights += surface.weights[part] @ _texel_shares(surface.normals[part], height, width, frame)
+    return (weights / weights.sum()).reshape(height, width)
+
+
+def _texel_shares(normals: np.ndarray, height: int, width: int, frame: str, above: bool = False) -> np.ndarray:
+    """(n, texels): what each texel of a map in ``frame`` gives, per unit radiance, to the
+    irradiance on surfaces facing ``normals`` (solid angle times cosine); ``above``: only
+    texels above the horizon (+z of the light's frame)."""
     local, solid_angle = directions(height, width)
     texel_directions = local.reshape(-1, 3) @ map_to_frame(frame).T
-    cosines = np.zeros(height * width)
-    for chunk in range(0, len(surface.normals), 4096):
-        normals = surface.normals[chunk : chunk + 4096]
-        cosines += surface.weights[chunk : chunk + 4096] @ np.clip(normals @ texel_directions.T, 0, None)
-    weights = cosines.reshape(height, width) * solid_angle
-    return weights / weights.sum()
+    solid_angle = solid_angle.ravel() * (texel_directions[:, 2] > 0 if above else 1.0)
+    return np.clip(normals @ texel_directions.T, 0, None) * solid_angle
 
 
 def map_to_frame(frame: str) -> np.ndarray:
@@ -318,10 +325,8 @@ def irradiance(light: EstimatedLight, normals: np.ndarray, point: np.ndarray, ab
     environment = light.environment
     if environment.shape[:2] == (1, 1):
         environment = np.broadcast_to(environment, (129, 256, 3))
-    local, solid_angle = directions(*environment.shape[:2])
-    world = local.reshape(-1, 3) @ map_to_frame(light.frame).T
-    weights = solid_angle.ravel() * (world[:, 2] > 0 if above else 1.0)
-    result = (np.clip(normals @ world.T, 0, None) * weights) @ environment.reshape(-1, 3)
+    shares = _texel_shares(normals, *environment.shape[:2], light.frame, above)
+    result = shares @ environment.reshape(-1, 3)
     if light.area is not None:
         area = light.area
         offset = np.asarray(area.position) - np.asarray(point)
