@@ -55,8 +55,13 @@ OPAQUE_SPEC_TRANS = 0.05
 """An opaque specimen counts as fitted opaque when spec_trans ends below this."""
 ESTIMATED = ("light.model=auto", 'light.environment_map=""')
 REAL = {
-    "temple-ring": ("board.kind=none",),
-    "porous-cube": ("board.kind=none", "masks.segmenter=centre_prior", "fit_material.white_balance=true"),
+    "temple-ring": ("board.kind=none", "mesh.refine=stereo"),
+    "porous-cube": (
+        "board.kind=none",
+        "masks.segmenter=centre_prior",
+        "fit_material.white_balance=true",
+        "mesh.refine=stereo",
+    ),
 }
 STAGES = ("calibrate", "undistort", "masks", "sfm", "mesh", "cleanup", "uv", "scene")
 FIT_STAGES = ("fit_material", "fit_texture", "fit_geometry", "export")

@@ -1,7 +1,8 @@
-"""Stage mesh: one watertight surface of the specimen, from silhouettes and sparse points.
+"""Stage mesh: one watertight surface of the specimen, from silhouettes, refined by
+the sparse points or by stereo.
 
 The pycolmap wheel has no dense stereo and no Delaunay meshing (both need CUDA or
-CGAL), so the dense shape comes from the masks:
+CGAL), so the dense shape starts from the masks:
 
 1. **Visual hull** (pipeline.geometry.visual_hull): a box around the specimen is found by a
    coarse carve, then a grid of ``resolution`` voxels along its longest side holds
@@ -18,6 +19,12 @@ CGAL), so the dense shape comes from the masks:
    silhouettes and are discarded as outliers. A refined surface that is not
    watertight or has more handles than the hull (noisy points on a porous
    surface) is rejected, and the hull kept (mesh.json says which).
+3. **Stereo** (``refine = "stereo"``, pipeline.geometry.stereo): each photo's depth
+   by plane-sweep stereo against its nearest viewpoints, searched between where its
+   rays enter and leave the hull; depths that neighbouring depth maps confirm (to a
+   voxel) carve away the hull in front of them. The carved field stays a field, so
+   marching cubes closes the surface as before; concavities open where the photos
+   show texture.
 
 ==================  =============================================================
 output              content
@@ -26,7 +33,7 @@ mesh.ply            the specimen's surface in the world frame of cameras.json
 mesh.json           faces, watertightness, volume, points used, timings
 ==================  =============================================================
 
-Limitations: concavities need texture (sparse points) to be recovered; a
+Limitations: concavities need texture (sparse points or stereo) to be recovered; a
 specimen cut off by the frame in many photos, or masks that include the table,
 inflate the hull. The resolution bounds the detail: the voxel size is the
 specimen's largest extent divided by ``resolution``.
@@ -47,14 +54,23 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from pipeline import colmap, logger
-from pipeline.camera.model import Similarity, mesh_coverage
+from pipeline.camera.model import Similarity, mesh_coverage, resize_exact, scaled
+from pipeline.core import progress
 from pipeline.core.config import InputFile, Range, input_file_path
 from pipeline.core.errors import PipelineError
 from pipeline.core.stage import Stage, StageInputs, StageResult
 from pipeline.formats.cameras import read_frame, read_views
 from pipeline.formats.masks import read_masks
-from pipeline.geometry.visual_hull import View, bounds, hull_field, sample_hull, surface
+from pipeline.formats.pinhole import read_photos
+from pipeline.geometry import stereo
+from pipeline.geometry.visual_hull import Grid, View, bounds, hull_field, sample_hull, surface
 from pipeline.imaging.segmentation import iou
+
+_MIN_TEXTURE = 0.01
+"""Grey-level standard deviation (0-1) in a stereo window below which it has no
+texture to match: a depth there would be chance."""
+_MIN_AGREE = 1
+"""Neighbouring depth maps that must confirm a depth before it carves."""
 
 
 @dataclass(frozen=True)
@@ -74,9 +90,10 @@ class Config:
     (a stray gap in one mask would otherwise give the hull a handle)."""
     clip_to_ground: bool = True
     """Cut the hull at the ground plane found by the sfm stage (the table or board)."""
-    refine: Literal["poisson", "none"] = "poisson"
+    refine: Literal["poisson", "stereo", "none"] = "poisson"
     """poisson: add the sparse points inside the hull and rebuild with screened Poisson;
-    none: the visual hull as it is."""
+    stereo: carve the hull where plane-sweep depth maps see past it (the photos'
+    texture; slower: about a second per photo at 640 px); none: the visual hull as it is."""
     poisson_depth: Annotated[int, Range(5, 12)] = 8
     """Octree depth of the Poisson reconstruction (2^depth cells along the longest side)."""
     poisson_point_weight: Annotated[float, Range(0.0, None)] = 4.0
@@ -85,6 +102,19 @@ class Config:
     """Sparse points seen in fewer photos are not trusted."""
     max_point_error_px: Annotated[float, Range(0.0, None, exclusive_lo=True)] = 2.0
     """Sparse points with a larger mean reprojection error are not trusted."""
+    stereo_max_size: Annotated[int, Range(64, None)] = 640
+    """Longer side, in pixels, of the photos stereo compares (time grows with its square)."""
+    stereo_planes: Annotated[int, Range(8, 1024)] = 96
+    """Depth planes swept per photo between the hull's near and far side."""
+    stereo_window: Annotated[int, Range(3, 31)] = 7
+    """Side of the square window compared between photos, pixels (odd)."""
+    stereo_neighbours: Annotated[int, Range(1, 12)] = 4
+    """Photos each is compared with: the nearest viewpoints 3-45 degrees away; per
+    pixel the better half of them counts (one may see the point occluded)."""
+    stereo_min_score: Annotated[float, Range(-1.0, 1.0)] = 0.5
+    """Normalised cross-correlation below which a depth is not trusted."""
+    stereo_min_votes: Annotated[int, Range(1, None)] = 2
+    """Photos that must see past a voxel before it is carved."""
     source: Annotated[str, InputFile()] = ""
     """A PLY or OBJ of the specimen made by another tool, used instead of the visual
     hull (the settings above then do nothing), relative to the capture folder. It is
@@ -95,9 +125,9 @@ class Config:
     photos, intersection over union) is refused: it is not in the cameras' frame."""
 
 
-def _views(cameras_json: Path, masks_json: Path) -> list[View]:
+def _views(cameras_json: Path, masks_json: Path) -> dict[str, View]:
     masks = read_masks(masks_json)
-    views = []
+    views = {}
     for name, (intrinsics, pose) in sorted(read_views(cameras_json).items()):
         mask = cv2.imread(str(masks[name]), cv2.IMREAD_GRAYSCALE) > 127
         if mask.shape != (intrinsics.height, intrinsics.width):
@@ -105,7 +135,7 @@ def _views(cameras_json: Path, masks_json: Path) -> list[View]:
                 f"the mask of {name} is {mask.shape[::-1]} but its camera is "
                 f"{intrinsics.width}x{intrinsics.height}: rerun the masks and sfm stages"
             )
-        views.append(View(intrinsics, pose, mask))
+        views[name] = View(intrinsics, pose, mask)
     return views
 
 
@@ -160,6 +190,61 @@ def _refine_with_points(
     return mesh, report
 
 
+def _carve_by_stereo(
+    field: np.ndarray, grid: Grid, centres: np.ndarray, views: dict[str, View], photos: dict[str, dict], conf: Config
+) -> tuple[np.ndarray, dict]:
+    """The hull field carved where the photos' depth maps see past it."""
+    started = time.perf_counter()
+    hull = surface(field, grid)
+    stereo_views = []
+    for name, view in progress.track(views.items(), "hull depths", total=len(views)):
+        grey = cv2.imread(str(photos[name]["srgb"]), cv2.IMREAD_GRAYSCALE).astype(np.float32) / 255
+        factor = min(1.0, conf.stereo_max_size / max(grey.shape))
+        image = resize_exact(grey, factor)
+        small = scaled(view.intrinsics, factor, exact=True)
+        small.width, small.height = image.shape[1], image.shape[0]
+        mask = resize_exact(view.mask.astype(np.float32), factor) > 0.5
+        near, far = stereo.hull_depths(hull, small, view.pose)
+        stereo_views.append(stereo.StereoView(small, view.pose, image, mask, near, far))
+    neighbour_lists = stereo.neighbours([v.pose for v in stereo_views], conf.stereo_neighbours, 3.0, 45.0)
+    depths, scores = [], []
+    for view, others in progress.track(zip(stereo_views, neighbour_lists), "stereo", total=len(stereo_views)):
+        depth, score = stereo.plane_sweep(
+            view,
+            [stereo_views[j] for j in others],
+            conf.stereo_planes,
+            conf.stereo_window,
+            max(1, len(others) // 2),
+            _MIN_TEXTURE,
+        )
+        depths.append(depth)
+        scores.append(score)
+    # agreement to a voxel: the grid cannot hold finer depth anyway
+    kept = stereo.consistent_depths(
+        stereo_views, depths, scores, neighbour_lists, conf.stereo_min_score, grid.voxel, _MIN_AGREE
+    )
+    near_hull = field > -4 * grid.voxel  # the rest is outside the hull, carved or not
+    carved = field.copy()
+    carved[near_hull] = np.minimum(
+        field[near_hull], stereo.carve_field(centres[near_hull], stereo_views, kept, grid.voxel, conf.stereo_min_votes)
+    )
+    masked = sum(int(v.mask.sum()) for v in stereo_views)
+    report = {
+        "stereo_pixels_with_depth": sum(int((d > 0).sum()) for d in depths) / max(masked, 1),
+        "stereo_pixels_kept": sum(int((d > 0).sum()) for d in kept) / max(masked, 1),
+        "stereo_voxels_carved": int(((field > 0) & (carved <= 0)).sum()),
+        "stereo_voxels_in_hull": int((field > 0).sum()),
+        "stereo_seconds": time.perf_counter() - started,
+    }
+    logger.info(
+        "stereo: depth kept for %.0f %% of the masked pixels; %d of the hull's %d voxels carved",
+        100 * report["stereo_pixels_kept"],
+        report["stereo_voxels_carved"],
+        report["stereo_voxels_in_hull"],
+    )
+    return carved, report
+
+
 def _genus(mesh: trimesh.Trimesh) -> int:
     return round(1 - mesh.euler_number / 2) if mesh.is_watertight else -1
 
@@ -191,7 +276,8 @@ def _given_mesh(conf: Config, capture_dir: Path, cameras_json: Path, views: list
 
 def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     cameras_json = inputs.upstream["sfm"]["cameras"]
-    views = _views(cameras_json, inputs.upstream["masks"]["masks_json"])
+    named_views = _views(cameras_json, inputs.upstream["masks"]["masks_json"])
+    views = list(named_views.values())
     if conf.source:
         mesh, report = _given_mesh(conf, inputs.capture_dir, cameras_json, views)
         return _write(mesh, report, out_dir)
@@ -207,13 +293,17 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     grid, centres, field = sample_hull(views, lo, hi, conf.resolution, conf.carve_tolerance)
     if ground is not None:
         field = np.minimum(field, centres[:, 2] - ground)
+    report: dict = {}
+    if conf.refine == "stereo":
+        photos = read_photos(inputs.upstream["undistort"]["pinhole"])
+        field, report = _carve_by_stereo(field, grid, centres, named_views, photos, conf)
     if conf.close_voxels:
         # A tunnel a voxel or two wide is a mask's stray gap, not a handle of the
         # specimen: a grey closing of the inside field fills it.
         size = 2 * conf.close_voxels + 1
         field = ndimage.grey_closing(field.reshape(grid.shape), size=(size,) * 3).ravel()
     mesh = surface(field, grid)
-    report: dict = {
+    report |= {
         "views": len(views),
         "voxel": grid.voxel,
         "grid": list(grid.shape),
@@ -262,10 +352,10 @@ def _write(mesh: trimesh.Trimesh, report: dict, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="mesh",
-    version=6,
+    version=7,
     config=Config,
     main=main,
-    needs=("sfm.cameras", "sfm.sparse", "masks.masks_json"),
+    needs=("sfm.cameras", "sfm.sparse", "masks.masks_json", "undistort.pinhole"),
     outputs=("mesh", "report"),
     exports=("mesh",),
 )
