@@ -16,8 +16,8 @@ textured surface looks the same from nearby viewpoints only at its true depth.
    sees the point occluded does not veto it. The best depth within the hull's range
    is refined to a fraction of a plane by a parabola through its neighbours' scores.
 3. **Consistency** (:func:`consistent_depths`): a depth is kept when its score passes
-   ``min_score``, its window has texture, and at least ``min_agree`` neighbours'
-   depth maps put the same point at the same depth (within ``tolerance`` of it).
+   ``min_score``, its window has texture and lies inside the mask, and at least ``min_agree`` neighbours'
+   depth maps put the same point at the same depth (within ``tolerance``).
 4. **Carving** (:func:`carve_field`): a point in front of a kept depth, seen from
    that view, is empty space. The field is the ``min_votes``-th smallest
    ``depth of the point - depth seen + margin`` over the views, positive inside: a
@@ -31,7 +31,7 @@ textured surface looks the same from nearby viewpoints only at its true depth.
 | best_of     | neighbours whose scores are averaged per pixel and depth             |
 | min_score   | NCC below which a depth is not trusted                               |
 | min_agree   | neighbours whose depth maps must agree                               |
-| tolerance   | agreement, as a fraction of the depth                                |
+| tolerance   | agreement between depth maps, metres                                 |
 | min_votes   | views that must see past a voxel before it is carved                 |
 
 Limitations: textureless surfaces (plaster under flat light, glazed ceramic) give no
@@ -171,7 +171,10 @@ def plane_sweep(
     interior = (best > 0) & (best < planes - 1) & (curvature < 0)
     offset = np.where(interior, 0.5 * (before - after) / np.where(interior, curvature, -1.0), 0.0)
     inverse = np.interp(best + np.clip(offset, -0.5, 0.5), np.arange(planes), 1.0 / depths)
-    found = inside & (best_score > -1.0) & (ref_std > min_texture)
+    # a window reaching past the silhouette compares the backdrop, which is not the
+    # specimen's and moves between viewpoints: the hull holds the outline anyway
+    whole_window = cv2.erode(inside.astype(np.uint8), np.ones((window, window), np.uint8)) > 0
+    found = whole_window & (best_score > -1.0) & (ref_std > min_texture)
     depth_map[y0:y1, x0:x1] = np.where(found, 1.0 / inverse, 0.0)
     score_map[y0:y1, x0:x1] = np.where(found, best_score, -1.0)
     return depth_map, score_map
@@ -188,7 +191,7 @@ def consistent_depths(
 ) -> list[np.ndarray]:
     """The depth maps with untrusted pixels set to 0: a score below ``min_score``, or
     fewer than ``min_agree`` neighbours whose own depth at the point's projection is
-    within ``tolerance`` (relative) of the point's depth in that neighbour."""
+    within ``tolerance`` (metres) of the point's depth in that neighbour."""
     kept = []
     for i, view in enumerate(views):
         rows, cols = np.nonzero((depths[i] > 0) & (scores[i] >= min_score))
@@ -204,7 +207,7 @@ def consistent_depths(
             on = (u >= 0) & (u < w) & (v >= 0) & (v < h) & (depth > 0)
             seen = np.zeros(len(z))
             seen[on] = depths[j][v[on], u[on]]
-            agree += (seen > 0) & (np.abs(seen - depth) <= tolerance * depth)
+            agree += (seen > 0) & (np.abs(seen - depth) <= tolerance)
         result = np.zeros_like(depths[i])
         good = agree >= min_agree
         result[rows[good], cols[good]] = z[good]
