@@ -352,7 +352,7 @@ def _write(mesh: trimesh.Trimesh, report: dict, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="mesh",
-    version=7,
+    version=8,
     config=Config,
     main=main,
     needs=("sfm.cameras", "sfm.sparse", "masks.masks_json", "undistort.pinhole"),

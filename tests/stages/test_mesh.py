@@ -5,6 +5,8 @@ import json
 import pytest
 import trimesh
 
+from pipeline.camera.model import Similarity
+from pipeline.formats.cameras import read_frame
 from pipeline.synthetic.score import score_mesh
 
 pytestmark = pytest.mark.slow
@@ -57,3 +59,24 @@ def test_a_mesh_from_another_tool_follows_its_cameras_or_is_refused(run_stages, 
     truth.export(capture / "moved.ply")
     with pytest.raises(PipelineError, match=r"mesh.source = 'moved.ply': its outline overlaps the masks by 0\.\d\d"):
         run_stages(capture, "mesh", "cameras.source='external'", "mesh.source='moved.ply'")
+
+
+def test_stereo_carves_the_hull_and_keeps_it_closed(run_stages, synth_capture, tmp_path):
+    """The stage's plumbing of stereo (pipeline.geometry.stereo is tested on a dented
+    cube): photos read at the cameras' pixels, depths found inside the masks, the
+    carved surface still one closed specimen near the truth."""
+    from tests.support.byo_capture import byo_capture
+
+    # 12 photos, 30 degrees apart (stereo compares photos 3-45 degrees apart), too
+    # small for sfm's features: the true cameras
+    photos = synth_capture("stereo", views=12, width=120, height=90, spp=4, calibration_shots=3, seed=3)
+    capture = byo_capture(photos, tmp_path / "byo")
+    outputs = run_stages(capture, "mesh", "cameras.source='external'", "mesh.refine='stereo'")
+    report = json.loads(outputs["mesh"]["report"].read_text())
+    assert report["stereo_pixels_kept"] > 0.05  # 14 %: at 120 px, half a window along the outline is much
+    assert report["stereo_voxels_carved"] < 0.2 * report["stereo_voxels_in_hull"]
+    mesh = trimesh.load(outputs["mesh"]["mesh"], force="mesh")
+    truth = trimesh.load(capture / "ground_truth" / "mesh.ply", force="mesh")
+    from_source = Similarity.from_json(read_frame(outputs["sfm"]["cameras"])["from_source"])
+    truth.apply_transform(from_source.matrix())
+    assert mesh.is_watertight and score_mesh(mesh, truth)["chamfer_pct_of_diagonal"] <= 1.5
