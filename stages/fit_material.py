@@ -1,20 +1,20 @@
 """Stage fit_material: the specimen's material constants, fitted to the photos.
 
 The scene stage's model (pipeline.render.materials) is fitted by pipeline.fit.engine: Adam
-over its parameters with per-parameter learning rates and box constraints, a
-loss on the photos' linear radiance (undistort's EXRs) over each photo's
-specimen mask cut to the mesh's outline (pipeline.fit.views), eroded by ``erode_px``
-so that silhouette pixels, where the mesh's error shows, do not count. Pixels are the budget on a CPU: each view is
-rendered only in a window around its mask, scaled so that its longer side has
-at most ``max_size`` pixels. ``held_out`` photos, evenly spread over the sorted
-names, are never fitted: they measure validation error, and the best-validation
-state is kept.
+over its parameters with per-parameter learning rates and box constraints, a loss on
+the photos' linear radiance (undistort's EXRs) over each photo's specimen mask cut to
+the mesh's outline and eroded by ``erode_px`` (pipeline.fit.views), in a window
+around it of at most ``max_size`` pixels. ``held_out`` photos, evenly spread over the
+sorted names, are never fitted: they measure validation error, and the
+best-validation state is kept.
 
 When ``[light] model`` is not given, the light is fitted with the material
 (pipeline.render.light): each model asked for (auto: constant, envmap,
 envmap+area, simplest first) in a fit of its own, the envmap+area one continuing
 the envmap's; the simplest within ``light.margin`` of the best held-out error is
-kept and written into every scene file.
+kept and written into every scene file. With the board in the scene, its print
+beside the specimen counts in training too: its known reflectance sets the light's
+level; without, the map keeps the level the scene stage measured.
 
 Model only what the photos show (pipeline.fit.candidates): when the scene leaves
 the material model open (scene.json's ``model_choice``: the capture and the scene
@@ -53,7 +53,7 @@ heldout/            per held-out photo: NAME.render.exr, NAME.reference.exr (the
 ==================  =============================================================
 
 Limitations: a constant material (texture is fit_texture's job). The table beyond the
-board is not in the scene: its bounce light is attributed to the specimen. Views whose mask is empty are skipped.
+board is not in the scene: its bounce light is attributed to the specimen.
 """
 
 from __future__ import annotations
@@ -78,19 +78,11 @@ from pipeline.fit.candidates import Candidate, choose, improves
 from pipeline.fit.checkpoint import resumable_stage
 from pipeline.fit.outputs import write_fit_log, write_heldout
 from pipeline.fit.settings import FitSettings
-from pipeline.fit.views import held_out_names, load_views
+from pipeline.fit.views import BoardPixels, held_out_names, load_views
 from pipeline.formats.cameras import read_views
 from pipeline.formats.masks import read_masks
 from pipeline.formats.pinhole import linear_photos
-from pipeline.formats.scene_folder import (
-    HELDOUT,
-    MESH_PLY,
-    PARAMS_JSON,
-    SCENE_XML,
-    SPECIMEN_XML,
-    read_json,
-    write_json,
-)
+from pipeline.formats.scene_folder import HELDOUT, MESH_PLY, PARAMS_JSON, SCENE_XML, SPECIMEN_XML, read_json, write_json
 from pipeline.render import light as estimated_light
 from pipeline.render import materials, mitsuba_variant
 from pipeline.render.capture_scene import rewrite_integrator, rewrite_specimen_material
@@ -163,7 +155,12 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     poses = {name: pose for name, (_, pose) in cameras.items()}
     mesh = trimesh.load(fitted / MESH_PLY, force="mesh", process=False)
     level_from = description.get("light", {}).get("level_from")  # where an estimated light's level was measured
-    measured_on = estimated_light.measured_surface(level_from, mesh, poses, light.frame) if light.estimated else None
+    # With the board's print in the fit, its known reflectance sets the light's level
+    # where the specimen stands (the measured level is the print's mean, shadow and a
+    # near light's falloff included): the level is the loss's, not held.
+    board_print = description.get("board_print") if light.estimated else None
+    held_level = light.estimated and not board_print
+    measured_on = estimated_light.measured_surface(level_from, mesh, poses, light.frame) if held_level else None
 
     def write_scene(model: str, values: dict, fitted_light) -> None:
         """The material's values and the light (None: the given one) into fitted/."""
@@ -171,23 +168,25 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         if fitted_light is not None:
             estimated_light.write(fitted_light, fitted, description, poses)
 
-    def views_of(model: str, integrator: dict, names: set[str] | None = None) -> list[engine.FitView]:
+    def views_of(model: str, integrator: dict, names: set | None = None, count_board: bool = False) -> list:
         seen = description | {"model": model, "integrator": integrator}
-        return [v for v, _ in load_views(fitted, seen, *photos, conf.max_size, conf.erode_px, conf.spp, names=names)]
+        board = BoardPixels(tuple(board_print), count_board) if board_print else None
+        windowed = load_views(fitted, seen, *photos, conf.max_size, conf.erode_px, conf.spp, names=names, board=board)
+        return [v for v, _ in windowed]
 
     def fit(model: str, start_light, start_values: dict = initial, integrator: dict | None = None) -> Candidate:
         started = time.perf_counter()
         integrator = integrator or description["integrators"][model]
         write_scene(model, start_values, start_light)
-        views = views_of(model, integrator)
+        # the board's print counts in training only: held out, the specimen is scored
+        views = views_of(model, integrator, count_board=start_light is not None)
         held = set(held_out_names([v.name for v in views], conf.held_out))
+        validation = [v for v in views if v.name in held] if not board_print else views_of(model, integrator, held)
         fitted_parameters = parameters[model] + (
             estimated_light.parameters(start_light, light.smoothness, measured_on) if start_light else []
         )
         settings = FitSettings(**{f.name: getattr(conf, f.name) for f in fields(FitSettings)})
-        result = engine.fit(
-            fitted_parameters, [v for v in views if v.name not in held], [v for v in views if v.name in held], settings
-        )
+        result = engine.fit(fitted_parameters, [v for v in views if v.name not in held], validation, settings)
         end_light = None
         if start_light is not None:
             end_light = estimated_light.fitted(start_light, {**result.values, **result.textures})

@@ -72,6 +72,7 @@ from pipeline.formats.scene_folder import DESCRIPTION_JSON, MESH_PLY, SCENE_XML,
 from pipeline.render import light as estimated_light
 from pipeline.render import materials, mitsuba_variant
 from pipeline.render.capture_scene import (
+    board_half_extent,
     board_region,
     measure_ratio,
     render_preview,
@@ -229,7 +230,9 @@ def _description(
         "integrator": integrator,
         "light_frame": light.frame,
         "near_clip": near_clip,
-        "board_in_scene": board is not None,
+        # the print's half width and height (metres, at the world's origin): its
+        # reflectance is known, so fit_material counts its pixels for the light's level
+        "board_print": None if board is None else board_half_extent(board).tolist(),
         "ground": ground,
         "parameters": parameters,
         "views": {
@@ -317,7 +320,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="scene",
-    version=5,
+    version=6,
     config=Config,
     main=main,
     needs=("uv.mesh", "sfm.cameras", "undistort.pinhole", "masks.masks_json"),

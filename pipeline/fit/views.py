@@ -10,7 +10,8 @@ and the scene mesh's outline in that photo: a segmentation that took in some of 
 busy backdrop is cut back to the specimen (the mesh, a visual hull at first, is
 carved by every mask, so one mask's excess does not reach it). They are then eroded
 by ``erode_px`` at full resolution, so that silhouette pixels, where the mesh's error
-shows, do not count.
+shows, do not count. While a light is estimated on a capture with a board, the board's
+print beside the specimen counts too (BoardPixels).
 """
 
 from __future__ import annotations
@@ -66,20 +67,24 @@ class Window:
         return (self.cut(np.ones(self.photo_shape, np.float32)) > 0.999).astype(np.float32)
 
 
-def mask_windows(masks: dict[str, np.ndarray], max_size: int, margin: int = 8) -> dict[str, Window]:
+def mask_windows(
+    masks: dict[str, np.ndarray], max_size: int, margin: int = 8, board_margin: float = 0.0
+) -> dict[str, Window]:
     """Each mask's window, all of one size (masks with no pixel have none): each photo
-    scaled so that its mask's bounding box plus ``margin`` has at most ``max_size`` px
-    along its longer side, the window centred on that box and as large as the largest
-    box. One film size for every view means one set of kernels (Dr.Jit bakes the film
-    size and a crop offset into them as literals; the principal point it does not) and
-    one dr.freeze recording replayed for every view."""
+    scaled so that its mask's bounding box plus ``margin`` pixels and ``board_margin``
+    of the box's longer side has at most ``max_size`` px along its longer side, the
+    window centred on that box and as large as the largest box. One film size for
+    every view means one set of kernels (Dr.Jit bakes the film size and a crop offset
+    into them as literals; the principal point it does not) and one dr.freeze
+    recording replayed for every view."""
     boxes = {}
     for name, mask in masks.items():
         rows, cols = np.nonzero(mask)
         if len(rows) == 0:
             continue
-        lo = np.maximum([cols.min() - margin, rows.min() - margin], 0)
-        hi = np.minimum([cols.max() + margin + 1, rows.max() + margin + 1], mask.shape[::-1])
+        reach = margin + int(board_margin * max(cols.max() - cols.min(), rows.max() - rows.min()))
+        lo = np.maximum([cols.min() - reach, rows.min() - reach], 0)
+        hi = np.minimum([cols.max() + reach + 1, rows.max() + reach + 1], mask.shape[::-1])
         boxes[name] = (lo, hi, min(1.0, max_size / float(max(hi - lo))))
     if not boxes:
         return {}
@@ -90,6 +95,40 @@ def mask_windows(masks: dict[str, np.ndarray], max_size: int, margin: int = 8) -
         x, y = (int(round(c)) for c in centre - [width / 2, height / 2])
         windows[name] = Window(scale, x, y, int(width), int(height), masks[name].shape[:2])
     return windows
+
+
+@dataclass(frozen=True)
+class BoardPixels:
+    """The board's print in the fit: its reflectance is known, so its pixels fix the
+    level of an estimated light (what a light and the specimen's albedo otherwise
+    trade off), and its shading beside the specimen shows where the light comes from."""
+
+    half_extent: tuple[float, float]
+    """Half the print's width and height, metres, centred at the world's origin on
+    z = 0 (the board's frame, pipeline.camera.board)."""
+    count: bool
+    """Whether the print's pixels are weighted (training views), or only framed
+    (held-out views, scored on the specimen alone, in windows of the same size)."""
+
+
+BOARD_MARGIN = 0.3
+"""With the board in the fit, windows reach this fraction of the mask's box further on
+each side: the specimen's shadow and the print's shading beside it."""
+
+
+def board_weight(window: Window, intrinsics: Intrinsics, pose: Pose, board: BoardPixels, specimen: np.ndarray):
+    """(height, width) of the window: 1 where a pixel's ray meets the print (5 mm in
+    from its edges) outside the specimen's dilated outline."""
+    camera = window.intrinsics(intrinsics)
+    columns, rows = np.meshgrid(np.arange(window.width), np.arange(window.height))
+    rays = np.stack([(columns - camera.cx) / camera.fx, (rows - camera.cy) / camera.fy, np.ones(columns.shape)], -1)
+    rays = rays @ pose.R
+    with np.errstate(divide="ignore", invalid="ignore"):
+        distance = -pose.center[2] / rays[..., 2]
+    hits = pose.center + distance[..., None] * rays
+    on_print = (distance > 0) & np.all(np.abs(hits[..., :2]) < np.asarray(board.half_extent) - 0.005, axis=-1)
+    near_specimen = cv2.dilate(specimen.astype(np.uint8), np.ones((9, 9), np.uint8))
+    return on_print & (window.cut(near_specimen.astype(np.float32)) == 0)
 
 
 def load_views(
@@ -104,12 +143,14 @@ def load_views(
     sample_border: bool = False,
     names: set[str] | None = None,
     gains: dict[str, list[float]] | None = None,
+    board: BoardPixels | None = None,
 ) -> list[tuple[FitView, Window]]:
     """Every photo (or those in ``names``) as a FitView in its window (mask_windows over
     every photo of the scene, so a view's window does not depend on ``names``); weights
     are the mask eroded by ``erode_px``. ``gains``: photos' RGB gains fitted by
     fit_material (exposure, white balance); those photos are divided by theirs, as that
-    fit saw them."""
+    fit saw them. ``board``: windows wider by BOARD_MARGIN, and the print's pixels
+    weighted too when it says so."""
     import mitsuba as mi
 
     shared_scene = mi.load_file(str(scene_dir / SCENE_XML)) if description["light_frame"] == "world" else None
@@ -119,7 +160,7 @@ def load_views(
         {"type": description["integrator"]["differentiable"], "max_depth": description["integrator"]["max_depth"]}
     )
     every = specimen_masks(scene_dir / MESH_PLY, cameras, {n: masks[n] for n in sorted(description["views"])})
-    windows = mask_windows(every, max_size)
+    windows = mask_windows(every, max_size, board_margin=BOARD_MARGIN if board else 0.0)
     views = []
     for name in sorted(every if names is None else set(every) & names):
         if name not in windows:
@@ -133,6 +174,8 @@ def load_views(
         if erode_px:
             mask = cv2.erode(mask.astype(np.uint8), np.ones((2 * erode_px + 1,) * 2, np.uint8)) > 0
         weight = window.inside() * (window.cut(mask.astype(np.float32)) > 0.999)
+        if board is not None and board.count:
+            weight = np.maximum(weight, window.inside() * board_weight(window, intrinsics, pose, board, every[name]))
         scene = shared_scene or mi.load_file(str(scene_dir / description["views"][name]["xml"]))
         sensor = scene_xml.load_sensor(
             scene_xml.sensor_properties(

@@ -161,7 +161,7 @@ def table_region(radius: float, board: BoardSection | None) -> Region:
     def region(hits, reached, specimen):
         seen = reached & (np.linalg.norm(hits[..., :2], axis=-1) < 0.9 * radius)
         if board is not None:
-            seen &= np.any(np.abs(hits[..., :2]) > _board_half(board) + 0.01, axis=-1)
+            seen &= np.any(np.abs(hits[..., :2]) > board_half_extent(board) + 0.01, axis=-1)
         return seen & ~_dilated(specimen)
 
     return region
@@ -171,7 +171,7 @@ def board_region(board: BoardSection) -> Region:
     """The board's print, away from its edges and the specimen."""
 
     def region(hits, reached, specimen):
-        return reached & np.all(np.abs(hits[..., :2]) < _board_half(board) - 0.005, axis=-1) & ~_dilated(specimen)
+        return reached & np.all(np.abs(hits[..., :2]) < board_half_extent(board) - 0.005, axis=-1) & ~_dilated(specimen)
 
     return region
 
@@ -181,7 +181,8 @@ def specimen_region(hits, reached, specimen) -> np.ndarray:
     return cv2.erode(specimen.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
 
 
-def _board_half(board: BoardSection) -> np.ndarray:
+def board_half_extent(board: BoardSection) -> np.ndarray:
+    """Half the print's width and height, metres."""
     return np.array([board.squares_x, board.squares_y]) * board.square_mm / 2000
 
 

@@ -119,13 +119,14 @@ def start(model: LightModel, frame: str, level: np.ndarray, width: int) -> Estim
     return EstimatedLight("envmap" if model == "envmap+area" else model, frame, environment)
 
 
-def parameters(light: EstimatedLight, smoothness: float, measured_on: Surface) -> list[FitParameter]:
+def parameters(light: EstimatedLight, smoothness: float, measured_on: Surface | None) -> list[FitParameter]:
     """The fitted parameters of ``light``'s model (names prefixed ``light_``); the map's
-    level on ``measured_on`` (the surface the scene stage measured it on) is kept."""
+    level on ``measured_on`` (the surface the scene stage measured it on) is kept, or
+    left to the loss when None (a surface of known reflectance in it: the board)."""
     if light.model == "constant":
         return []  # its level and colour are the start's
     height, width = light.environment.shape[:2]
-    weights = level_weights(height, width, light.frame, measured_on)
+    weights = None if measured_on is None else level_weights(height, width, light.frame, measured_on)
     environment = FitParameter(
         "light_environment",
         "environment.data",
@@ -135,7 +136,7 @@ def parameters(light: EstimatedLight, smoothness: float, measured_on: Surface) -
         learning_rate=0.1,
         smoothness=smoothness,
         smooth_logarithm=True,
-        mean_weights=tuple(float(w) for w in weights.ravel()),
+        mean_weights=None if weights is None else tuple(float(w) for w in weights.ravel()),
         layout=envmap_layout(height, width),
     )
     if light.area is None:

@@ -9,7 +9,7 @@ import pytest
 import trimesh
 
 from pipeline.camera.model import Pose, scaled
-from pipeline.fit.views import mask_windows, specimen_masks
+from pipeline.fit.views import BOARD_MARGIN, BoardPixels, board_weight, mask_windows, specimen_masks
 from pipeline.render import scene_xml
 from tests.support.sphere_views import RADIUS, K, sphere_mask, sphere_views
 
@@ -95,3 +95,23 @@ def test_a_mask_that_took_in_backdrop_is_cut_to_the_meshs_outline_with_a_warning
     caplog.clear()
     specimen_masks(tmp_path / "mesh.ply", cameras, masks)  # a stage loads its views again
     assert "v1.jpg" not in caplog.text
+
+
+def test_the_boards_print_counts_outside_the_specimen_and_widens_the_window():
+    views = sphere_views(2)
+    board = BoardPixels((0.12, 0.09), count=True)
+    for view in views:
+        masks = {"v": view.mask}
+        narrow = mask_windows(masks, max_size=400)["v"]
+        window = mask_windows(masks, max_size=400, board_margin=BOARD_MARGIN)["v"]
+        assert window.width > narrow.width and window.height > narrow.height
+        weight = board_weight(window, view.intrinsics, view.pose, board, view.mask)
+        # every weighted pixel's ray meets the print, none is the specimen or next to it
+        camera = window.intrinsics(view.intrinsics)
+        rows, columns = np.nonzero(weight)
+        rays = np.stack([(columns - camera.cx) / camera.fx, (rows - camera.cy) / camera.fy, np.ones(len(rows))], 1)
+        rays = rays @ view.pose.R
+        hits = view.pose.center + (-view.pose.center[2] / rays[:, 2])[:, None] * rays
+        assert np.all(np.abs(hits[:, :2]) < [0.12, 0.09])
+        assert not (weight & (window.cut(view.mask.astype(np.float32)) > 0)).any()
+        assert weight.sum() > 0.1 * weight.size  # the cameras look down on the print round the sphere
