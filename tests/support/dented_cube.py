@@ -5,6 +5,7 @@ that the photos' texture does, for stereo."""
 import numpy as np
 
 from pipeline.camera.model import Intrinsics, Pose
+from tests.support.sphere_views import ring_poses
 
 HALF = 0.04
 """Half the cube's side, metres; the cube is centred at the origin."""
@@ -57,11 +58,4 @@ def render(pose: Pose) -> tuple[np.ndarray, np.ndarray]:
 
 def cameras(count: int = 12) -> list[Pose]:
     """``count`` cameras 0.35 m from the cube, round it at 40 and 60 degrees of elevation."""
-    poses = []
-    for i in range(count):
-        azimuth, elevation = 2 * np.pi * i / count, np.radians(40 + 20 * (i % 2))
-        centre = 0.35 * np.array(
-            [np.cos(azimuth) * np.cos(elevation), np.sin(azimuth) * np.cos(elevation), np.sin(elevation)]
-        )
-        poses.append(Pose.look_at(centre, [0, 0, 0]))
-    return poses
+    return ring_poses(count, 0.35, 40.0, 60.0)

@@ -21,14 +21,22 @@ def sphere_mask(pose: Pose) -> np.ndarray:
     return np.linalg.norm(closest, axis=-1) < RADIUS
 
 
+def ring_poses(count: int, distance: float, low_deg: float, high_deg: float) -> list[Pose]:
+    """``count`` cameras ``distance`` from the origin looking at it, evenly round it,
+    alternately at ``low_deg`` and ``high_deg`` of elevation."""
+    poses = []
+    for i in range(count):
+        azimuth, elevation = 2 * np.pi * i / count, np.radians(low_deg if i % 2 == 0 else high_deg)
+        centre = distance * np.array(
+            [np.cos(azimuth) * np.cos(elevation), np.sin(azimuth) * np.cos(elevation), np.sin(elevation)]
+        )
+        poses.append(Pose.look_at(centre, [0, 0, 0]))
+    return poses
+
+
 def sphere_views(count: int = 10) -> list[View]:
     """``count`` cameras 0.3 from the sphere, round it at alternating elevations."""
     views = []
-    for i in range(count):
-        azimuth, elevation = 2 * np.pi * i / count, np.radians(20 + 30 * (i % 2))
-        centre = 0.3 * np.array(
-            [np.cos(azimuth) * np.cos(elevation), np.sin(azimuth) * np.cos(elevation), np.sin(elevation)]
-        )
-        pose = Pose.look_at(centre, [0, 0, 0])
+    for pose in ring_poses(count, 0.3, 20.0, 50.0):
         views.append(View(K, pose, sphere_mask(pose)))
     return views
