@@ -59,6 +59,27 @@ def test_the_light_keeps_its_level_on_the_measured_surface_and_its_padding_while
     np.testing.assert_allclose(data[:, 1:-1], fitted, rtol=1e-4)
 
 
+def test_with_the_board_in_the_loss_the_light_level_is_the_fits(mi, tmp_path):
+    """No surface to hold the level on (fit_material counts the board's print instead):
+    a gradient that asks for more light everywhere raises the whole map."""
+    level = np.array([0.2, 0.5, 1.0])
+    start = light.start("envmap", "world", level, 16)
+    scene = _scene_with_map(mi, tmp_path, start.environment)
+    (parameter,) = light.parameters(start, 0.0, None)
+    assert parameter.mean_weights is None
+    variables = MaterialVariables([parameter], {id(scene): mi.traverse(scene)}, [])
+    variables.register(1.0)
+    import drjit as dr
+
+    for _ in range(5):
+        dr.set_grad(variables.optimizer[parameter.name], mi.TensorXf(np.full((8, 16, 3), -1.0, np.float32)))
+        variables.optimizer.step()
+        variables.apply(id(scene))
+    fitted = light.EstimatedLight("envmap", "world", variables.snapshot()[parameter.name].astype(np.float32))
+    raised = light.irradiance(fitted, UP.normals, np.zeros(3)) / light.irradiance(start, UP.normals, np.zeros(3))
+    assert np.all(raised > 1.2)
+
+
 @pytest.mark.parametrize("frame", ["world", "camera"])
 def test_level_weights_are_each_texels_share_of_the_measured_surfaces_irradiance(frame):
     """Weighted, a map's mean is its irradiance on the surface over a uniform map's: on the board, only
