@@ -162,7 +162,9 @@ def _prepare_real(name: str, captures: Path, work: Path) -> Path:
 
 
 def _psnr(outputs: dict, stage: str) -> str:
-    return f"{score_heldout(outputs[stage]['heldout'])['psnr_db_mean']:.1f} dB"
+    """Held-out PSNR, and in brackets after each render is matched to its photo by an RGB gain."""
+    scores = score_heldout(outputs[stage]["heldout"])
+    return f"{scores['psnr_db_mean']:.1f} dB ({scores['psnr_gain_db_mean']:.1f})"
 
 
 def real_part(work: Path, captures: Path, names: list[str]) -> None:
@@ -188,7 +190,7 @@ def _real_capture(work: Path, captures: Path, name: str, overrides: tuple[str, .
             f"{_light_cells(estimated)} | {final['model']}: {material} ({estimated['model_choice']['why']}) |"
         )
         timing.append(
-            f"| {name} | {sum(seconds[s] for s in STAGES):.0f} s | "
+            f"| {name} | {sum(seconds[s] for s in STAGES):.0f} s (mesh {seconds['mesh']:.0f} s) | "
             + " | ".join(f"{seconds[s]:.0f} s" for s in FIT_STAGES)
             + f" | {sum(seconds.values()):.0f} s |"
         )
@@ -201,6 +203,9 @@ def _real_capture(work: Path, captures: Path, name: str, overrides: tuple[str, .
                 "Standard preset; settings per capture in bench/light.py (REAL). Held-out PSNR over the",
                 f"specimen's eroded mask on the 2 photos fit_material holds out (target {PSNR_TARGET:.0f} dB);",
                 "the template light is what `pipeline new` writes (a constant 0.5 and a 0.4 m softbox).",
+                "In brackets: the same after each render is scaled by the RGB gain that matches it to",
+                "its photo (least squares): the photo's own exposure and white balance, which no fit",
+                "can know for a photo it never saw (a phone sets them per photo).",
                 f"Reproduce: `.venv/bin/python bench/light.py --parts real --real {name}`.",
                 "",
                 "| capture | template light: after fit_material | estimated: after fit_material, fit_texture,"

@@ -328,8 +328,11 @@ def psnr(render: np.ndarray, reference: np.ndarray, peak: float = 1.0) -> float:
 
 def score_heldout(folder: Path) -> dict[str, Any]:
     """PSNR of each held-out render against its photo, over NAME.mask.png's pixels when
-    there is one (the specimen), else over the whole image."""
-    per_view = {}
+    there is one (the specimen), else over the whole image. ``psnr_gain_db_mean``: the
+    same after each render is scaled by the RGB gain that matches it best to its photo
+    (least squares): what a phone's automatic exposure and white balance of that photo,
+    which a fit cannot know for a photo it never saw, would take."""
+    per_view, per_view_gain = {}, {}
     for name in heldout_names(folder):
         render_path, reference_path, mask_path = heldout_files(folder, name)
         render, reference = read_linear_image(render_path), read_linear_image(reference_path)
@@ -337,8 +340,16 @@ def score_heldout(folder: Path) -> dict[str, Any]:
             inside = read_linear_image(mask_path)[..., 0] > 0.5
             render, reference = render[inside], reference[inside]
         per_view[name] = psnr(render, reference)
-    values = list(per_view.values())
-    return {"views": len(values), "psnr_db_mean": float(np.mean(values)) if values else None, "per_view": per_view}
+        flat_render, flat_reference = render.reshape(-1, 3), reference.reshape(-1, 3)
+        gain = (flat_render * flat_reference).sum(axis=0) / np.maximum((flat_render**2).sum(axis=0), 1e-12)
+        per_view_gain[name] = psnr(flat_render * gain, flat_reference)
+    values, gained = list(per_view.values()), list(per_view_gain.values())
+    return {
+        "views": len(values),
+        "psnr_db_mean": float(np.mean(values)) if values else None,
+        "psnr_gain_db_mean": float(np.mean(gained)) if gained else None,
+        "per_view": per_view,
+    }
 
 
 TRUE_MAP_WIDTH = 128

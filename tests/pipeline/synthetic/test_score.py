@@ -321,3 +321,18 @@ def test_an_estimated_light_in_another_frame_scores_its_irradiance_error(tmp_pat
         scored = score_light(tmp_path / "capture", estimate.summary(), fitted, similarity)
         assert scored["irradiance_rel_error"] == pytest.approx(brightness - 1, abs=0.01), scored
         np.testing.assert_allclose(scored["irradiance_ratio"], brightness, rtol=0.01)
+
+
+def test_a_held_out_photo_exposed_darker_loses_its_gain_in_the_gain_matched_psnr(tmp_path):
+    from pipeline.formats.scene_folder import heldout_files
+    from pipeline.imaging.photo_io import write_image
+    from pipeline.synthetic.score import score_heldout
+
+    rng = np.random.default_rng(0)
+    reference = rng.uniform(0.2, 0.8, (32, 32, 3)).astype(np.float32)
+    render_path, reference_path, _ = heldout_files(tmp_path, "photo.jpg")
+    noise = rng.normal(0, 0.01, reference.shape).astype(np.float32)
+    write_image(render_path, reference / np.array([0.6, 0.6, 0.55], np.float32) + noise)  # the photo 40 % darker
+    write_image(reference_path, reference)
+    scores = score_heldout(tmp_path)
+    assert scores["psnr_db_mean"] < 12 and scores["psnr_gain_db_mean"] > 38
