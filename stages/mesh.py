@@ -54,8 +54,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from pipeline import colmap, logger
-from pipeline.camera.model import Similarity, mesh_coverage, resize_exact, scaled
-from pipeline.core import progress
+from pipeline.camera.model import Similarity, mesh_coverage
 from pipeline.core.config import InputFile, Range, input_file_path
 from pipeline.core.errors import PipelineError
 from pipeline.core.stage import Stage, StageInputs, StageResult
@@ -63,14 +62,8 @@ from pipeline.formats.cameras import read_frame, read_views
 from pipeline.formats.masks import read_masks
 from pipeline.formats.pinhole import read_photos
 from pipeline.geometry import stereo
-from pipeline.geometry.visual_hull import Grid, View, bounds, hull_field, sample_hull, surface
+from pipeline.geometry.visual_hull import View, bounds, hull_field, sample_hull, surface
 from pipeline.imaging.segmentation import iou
-
-_MIN_TEXTURE = 0.01
-"""Grey-level standard deviation (0-1) in a stereo window below which it has no
-texture to match: a depth there would be chance."""
-_MIN_AGREE = 1
-"""Neighbouring depth maps that must confirm a depth before it carves."""
 
 
 @dataclass(frozen=True)
@@ -190,61 +183,6 @@ def _refine_with_points(
     return mesh, report
 
 
-def _carve_by_stereo(
-    field: np.ndarray, grid: Grid, centres: np.ndarray, views: dict[str, View], photos: dict[str, dict], conf: Config
-) -> tuple[np.ndarray, dict]:
-    """The hull field carved where the photos' depth maps see past it."""
-    started = time.perf_counter()
-    hull = surface(field, grid)
-    stereo_views = []
-    for name, view in progress.track(views.items(), "hull depths", total=len(views)):
-        grey = cv2.imread(str(photos[name]["srgb"]), cv2.IMREAD_GRAYSCALE).astype(np.float32) / 255
-        factor = min(1.0, conf.stereo_max_size / max(grey.shape))
-        image = resize_exact(grey, factor)
-        small = scaled(view.intrinsics, factor, exact=True)
-        small.width, small.height = image.shape[1], image.shape[0]
-        mask = resize_exact(view.mask.astype(np.float32), factor) > 0.5
-        near, far = stereo.hull_depths(hull, small, view.pose)
-        stereo_views.append(stereo.StereoView(small, view.pose, image, mask, near, far))
-    neighbour_lists = stereo.neighbours([v.pose for v in stereo_views], conf.stereo_neighbours, 3.0, 45.0)
-    depths, scores = [], []
-    for view, others in progress.track(zip(stereo_views, neighbour_lists), "stereo", total=len(stereo_views)):
-        depth, score = stereo.plane_sweep(
-            view,
-            [stereo_views[j] for j in others],
-            conf.stereo_planes,
-            conf.stereo_window,
-            max(1, len(others) // 2),
-            _MIN_TEXTURE,
-        )
-        depths.append(depth)
-        scores.append(score)
-    # agreement to a voxel: the grid cannot hold finer depth anyway
-    kept = stereo.consistent_depths(
-        stereo_views, depths, scores, neighbour_lists, conf.stereo_min_score, grid.voxel, _MIN_AGREE
-    )
-    near_hull = field > -4 * grid.voxel  # the rest is outside the hull, carved or not
-    carved = field.copy()
-    carved[near_hull] = np.minimum(
-        field[near_hull], stereo.carve_field(centres[near_hull], stereo_views, kept, grid.voxel, conf.stereo_min_votes)
-    )
-    masked = sum(int(v.mask.sum()) for v in stereo_views)
-    report = {
-        "stereo_pixels_with_depth": sum(int((d > 0).sum()) for d in depths) / max(masked, 1),
-        "stereo_pixels_kept": sum(int((d > 0).sum()) for d in kept) / max(masked, 1),
-        "stereo_voxels_carved": int(((field > 0) & (carved <= 0)).sum()),
-        "stereo_voxels_in_hull": int((field > 0).sum()),
-        "stereo_seconds": time.perf_counter() - started,
-    }
-    logger.info(
-        "stereo: depth kept for %.0f %% of the masked pixels; %d of the hull's %d voxels carved",
-        100 * report["stereo_pixels_kept"],
-        report["stereo_voxels_carved"],
-        report["stereo_voxels_in_hull"],
-    )
-    return carved, report
-
-
 def _genus(mesh: trimesh.Trimesh) -> int:
     return round(1 - mesh.euler_number / 2) if mesh.is_watertight else -1
 
@@ -296,7 +234,16 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     report: dict = {}
     if conf.refine == "stereo":
         photos = read_photos(inputs.upstream["undistort"]["pinhole"])
-        field, report = _carve_by_stereo(field, grid, centres, named_views, photos, conf)
+        greys = [cv2.imread(str(photos[name]["srgb"]), cv2.IMREAD_GRAYSCALE) for name in named_views]
+        settings = stereo.StereoSettings(
+            conf.stereo_max_size,
+            conf.stereo_planes,
+            conf.stereo_window,
+            conf.stereo_neighbours,
+            conf.stereo_min_score,
+            conf.stereo_min_votes,
+        )
+        field, report = stereo.carve(field, grid, centres, views, greys, settings)
     if conf.close_voxels:
         # A tunnel a voxel or two wide is a mask's stray gap, not a handle of the
         # specimen: a grey closing of the inside field fills it.

@@ -24,6 +24,8 @@ textured surface looks the same from nearby viewpoints only at its true depth.
    voxel is carved when that many views see past it by more than ``margin``, and the
    field is metric like the hull's, so the two combine with ``min``.
 
+:func:`carve` runs the four for the mesh stage, on its hull field.
+
 | parameter   | meaning                                                              |
 |-------------|----------------------------------------------------------------------|
 | planes      | depth planes swept per view                                          |
@@ -43,13 +45,17 @@ nothing is added outside the hull, which every silhouette bounds.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 import trimesh
 
-from pipeline.camera.model import Intrinsics, Pose, project
+from pipeline import logger
+from pipeline.camera.model import Intrinsics, Pose, project, resize_exact, scaled
+from pipeline.core import progress
+from pipeline.geometry.visual_hull import Grid, View, surface
 
 _CHUNK = 400_000
 """Points per batch in carve_field: bounds memory at about views x 1.6 MB."""
@@ -237,3 +243,77 @@ def carve_field(
             behind[i] = np.where(seen > 0, z - seen + margin, np.inf)
         field[start : start + _CHUNK] = np.partition(behind, k, axis=0)[k]
     return field
+
+
+MIN_TEXTURE = 0.01
+"""Grey-level standard deviation (0-1) in a window below which it has no texture to
+match: a depth there would be chance."""
+MIN_AGREE = 1
+"""Neighbouring depth maps that must confirm a depth before it carves."""
+
+
+@dataclass(frozen=True)
+class StereoSettings:
+    """The mesh stage's stereo settings (its Config documents each)."""
+
+    max_size: int
+    planes: int
+    window: int
+    neighbours: int
+    min_score: float
+    min_votes: int
+
+
+def carve(
+    field: np.ndarray,
+    grid: Grid,
+    centres: np.ndarray,
+    views: list[View],
+    greys: list[np.ndarray],
+    settings: StereoSettings,
+) -> tuple[np.ndarray, dict]:
+    """The hull ``field`` (on ``grid``, at ``centres``) carved where the photos' depth
+    maps see past it; ``greys``: each view's photo as 8-bit grey levels. Returns the
+    field and what was found (fractions of the masked pixels with a depth, voxels carved)."""
+    started = time.perf_counter()
+    hull = surface(field, grid)
+    stereo_views = []
+    for view, grey in progress.track(zip(views, greys), "hull depths", total=len(views)):
+        factor = min(1.0, settings.max_size / max(grey.shape))
+        image = resize_exact(grey.astype(np.float32) / 255, factor)
+        small = scaled(view.intrinsics, factor, exact=True)
+        small.width, small.height = image.shape[1], image.shape[0]
+        mask = resize_exact(view.mask.astype(np.float32), factor) > 0.5
+        near, far = hull_depths(hull, small, view.pose)
+        stereo_views.append(StereoView(small, view.pose, image, mask, near, far))
+    neighbour_lists = neighbours([v.pose for v in stereo_views], settings.neighbours, 3.0, 45.0)
+    depths, scores = [], []
+    for view, others in progress.track(zip(stereo_views, neighbour_lists), "stereo", total=len(stereo_views)):
+        best_of = max(1, len(others) // 2)
+        depth, score = plane_sweep(
+            view, [stereo_views[j] for j in others], settings.planes, settings.window, best_of, MIN_TEXTURE
+        )
+        depths.append(depth)
+        scores.append(score)
+    # agreement to a voxel: the grid cannot hold finer depth anyway
+    kept = consistent_depths(stereo_views, depths, scores, neighbour_lists, settings.min_score, grid.voxel, MIN_AGREE)
+    near_hull = field > -4 * grid.voxel  # the rest is outside the hull, carved or not
+    carved = field.copy()
+    carved[near_hull] = np.minimum(
+        field[near_hull], carve_field(centres[near_hull], stereo_views, kept, grid.voxel, settings.min_votes)
+    )
+    masked = max(sum(int(v.mask.sum()) for v in stereo_views), 1)
+    report = {
+        "stereo_pixels_with_depth": sum(int((d > 0).sum()) for d in depths) / masked,
+        "stereo_pixels_kept": sum(int((d > 0).sum()) for d in kept) / masked,
+        "stereo_voxels_carved": int(((field > 0) & (carved <= 0)).sum()),
+        "stereo_voxels_in_hull": int((field > 0).sum()),
+        "stereo_seconds": time.perf_counter() - started,
+    }
+    logger.info(
+        "stereo: depth kept for %.0f %% of the masked pixels; %d of the hull's %d voxels carved",
+        100 * report["stereo_pixels_kept"],
+        report["stereo_voxels_carved"],
+        report["stereo_voxels_in_hull"],
+    )
+    return carved, report
