@@ -53,7 +53,7 @@ heldout/            per held-out photo: NAME.render.exr, NAME.reference.exr (the
 ==================  =============================================================
 
 Limitations: a constant material (texture is fit_texture's job). The table beyond the
-board is not in the scene: its bounce light is attributed to the specimen.
+board is not in the scene: its bounce light is attributed to the specimen. Views whose mask is empty are skipped.
 """
 
 from __future__ import annotations
