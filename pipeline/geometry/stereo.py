@@ -16,8 +16,9 @@ textured surface looks the same from nearby viewpoints only at its true depth.
    sees the point occluded does not veto it. The best depth within the hull's range
    is refined to a fraction of a plane by a parabola through its neighbours' scores.
 3. **Consistency** (:func:`consistent_depths`): a depth is kept when its score passes
-   ``min_score``, its window has texture and lies inside the mask, and at least ``min_agree`` neighbours'
-   depth maps put the same point at the same depth (within ``tolerance``).
+   ``min_score``, its window has texture and lies inside the mask, and at least
+   ``min_agree`` neighbours' depth maps put the same point at the same depth (within
+   ``tolerance``).
 4. **Carving** (:func:`carve_field`): a point in front of a kept depth, seen from
    that view, is empty space. The field is the ``min_votes``-th smallest
    ``depth of the point - depth seen + margin`` over the views, positive inside: a
@@ -33,12 +34,12 @@ textured surface looks the same from nearby viewpoints only at its true depth.
 | best_of     | neighbours whose scores are averaged per pixel and depth             |
 | min_score   | NCC below which a depth is not trusted                               |
 | min_agree   | neighbours whose depth maps must agree                               |
-| tolerance   | agreement between depth maps, metres                                 |
+| tolerance   | agreement between depth maps, world units (the mesh stage: a voxel)  |
 | min_votes   | views that must see past a voxel before it is carved                 |
 
 Limitations: textureless surfaces (plaster under flat light, glazed ceramic) give no
 depth and keep the hull there; specular highlights and translucency, which move with
-the viewpoint, lower the scores and are dropped rather than trusted; a concavity seen
+the viewpoint, lower the scores, and such depths tend to be dropped; a concavity seen
 by fewer than ``min_votes`` views with a neighbour each stays filled. Only carving:
 nothing is added outside the hull, which every silhouette bounds.
 """
@@ -197,7 +198,7 @@ def consistent_depths(
 ) -> list[np.ndarray]:
     """The depth maps with untrusted pixels set to 0: a score below ``min_score``, or
     fewer than ``min_agree`` neighbours whose own depth at the point's projection is
-    within ``tolerance`` (metres) of the point's depth in that neighbour."""
+    within ``tolerance`` (world units) of the point's depth in that neighbour."""
     kept = []
     for i, view in enumerate(views):
         rows, cols = np.nonzero((depths[i] > 0) & (scores[i] >= min_score))
@@ -225,7 +226,7 @@ def carve_field(
     points: np.ndarray, views: list[StereoView], depths: list[np.ndarray], margin: float, min_votes: int
 ) -> np.ndarray:
     """Per point, positive unless ``min_votes`` views see a kept depth more than
-    ``margin`` behind it (metres, like the hull field): the ``min_votes``-th smallest
+    ``margin`` behind it (world units, like the hull field): the ``min_votes``-th smallest
     of ``depth of the point - depth seen + margin``; views without a depth there, or
     which do not see the point, do not count (+inf)."""
     k = min(min_votes, len(views)) - 1
