@@ -146,6 +146,18 @@ def project(points: np.ndarray, intrinsics: Intrinsics, pose: Pose) -> tuple[np.
     ), z
 
 
+def ground_hits(intrinsics: Intrinsics, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
+    """Where each pixel's ray (pixel centres, distortion ignored) meets the plane z = 0:
+    the points (h, w, 3) and the distance along the ray (h, w), not positive where the
+    ray does not reach the plane."""
+    columns, rows = np.meshgrid(np.arange(intrinsics.width), np.arange(intrinsics.height))
+    camera_rays = [(columns - intrinsics.cx) / intrinsics.fx, (rows - intrinsics.cy) / intrinsics.fy]
+    rays = np.stack([*camera_rays, np.ones(columns.shape)], -1) @ pose.R
+    with np.errstate(divide="ignore", invalid="ignore"):
+        distance = -pose.center[2] / rays[..., 2]
+    return pose.center + distance[..., None] * rays, distance
+
+
 def mesh_coverage(
     vertices: np.ndarray, faces: np.ndarray, intrinsics: Intrinsics, pose: Pose, factor: int = 4
 ) -> np.ndarray:

@@ -24,7 +24,7 @@ import numpy as np
 import trimesh
 
 from pipeline import logger
-from pipeline.camera.model import Intrinsics, Pose, mesh_coverage, resize_exact, scaled
+from pipeline.camera.model import Intrinsics, Pose, ground_hits, mesh_coverage, resize_exact, scaled
 from pipeline.fit.loop import FitView
 from pipeline.formats.scene_folder import MESH_PLY, SCENE_XML
 from pipeline.imaging.photo_io import read_photo
@@ -119,13 +119,7 @@ each side: the specimen's shadow and the print's shading beside it."""
 def board_weight(window: Window, intrinsics: Intrinsics, pose: Pose, board: BoardPixels, specimen: np.ndarray):
     """(height, width) of the window: 1 where a pixel's ray meets the print (5 mm in
     from its edges) outside the specimen's dilated outline."""
-    camera = window.intrinsics(intrinsics)
-    columns, rows = np.meshgrid(np.arange(window.width), np.arange(window.height))
-    rays = np.stack([(columns - camera.cx) / camera.fx, (rows - camera.cy) / camera.fy, np.ones(columns.shape)], -1)
-    rays = rays @ pose.R
-    with np.errstate(divide="ignore", invalid="ignore"):
-        distance = -pose.center[2] / rays[..., 2]
-    hits = pose.center + distance[..., None] * rays
+    hits, distance = ground_hits(window.intrinsics(intrinsics), pose)
     on_print = (distance > 0) & np.all(np.abs(hits[..., :2]) < np.asarray(board.half_extent) - 0.005, axis=-1)
     near_specimen = cv2.dilate(specimen.astype(np.uint8), np.ones((9, 9), np.uint8))
     return on_print & (window.cut(near_specimen.astype(np.float32)) == 0)

@@ -149,19 +149,30 @@ def plane_sweep(
     to_ray = np.linalg.inv(reference.intrinsics.K) @ np.array([[1.0, 0, x0], [0, 1, y0], [0, 0, 1]])
     scores = np.full((planes, size[1], size[0]), -1.0, np.float32)
     per_neighbour = np.full((len(others), size[1], size[0]), -1.0, np.float32)
+    ref_var = ref_std**2
     coverage = [np.ones_like(other.image) for other in others]
+    # each neighbour's pose relative to the reference: the plane at depth d maps by
+    # K_j (R + t n^T / d) to_ray, n the reference's optical axis
+    relative = []
+    for other in others:
+        R = other.pose.R @ reference.pose.R.T
+        relative.append(
+            (
+                other.intrinsics.K @ R @ to_ray,
+                other.intrinsics.K @ np.outer(other.pose.t - R @ reference.pose.t, [0.0, 0.0, 1.0]) @ to_ray,
+            )
+        )
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
     for p, d in enumerate(depths):
         for j, other in enumerate(others):
-            R = other.pose.R @ reference.pose.R.T
-            t = other.pose.t - R @ reference.pose.t
-            H = other.intrinsics.K @ (R + np.outer(t, [0.0, 0.0, 1.0 / d])) @ to_ray
-            flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+            rotation, translation = relative[j]
+            H = rotation + translation / d
             warped = cv2.warpPerspective(other.image, H, size, flags=flags)
             valid = cv2.warpPerspective(coverage[j], H, size, flags=flags)
             mean = _box_mean(warped, window)
             var = np.maximum(_box_mean(warped * warped, window) - mean**2, 0.0)
             cov = _box_mean(warped * ref, window) - mean * ref_mean
-            ncc = cov / np.sqrt(var * ref_std**2 + 1e-12)
+            ncc = cov / np.sqrt(var * ref_var + 1e-12)
             per_neighbour[j] = np.where(valid > 0.999, ncc, -1.0)
         k = min(best_of, len(others))
         scores[p] = -np.partition(-per_neighbour, k - 1, axis=0)[:k].mean(axis=0)
@@ -187,6 +198,18 @@ def plane_sweep(
     return depth_map, score_map
 
 
+def _depth_seen(points: np.ndarray, view: StereoView, depth_map: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The depth ``depth_map`` holds at each point's nearest pixel in ``view`` (0 where
+    none, or the point is out of the frame or behind the camera), and the point's own depth."""
+    pixels, depth = project(points, view.intrinsics, view.pose)
+    u, v = np.round(pixels[:, 0]).astype(int), np.round(pixels[:, 1]).astype(int)
+    h, w = depth_map.shape
+    on = (u >= 0) & (u < w) & (v >= 0) & (v < h) & (depth > 0)
+    seen = np.zeros(len(points), np.float32)
+    seen[on] = depth_map[v[on], u[on]]
+    return seen, depth
+
+
 def consistent_depths(
     views: list[StereoView],
     depths: list[np.ndarray],
@@ -207,13 +230,7 @@ def consistent_depths(
         points = ((rays * z[:, None]) - view.pose.t) @ view.pose.R  # camera to world
         agree = np.zeros(len(z), int)
         for j in neighbour_lists[i]:
-            other = views[j]
-            pixels, depth = project(points, other.intrinsics, other.pose)
-            u, v = np.round(pixels[:, 0]).astype(int), np.round(pixels[:, 1]).astype(int)
-            h, w = depths[j].shape
-            on = (u >= 0) & (u < w) & (v >= 0) & (v < h) & (depth > 0)
-            seen = np.zeros(len(z))
-            seen[on] = depths[j][v[on], u[on]]
+            seen, depth = _depth_seen(points, views[j], depths[j])
             agree += (seen > 0) & (np.abs(seen - depth) <= tolerance)
         result = np.zeros_like(depths[i])
         good = agree >= min_agree
@@ -235,12 +252,7 @@ def carve_field(
         chunk = points[start : start + _CHUNK]
         behind = np.full((len(views), len(chunk)), np.inf, np.float32)
         for i, view in enumerate(views):
-            pixels, z = project(chunk, view.intrinsics, view.pose)
-            u, v = np.round(pixels[:, 0]).astype(int), np.round(pixels[:, 1]).astype(int)
-            h, w = depths[i].shape
-            on = (u >= 0) & (u < w) & (v >= 0) & (v < h) & (z > 0)
-            seen = np.zeros(len(chunk), np.float32)
-            seen[on] = depths[i][v[on], u[on]]
+            seen, z = _depth_seen(chunk, view, depths[i])
             behind[i] = np.where(seen > 0, z - seen + margin, np.inf)
         field[start : start + _CHUNK] = np.partition(behind, k, axis=0)[k]
     return field

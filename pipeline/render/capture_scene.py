@@ -14,7 +14,7 @@ import numpy as np
 import trimesh
 
 from pipeline.camera.board import board_image
-from pipeline.camera.model import Intrinsics, Pose, resize_exact, scaled
+from pipeline.camera.model import Intrinsics, Pose, ground_hits, resize_exact, scaled
 from pipeline.core.sections import BoardSection, LightSection
 from pipeline.imaging.photo_io import read_photo, to_uint8
 from pipeline.render import materials, scene_xml
@@ -208,14 +208,7 @@ def measure_ratio(
         intrinsics, pose = views[name]
         scale = min(1.0, 160 / max(intrinsics.width, intrinsics.height))
         small = scaled(intrinsics, scale, exact=True)
-        columns, rows = np.meshgrid(np.arange(small.width), np.arange(small.height))
-        rays = (
-            np.stack([(columns - small.cx) / small.fx, (rows - small.cy) / small.fy, np.ones(columns.shape)], -1)
-            @ pose.R
-        )
-        with np.errstate(divide="ignore", invalid="ignore"):
-            distance = -pose.center[2] / rays[..., 2]
-        hits = pose.center + distance[..., None] * rays
+        hits, distance = ground_hits(small, pose)
         specimen = cv2.imread(str(masks[name]), cv2.IMREAD_GRAYSCALE) > 127
         specimen = resize_exact(specimen.astype(np.float32), scale)[: small.height, : small.width] > 0.5
         seen = region(hits, distance > 0, specimen)
