@@ -67,7 +67,7 @@ from pipeline.fit import engine
 from pipeline.fit.checkpoint import resumable_stage
 from pipeline.fit.outputs import write_fit_log, write_heldout
 from pipeline.fit.passes import material_pass, shape_pass, sphere_in_box
-from pipeline.fit.views import load_views
+from pipeline.fit.views import PhotoGains, load_views
 from pipeline.formats.cameras import read_views
 from pipeline.formats.masks import read_masks
 from pipeline.formats.pinhole import linear_photos
@@ -260,7 +260,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         read_views(inputs.upstream["sfm"]["cameras"]),
         linear_photos(inputs.upstream["undistort"]["pinhole"]),
         read_masks(inputs.upstream["masks"]["masks_json"]),
-        material.get("photo_gains"),
+        PhotoGains.of(material),
     )
     held = set(material["held_out"])
     diagonal = float(np.linalg.norm(hull.extents))
@@ -300,7 +300,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_geometry",
-    version=12,
+    version=13,
     config=Config,
     main=main,
     needs=(

@@ -6,7 +6,10 @@ the photos' linear radiance (undistort's EXRs) over each photo's specimen mask c
 the mesh's outline and eroded by ``erode_px`` (pipeline.fit.views), in a window
 around it of at most ``max_size`` pixels. ``held_out`` photos, evenly spread over the
 sorted names, are never fitted: they measure validation error, and the
-best-validation state is kept.
+best-validation state is kept. With ``exposure`` or ``white_balance`` (each photo its
+own exposure, as phones shoot), a held-out photo's render is first matched to it by
+the least-squares gain of as many channels: an exposure no fit can know would
+otherwise outweigh every other error, and choose the light, model and texture.
 
 When ``[light] model`` is not given, the light is fitted with the material
 (pipeline.render.light): each model asked for (auto: constant, envmap,
@@ -42,7 +45,8 @@ params.json         model (and model_choice: every candidate's held-out error an
                     integrator fitted with, fitted values, bounds, units, best
                     iteration, validation error, why it stopped, photo_gains (each training
                     photo's RGB gain, when exposure or white_balance is fitted;
-                    fit_texture and fit_geometry divide the photos by them), the
+                    fit_texture and fit_geometry divide the photos by them;
+                    gain_channels: the held-out photos' matched gains), the
                     light (chosen model, why, every candidate's error and seconds)
 environment.exr     the fitted environment map (an envmap light)
 log.jsonl           per iteration: loss, validation error, values, seconds
@@ -78,7 +82,7 @@ from pipeline.fit.candidates import Candidate, choose, improves
 from pipeline.fit.checkpoint import resumable_stage
 from pipeline.fit.outputs import write_fit_log, write_heldout
 from pipeline.fit.settings import FitSettings
-from pipeline.fit.views import BoardPixels, held_out_names, load_views
+from pipeline.fit.views import BoardPixels, PhotoGains, held_out_names, load_views
 from pipeline.formats.cameras import read_views
 from pipeline.formats.masks import read_masks
 from pipeline.formats.pinhole import linear_photos
@@ -161,6 +165,9 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     board_print = description.get("board_print") if light.estimated else None
     held_level = light.estimated and not board_print
     measured_on = estimated_light.measured_surface(level_from, mesh, poses, light.frame) if held_level else None
+    # Photos each with their own exposure: held out, matched to their render by a gain
+    # of as many channels as the training photos are fitted with.
+    gains = PhotoGains({}, 3 if conf.white_balance else 1 if conf.exposure else 0)
 
     def write_scene(model: str, values: dict, fitted_light) -> None:
         """The material's values and the light (None: the given one) into fitted/."""
@@ -171,7 +178,9 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     def views_of(model: str, integrator: dict, names: set | None = None, count_board: bool = False) -> list:
         seen = description | {"model": model, "integrator": integrator}
         board = BoardPixels(tuple(board_print), count_board) if board_print else None
-        windowed = load_views(fitted, seen, *photos, conf.max_size, conf.erode_px, conf.spp, names=names, board=board)
+        windowed = load_views(
+            *(fitted, seen, *photos, conf.max_size, conf.erode_px, conf.spp), names=names, gains=gains, board=board
+        )
         return [v for v, _ in windowed]
 
     def fit(model: str, start_light, start_values: dict = initial, integrator: dict | None = None) -> Candidate:
@@ -268,6 +277,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
             "held_out": material.held,
             "stopped": result.stopped,
             "photo_gains": result.photo_gains,
+            "gain_channels": gains.channels,
             "light": light_report,
             "skipped_gradients": result.skipped_gradients,
         },
@@ -319,7 +329,7 @@ def _specimen_sphere(mesh: trimesh.Trimesh, frame: str, cameras: dict, light: Li
 
 STAGE = Stage(
     name="fit_material",
-    version=12,
+    version=13,
     config=Config,
     main=main,
     needs=("scene.scene_dir", "scene.description", "sfm.cameras", "undistort.pinhole", "masks.masks_json"),

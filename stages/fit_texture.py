@@ -75,7 +75,7 @@ from pipeline.fit.checkpoint import resumable_stage
 from pipeline.fit.outputs import write_fit_log, write_heldout
 from pipeline.fit.settings import FitSettings, LoopSettings
 from pipeline.fit.texture import TextureFit, fit_constants_then_levels, level_shapes, write_texture
-from pipeline.fit.views import load_views
+from pipeline.fit.views import PhotoGains, load_views
 from pipeline.formats.cameras import read_views
 from pipeline.formats.masks import read_masks
 from pipeline.formats.pinhole import linear_photos
@@ -209,7 +209,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         view
         for view, _ in load_views(
             *(textured, description, cameras, linear, masks, conf.max_size, conf.erode_px, conf.spp),
-            gains=material.get("photo_gains"),
+            gains=PhotoGains.of(material),
         )
     ]
     held = set(material["held_out"])
@@ -260,7 +260,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_texture",
-    version=12,
+    version=13,
     config=Config,
     main=main,
     needs=(

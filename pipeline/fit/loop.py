@@ -62,6 +62,11 @@ class FitView:
     """(h, w) pixel weights (the specimen's mask), or None for every pixel."""
     integrator: Any = None
     """The integrator to render with; None: the scene's own (which must then be differentiable)."""
+    heldout_gain: int = 0
+    """Held out, the channels of the gain its render is matched to its photo by before
+    its error is scored: 0, 1 (the photo's exposure is its own) or 3 (exposure and
+    white balance: phones). Nothing fitted can know a held-out photo's exposure, and
+    unmatched it would outweigh every other error."""
 
 
 @dataclass
@@ -122,7 +127,23 @@ class Target:
         integrator = integrator or view.integrator
         image = mi.render(view.scene, sensor=view.sensor, integrator=integrator, spp=spp, seed=seed(2 * index))
         second = mi.render(view.scene, sensor=view.sensor, integrator=integrator, spp=spp, seed=seed(2 * index + 1))
+        if view.heldout_gain:
+            return matched_dual(np.array(image), np.array(second), view, view.heldout_gain)
         return float(self.dual(image, second, dr).array[0])
+
+
+def matched_dual(image: np.ndarray, second: np.ndarray, view: FitView, channels: int) -> float:
+    """The dual estimator's error of two renders of ``view`` after the gain (one, or one
+    per colour channel) that minimises it: g = sum(w R (I1 + I2)) / (2 sum(w I1 I2)),
+    held within [1/8, 8] (a render black where the photo is not has no gain to find)."""
+    weight = np.ones(view.reference.shape[:2], np.float32) if view.weight is None else view.weight
+    weight = weight[..., None]
+    axes = (0, 1) if channels == 3 else None
+    numerator = np.atleast_1d(np.sum(weight * view.reference * (image + second), axis=axes))
+    denominator = np.atleast_1d(2 * np.sum(weight * image * second, axis=axes))
+    gain = np.clip(np.divide(numerator, denominator, out=np.ones_like(numerator), where=denominator > 0), 1 / 8, 8)
+    error = weight * (gain * image - view.reference) * (gain * second - view.reference)
+    return float(np.sum(error) / (3 * np.sum(weight)))
 
 
 def view_loss(scene, params, sensor, integrator, spp: int, seeds, scale, target: Target, dual: bool, share):

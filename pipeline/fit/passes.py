@@ -57,7 +57,7 @@ def shape_pass(
     """Vertices of the scene folder's mesh.ply refined with the scene's material
     frozen, compared by ``loss`` (photometric or silhouette) in windows of at most
     ``max_size`` px; the mesh written back. ``photos``: (cameras, linear photos, masks,
-    fit_material's photo gains or None)."""
+    fit_material's PhotoGains)."""
     import mitsuba as mi
 
     cameras, linear, masks, gains = photos
@@ -69,7 +69,7 @@ def shape_pass(
         integrator = {"type": "direct_projective", "sppi": 0}
     else:
         # The silhouette and its surroundings carry the shape: every window pixel counts.
-        views = [engine.FitView(v.name, v.scene, v.sensor, v.reference, window.inside()) for v, window in windowed]
+        views = [replace(v, weight=window.inside()) for v, window in windowed]
         kind, depth = description["integrator"]["differentiable"], description["integrator"]["max_depth"]
         integrator = (
             {"type": "prb_projective", "max_depth": depth, "sppi": 0}

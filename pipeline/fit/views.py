@@ -111,6 +111,25 @@ class BoardPixels:
     (held-out views, scored on the specimen alone, in windows of the same size)."""
 
 
+@dataclass(frozen=True)
+class PhotoGains:
+    """What fit_material found of each photo's own exposure (params.json), as the
+    fits after it use it."""
+
+    fitted: dict[str, list[float]]
+    """Each training photo's RGB gain (render times gain matches the photo): those
+    photos are divided by theirs, as fit_material saw them."""
+    channels: int
+    """0 when one exposure held for the whole capture; else 1 (exposure) or 3 (exposure
+    and white balance) per photo: a held-out photo's render is matched to it by a gain
+    of that many channels before its error is scored (FitView.heldout_gain)."""
+
+    @staticmethod
+    def of(params: dict) -> PhotoGains:
+        """fit_material's params.json's photo_gains and gain_channels."""
+        return PhotoGains(params.get("photo_gains") or {}, params.get("gain_channels", 0))
+
+
 BOARD_MARGIN = 0.3
 """With the board in the fit, windows reach this fraction of the mask's box further on
 each side: the specimen's shadow and the print's shading beside it."""
@@ -136,14 +155,13 @@ def load_views(
     spp: int,
     sample_border: bool = False,
     names: set[str] | None = None,
-    gains: dict[str, list[float]] | None = None,
+    gains: PhotoGains | None = None,
     board: BoardPixels | None = None,
 ) -> list[tuple[FitView, Window]]:
     """Every photo (or those in ``names``) as a FitView in its window (mask_windows over
     every photo of the scene, so a view's window does not depend on ``names``); weights
-    are the mask eroded by ``erode_px``. ``gains``: photos' RGB gains fitted by
-    fit_material (exposure, white balance); those photos are divided by theirs, as that
-    fit saw them. ``board``: windows wider by BOARD_MARGIN, and the print's pixels
+    are the mask eroded by ``erode_px``. ``gains``: what fit_material found of the
+    photos' exposure (PhotoGains). ``board``: windows wider by BOARD_MARGIN, and the print's pixels
     weighted too when it says so."""
     import mitsuba as mi
 
@@ -163,8 +181,8 @@ def load_views(
         window, mask = windows[name], every[name]
         intrinsics, pose = cameras[name]
         reference = window.cut(read_photo(linear[name]).pixels)
-        if gains and name in gains:
-            reference = reference / np.asarray(gains[name], np.float32)
+        if gains and name in gains.fitted:
+            reference = reference / np.asarray(gains.fitted[name], np.float32)
         if erode_px:
             mask = cv2.erode(mask.astype(np.uint8), np.ones((2 * erode_px + 1,) * 2, np.uint8)) > 0
         weight = window.inside() * (window.cut(mask.astype(np.float32)) > 0.999)
@@ -176,7 +194,8 @@ def load_views(
                 window.intrinsics(intrinsics), pose, spp, description["near_clip"], sample_border=sample_border
             )
         )
-        view = FitView(name, scene, sensor, np.ascontiguousarray(reference), weight, integrator)
+        heldout_gain = gains.channels if gains else 0
+        view = FitView(name, scene, sensor, np.ascontiguousarray(reference), weight, integrator, heldout_gain)
         views.append((view, window))
     return views
 

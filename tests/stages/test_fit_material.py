@@ -35,7 +35,7 @@ def test_fit_material_moves_base_colour_toward_the_truth_within_bounds(run_stage
 
 
 def test_white_balance_writes_centred_gains_by_which_the_views_divide_their_photos(run_stages, bird_capture, mi):
-    from pipeline.fit.views import load_views
+    from pipeline.fit.views import PhotoGains, load_views
     from pipeline.formats.cameras import read_views
     from pipeline.formats.masks import read_masks
     from pipeline.formats.pinhole import linear_photos
@@ -56,10 +56,12 @@ def test_white_balance_writes_centred_gains_by_which_the_views_divide_their_phot
     description = json.loads(outputs["scene"]["description"].read_text())
     folder = outputs["fit_material"]["fitted_dir"]
     plain, divided = (
-        load_views(folder, description, *photos, 32, 0, 4, names={name}, gains=given)[0][0].reference
-        for given in (None, {name: [2.0, 4.0, 0.5]})
+        load_views(folder, description, *photos, 32, 0, 4, names={name}, gains=given)[0][0]
+        for given in (None, PhotoGains({name: [2.0, 4.0, 0.5]}, params["gain_channels"]))
     )
-    np.testing.assert_allclose(divided * [2.0, 4.0, 0.5], plain, rtol=1e-5)
+    np.testing.assert_allclose(divided.reference * [2.0, 4.0, 0.5], plain.reference, rtol=1e-5)
+    # held out, a photo's render is matched to it by a gain of as many channels
+    assert params["gain_channels"] == 3 and (plain.heldout_gain, divided.heldout_gain) == (0, 3)
 
 
 def test_fit_material_rejects_bounds_of_unknown_parameters(run_stages, bird_capture):
