@@ -39,7 +39,9 @@ before and after, best iteration, non-finite gradient entries dropped
 (skipped_gradients), whether the material pass was kept;
 ``params`` and ``bounds`` as in fit_texture's; vertices, seconds); log.jsonl
 (every iteration with its round and pass); loss.png; heldout/ rendered with
-the final scene (with ``enabled = false``, the start scene's passed through).
+the final scene in windows of ``material_max_size`` pixels, the size fit_material's
+and fit_texture's are scored at in every preset, so that the stages' held-out PSNR
+compare (with ``enabled = false``, the start scene's passed through).
 
 Limitations: vertices move, connectivity does not (no remeshing), so a start far
 from the truth (the sphere) cannot grow handles or thin limbs. The geometry loss
@@ -273,7 +275,8 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     # 3. Held-out renders of the final scene, the log and params.json.
     cameras, linear, masks, _ = views_inputs
     final = load_views(
-        geometry, description, cameras, linear, masks, conf.max_size, conf.erode_px, conf.validation_spp, names=held
+        *(geometry, description, cameras, linear, masks, conf.material_max_size, conf.erode_px, conf.validation_spp),
+        names=held,
     )
     write_heldout([v for v, _ in final], 4 * conf.validation_spp, geometry / HELDOUT)
     write_fit_log(geometry, log)
@@ -300,7 +303,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_geometry",
-    version=13,
+    version=14,
     config=Config,
     main=main,
     needs=(

@@ -2,6 +2,7 @@
 
 import json
 
+import cv2
 import numpy as np
 import pytest
 import trimesh
@@ -33,6 +34,14 @@ def test_fit_geometry_pulls_a_sphere_towards_the_silhouettes(run_stages, bird_ca
     assert report["validation_mse"] < report["validation_mse_start"]
     assert report["median_vertex_move_of_diagonal"] > 0
     assert score_heldout(outputs["fit_geometry"]["geometry_dir"] / "heldout")["views"] == len(report["held_out"])
+    # scored in windows of fit_material's size (48 px and a margin), not the geometry
+    # pass's (32):
+    # the stages' held-out PSNR compare
+    longer_sides = {
+        stage: {max(cv2.imread(str(f)).shape[:2]) for f in outputs[stage]["heldout"].glob("*.reference.png")}
+        for stage in ("fit_material", "fit_geometry")
+    }
+    assert longer_sides["fit_geometry"] == longer_sides["fit_material"] == {49}
 
 
 def test_fit_geometry_alternates_shape_and_material_and_the_scene_holds_the_result(run_stages, bird_capture, mi):
