@@ -35,8 +35,7 @@ def test_fit_geometry_pulls_a_sphere_towards_the_silhouettes(run_stages, bird_ca
     assert report["median_vertex_move_of_diagonal"] > 0
     assert score_heldout(outputs["fit_geometry"]["geometry_dir"] / "heldout")["views"] == len(report["held_out"])
     # scored in windows of fit_material's size (48 px and a margin), not the geometry
-    # pass's (32):
-    # the stages' held-out PSNR compare
+    # pass's (32): the stages' held-out PSNR compare
     longer_sides = {
         stage: {max(cv2.imread(str(f)).shape[:2]) for f in outputs[stage]["heldout"].glob("*.reference.png")}
         for stage in ("fit_material", "fit_geometry")
