@@ -167,7 +167,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     measured_on = estimated_light.measured_surface(level_from, mesh, poses, light.frame) if held_level else None
     # Photos each with their own exposure: held out, matched to their render by a gain
     # of as many channels as the training photos are fitted with.
-    gains = PhotoGains({}, 3 if conf.white_balance else 1 if conf.exposure else 0)
+    gain_channels = 3 if conf.white_balance else 1 if conf.exposure else 0
 
     def write_scene(model: str, values: dict, fitted_light) -> None:
         """The material's values and the light (None: the given one) into fitted/."""
@@ -175,9 +175,10 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         if fitted_light is not None:
             estimated_light.write(fitted_light, fitted, description, poses)
 
-    def views_of(model: str, integrator: dict, names: set | None = None, count_board: bool = False) -> list:
+    def views_of(model: str, integrator: dict, names=None, count_board: bool = False, fitted_gains=None) -> list:
         seen = description | {"model": model, "integrator": integrator}
         board = BoardPixels(tuple(board_print), count_board) if board_print else None
+        gains = PhotoGains(fitted_gains or {}, gain_channels)
         windowed = load_views(
             *(fitted, seen, *photos, conf.max_size, conf.erode_px, conf.spp), names=names, gains=gains, board=board
         )
@@ -205,7 +206,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     def heldout_views(candidate: Candidate, integrator: dict) -> list[engine.FitView]:
         """The candidate's held-out photos, its values and light written into fitted/."""
         write_scene(candidate.model, candidate.result.values, candidate.light)
-        return views_of(candidate.model, integrator, set(candidate.held))
+        return views_of(candidate.model, integrator, set(candidate.held), fitted_gains=candidate.result.photo_gains)
 
     # 3. The fit: the scene's model under the given light, or with each light model, simplest first.
     scene_model = description["model"]
@@ -277,7 +278,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
             "held_out": material.held,
             "stopped": result.stopped,
             "photo_gains": result.photo_gains,
-            "gain_channels": gains.channels,
+            "gain_channels": gain_channels,
             "light": light_report,
             "skipped_gradients": result.skipped_gradients,
         },

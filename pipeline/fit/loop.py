@@ -67,6 +67,11 @@ class FitView:
     its error is scored: 0, 1 (the photo's exposure is its own) or 3 (exposure and
     white balance: phones). Nothing fitted can know a held-out photo's exposure, and
     unmatched it would outweigh every other error."""
+    heldout_gain_range: tuple[float, float] | None = None
+    """The range the matched gain is held in: that of the training photos' fitted gains
+    (a held-out photo's exposure is one the camera also chose for them). A free gain
+    would forgive the fit's overall level, which only the training photos fix; None:
+    the range of the gains being fitted alongside."""
 
 
 @dataclass
@@ -121,27 +126,36 @@ class Target:
         """Deng et al.'s dual-buffer estimator of the squared error of the expected image."""
         return self.mean((image - self.reference) * (second - self.reference), dr)
 
-    def heldout_error(self, view: FitView, index: int, spp: int, mi, dr, integrator=None) -> float:
+    def heldout_error(self, view: FitView, index: int, spp: int, mi, dr, integrator=None, fitted_range=None) -> float:
         """The dual estimator's error of ``view`` (this target's) rendered with fixed
-        seeds (2 * index and 2 * index + 1); ``integrator`` None renders with the view's."""
+        seeds (2 * index and 2 * index + 1); ``integrator`` None renders with the view's;
+        ``fitted_range``: the range of the training photos' gains as they stand."""
         integrator = integrator or view.integrator
         image = mi.render(view.scene, sensor=view.sensor, integrator=integrator, spp=spp, seed=seed(2 * index))
         second = mi.render(view.scene, sensor=view.sensor, integrator=integrator, spp=spp, seed=seed(2 * index + 1))
         if view.heldout_gain:
-            return matched_dual(np.array(image), np.array(second), view, view.heldout_gain)
+            gain_range = view.heldout_gain_range or fitted_range or (1 / 8, 8)
+            return matched_dual(np.array(image), np.array(second), view, gain_range)
         return float(self.dual(image, second, dr).array[0])
 
 
-def matched_dual(image: np.ndarray, second: np.ndarray, view: FitView, channels: int) -> float:
+def gain_range(gains: dict[str, list[float]]) -> tuple[float, float]:
+    """The smallest and largest of the photos' fitted gains (every channel)."""
+    values = np.asarray(list(gains.values()), np.float64)
+    return float(values.min()), float(values.max())
+
+
+def matched_dual(image: np.ndarray, second: np.ndarray, view: FitView, gain_range: tuple[float, float]) -> float:
     """The dual estimator's error of two renders of ``view`` after the gain (one, or one
-    per colour channel) that minimises it: g = sum(w R (I1 + I2)) / (2 sum(w I1 I2)),
-    held within [1/8, 8] (a render black where the photo is not has no gain to find)."""
+    per colour channel: view.heldout_gain) that minimises it, g = sum(w R (I1 + I2)) /
+    (2 sum(w I1 I2)), held within ``gain_range``."""
+    channels = view.heldout_gain
     weight = np.ones(view.reference.shape[:2], np.float32) if view.weight is None else view.weight
     weight = weight[..., None]
     axes = (0, 1) if channels == 3 else None
     numerator = np.atleast_1d(np.sum(weight * view.reference * (image + second), axis=axes))
     denominator = np.atleast_1d(2 * np.sum(weight * image * second, axis=axes))
-    gain = np.clip(np.divide(numerator, denominator, out=np.ones_like(numerator), where=denominator > 0), 1 / 8, 8)
+    gain = np.clip(np.divide(numerator, denominator, out=np.ones_like(numerator), where=denominator > 0), *gain_range)
     error = weight * (gain * image - view.reference) * (gain * second - view.reference)
     return float(np.sum(error) / (3 * np.sum(weight)))
 
@@ -279,14 +293,21 @@ class _Loop:
             for scene_key in {id(view.scene) for view in self.validation}:
                 self.variables.apply(scene_key)
         spp = self.settings.validation_spp
-        return heldout_error(self.validation, self.targets, spp, self.integrator, self.mi, self.dr)
+        fitted = self.variables.gains()
+        fitted_range = gain_range(fitted) if fitted else None
+        return heldout_error(self.validation, self.targets, spp, self.integrator, self.mi, self.dr, fitted_range)
 
 
-def heldout_error(views: list[FitView], targets: dict[str, Target], spp: int, integrator, mi, dr) -> float:
+def heldout_error(
+    views: list[FitView], targets: dict[str, Target], spp: int, integrator, mi, dr, fitted_range=None
+) -> float:
     """The mean of the views' held-out errors (the i-th view with seeds 2i and 2i + 1),
-    their scenes as they stand; ``integrator`` None renders each with its own."""
+    their scenes as they stand; ``integrator`` None renders each with its own;
+    ``fitted_range``: the range of the gains fitted alongside (Target.heldout_error)."""
     with dr.suspend_grad():
-        errors = [targets[v.name].heldout_error(v, i, spp, mi, dr, integrator) for i, v in enumerate(views)]
+        errors = [
+            targets[v.name].heldout_error(v, i, spp, mi, dr, integrator, fitted_range) for i, v in enumerate(views)
+        ]
     return float(np.mean(errors))
 
 

@@ -277,6 +277,10 @@ class ShapeVariables:
         """Nothing per step for the log: reading every vertex would cost a device sync."""
         return None
 
+    def gains(self) -> dict[str, list[float]]:
+        """No photo gains: a shape fit renders the photos as the material fit saw them."""
+        return {}
+
     def snapshot(self) -> dict[str, np.ndarray]:
         with self.dr.suspend_grad():
             positions = self.steps.from_differential(self.optimizer["u"])

@@ -25,7 +25,7 @@ import trimesh
 
 from pipeline import logger
 from pipeline.camera.model import Intrinsics, Pose, ground_hits, mesh_coverage, resize_exact, scaled
-from pipeline.fit.loop import FitView
+from pipeline.fit.loop import FitView, gain_range
 from pipeline.formats.scene_folder import MESH_PLY, SCENE_XML
 from pipeline.imaging.photo_io import read_photo
 from pipeline.render import scene_xml
@@ -122,7 +122,8 @@ class PhotoGains:
     channels: int
     """0 when one exposure held for the whole capture; else 1 (exposure) or 3 (exposure
     and white balance) per photo: a held-out photo's render is matched to it by a gain
-    of that many channels before its error is scored (FitView.heldout_gain)."""
+    of that many channels, within the range of ``fitted``, before its error is scored
+    (FitView.heldout_gain)."""
 
     @staticmethod
     def of(params: dict) -> PhotoGains:
@@ -194,8 +195,8 @@ def load_views(
                 window.intrinsics(intrinsics), pose, spp, description["near_clip"], sample_border=sample_border
             )
         )
-        heldout_gain = gains.channels if gains else 0
-        view = FitView(name, scene, sensor, np.ascontiguousarray(reference), weight, integrator, heldout_gain)
+        matched = (gains.channels, gain_range(gains.fitted) if gains.fitted else None) if gains else (0, None)
+        view = FitView(name, scene, sensor, np.ascontiguousarray(reference), weight, integrator, *matched)
         views.append((view, window))
     return views
 

@@ -60,8 +60,10 @@ def test_white_balance_writes_centred_gains_by_which_the_views_divide_their_phot
         for given in (None, PhotoGains({name: [2.0, 4.0, 0.5]}, params["gain_channels"]))
     )
     np.testing.assert_allclose(divided.reference * [2.0, 4.0, 0.5], plain.reference, rtol=1e-5)
-    # held out, a photo's render is matched to it by a gain of as many channels
+    # held out, a photo's render is matched to it by a gain of as many channels, within
+    # the range of the training photos' gains
     assert params["gain_channels"] == 3 and (plain.heldout_gain, divided.heldout_gain) == (0, 3)
+    assert divided.heldout_gain_range == (0.5, 4.0)
 
 
 def test_fit_material_rejects_bounds_of_unknown_parameters(run_stages, bird_capture):

@@ -508,23 +508,26 @@ def test_white_balance_recovers_each_photos_gains_and_the_true_colour(mi, refere
 
 def test_held_out_photos_with_their_own_exposure_are_scored_after_a_matched_gain(mi, references, tmp_path):
     """A held-out photo shot 40 % darker and bluer than the scene's level (a phone's
-    automatic exposure and white balance): the true parameters score as badly as a
-    wrong colour unmatched; matched by one gain the exposure is forgiven, by three the
-    white balance too, and a wrong colour is still worse than the truth."""
+    automatic exposure and white balance): unmatched, the true parameters score as badly
+    as a wrong colour; matched by one gain the exposure is forgiven, by three the white
+    balance too, and a wrong colour is still worse than the truth. Held within the
+    training photos' range of gains, an exposure (or a level of the fit) outside it is
+    not forgiven."""
     truth = _scene_file(tmp_path / "truth", TRUTH["base_color"], TRUTH["roughness"])
     wrong = _scene_file(tmp_path / "wrong", [0.4, 0.4, 0.4], TRUTH["roughness"])
     errors = {}
     for label, scene in (("truth", truth), ("wrong", wrong)):
-        for channels in (0, 1, 3):
+        for channels, gain_range in ((0, None), (1, None), (3, None), (3, (0.7, 1.3))):
             views = _views(mi, scene, references / "references")
             for view in views:
                 view.reference = view.reference * np.float32([0.6, 0.6, 0.75])
-                view.heldout_gain = channels
-            errors[label, channels] = engine.heldout_error(views, 64, None)
-    noise = errors["truth", 3]
-    assert noise < 0.02 * errors["truth", 0]
-    assert noise < errors["truth", 1] < 0.3 * errors["truth", 0]
-    assert errors["wrong", 3] > 5 * noise and errors["wrong", 1] > errors["truth", 1]
+                view.heldout_gain, view.heldout_gain_range = channels, gain_range
+            errors[label, channels, gain_range] = engine.heldout_error(views, 64, None)
+    noise = errors["truth", 3, None]
+    assert noise < 0.02 * errors["truth", 0, None]
+    assert noise < errors["truth", 1, None] < 0.3 * errors["truth", 0, None]
+    assert errors["wrong", 3, None] > 5 * noise and errors["wrong", 1, None] > errors["truth", 1, None]
+    assert 10 * noise < errors["truth", 3, (0.7, 1.3)] < 0.5 * errors["truth", 0, None]
 
 
 @pytest.mark.parametrize("case", ["black reference", "nearly saturated reference", "1 spp", "one-pixel mask"])
