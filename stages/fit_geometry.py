@@ -303,7 +303,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_geometry",
-    version=14,
+    version=15,
     config=Config,
     main=main,
     needs=(

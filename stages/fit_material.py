@@ -330,7 +330,7 @@ def _specimen_sphere(mesh: trimesh.Trimesh, frame: str, cameras: dict, light: Li
 
 STAGE = Stage(
     name="fit_material",
-    version=13,
+    version=14,
     config=Config,
     main=main,
     needs=("scene.scene_dir", "scene.description", "sfm.cameras", "undistort.pinhole", "masks.masks_json"),

@@ -260,7 +260,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_texture",
-    version=13,
+    version=14,
     config=Config,
     main=main,
     needs=(
