@@ -29,7 +29,10 @@ auto            photometric for surface models, silhouette for the volumetric on
 ``start = "sphere"`` is the original tool's naive start: an icosphere in the
 visual hull's bounding box with fit_material's constant material. Held-out
 photos are fit_material's; every pass keeps its best held-out state, so a pass
-that does not help leaves the scene as it was. The measurements behind these
+that does not help leaves the scene as it was. A geometry pass scores its whole
+window, so the rounds are kept only when they lower the held-out error over the
+specimen as fit_texture measures it; otherwise its scene is passed through
+(params.json: ``kept``, ``specimen_validation_mse``). The measurements behind these
 choices: docs/fit_geometry.md.
 
 Outputs, in geometry/ (exported to CAPTURE/output/geometry/), a scene folder
@@ -68,7 +71,7 @@ from pipeline.core.stage import Stage, StageInputs, StageResult
 from pipeline.fit import engine
 from pipeline.fit.checkpoint import resumable_stage
 from pipeline.fit.outputs import write_fit_log, write_heldout
-from pipeline.fit.passes import material_pass, shape_pass, sphere_in_box
+from pipeline.fit.passes import material_pass, pass_summary, shape_pass, specimen_error, sphere_in_box
 from pipeline.fit.views import PhotoGains, load_views
 from pipeline.formats.cameras import read_views
 from pipeline.formats.masks import read_masks
@@ -130,16 +133,6 @@ class Config:
     """Seed of the batch order and the renders."""
 
 
-def _pass_summary(result: engine.ShapeResult | engine.FitResult) -> dict:
-    return {
-        "iterations": len(result.log),
-        "best_iteration": result.best_iteration,
-        "validation_start": result.start_validation_error,
-        "validation": result.validation_error,
-        "skipped_gradients": result.skipped_gradients,
-    }
-
-
 def _shape_settings(conf: Config, diagonal: float, seed: int) -> engine.ShapeSettings:
     return engine.ShapeSettings(
         iterations=conf.iterations,
@@ -199,7 +192,7 @@ def _rounds(
         shape_settings = _shape_settings(conf, diagonal, seed)
         shape = shape_pass(geometry, description, loss, views_inputs, held, conf.max_size, shape_settings)
         record(shape, round_index, "geometry")
-        rounds.append({"geometry": _pass_summary(shape)})
+        rounds.append({"geometry": pass_summary(shape)})
         logger.info(
             "round %d, geometry: held-out MSE %s -> %s",
             round_index + 1,
@@ -220,7 +213,7 @@ def _rounds(
                 conf.material_min_improvement,
             )
             record(refit, round_index, "material")
-            rounds[-1]["material"] = _pass_summary(refit) | {"kept": kept}
+            rounds[-1]["material"] = pass_summary(refit) | {"kept": kept}
             if kept:
                 values |= refit.values
             logger.info(
@@ -270,7 +263,17 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     texture = (source_params["learning_rate"], source_params["smoothness"]) if source_params.get("kept") else None
     parameters = materials.refit_parameters(model, bounds, texture)
     started = time.perf_counter()
+    measure = (geometry, description, views_inputs, held, conf.material_max_size, conf.erode_px, conf.validation_spp)
+    specimen = {"start": specimen_error(*measure), "start_values": dict(values)}
     rounds, log = _rounds(conf, geometry, description, loss, views_inputs, held, parameters, diagonal, values)
+    # Kept only when the specimen's error ends lower (not the sphere: no result to keep).
+    specimen["end"] = specimen_error(*measure)
+    specimen["kept"] = conf.start == "sphere" or specimen["end"] < specimen["start"]
+    if not specimen["kept"]:
+        logger.info("specimen's held-out error %.4g -> %.4g: the start scene kept", specimen["start"], specimen["end"])
+        shutil.rmtree(geometry)
+        copy_scene(source_dir, geometry)
+        values = specimen["start_values"]
 
     # 3. Held-out renders of the final scene, the log and params.json.
     cameras, linear, masks, _ = views_inputs
@@ -288,6 +291,8 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         "rounds": rounds,
         "validation_mse_start": first["validation_start"],
         "validation_mse": last["validation"],
+        "specimen_validation_mse": {"start": specimen["start"], "end": specimen["end"]},
+        "kept": specimen["kept"],
         "params": values,
         "bounds": bounds,
         "vertices": int(len(positions)),
@@ -303,7 +308,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_geometry",
-    version=15,
+    version=16,
     config=Config,
     main=main,
     needs=(

@@ -126,3 +126,27 @@ def sphere_in_box(bounds: np.ndarray, subdivisions: int) -> trimesh.Trimesh:
     sphere.apply_scale((bounds[1] - bounds[0]) / 2)
     sphere.apply_translation(bounds.mean(axis=0))
     return sphere
+
+
+def specimen_error(
+    geometry: Path, description: dict, photos: tuple, held: set[str], max_size: int, erode_px: int, spp: int
+) -> float:
+    """The held-out error of the scene folder as it stands, as fit_material and
+    fit_texture measure it: the held-out photos' eroded specimen masks in windows of
+    ``max_size`` pixels, their matched gains, each view's own integrator."""
+    cameras, linear, masks, gains = photos
+    windowed = load_views(
+        geometry, description, cameras, linear, masks, max_size, erode_px, spp, names=held, gains=gains
+    )
+    return engine.heldout_error([v for v, _ in windowed], spp, None)
+
+
+def pass_summary(result: engine.ShapeResult | engine.FitResult) -> dict:
+    """A pass's figures for params.json: steps, best step, held-out error before and after."""
+    return {
+        "iterations": len(result.log),
+        "best_iteration": result.best_iteration,
+        "validation_start": result.start_validation_error,
+        "validation": result.validation_error,
+        "skipped_gradients": result.skipped_gradients,
+    }

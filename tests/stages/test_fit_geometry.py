@@ -112,3 +112,36 @@ def test_a_material_pass_below_the_minimum_gain_leaves_the_material_as_it_was(ru
     scene = mi.traverse(mi.load_file(str(folder / "scene.xml")))
     assert np.ravel(scene["specimen.bsdf.roughness.value"])[0] == pytest.approx(before["roughness"][0], rel=1e-5)
     assert (folder / "base_color.exr").read_bytes() == (textured / "base_color.exr").read_bytes()
+
+
+def test_rounds_that_worsen_the_specimen_leave_the_start_scene(run_stages, bird_capture, monkeypatch):
+    """A geometry pass scores its whole window: one that lowered its own error while
+    the specimen's rose (here: the mesh blown up by 15 % after the real pass) is not
+    kept, and fit_texture's scene is published unchanged."""
+    import stages.fit_geometry
+
+    real_pass = stages.fit_geometry.shape_pass
+
+    def blowing_up(geometry, *args):
+        result = real_pass(geometry, *args)
+        mesh = trimesh.load(geometry / "mesh.ply", process=False)
+        mesh.vertices = mesh.centroid + 1.15 * (mesh.vertices - mesh.centroid)
+        mesh.export(geometry / "mesh.ply")
+        return result
+
+    monkeypatch.setattr(stages.fit_geometry, "shape_pass", blowing_up)
+    outputs = run_stages(
+        bird_capture,
+        "fit_geometry",
+        *TINY_FIT,
+        *TINY_TEXTURE,
+        *TINY_GEOMETRY,
+        "fit_geometry.rounds=1",
+        "fit_geometry.seed=7",
+    )
+    folder, textured = outputs["fit_geometry"]["geometry_dir"], outputs["fit_texture"]["textured_dir"]
+    report = json.loads((folder / "params.json").read_text())
+    errors = report["specimen_validation_mse"]
+    assert report["kept"] is False and errors["end"] > errors["start"]
+    assert (folder / "mesh.ply").read_bytes() == (textured / "mesh.ply").read_bytes()
+    assert report["params"] == json.loads((textured / "params.json").read_text())["params"]
