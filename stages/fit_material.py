@@ -8,8 +8,9 @@ around it of at most ``max_size`` pixels. ``held_out`` photos, evenly spread ove
 sorted names, are never fitted: they measure validation error, and the
 best-validation state is kept. With ``exposure`` or ``white_balance`` (each photo its
 own exposure, as phones shoot), a held-out photo's render is first matched to it by
-the least-squares gain of as many channels: an exposure no fit can know would
-otherwise outweigh every other error, and choose the light, model and texture.
+the least-squares gain of as many channels, within the range of the training photos'
+fitted gains: an exposure no fit can know would otherwise outweigh every other error
+and choose the light, model and texture, and a free gain would forgive the fit's level.
 
 When ``[light] model`` is not given, the light is fitted with the material
 (pipeline.render.light): each model asked for (auto: constant, envmap,
