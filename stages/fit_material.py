@@ -166,8 +166,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     board_print = description.get("board_print") if light.estimated else None
     held_level = light.estimated and not board_print
     measured_on = estimated_light.measured_surface(level_from, mesh, poses, light.frame) if held_level else None
-    # Photos each with their own exposure: held out, matched to their render by a gain
-    # of as many channels as the training photos are fitted with.
+    # held-out photos' gains (PhotoGains): as many channels as the training photos'
     gain_channels = 3 if conf.white_balance else 1 if conf.exposure else 0
 
     def write_scene(model: str, values: dict, fitted_light) -> None:
@@ -222,7 +221,9 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
                 envmap = next((c for c in candidates if c.light.model == "envmap"), None) or fit(
                     scene_model, estimated_light.start("envmap", light.frame, level, light.environment_width)
                 )
-                area = estimated_light.with_area(envmap.light, *_specimen_sphere(mesh, light.frame, cameras, light))
+                area = estimated_light.with_area(
+                    envmap.light, *estimated_light.specimen_sphere(mesh.vertices, light, poses)
+                )
                 candidates.append(fit(scene_model, area, envmap.result.values))
             else:
                 start = estimated_light.start(light_model, light.frame, level, light.environment_width)
@@ -315,18 +316,6 @@ def _deeper(material: Candidate, held: list[engine.FitView], conf: Config, refit
     candidates = [material, refit()]
     winner, why = choose(candidates, conf.model_margin, "depth")
     return winner, report | {"why": why, "candidates": [c.summary("depth") for c in candidates]}
-
-
-def _specimen_sphere(mesh: trimesh.Trimesh, frame: str, cameras: dict, light: LightSection) -> tuple[np.ndarray, float]:
-    """(centre in the light's frame, the softbox's distance) for light.with_area: the
-    specimen's bounding-sphere centre (in the first photo's camera coordinates when the
-    light rides with the camera) and ``area_distance`` radii."""
-    centre = mesh.bounding_box.centroid
-    radius = float(np.max(np.linalg.norm(mesh.vertices - centre, axis=1)))
-    if frame == "camera":
-        pose = cameras[sorted(cameras)[0]][1]
-        centre = pose.R @ centre + pose.t
-    return centre, light.area_distance * radius
 
 
 STAGE = Stage(

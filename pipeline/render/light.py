@@ -288,6 +288,18 @@ def map_to_frame(frame: str) -> np.ndarray:
     return capture_scene.environment_to_world(frame, Pose(np.eye(3), np.zeros(3)))[:3, :3]
 
 
+def specimen_sphere(vertices: np.ndarray, light: LightSection, poses: dict[str, Pose]) -> tuple[np.ndarray, float]:
+    """(centre in the light's frame, the softbox's distance) for with_area: the centre of
+    the specimen's bounding box (in the first photo's camera coordinates when the light
+    rides with the camera) and ``light.area_distance`` times the radius about it."""
+    centre = (vertices.min(axis=0) + vertices.max(axis=0)) / 2
+    radius = float(np.max(np.linalg.norm(vertices - centre, axis=1)))
+    if light.frame == "camera":
+        pose = poses[sorted(poses)[0]]
+        centre = pose.R @ centre + pose.t
+    return centre, light.area_distance * radius
+
+
 def with_area(light: EstimatedLight, centre: np.ndarray, distance: float) -> EstimatedLight:
     """The envmap's brightest lobe (texels above half the peak's luminance within 45
     degrees of it) as a square softbox at ``distance`` from ``centre`` (in the light's

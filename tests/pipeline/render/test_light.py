@@ -184,3 +184,18 @@ def test_texel_directions_are_mitsubas(mi, tmp_path):
     seen = np.array(emitter.eval(interaction)).T.reshape(environment.shape)
     # Off the poles, where a row's texels all share one direction.
     np.testing.assert_allclose(seen[1:-1], environment[1:-1], rtol=1e-3)
+
+
+def test_the_softbox_starts_round_the_specimens_box_centre_in_the_lights_frame():
+    """with_area's sphere: the centre of the specimen's bounding box and area_distance
+    radii; for a light riding with the camera, the centre in the first photo's camera
+    coordinates (photos sorted by name)."""
+    from pipeline.core.sections import LightSection
+
+    vertices = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [0.0, 4.0, 0.0], [2.0, 4.0, 2.0]])
+    poses = {"b.jpg": Pose(np.eye(3), np.zeros(3)), "a.jpg": Pose(np.eye(3), np.array([0.0, 0.0, 5.0]))}
+    centre, distance = light.specimen_sphere(vertices, LightSection(frame="world", area_distance=3.0), poses)
+    np.testing.assert_allclose(centre, [1.0, 2.0, 1.0])
+    assert distance == pytest.approx(3.0 * np.sqrt(6.0))
+    centre, _ = light.specimen_sphere(vertices, LightSection(frame="camera", area_distance=3.0), poses)
+    np.testing.assert_allclose(centre, [1.0, 2.0, 6.0])
