@@ -145,17 +145,23 @@ def gain_range(gains: dict[str, list[float]]) -> tuple[float, float]:
     return float(values.min()), float(values.max())
 
 
+def matched_gain(image, second, reference, weight, channels: int, gain_range=(-np.inf, np.inf)) -> np.ndarray:
+    """The gain (one, or one per colour channel: the last axis) that minimises the
+    weighted dual estimator's error sum(w (g I1 - R)(g I2 - R)), g = sum(w R (I1 + I2)) /
+    (2 sum(w I1 I2)) (plain least squares when I1 is I2); 1 where the renders are black;
+    held within ``gain_range``."""
+    axes = tuple(range(image.ndim - 1)) if channels == 3 else None
+    numerator = np.atleast_1d(np.sum(weight * reference * (image + second), axis=axes))
+    denominator = np.atleast_1d(2 * np.sum(weight * image * second, axis=axes))
+    return np.clip(np.divide(numerator, denominator, out=np.ones_like(numerator), where=denominator > 0), *gain_range)
+
+
 def matched_dual(image: np.ndarray, second: np.ndarray, view: FitView, gain_range: tuple[float, float]) -> float:
-    """The dual estimator's error of two renders of ``view`` after the gain (one, or one
-    per colour channel: view.heldout_gain) that minimises it, g = sum(w R (I1 + I2)) /
-    (2 sum(w I1 I2)), held within ``gain_range``."""
-    channels = view.heldout_gain
+    """The dual estimator's error of two renders of ``view`` after matched_gain (of
+    view.heldout_gain channels, held within ``gain_range``)."""
     weight = np.ones(view.reference.shape[:2], np.float32) if view.weight is None else view.weight
     weight = weight[..., None]
-    axes = (0, 1) if channels == 3 else None
-    numerator = np.atleast_1d(np.sum(weight * view.reference * (image + second), axis=axes))
-    denominator = np.atleast_1d(2 * np.sum(weight * image * second, axis=axes))
-    gain = np.clip(np.divide(numerator, denominator, out=np.ones_like(numerator), where=denominator > 0), *gain_range)
+    gain = matched_gain(image, second, view.reference, weight, view.heldout_gain, gain_range)
     error = weight * (gain * image - view.reference) * (gain * second - view.reference)
     return float(np.sum(error) / (3 * np.sum(weight)))
 

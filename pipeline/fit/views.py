@@ -174,6 +174,8 @@ def load_views(
     )
     every = specimen_masks(scene_dir / MESH_PLY, cameras, {n: masks[n] for n in sorted(description["views"])})
     windows = mask_windows(every, max_size, board_margin=BOARD_MARGIN if board else 0.0)
+    # held out, a render is matched to its photo by a gain (FitView.heldout_gain)
+    matched = (gains.channels, gain_range(gains.fitted) if gains.fitted else None) if gains else (0, None)
     views = []
     for name in sorted(every if names is None else set(every) & names):
         if name not in windows:
@@ -195,7 +197,6 @@ def load_views(
                 window.intrinsics(intrinsics), pose, spp, description["near_clip"], sample_border=sample_border
             )
         )
-        matched = (gains.channels, gain_range(gains.fitted) if gains.fitted else None) if gains else (0, None)
         view = FitView(name, scene, sensor, np.ascontiguousarray(reference), weight, integrator, *matched)
         views.append((view, window))
     return views

@@ -53,6 +53,7 @@ from scipy.spatial import cKDTree
 
 from pipeline.camera.model import Intrinsics, Pose, Similarity, project, rotation_angle_deg, similarity_umeyama
 from pipeline.core.errors import PipelineError
+from pipeline.fit.loop import matched_gain
 from pipeline.formats.cameras import read_cameras
 from pipeline.formats.scene_folder import heldout_files, heldout_names
 from pipeline.geometry.atlas import chart_texels, occluder, unoccluded
@@ -341,7 +342,7 @@ def score_heldout(folder: Path) -> dict[str, Any]:
             render, reference = render[inside], reference[inside]
         per_view[name] = psnr(render, reference)
         flat_render, flat_reference = render.reshape(-1, 3), reference.reshape(-1, 3)
-        gain = (flat_render * flat_reference).sum(axis=0) / np.maximum((flat_render**2).sum(axis=0), 1e-12)
+        gain = matched_gain(flat_render, flat_render, flat_reference, 1.0, 3)
         per_view_gain[name] = psnr(flat_render * gain, flat_reference)
     values, gained = list(per_view.values()), list(per_view_gain.values())
     return {
