@@ -1,7 +1,8 @@
-"""Stage fit_texture: a colour that varies over the specimen, fitted coarse to fine.
+"""Stage fit_texture: a colour that varies over the specimen, baked from the photos or
+fitted coarse to fine.
 
 Starts from fit_material's scene and replaces one constant of the model by a
-texture initialised to that constant (pipeline.render.materials.TEXTURE_SLOTS):
+texture (pipeline.render.materials.TEXTURE_SLOTS):
 
 ==========================  ==============================================================
 model                       texture
@@ -17,13 +18,17 @@ within its bounds: first alone (``iterations`` steps, the colour still
 constant), then along with the texture at every level. Fitted next to a
 constant colour they absorb some of the colour's variation (on the sample bird
 roughness ended 0.15 off the truth). The texture is fitted by pipeline.fit.engine
-(the same loop, loss, views and held-out photos as fit_material) at ``levels``
-resolutions, each twice the last, ending at
-``max_resolution`` texels a side (``max_grid_resolution`` along a grid's longest
-side); every level starts from the last one's best state, resampled. A
-smoothness prior (``smoothness`` times the mean squared difference of
-neighbouring texels) keeps texels from absorbing highlights and noise and fills
-texels no photo sees from their neighbours.
+(the same loop, loss, views and held-out photos as fit_material). A bitmap starts
+(``start = photos``) baked from the training photos under the fitted light and
+constants (pipeline.fit.bake: per texel, the least-squares colour of the photos'
+pixels that see it, from windows of ``bake_max_size`` pixels, finer than the fit's),
+and is then fitted at ``max_resolution`` texels a side alone. From the constant
+(``start = constant``, and always for a grid) it is fitted at ``levels``
+resolutions, each twice the last, ending at ``max_resolution``
+(``max_grid_resolution`` along a grid's longest side); every level starts from the
+last one's best state, resampled. A smoothness prior (``smoothness`` times the
+mean squared difference of neighbouring texels) keeps texels from absorbing
+highlights and noise and fills texels no photo sees from their neighbours.
 
 Model only what the scene needs: with ``texture = "auto"`` the texture is kept
 only when it lowers the held-out error by at least ``min_improvement``
@@ -40,8 +45,10 @@ base_color.exr/.png  the bitmap, linear EXR (what the scene loads) and sRGB PNG
 albedo.vol/.png      the grid volume (Mitsuba's format) and its z slices as PNG
 params.json          kept or not and why, validation error with and without the
                      texture, per level (and for the constants alone):
-                     resolution, iterations, best iteration, non-finite gradient
-                     entries dropped (skipped_gradients); ``params`` and
+                     resolution, iterations, best iteration, held-out error at
+                     the start and the best, non-finite gradient entries
+                     dropped (skipped_gradients); ``baked``: the bake's window
+                     size, samples and share of texels seen; ``params`` and
                      ``bounds``: the scene's values as in fit_material's
                      params.json (a kept texture's mean for the textured one);
                      the texture's ``smoothness`` and ``learning_rate``, which
@@ -71,6 +78,7 @@ from pipeline import logger
 from pipeline.core.config import Range
 from pipeline.core.stage import Stage, StageInputs, StageResult
 from pipeline.fit import engine
+from pipeline.fit.bake import bake_bitmap
 from pipeline.fit.checkpoint import resumable_stage
 from pipeline.fit.outputs import write_fit_log, write_heldout
 from pipeline.fit.settings import FitSettings, LoopSettings
@@ -90,6 +98,7 @@ from pipeline.formats.scene_folder import (
     write_json,
 )
 from pipeline.render import materials, mitsuba_variant, scene_xml
+from pipeline.render.materials import SPECIMEN
 
 
 @dataclass(frozen=True)
@@ -123,6 +132,16 @@ class Config(LoopSettings):
     refit_constants: bool = True
     """Fit the model's other constants again, alone and then along with the texture
     (see the module docstring); off: they stay as fit_material left them."""
+    start: Literal["photos", "constant"] = "photos"
+    """Where a bitmap starts (a grid volume starts from the constant). photos: baked
+    from the training photos under the fitted light and constants (pipeline.fit.bake)
+    at ``max_resolution``, then fitted at that resolution alone; constant: fit_material's
+    constant, fitted coarse to fine over ``levels``."""
+    bake_max_size: Annotated[int, Range(16, None)] = 512
+    """Longer side, in pixels, of the windows the photos are baked from (a photo is
+    never enlarged)."""
+    bake_spp: Annotated[int, Range(1, None)] = 32
+    """Samples per pixel of the bake's two renders per photo."""
 
 
 def _keep_texture(conf: Config, constant_error: float | None, texture_error: float) -> tuple[bool, str]:
@@ -155,6 +174,32 @@ def _texture_fit(conf: Config, model: str, bounds: dict, views: list[engine.FitV
     parameters = materials.refit_parameters(model, bounds, (conf.learning_rate, conf.smoothness), conf.refit_constants)
     training, validation = [v for v in views if v.name not in held], [v for v in views if v.name in held]
     return TextureFit(training=training, validation=validation, parameters=parameters, settings=settings)
+
+
+def _baker(conf: Config, slot, shape: tuple[int, ...], fit: TextureFit, material: dict, where: tuple, report: dict):
+    """With ``start = photos`` and a bitmap: what bakes the texture from the training
+    photos (``where``: the scene folder, its description, cameras, photos and masks)
+    into the training views' scenes, as the constants' refit leaves them, and notes it
+    in ``report``; None otherwise."""
+    if conf.start != "photos" or slot.kind != "bitmap":
+        return None
+
+    def bake() -> np.ndarray:
+        scenes = {v.name: v.scene for v in fit.training}
+        views = load_views(
+            *where,
+            *(conf.bake_max_size, conf.erode_px, conf.bake_spp),
+            names=set(scenes),
+            gains=PhotoGains.of(material),
+            scenes=scenes,
+        )
+        bounds = material["bounds"][slot.parameter]
+        texture, seen = bake_bitmap([v for v, _ in views], slot.key, SPECIMEN, shape, conf.bake_spp, bounds)
+        report["baked"] = {"max_size": conf.bake_max_size, "spp": conf.bake_spp, "texels_seen": seen}
+        logger.info("texture baked from %d photos: %.0f %% of texels seen", len(views), 100 * seen)
+        return texture
+
+    return bake
 
 
 def _render_heldout(conf: Config, textured: Path, description: dict, photos: tuple, held: set[str]) -> None:
@@ -214,7 +259,8 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     ]
     held = set(material["held_out"])
     fit = _texture_fit(conf, model, material["bounds"], views, held)
-    fitted = fit_constants_then_levels(slot, texture, shapes, fit, report)
+    bake = _baker(conf, slot, shapes[-1], fit, material, (textured, description, cameras, linear, masks), report)
+    fitted = fit_constants_then_levels(slot, texture, shapes, fit, report, bake)
     result, texture, constants = fitted["result"], fitted["texture"], fitted["constants"]
     constant_error, texture_error = fitted["constant_error"], report["levels"][-1]["validation_mse"]
 
@@ -260,7 +306,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_texture",
-    version=14,
+    version=15,
     config=Config,
     main=main,
     needs=(

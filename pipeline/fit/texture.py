@@ -7,6 +7,7 @@ from __future__ import annotations
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 from scipy import ndimage
@@ -77,10 +78,13 @@ def fit_constants_then_levels(
     shapes: list[tuple[int, ...]],
     fit: TextureFit,
     report: dict,
+    start: Callable[[], np.ndarray] | None = None,
 ) -> dict:
     """The constants alone (texture constant), then the texture level by level; fills
     ``report`` and returns the last level's result with the texture, the refitted
-    constants, the constant model's held-out error and the joined log."""
+    constants, the constant model's held-out error and the joined log. ``start``: the
+    finest level's starting texture, made once the constants are refitted (a bake from
+    the photos, pipeline.fit.bake); only that level is then fitted."""
     import mitsuba as mi
 
     log, levels = [], []
@@ -95,6 +99,7 @@ def fit_constants_then_levels(
             "resolution": shape and list(shape),
             "iterations": len(result.log),
             "best_iteration": result.best_iteration,
+            "start_validation_mse": result.start_validation_error,
             "validation_mse": result.validation_error,
             "stopped": result.stopped,
             "skipped_gradients": result.skipped_gradients,
@@ -112,6 +117,12 @@ def fit_constants_then_levels(
         report["constants_fit"] = record(result, "constants", None)
         logger.info("constants refitted: held-out MSE %s", result.validation_error)
     scenes = {id(v.scene): v.scene for v in fit.training + fit.validation}
+    if start is not None:
+        if constant_error is None and fit.validation:
+            # the first level starts from the bake: the constant's error is measured here
+            integrator = fit.validation[0].integrator
+            constant_error = engine.heldout_error(fit.validation, fit.settings.validation_spp, integrator)
+        texture, shapes = start(), shapes[-1:]
     for level, shape in enumerate(shapes):
         texture = resample(texture, shape)
         for scene in scenes.values():

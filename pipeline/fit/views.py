@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -158,15 +159,19 @@ def load_views(
     names: set[str] | None = None,
     gains: PhotoGains | None = None,
     board: BoardPixels | None = None,
+    scenes: dict[str, Any] | None = None,
 ) -> list[tuple[FitView, Window]]:
     """Every photo (or those in ``names``) as a FitView in its window (mask_windows over
     every photo of the scene, so a view's window does not depend on ``names``); weights
     are the mask eroded by ``erode_px``. ``gains``: what fit_material found of the
     photos' exposure (PhotoGains). ``board``: windows wider by BOARD_MARGIN, and the print's pixels
-    weighted too when it says so."""
+    weighted too when it says so. ``scenes``: each view's scene already loaded (another
+    fit's views', so that what that fit changed holds), instead of the files'."""
     import mitsuba as mi
 
-    shared_scene = mi.load_file(str(scene_dir / SCENE_XML)) if description["light_frame"] == "world" else None
+    shared_scene = None
+    if scenes is None and description["light_frame"] == "world":
+        shared_scene = mi.load_file(str(scene_dir / SCENE_XML))
     # The scene files name a render integrator (path): the fit renders with its
     # differentiable counterpart, at the same depth.
     integrator = mi.load_dict(
@@ -191,7 +196,10 @@ def load_views(
         weight = window.inside() * (window.cut(mask.astype(np.float32)) > 0.999)
         if board is not None and board.count:
             weight = np.maximum(weight, window.inside() * board_weight(window, intrinsics, pose, board, every[name]))
-        scene = shared_scene or mi.load_file(str(scene_dir / description["views"][name]["xml"]))
+        if scenes is not None:
+            scene = scenes[name]
+        else:
+            scene = shared_scene or mi.load_file(str(scene_dir / description["views"][name]["xml"]))
         sensor = scene_xml.load_sensor(
             scene_xml.sensor_properties(
                 window.intrinsics(intrinsics), pose, spp, description["near_clip"], sample_border=sample_border

@@ -19,6 +19,8 @@ TINY_TEXTURE = (
     "fit_texture.validate_every=3",
     "fit_texture.validation_spp=8",
     "fit_texture.loss=l2",
+    "fit_texture.bake_max_size=96",
+    "fit_texture.bake_spp=4",
 )
 
 TINY_GEOMETRY = (

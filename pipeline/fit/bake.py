@@ -1,0 +1,109 @@
+"""A bitmap baked from the photos: each texel the least-squares value that the photos
+seeing it ask for under the scene's light and the other constants, before any
+gradient step.
+
+A principled BSDF's diffuse lobe is linear in its base colour and its specular lobe
+does not depend on it, so a pixel's radiance is ``I = a D + S``: ``S`` rendered with
+the bitmap at 0, ``D + S`` with it at 1 (the specimen's light reflected onto itself
+makes this only nearly linear). Over the pixels whose centre's ray meets the
+specimen at texel ``t`` in every view, per channel,
+``a_t = sum D (I - S) / sum D^2``: the photos' detail at their own resolution,
+which a gradient fit through small windows and a few dozen steps does not reach
+(docs/benchmarks.md, "A texture baked from the photos"). Texels no pixel sees take
+the value of the nearest texel seen (chart gutters: bilinear lookups near a
+chart's edge read them).
+
+Limitations: each pixel weighs by its ``D^2`` alone (no grazing-angle or
+resolution weight beyond it); a highlight the light does not explain, or an edge
+the mesh misses, pulls its texels by least squares (no robust loss); a texel is
+the nearest one to the ray's UV (no bilinear splat).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+from pipeline.core import progress
+from pipeline.fit.loop import FitView, seed
+
+SEEN = 1e-6
+"""A texel counts as seen when its sum of D^2 exceeds this fraction of the largest."""
+
+
+def _set_constant(views: list[FitView], key: str, value: float) -> None:
+    import mitsuba as mi
+
+    for scene in {id(v.scene): v.scene for v in views}.values():
+        params = mi.traverse(scene)
+        params[key] = mi.TensorXf(np.full((2, 2, 3), value, np.float32))
+        params.update()
+
+
+def texels_hit(view: FitView, shape_id: str, size: tuple[int, int]) -> np.ndarray:
+    """(h, w) flat index of the texel (in a ``size`` = (rows, columns) bitmap) that the
+    ray through each pixel's centre meets on the shape ``shape_id``; -1 where the ray
+    meets nothing or another shape. Rows follow v, columns u (Mitsuba's bitmap
+    lookup: texel (i, j) covers v in [i, i + 1) / rows, u in [j, j + 1) / columns)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    film = view.sensor.film().size()
+    width, height = int(film[0]), int(film[1])
+    x, y = np.meshgrid((np.arange(width) + 0.5) / width, (np.arange(height) + 0.5) / height)
+    rays, _ = view.sensor.sample_ray(0.0, 0.0, mi.Point2f(x.ravel(), y.ravel()), mi.Point2f(0.5, 0.5))
+    hit = view.scene.ray_intersect(rays)
+    target = [s for s in view.scene.shapes() if s.id() == shape_id]
+    on_shape = hit.is_valid() & (hit.shape == mi.ShapePtr(target[0])) if target else dr.zeros(mi.Bool, 1)
+    uv = np.array(hit.uv)
+    rows, columns = size
+    row = np.clip(np.floor(np.mod(uv[1], 1.0) * rows), 0, rows - 1).astype(np.int64)
+    column = np.clip(np.floor(np.mod(uv[0], 1.0) * columns), 0, columns - 1).astype(np.int64)
+    index = np.where(np.array(on_shape, dtype=bool), row * columns + column, -1)
+    return index.reshape(height, width)
+
+
+def bake_bitmap(
+    views: list[FitView], key: str, shape_id: str, size: tuple[int, int], spp: int, bounds: tuple[float, float]
+) -> tuple[np.ndarray, float]:
+    """The (rows, columns, 3) bitmap at ``key`` (the base colour of shape ``shape_id``)
+    that fits ``views``' photos by least squares (module docstring), held in
+    ``bounds``, and the fraction of texels some pixel saw. Each view renders twice at
+    ``spp`` with its own integrator; its weight's pixels count. The scenes' bitmap is
+    put back as it was."""
+    import mitsuba as mi
+
+    first = views[0].scene
+    before = mi.TensorXf(mi.traverse(first)[key])
+    rows, columns = size
+    texels = rows * columns
+    numerator = np.zeros((texels, 3))
+    denominator = np.zeros((texels, 3))
+    renders: dict[float, dict[str, np.ndarray]] = {}
+    for value in (0.0, 1.0):
+        _set_constant(views, key, value)
+        renders[value] = {
+            v.name: np.array(mi.render(v.scene, sensor=v.sensor, integrator=v.integrator, spp=spp, seed=seed(i)))
+            for i, v in enumerate(progress.track(views, f"bake: renders with the colour at {value:g}"))
+        }
+    for view in progress.track(views, "bake: photos onto texels"):
+        texel = texels_hit(view, shape_id, size)
+        counts = (texel >= 0) & (view.weight > 0 if view.weight is not None else True)
+        dark = renders[0.0][view.name][counts]
+        shading = renders[1.0][view.name][counts] - dark
+        wanted = view.reference[counts] - dark
+        for channel in range(3):
+            numerator[:, channel] += np.bincount(texel[counts], shading[:, channel] * wanted[:, channel], texels)
+            denominator[:, channel] += np.bincount(texel[counts], shading[:, channel] ** 2, texels)
+    for scene in {id(v.scene): v.scene for v in views}.values():
+        params = mi.traverse(scene)
+        params[key] = before
+        params.update()
+    seen = denominator.min(axis=1) > SEEN * denominator.max()
+    texture = np.divide(numerator, denominator, out=np.zeros_like(numerator), where=denominator > 0)
+    texture = texture.reshape(rows, columns, 3)
+    seen = seen.reshape(rows, columns)
+    if seen.any():
+        _, (near_row, near_column) = ndimage.distance_transform_edt(~seen, return_indices=True)
+        texture = texture[near_row, near_column]
+    return np.clip(texture, *bounds).astype(np.float32), float(seen.mean())

@@ -1,0 +1,109 @@
+"""pipeline.fit.bake on a tiny scene: a glossy principled square whose base colour is an
+8x8 bitmap of known texels, under a sky and a softbox, photographed from four sides."""
+
+import numpy as np
+import pytest
+
+from pipeline.camera.model import Intrinsics, Pose
+from pipeline.fit.bake import bake_bitmap, texels_hit
+from pipeline.fit.loop import FitView
+from pipeline.render import scene_xml
+
+pytestmark = pytest.mark.slow
+K = Intrinsics(96, 96, 120.0, 120.0, 47.5, 47.5)
+KEY = "specimen.bsdf.base_color.data"
+SIZE = (8, 8)
+
+
+def _truth() -> np.ndarray:
+    rng = np.random.default_rng(3)
+    return rng.uniform(0.1, 0.9, (*SIZE, 3)).astype(np.float32)
+
+
+def _views(mi, texture: np.ndarray, references: list[np.ndarray] | None = None) -> list[FitView]:
+    softbox = mi.ScalarTransform4f().look_at(origin=[0.5, 0.3, 1.2], target=[0, 0, 0], up=[0, 0, 1]).scale(0.3)
+    bitmap = {"type": "bitmap", "id": "specimen_base_color", "data": mi.TensorXf(texture), "raw": True}
+    scene = mi.load_dict(
+        {
+            "type": "scene",
+            "sky": {"type": "constant", "id": "sky", "radiance": {"type": "rgb", "value": [0.4, 0.4, 0.4]}},
+            "softbox": {
+                "type": "rectangle",
+                "id": "softbox",
+                "to_world": softbox,
+                "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [4.0, 4.0, 4.0]}},
+            },
+            "specimen": {
+                "type": "rectangle",
+                "id": "specimen",
+                "to_world": mi.ScalarTransform4f().scale(0.2),
+                "bsdf": {
+                    "type": "principled",
+                    "id": "specimen_bsdf",
+                    # nearest: each texel's colour alone on its square (the bake's own assumption)
+                    "base_color": {**bitmap, "filter_type": "nearest"},
+                    "roughness": 0.3,
+                    "specular": 0.5,
+                },
+            },
+        }
+    )
+    integrator = mi.load_dict({"type": "prb", "max_depth": 3})
+    views = []
+    for index, eye in enumerate(([0.3, 0.0, 0.6], [0.0, 0.3, 0.6], [-0.3, 0.0, 0.6], [0.0, -0.3, 0.6])):
+        pose = Pose.look_at(eye, [0.0, 0.0, 0.0], up=[0.0, 0.0, 1.0])
+        sensor = scene_xml.load_sensor(scene_xml.sensor_properties(K, pose, 16, 0.01))
+        reference = references[index] if references else np.zeros((K.height, K.width, 3), np.float32)
+        views.append(FitView(f"view{index}", scene, sensor, reference, None, integrator))
+    return views
+
+
+@pytest.fixture(scope="module")
+def photos(mi) -> list[np.ndarray]:
+    """Each view rendered with the true bitmap (many samples: the photos)."""
+    return [
+        np.array(mi.render(v.scene, sensor=v.sensor, integrator=v.integrator, spp=256, seed=7))
+        for v in _views(mi, _truth())
+    ]
+
+
+def test_every_pixel_centre_on_the_square_finds_its_texel(mi):
+    """The texel a pixel's ray meets is the one whose colour the pixel shows (rows follow
+    v, columns u); rays past the square find none."""
+    texture = np.zeros((*SIZE, 3), np.float32)
+    texture[..., 0] = np.arange(64).reshape(SIZE) / 64.0  # each texel's index in red, no light needed
+    views = _views(mi, texture)
+    emitting = mi.load_dict({"type": "aov", "aovs": "uv:uv"})
+    view = views[0]
+    uv = np.array(mi.render(view.scene, sensor=view.sensor, integrator=emitting, spp=1, seed=0))
+    index = texels_hit(view, "specimen", SIZE)
+    hit = index >= 0
+    assert 0.2 < hit.mean() < 0.95
+    inside = hit & (np.abs(uv[..., 0] * 8 - np.round(uv[..., 0] * 8)) > 0.2)
+    inside &= np.abs(uv[..., 1] * 8 - np.round(uv[..., 1] * 8)) > 0.2
+    expected = np.floor(uv[..., 1] * 8) * 8 + np.floor(uv[..., 0] * 8)
+    assert np.mean(index[inside] == expected[inside]) > 0.95
+
+
+def test_the_bake_recovers_the_true_texels_from_the_photos(mi, photos):
+    """Under the true light and constants the least-squares texels match the truth,
+    though the square is glossy (the specular part is not the colour's); the scene's
+    bitmap is put back."""
+    start = np.full((2, 2, 3), 0.5, np.float32)
+    views = _views(mi, start, photos)
+    texture, seen = bake_bitmap(views, KEY, "specimen", SIZE, 64, (0.001, 1.0))
+    assert seen == 1.0
+    assert np.abs(texture - _truth()).mean() < 0.025
+    assert np.abs(texture - _truth()).max() < 0.1
+    assert np.array(mi.traverse(views[0].scene)[KEY]).shape == (2, 2, 3)
+
+
+def test_texels_no_photo_sees_take_the_nearest_seen_value(mi, photos):
+    """A bitmap four times finer than any view resolves leaves texels unseen: they take
+    their nearest seen neighbour's value, never 0 or the bounds; values stay in bounds."""
+    views = _views(mi, np.full((2, 2, 3), 0.5, np.float32), photos)
+    texture, seen = bake_bitmap(views[:1], KEY, "specimen", (128, 128), 16, (0.2, 0.8))
+    assert 0.05 < seen < 0.9
+    assert texture.min() >= 0.2 and texture.max() <= 0.8
+    coarse = texture.reshape(8, 16, 8, 16, 3).mean(axis=(1, 3))
+    assert np.abs(coarse - np.clip(_truth(), 0.2, 0.8)).mean() < 0.04
