@@ -1,37 +1,36 @@
 """Stage fit_material: the specimen's material constants, fitted to the photos.
 
-The scene stage's model (pipeline.render.materials) is fitted by pipeline.fit.engine: Adam
-over its parameters with per-parameter learning rates and box constraints, a loss on
-the photos' linear radiance (undistort's EXRs) over each photo's specimen mask cut to
-the mesh's outline and eroded by ``erode_px`` (pipeline.fit.views), in a window
-around it of at most ``max_size`` pixels. ``held_out`` photos, evenly spread over the
-sorted names, are never fitted: they measure validation error, and the
-best-validation state is kept. With ``exposure`` or ``white_balance`` (each photo its
-own exposure, as phones shoot), a held-out photo's render is first matched to it by
-the least-squares gain of as many channels, within the range of the training photos'
-fitted gains: an exposure no fit can know would otherwise outweigh every other error
-and choose the light, model and texture, and a free gain would forgive the fit's level.
+The scene stage's model (pipeline.render.materials) is fitted by pipeline.fit.engine: Adam over
+its parameters with per-parameter learning rates and box constraints, a loss on the photos'
+linear radiance (undistort's EXRs) over each photo's specimen mask cut to the mesh's outline and
+eroded by ``erode_px`` (pipeline.fit.views), in a window around it of at most ``max_size``
+pixels. ``held_out`` photos, evenly spread over the sorted names, are never fitted: they measure
+validation error, and the best-validation state is kept. With ``exposure`` or ``white_balance``
+(each photo its own exposure, as phones shoot), a held-out photo's render is first matched to it
+by the least-squares gain of as many channels, within the range of the training photos' fitted
+gains: an exposure no fit can know would otherwise outweigh every other error and choose the
+light, model and texture, and a free gain would forgive the fit's level. Once fitted, where the
+scene has the table, each held-out photo's exposure is measured on the table it shows
+(pipeline.fit.views.table_gains): heldout/ and the later stages divide it by that gain, as the
+training photos by their fitted ones.
 
 When ``[light] model`` is not given, the light is fitted with the material
-(pipeline.render.light): each model asked for (auto: constant, envmap,
-envmap+area, simplest first) in a fit of its own, the envmap+area one continuing
-the envmap's; the simplest within ``light.margin`` of the best held-out error is
-kept and written into every scene file. With the board in the scene, its print
-beside the specimen counts in training too: its known reflectance sets the light's
-level; without, the map keeps the level the scene stage measured.
+(pipeline.render.light): each model asked for (auto: constant, envmap, envmap+area, simplest
+first) in a fit of its own, the envmap+area one continuing the envmap's; the simplest within
+``light.margin`` of the best held-out error is kept and written into every scene file. With the
+board in the scene, its print beside the specimen counts in training too: its known reflectance
+sets the light's level; without, the map keeps the level the scene stage measured.
 
-Model only what the photos show (pipeline.fit.candidates): when the scene leaves
-the material model open (scene.json's ``model_choice``: the capture and the scene
-stage both say auto), the light models are fitted with principled, then opaque is
-fitted under the chosen light, starting from principled's colour, roughness and
-the specular reflectance of its eta; volumetric (from principled's eta, colour as
-albedo and roughness) only when principled beat opaque by more than
-``model_margin``. The simplest within ``model_margin`` of the best held-out error
-is kept (an opaque specimen is not given translucency that only absorbs the
-light's or the mesh's error). Then the path depth: the held-out photos are
-rendered at twice the chosen model's depth, and only when that changes their
-error by more than the margin is the model refitted deeper. fit_texture and
-fit_geometry take the model and integrator from params.json.
+Model only what the photos show (pipeline.fit.candidates): when the scene leaves the material
+model open (scene.json's ``model_choice``: the capture and the scene stage both say auto), the
+light models are fitted with principled, then opaque is fitted under the chosen light, starting
+from principled's colour, roughness and the specular reflectance of its eta; volumetric (from
+principled's eta, colour as albedo and roughness) only when principled beat opaque by more than
+``model_margin``. The simplest within ``model_margin`` of the best held-out error is kept (an
+opaque specimen is not given translucency that only absorbs the light's or the mesh's error).
+Then the path depth: the held-out photos are rendered at twice the chosen model's depth, and
+only when that changes their error by more than the margin is the model refitted deeper.
+fit_texture and fit_geometry take the model and integrator from params.json.
 
 All in one folder, fitted/ (exported to CAPTURE/output/fitted/, with params.json
 and heldout/ also exported on their own for ``pipeline score``):
@@ -47,7 +46,8 @@ params.json         model (and model_choice: every candidate's held-out error an
                     iteration, validation error, why it stopped, photo_gains (each training
                     photo's RGB gain, when exposure or white_balance is fitted;
                     fit_texture and fit_geometry divide the photos by them;
-                    gain_channels: the held-out photos' matched gains), the
+                    gain_channels: the held-out photos' matched gains;
+                    heldout_gains: those measured on the table), the
                     light (chosen model, why, every candidate's error and seconds)
 environment.exr     the fitted environment map (an envmap light)
 log.jsonl           per iteration: loss, validation error, values, seconds
@@ -57,8 +57,8 @@ heldout/            per held-out photo: NAME.render.exr, NAME.reference.exr (the
                     NAME.reference/render/difference.png to look at
 ==================  =============================================================
 
-Limitations: a constant material (texture is fit_texture's job). The table beyond the
-board is not in the scene: its bounce light is attributed to the specimen. Views whose mask is empty are skipped.
+Limitations: a constant material (texture is fit_texture's job). Without the table in the
+scene (sfm found no plane), its bounce light is attributed to the specimen; empty masks are skipped.
 """
 
 from __future__ import annotations
@@ -83,7 +83,7 @@ from pipeline.fit.candidates import Candidate, choose, improves
 from pipeline.fit.checkpoint import resumable_stage
 from pipeline.fit.outputs import write_fit_log, write_heldout
 from pipeline.fit.settings import FitSettings
-from pipeline.fit.views import BoardPixels, PhotoGains, held_out_names, load_views
+from pipeline.fit.views import BoardPixels, PhotoGains, held_out_names, load_views, table_gains
 from pipeline.formats.cameras import read_views
 from pipeline.formats.masks import read_masks
 from pipeline.formats.pinhole import linear_photos
@@ -175,10 +175,10 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         if fitted_light is not None:
             estimated_light.write(fitted_light, fitted, description, poses)
 
-    def views_of(model: str, integrator: dict, names=None, count_board: bool = False, fitted_gains=None) -> list:
+    def views_of(model: str, integrator: dict, names=None, count_board=False, fitted_gains=None, measured=None):
         seen = description | {"model": model, "integrator": integrator}
         board = BoardPixels(tuple(board_print), count_board) if board_print else None
-        gains = PhotoGains(fitted_gains or {}, gain_channels)
+        gains = PhotoGains(fitted_gains or {}, gain_channels, measured or {})
         windowed = load_views(
             *(fitted, seen, *photos, conf.max_size, conf.erode_px, conf.spp), names=names, gains=gains, board=board
         )
@@ -203,10 +203,11 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
             logger.info("light %s: held-out error %.4g", end_light.model, result.validation_error or float("nan"))
         return Candidate(model, end_light, integrator, result, sorted(held), time.perf_counter() - started)
 
-    def heldout_views(candidate: Candidate, integrator: dict) -> list[engine.FitView]:
+    def heldout_views(candidate: Candidate, integrator: dict, measured=None) -> list[engine.FitView]:
         """The candidate's held-out photos, its values and light written into fitted/."""
         write_scene(candidate.model, candidate.result.values, candidate.light)
-        return views_of(candidate.model, integrator, set(candidate.held), fitted_gains=candidate.result.photo_gains)
+        gains = candidate.result.photo_gains
+        return views_of(candidate.model, integrator, set(candidate.held), fitted_gains=gains, measured=measured)
 
     # 3. The fit: the scene's model under the given light, or with each light model, simplest first.
     scene_model = description["model"]
@@ -248,8 +249,11 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         material, depth = _deeper(material, heldout_views(material, deeper), conf, refit)
     model, result = material.model, material.result
 
-    # 5. The fitted scene, its light, log, held-out renders and params.json.
-    write_heldout(heldout_views(material, material.integrator), 4 * conf.validation_spp, fitted / HELDOUT)
+    # 5. The fitted scene, light, log, held-out exposures (the table's), renders, params.json.
+    write_scene(model, result.values, material.light)
+    heldout_gains = table_gains(fitted, description, photos, result.photo_gains, material.held, gain_channels)
+    held = heldout_views(material, material.integrator, heldout_gains.get("gains"))
+    write_heldout(held, 4 * conf.validation_spp, fitted / HELDOUT)
     rewrite_integrator(fitted, material.integrator)
     write_fit_log(fitted, result.log)
     material_values = {p.name: result.values[p.name] for p in parameters[model]}
@@ -281,18 +285,14 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
             "stopped": result.stopped,
             "photo_gains": result.photo_gains,
             "gain_channels": gain_channels,
+            "heldout_gains": heldout_gains,
             "light": light_report,
             "skipped_gradients": result.skipped_gradients,
         },
     )
-    metrics = {
-        "iterations": len(result.log),
-        "best_iteration": result.best_iteration,
-        "validation_mse": result.validation_error,
-        "model": model,
-        "light": light_report["chosen"]["model"],
-        **{n: v if len(v) > 1 else v[0] for n, v in material_values.items()},
-    }
+    metrics = {"iterations": len(result.log), "best_iteration": result.best_iteration, "model": model}
+    metrics |= {"validation_mse": result.validation_error, "light": light_report["chosen"]["model"]}
+    metrics |= {n: v if len(v) > 1 else v[0] for n, v in material_values.items()}
     outputs = {"fitted_dir": fitted, "params": params, "heldout": fitted / HELDOUT, "scene": fitted / SCENE_XML}
     return StageResult(outputs, metrics)
 
@@ -320,7 +320,7 @@ def _deeper(material: Candidate, held: list[engine.FitView], conf: Config, refit
 
 STAGE = Stage(
     name="fit_material",
-    version=14,
+    version=15,
     config=Config,
     main=main,
     needs=("scene.scene_dir", "scene.description", "sfm.cameras", "undistort.pinhole", "masks.masks_json"),

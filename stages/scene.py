@@ -297,7 +297,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
     ground_albedo = None
     if ground_radius:
-        region = table_region(ground_radius, board)
+        region = table_region(ground_radius, None if board is None else board_half_extent(board))
         ratio = measure_ratio(lambda n: mi.load_file(str(view_files[n])), views, linear, masks, region, near_clip)
         ground_albedo = None if ratio is None else tuple(float(v) for v in np.clip(ratio, 0.01, 1.0))
         if ground_albedo is None:

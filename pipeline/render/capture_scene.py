@@ -155,13 +155,14 @@ Region = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 (h, w), specimen mask (h, w)): a boolean image."""
 
 
-def table_region(radius: float, board: BoardSection | None) -> Region:
-    """The table: inside the ground disk, off the board, away from the specimen."""
+def table_region(radius: float, board_half: np.ndarray | None) -> Region:
+    """The table: inside the ground disk, off the board (its print's half width and
+    height, metres, centred at the origin), away from the specimen."""
 
     def region(hits, reached, specimen):
         seen = reached & (np.linalg.norm(hits[..., :2], axis=-1) < 0.9 * radius)
-        if board is not None:
-            seen &= np.any(np.abs(hits[..., :2]) > board_half_extent(board) + 0.01, axis=-1)
+        if board_half is not None:
+            seen &= np.any(np.abs(hits[..., :2]) > np.asarray(board_half) + 0.01, axis=-1)
         return seen & ~_dilated(specimen)
 
     return region
@@ -190,6 +191,39 @@ def _dilated(mask: np.ndarray) -> np.ndarray:
     return cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
 
 
+def photo_ratios(
+    load_scene: Callable[[str], object],
+    intrinsics: Intrinsics,
+    pose: Pose,
+    photo: Path,
+    mask: Path,
+    region: Region,
+    near_clip: float,
+    name: str,
+    below: float = np.inf,
+) -> np.ndarray | None:
+    """(n, 3) photo radiance over rendered radiance (``load_scene(name)`` from the photo's
+    camera, at most 160 px) at each of ``region``'s pixels whose photo radiance is below
+    ``below`` in every channel; None when the photo shows fewer than 50 of them."""
+    import mitsuba as mi
+
+    scale = min(1.0, 160 / max(intrinsics.width, intrinsics.height))
+    small = scaled(intrinsics, scale, exact=True)
+    hits, distance = ground_hits(small, pose)
+    specimen = cv2.imread(str(mask), cv2.IMREAD_GRAYSCALE) > 127
+    specimen = resize_exact(specimen.astype(np.float32), scale)[: small.height, : small.width] > 0.5
+    seen = region(hits, distance > 0, specimen)
+    if np.count_nonzero(seen) < 50:
+        return None
+    sensor = scene_xml.load_sensor(scene_xml.sensor_properties(small, pose, 64, near_clip))
+    rendered = np.asarray(mi.render(load_scene(name), sensor=sensor, spp=64), dtype=np.float32)
+    pixels = resize_exact(read_photo(photo).pixels, scale)[: small.height, : small.width]
+    seen &= np.all(pixels < below, axis=-1)
+    if np.count_nonzero(seen) < 50:
+        return None
+    return pixels[seen] / np.maximum(rendered[seen], 1e-4)
+
+
 def measure_ratio(
     load_scene: Callable[[str], object],
     views: dict[str, tuple[Intrinsics, Pose]],
@@ -198,26 +232,13 @@ def measure_ratio(
     region: Region,
     near_clip: float,
 ) -> tuple[float, float, float] | None:
-    """Photo radiance over rendered radiance (``load_scene(photo name)`` from the photo's
-    camera, at most 160 px), median over ``region``'s pixels in up to four photos; None
-    when they show fewer than 50 of them."""
-    import mitsuba as mi
-
+    """Photo radiance over rendered radiance (photo_ratios), median over ``region``'s
+    pixels in up to four photos; None when they show fewer than 50 of them."""
     ratios = []
     for name in sorted(views)[:: max(1, len(views) // 4)][:4]:
-        intrinsics, pose = views[name]
-        scale = min(1.0, 160 / max(intrinsics.width, intrinsics.height))
-        small = scaled(intrinsics, scale, exact=True)
-        hits, distance = ground_hits(small, pose)
-        specimen = cv2.imread(str(masks[name]), cv2.IMREAD_GRAYSCALE) > 127
-        specimen = resize_exact(specimen.astype(np.float32), scale)[: small.height, : small.width] > 0.5
-        seen = region(hits, distance > 0, specimen)
-        if np.count_nonzero(seen) < 50:
-            continue
-        sensor = scene_xml.load_sensor(scene_xml.sensor_properties(small, pose, 64, near_clip))
-        rendered = np.asarray(mi.render(load_scene(name), sensor=sensor, spp=64), dtype=np.float32)
-        photo = resize_exact(read_photo(linear[name]).pixels, scale)
-        ratios.append(photo[: small.height, : small.width][seen] / np.maximum(rendered[seen], 1e-4))
+        found = photo_ratios(load_scene, *views[name], linear[name], masks[name], region, near_clip, name)
+        if found is not None:
+            ratios.append(found)
     if not ratios:
         return None
     return tuple(float(v) for v in np.median(np.vstack(ratios), axis=0))
