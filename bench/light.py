@@ -203,9 +203,11 @@ def _real_capture(work: Path, captures: Path, name: str, overrides: tuple[str, .
                 "Standard preset; settings per capture in bench/light.py (REAL). Held-out PSNR over the",
                 f"specimen's eroded mask on the 2 photos fit_material holds out (target {PSNR_TARGET:.0f} dB);",
                 "the template light is what `pipeline new` writes (a constant 0.5 and a 0.4 m softbox).",
+                "Where the photos' exposures are fitted (a phone capture), each held-out photo is",
+                "divided by its exposure measured on the table it shows (fit_material's heldout_gains).",
                 "In brackets: the same after each render is scaled by the RGB gain that matches it to",
-                "its photo (least squares): the photo's own exposure and white balance, which no fit",
-                "can know for a photo it never saw (a phone sets them per photo).",
+                "its photo on the specimen itself (least squares): what is left once no exposure or",
+                "white balance error remains.",
                 f"Reproduce: `.venv/bin/python bench/light.py --parts real --real {name}`.",
                 "",
                 "| capture | template light: after fit_material | estimated: after fit_material, fit_texture,"

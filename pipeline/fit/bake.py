@@ -31,12 +31,13 @@ SEEN = 1e-6
 """A texel counts as seen when its sum of D^2 exceeds this fraction of the largest."""
 
 
-def _set_constant(views: list[FitView], key: str, value: float) -> None:
+def _put_bitmaps(scenes: dict, key: str, values: dict) -> None:
+    """``values[id(scene)]`` (a tensor) as each scene's bitmap at ``key``."""
     import mitsuba as mi
 
-    for scene in {id(v.scene): v.scene for v in views}.values():
+    for index, scene in scenes.items():
         params = mi.traverse(scene)
-        params[key] = mi.TensorXf(np.full((2, 2, 3), value, np.float32))
+        params[key] = values[index]
         params.update()
 
 
@@ -73,15 +74,15 @@ def bake_bitmap(
     put back as it was."""
     import mitsuba as mi
 
-    first = views[0].scene
-    before = mi.TensorXf(mi.traverse(first)[key])
+    scenes = {id(v.scene): v.scene for v in views}
+    before = {index: mi.TensorXf(mi.traverse(scene)[key]) for index, scene in scenes.items()}
     rows, columns = size
     texels = rows * columns
     numerator = np.zeros((texels, 3))
     denominator = np.zeros((texels, 3))
     renders: dict[float, dict[str, np.ndarray]] = {}
     for value in (0.0, 1.0):
-        _set_constant(views, key, value)
+        _put_bitmaps(scenes, key, dict.fromkeys(scenes, mi.TensorXf(np.full((2, 2, 3), value, np.float32))))
         renders[value] = {
             v.name: np.array(mi.render(v.scene, sensor=v.sensor, integrator=v.integrator, spp=spp, seed=seed(i)))
             for i, v in enumerate(progress.track(views, f"bake: renders with the colour at {value:g}"))
@@ -95,10 +96,7 @@ def bake_bitmap(
         for channel in range(3):
             numerator[:, channel] += np.bincount(texel[counts], shading[:, channel] * wanted[:, channel], texels)
             denominator[:, channel] += np.bincount(texel[counts], shading[:, channel] ** 2, texels)
-    for scene in {id(v.scene): v.scene for v in views}.values():
-        params = mi.traverse(scene)
-        params[key] = before
-        params.update()
+    _put_bitmaps(scenes, key, before)
     seen = denominator.min(axis=1) > SEEN * denominator.max()
     texture = np.divide(numerator, denominator, out=np.zeros_like(numerator), where=denominator > 0)
     texture = texture.reshape(rows, columns, 3)
