@@ -308,7 +308,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_geometry",
-    version=16,
+    version=17,
     config=Config,
     main=main,
     needs=(

@@ -11,8 +11,8 @@ by the least-squares gain of as many channels, within the range of the training 
 gains: an exposure no fit can know would otherwise outweigh every other error and choose the
 light, model and texture, and a free gain would forgive the fit's level. Once fitted, where the
 scene has the table, each held-out photo's exposure is measured on the table it shows
-(pipeline.fit.views.table_gains): heldout/ and the later stages divide it by that gain, as the
-training photos by their fitted ones.
+(pipeline.fit.views.table_gains): heldout/ and the later stages scale its renders by that
+gain and score them in the photo's own units.
 
 When ``[light] model`` is not given, the light is fitted with the material
 (pipeline.render.light): each model asked for (auto: constant, envmap, envmap+area, simplest
@@ -320,7 +320,7 @@ def _deeper(material: Candidate, held: list[engine.FitView], conf: Config, refit
 
 STAGE = Stage(
     name="fit_material",
-    version=15,
+    version=16,
     config=Config,
     main=main,
     needs=("scene.scene_dir", "scene.description", "sfm.cameras", "undistort.pinhole", "masks.masks_json"),

@@ -306,7 +306,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_texture",
-    version=15,
+    version=16,
     config=Config,
     main=main,
     needs=(

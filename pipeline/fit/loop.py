@@ -72,6 +72,10 @@ class FitView:
     (a held-out photo's exposure is one the camera also chose for them). A free gain
     would forgive the fit's overall level, which only the training photos fix; None:
     the range of the gains being fitted alongside."""
+    gain: np.ndarray | None = None
+    """Held out, its photo's RGB gain when known beforehand (measured on the table it
+    shows): its renders are scaled by it before they are scored (instead of
+    ``heldout_gain``'s match) or written. None: not known."""
 
 
 @dataclass
@@ -133,6 +137,8 @@ class Target:
         integrator = integrator or view.integrator
         image = mi.render(view.scene, sensor=view.sensor, integrator=integrator, spp=spp, seed=seed(2 * index))
         second = mi.render(view.scene, sensor=view.sensor, integrator=integrator, spp=spp, seed=seed(2 * index + 1))
+        if view.gain is not None:
+            return scaled_dual(np.array(image), np.array(second), view, view.gain)
         if view.heldout_gain:
             gain_range = view.heldout_gain_range or fitted_range or (1 / 8, 8)
             return matched_dual(np.array(image), np.array(second), view, gain_range)
@@ -160,8 +166,14 @@ def matched_dual(image: np.ndarray, second: np.ndarray, view: FitView, gain_rang
     """The dual estimator's error of two renders of ``view`` after matched_gain (of
     view.heldout_gain channels, held within ``gain_range``)."""
     weight = np.ones(view.reference.shape[:2], np.float32) if view.weight is None else view.weight
+    gain = matched_gain(image, second, view.reference, weight[..., None], view.heldout_gain, gain_range)
+    return scaled_dual(image, second, view, gain)
+
+
+def scaled_dual(image: np.ndarray, second: np.ndarray, view: FitView, gain) -> float:
+    """The dual estimator's error of two renders of ``view`` scaled by ``gain``."""
+    weight = np.ones(view.reference.shape[:2], np.float32) if view.weight is None else view.weight
     weight = weight[..., None]
-    gain = matched_gain(image, second, view.reference, weight, view.heldout_gain, gain_range)
     error = weight * (gain * image - view.reference) * (gain * second - view.reference)
     return float(np.sum(error) / (3 * np.sum(weight)))
 

@@ -25,7 +25,8 @@ def write_heldout(views: list[engine.FitView], spp: int, folder: Path) -> None:
     folder.mkdir()
     for index, view in enumerate(views):
         render = mi.render(view.scene, sensor=view.sensor, integrator=view.integrator, spp=spp, seed=10_000 + index)
-        image = np.asarray(render, dtype=np.float32)
+        # a held-out photo's known gain: the render as the photo's exposure shows it
+        image = np.asarray(render, dtype=np.float32) * np.float32(1.0 if view.gain is None else view.gain)
         render_path, reference_path, mask_path = heldout_files(folder, view.name)
         write_image(render_path, image)
         write_image(reference_path, view.reference)

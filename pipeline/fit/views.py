@@ -128,9 +128,9 @@ class PhotoGains:
     of that many channels, within the range of ``fitted``, before its error is scored
     (FitView.heldout_gain), unless ``measured`` has its gain."""
     measured: dict[str, list[float]] = field(default_factory=dict)
-    """Held-out photos' RGB gains measured on the table they show (table_gains): those
-    photos are divided by theirs, as the training photos by their fitted ones, and
-    scored as they are."""
+    """Held-out photos' RGB gains measured on the table they show (table_gains): their
+    renders are scaled by them (FitView.gain), so that they are scored, as they are
+    written, in the photo's own units."""
 
     @staticmethod
     def of(params: dict) -> PhotoGains:
@@ -256,9 +256,8 @@ def load_views(
         window, mask = windows[name], every[name]
         intrinsics, pose = cameras[name]
         reference = window.cut(read_photo(linear[name]).pixels)
-        known = {**gains.fitted, **gains.measured}.get(name) if gains else None
-        if known is not None:
-            reference = reference / np.asarray(known, np.float32)
+        if gains and name in gains.fitted:
+            reference = reference / np.asarray(gains.fitted[name], np.float32)
         if erode_px:
             mask = cv2.erode(mask.astype(np.uint8), np.ones((2 * erode_px + 1,) * 2, np.uint8)) > 0
         weight = window.inside() * (window.cut(mask.astype(np.float32)) > 0.999)
@@ -273,9 +272,10 @@ def load_views(
                 window.intrinsics(intrinsics), pose, spp, description["near_clip"], sample_border=sample_border
             )
         )
-        # a held-out photo whose gain was measured is scored as it is, not matched
-        scored = (0, None) if gains is not None and name in gains.measured else matched
-        view = FitView(name, scene, sensor, np.ascontiguousarray(reference), weight, integrator, *scored)
+        # a held-out photo whose gain was measured: its renders are scaled by it, not matched
+        measured = np.asarray(gains.measured[name], np.float32) if gains and name in gains.measured else None
+        scored = (0, None) if measured is not None else matched
+        view = FitView(name, scene, sensor, np.ascontiguousarray(reference), weight, integrator, *scored, measured)
         views.append((view, window))
     return views
 

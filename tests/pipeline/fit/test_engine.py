@@ -528,6 +528,15 @@ def test_held_out_photos_with_their_own_exposure_are_scored_after_a_matched_gain
     assert noise < errors["truth", 1, None] < 0.3 * errors["truth", 0, None]
     assert errors["wrong", 3, None] > 5 * noise and errors["wrong", 1, None] > errors["truth", 1, None]
     assert 10 * noise < errors["truth", 3, (0.7, 1.3)] < 0.5 * errors["truth", 0, None]
+    # Its gain known (measured on a table): the render is scaled by it, however far from
+    # the training photos' range, and a wrong gain is not matched away.
+    for label, gain in (("known", [0.6, 0.6, 0.75]), ("known wrong", [0.9, 0.9, 0.9])):
+        views = _views(mi, truth, references / "references")
+        for view in views:
+            view.reference = view.reference * np.float32([0.6, 0.6, 0.75])
+            view.heldout_gain, view.gain = 3, np.float32(gain)
+        errors[label] = engine.heldout_error(views, 64, None)
+    assert errors["known"] < 2 * noise < 0.1 * errors["known wrong"]
 
 
 @pytest.mark.parametrize("case", ["black reference", "nearly saturated reference", "1 spp", "one-pixel mask"])
