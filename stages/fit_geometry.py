@@ -280,6 +280,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     final = load_views(
         *(geometry, description, cameras, linear, masks, conf.material_max_size, conf.erode_px, conf.validation_spp),
         names=held,
+        gains=PhotoGains.of(material),
     )
     write_heldout([v for v, _ in final], 4 * conf.validation_spp, geometry / HELDOUT)
     write_fit_log(geometry, log)
@@ -308,7 +309,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_geometry",
-    version=17,
+    version=18,
     config=Config,
     main=main,
     needs=(

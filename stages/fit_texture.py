@@ -202,11 +202,9 @@ def _baker(conf: Config, slot, shape: tuple[int, ...], fit: TextureFit, material
     return bake
 
 
-def _render_heldout(conf: Config, textured: Path, description: dict, photos: tuple, held: set[str]) -> None:
-    cameras, linear, masks = photos
-    views = load_views(
-        textured, description, cameras, linear, masks, conf.max_size, conf.erode_px, conf.spp, names=held
-    )
+def _render_heldout(conf: Config, textured: Path, description: dict, photos: tuple, held: set[str], gains) -> None:
+    # the photos' gains: a held-out photo's measured one scales its render
+    views = load_views(textured, description, *photos, conf.max_size, conf.erode_px, conf.spp, names=held, gains=gains)
     write_heldout([view for view, _ in views], 4 * conf.validation_spp, textured / HELDOUT)
 
 
@@ -282,7 +280,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     # 5. Held-out renders of the scene kept, and params.json.
     if kept or fitted["refitted"]:
         photos = (cameras, linear, masks)
-        _render_heldout(conf, textured, description, photos, held)
+        _render_heldout(conf, textured, description, photos, held, PhotoGains.of(material))
     else:
         shutil.copytree(inputs.upstream["fit_material"]["heldout"], textured / HELDOUT)
     _finish_report(report, material, constant_values, result.values[slot.parameter] if kept else None)
@@ -306,7 +304,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_texture",
-    version=16,
+    version=17,
     config=Config,
     main=main,
     needs=(
