@@ -272,10 +272,10 @@ def load_views(
                 window.intrinsics(intrinsics), pose, spp, description["near_clip"], sample_border=sample_border
             )
         )
-        # a held-out photo whose gain was measured: its renders are scaled by it, not matched
+        # a held-out photo whose gain was measured: its renders are scaled by it (FitView.gain
+        # comes before heldout_gain's match)
         measured = np.asarray(gains.measured[name], np.float32) if gains and name in gains.measured else None
-        scored = (0, None) if measured is not None else matched
-        view = FitView(name, scene, sensor, np.ascontiguousarray(reference), weight, integrator, *scored, measured)
+        view = FitView(name, scene, sensor, np.ascontiguousarray(reference), weight, integrator, *matched, measured)
         views.append((view, window))
     return views
 
