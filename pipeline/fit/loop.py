@@ -5,8 +5,9 @@ Per step:
 1. draw ``batch`` views (a seeded permutation of the training views sorted by
    name, so the result does not depend on the order views are given in);
 2. per view: write the variables (pipeline.fit.variables) into its scene, render
-   once (``l2``) or twice (``dual``), and backpropagate the loss on linear
-   radiance over the view's weight mask; the batch's gradients add up;
+   once (``l2``) or twice (``dual``), match the photo's gain to the render where
+   photos have their own exposure, and backpropagate the loss on linear radiance
+   over the view's weight mask; the batch's gradients add up;
 3. non-finite gradient entries are zeroed (and counted: one would turn Adam's
    state into NaN for good); the variables' priors add their gradients; one Adam
    step; the variables are clamped to their bounds;
@@ -130,6 +131,15 @@ class Target:
         """Deng et al.'s dual-buffer estimator of the squared error of the expected image."""
         return self.mean((image - self.reference) * (second - self.reference), dr)
 
+    def matched_gain(self, image, second, channels: int, dr):
+        """matched_gain on the device, detached: the gain (one, or one per colour channel)
+        minimising the weighted error of the renders (``second`` is ``image`` for l2)."""
+        image, second = dr.detach(image), dr.detach(second)
+        axis = (0, 1) if channels == 3 else None
+        numerator = dr.sum(self.weight * self.reference * (image + second), axis=axis)
+        denominator = 2 * dr.sum(self.weight * image * second, axis=axis)
+        return dr.select(denominator > 0, numerator / denominator, 1.0)
+
     def heldout_error(self, view: FitView, index: int, spp: int, mi, dr, integrator=None, fitted_range=None) -> float:
         """The dual estimator's error of ``view`` (this target's) rendered with fixed
         seeds (2 * index and 2 * index + 1); ``integrator`` None renders with the view's;
@@ -178,22 +188,24 @@ def scaled_dual(image: np.ndarray, second: np.ndarray, view: FitView, gain) -> f
     return float(np.sum(error) / (3 * np.sum(weight)))
 
 
-def view_loss(scene, params, sensor, integrator, spp: int, seeds, scale, target: Target, dual: bool, share):
+def view_loss(
+    scene, params, sensor, integrator, spp: int, seeds, gain_channels: int, scale, target: Target, dual, share
+):
     """One view's loss (``dual``: from two renders, else l2 from one), its gradient
-    backpropagated with weight ``share``; ``scale`` multiplies the renders (the photo's gains).
-    What changes between calls is a Dr.Jit value or holds them, so that ``dr.freeze``
-    replays it correctly."""
+    backpropagated with weight ``share``, and the gain matched to the renders with
+    ``gain_channels`` (1 or 3; Target.matched_gain; else ``scale`` is returned). The
+    renders are multiplied by ``scale`` and that gain. What changes between calls is a
+    Dr.Jit value or holds them, so that ``dr.freeze`` replays it correctly."""
     import drjit as dr
     import mitsuba as mi
 
-    image = mi.render(scene, params, sensor=sensor, integrator=integrator, spp=spp, seed=seeds[0]) * scale
-    if dual:
-        second = mi.render(scene, params, sensor=sensor, integrator=integrator, spp=spp, seed=seeds[1]) * scale
-        loss = target.dual(image, second, dr)
-    else:
-        loss = target.mse(image, dr)
+    image = mi.render(scene, params, sensor=sensor, integrator=integrator, spp=spp, seed=seeds[0])
+    second = mi.render(scene, params, sensor=sensor, integrator=integrator, spp=spp, seed=seeds[1]) if dual else image
+    matched = target.matched_gain(image, second, gain_channels, dr) if gain_channels else scale
+    gain = scale * matched if gain_channels else scale
+    loss = target.dual(image * gain, second * gain, dr) if dual else target.mse(image * gain, dr)
     dr.backward(loss * share)
-    return loss
+    return loss, matched
 
 
 class _Batches:
@@ -259,11 +271,13 @@ class _Loop:
             self.frozen[id(view.sensor)] = self.dr.freeze(view_loss)
         return self.frozen[id(view.sensor)]
 
-    def step(self, iteration: int) -> list[tuple[str, Any]]:
-        """One step's renders, losses and backpropagation; the losses stay on the device."""
+    def step(self, iteration: int) -> list[tuple[str, Any, Any]]:
+        """One step's renders, losses and backpropagation: each view's name, loss and
+        matched gain (None where none is), still on the device."""
         losses = []
         for view, render_seed in self.batches.draw(iteration):
             self.variables.apply(id(view.scene))
+            gain_channels, scale = self.variables.gain_match(view.name, self.one)
             arguments = (
                 view.scene,
                 self.variables.traversed[id(view.scene)],
@@ -271,13 +285,14 @@ class _Loop:
                 self.integrator or view.integrator,
                 self.settings.spp,
                 (seed(render_seed), seed(render_seed + 1)),
-                self.variables.scale(view.name, self.one),
+                gain_channels,
+                scale,
                 self.targets[view.name],
                 self.settings.loss == "dual",
                 self.share,
             )
             try:
-                loss = self.view_loss(view)(*arguments)
+                loss, gain = self.view_loss(view)(*arguments)
             except RuntimeError as error:
                 # Dr.Jit 1.5 now and then refuses to replay a recording whose registry
                 # of Mitsuba objects it miscounts ("assign_with_registry(): The number of
@@ -289,8 +304,8 @@ class _Loop:
                     "%s: Dr.Jit could not replay a recording (%s); going on without freezing", self.label, error
                 )
                 self.settings = replace(self.settings, freeze=False)
-                loss = view_loss(*arguments)
-            losses.append((view.name, loss))
+                loss, gain = view_loss(*arguments)
+            losses.append((view.name, loss, gain if gain_channels else None))
         return losses
 
     def drop_non_finite_gradients(self, iteration: int) -> None:
@@ -355,6 +370,7 @@ def run(
         best = {"values": variables.snapshot(), "iteration": 0, "error": start_error}
     else:
         record = resumed.record
+        variables.gain_estimates = record["gain_estimates"]
         names = [name[len("best/") :] for name in resumed.arrays if name.startswith("best/")]
         best = {
             "values": {name: resumed.arrays[f"best/{name}"] for name in names},
@@ -368,6 +384,7 @@ def run(
     stopped = record["stopped"]
 
     def save(iteration: int, why: str | None) -> None:
+        record["gain_estimates"] = variables.gain_estimates
         checkpoint.save_loop(variables.optimizer, record, iteration, started, why, best | {"arrays": best["values"]})
 
     last = settings.iterations if stopped is None else record["iteration"]
@@ -378,11 +395,14 @@ def run(
             loop.drop_non_finite_gradients(iteration)
             variables.optimizer.step()
             variables.clamp()
-            # One read of the device per step: the batch's losses together.
-            loop.dr.eval([loss for _, loss in step_losses])
-            values = [float(loss.array[0]) for _, loss in step_losses]
+            # One read of the device per step: the batch's losses and gains together.
+            loop.dr.eval([(loss, gain) for _, loss, gain in step_losses])
+            values = [float(loss.array[0]) for _, loss, _ in step_losses]
+            for name, _, gain in step_losses:
+                if gain is not None:
+                    variables.record_gain(name, np.ravel(np.array(gain, np.float64)))
             relative = 0.0
-            for (name, _), value in zip(step_losses, values):
+            for (name, _, _), value in zip(step_losses, values):
                 # Views differ in brightness and size: the stopping rule compares each
                 # view's loss with its first one.
                 first_loss.setdefault(name, max(abs(value), 1e-12))

@@ -4,7 +4,9 @@ Both kinds share one protocol: they hold their latents in the loop's optimiser
 (``mi.ad.Adam``), write them into every view's scene (``apply``), keep them
 inside their bounds after each step (``clamp``), add their priors' gradients
 (``add_priors``), and give (``snapshot``) and take back (``restore``) their values
-as NumPy arrays, which the loop keeps as the best state and checkpoints.
+as NumPy arrays, which the loop keeps as the best state and checkpoints. They say
+how a view's render is matched to its photo (``gain_match``) and keep the gains
+matched (``gain_estimates``).
 
 =================  ===========================================================  ==========================
 kind               latents                                                      bounds, priors
@@ -12,7 +14,8 @@ kind               latents                                                      
 MaterialVariables  one per FitParameter: the value, or its logarithm for        box per parameter;
                    positive quantities spanning decades; plain values, or a     smoothness on textures
                    texture's data tensor; optionally a gain per view (exposure,
-                   or exposure and white balance: one per channel)
+                   or exposure and white balance: one per channel), not a
+                   latent: matched in closed form at every render
 ShapeVariables     a mesh's vertices as LargeSteps' differential coordinates    none (the Laplacian
                    (Nicolet et al. 2021, seams welded)                          spreads each step)
 =================  ===========================================================  ==========================
@@ -97,9 +100,17 @@ def neighbour_pairs(shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
 class MaterialVariables:
     """Scene parameters (plain values or textures), in log space where they span decades,
     and optionally a gain per training view: one (its exposure) or one per colour channel
-    (exposure and white balance). The gains' logarithms are centred over the views, so
-    that they move each photo against the others and leave the overall level and colour
-    to the light and the albedo (with which they would trade off exactly)."""
+    (exposure and white balance).
+
+    A view's gain is not stepped by Adam: it is matched in closed form to each render of
+    the view (the least-squares gain, pipeline.fit.loop.Target.matched_gain) and its
+    gradient detached, which is exact for the loss minimised over the gain (variable
+    projection). A latent gain got a gradient only on the steps that drew its photo (4
+    of 150 for each of porous-cube's 73 photos) and stayed near where it started (a
+    photo fitted at 0.80 matched its render at 0.57). The matched gains are divided by
+    their geometric mean over the views (the latest match of each), so that they move
+    each photo against the others and leave the overall level and colour to the light
+    and the albedo, with which they would trade off exactly."""
 
     def __init__(
         self, parameters: list[FitParameter], traversed: dict[int, Any], gain_views: list[str], gain_channels: int = 1
@@ -109,6 +120,8 @@ class MaterialVariables:
 
         self.parameters, self.traversed, self.dr, self.mi = parameters, traversed, dr, mi
         self.gain_views, self.gain_channels = gain_views, gain_channels
+        self.gain_estimates: dict[str, list[float]] = {}
+        """Each gained view's latest matched gain, before the division by their mean."""
         self.optimizer = mi.ad.Adam(lr=0.01)
 
     def register(self, learning_rate_scale: float) -> None:
@@ -134,9 +147,6 @@ class MaterialVariables:
         self.gives = {
             p.name: self.mi.UInt32(np.array(p.layout.give, np.uint32)) for p in self.parameters if p.layout is not None
         }
-        for name in self.gain_views:
-            optimizer[f"gain:{name}"] = dr.zeros(self.mi.Float, self.gain_channels)
-            optimizer.set_learning_rate({f"gain:{name}": 0.01 * learning_rate_scale})
         self.textured = {p.name for p in self.parameters if dr.is_tensor_v(optimizer[p.name])}
         self.priors = []
         for parameter in self.parameters:
@@ -190,16 +200,25 @@ class MaterialVariables:
         shift = dr.log(mi.Float(start.astype(np.float32)) / sums)
         return type(latent)(latent.array + dr.gather(mi.Float, shift, channel), latent.shape)
 
-    def scale(self, view_name: str, one):
-        """What a training view's render is multiplied by: its gains as a tensor of
-        ``gain_channels`` values (broadcast over the image's channels), or ``one``."""
+    def gain_match(self, view_name: str, one) -> tuple[int, Any]:
+        """How a training view's render is matched to its photo: the channels of the gain
+        matched to each render (0: none), and what that gain is multiplied by (the
+        inverse of the gains' geometric mean, or ``one``)."""
         if view_name not in self.gain_views:
-            return one
-        return self.mi.TensorXf(self.dr.exp(self._centred_log_gain(view_name)), (self.gain_channels,))
+            return 0, one
+        inverse_mean = self.mi.TensorXf((1.0 / self._mean_gain()).astype(np.float32), (self.gain_channels,))
+        self.dr.make_opaque(inverse_mean)
+        return self.gain_channels, inverse_mean
 
-    def _centred_log_gain(self, view_name: str):
-        latents = [self.optimizer[f"gain:{name}"] for name in self.gain_views]
-        return self.optimizer[f"gain:{view_name}"] - sum(latents[1:], latents[0]) / len(latents)
+    def record_gain(self, view_name: str, gain: np.ndarray) -> None:
+        """The gain just matched to ``view_name``'s render (a gained view's)."""
+        self.gain_estimates[view_name] = np.broadcast_to(gain, self.gain_channels).astype(float).tolist()
+
+    def _mean_gain(self) -> np.ndarray:
+        """The geometric mean of the gains matched so far, per channel (1 before any)."""
+        if not self.gain_estimates:
+            return np.ones(self.gain_channels)
+        return np.exp(np.mean(np.log(np.asarray(list(self.gain_estimates.values()))), axis=0))
 
     def add_priors(self) -> None:
         dr = self.dr
@@ -236,12 +255,13 @@ class MaterialVariables:
             self.optimizer[parameter.name] = kind(latent) if value.ndim > 1 else kind(*[float(v) for v in latent])
 
     def gains(self) -> dict[str, list[float]]:
-        """Each view's RGB gain (render times gain matches the photo)."""
-        with self.dr.suspend_grad():
-            return {
-                name: np.broadcast_to(np.exp(np.array(self._centred_log_gain(name), np.float64)), 3).tolist()
-                for name in self.gain_views
-            }
+        """Each view's RGB gain (render times gain matches the photo), divided by their
+        geometric mean; 1 for a view never drawn."""
+        mean = self._mean_gain()
+        return {
+            name: np.broadcast_to(np.asarray(self.gain_estimates.get(name, mean)) / mean, 3).tolist()
+            for name in self.gain_views
+        }
 
 
 class ShapeVariables:
@@ -259,6 +279,7 @@ class ShapeVariables:
         self.optimizer = mi.ad.Adam(lr=step, uniform=True)
         self.optimizer["u"] = self.steps.to_differential(first[self.key])
         self.mi = mi
+        self.gain_estimates: dict[str, list[float]] = {}
 
     def clamp(self) -> None:
         pass
@@ -267,8 +288,12 @@ class ShapeVariables:
         self.traversed[scene_key][self.key] = self.dr.ravel(self.steps.from_differential(self.optimizer["u"]))
         self.traversed[scene_key].update()
 
-    def scale(self, view_name: str, image):
-        return image
+    def gain_match(self, view_name: str, one) -> tuple[int, Any]:
+        """No gains: a shape fit renders the photos as the material fit saw them."""
+        return 0, one
+
+    def record_gain(self, view_name: str, gain: np.ndarray) -> None:
+        raise AssertionError("a shape fit matches no gains")
 
     def add_priors(self) -> None:
         pass
