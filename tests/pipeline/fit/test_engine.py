@@ -315,7 +315,9 @@ def test_an_interrupted_fit_resumes_from_its_checkpoint(mi, references, tmp_path
     from pipeline.fit.checkpoint import resumable
 
     scene = _scene_file(tmp_path, [0.5, 0.5, 0.5], [0.7])
-    settings = engine.FitSettings(iterations=10, batch=2, spp=4, loss="l2", tolerance=0.0, validate_every=3)
+    settings = engine.FitSettings(
+        iterations=10, batch=2, spp=4, loss="l2", tolerance=0.0, validate_every=3, exposure=True
+    )
     whole = engine.fit(PARAMETERS, _views(mi, scene, references / "references"), [], settings)
 
     def interrupt_at_7(entry):
@@ -339,6 +341,9 @@ def test_an_interrupted_fit_resumes_from_its_checkpoint(mi, references, tmp_path
     # (up to the run-to-run noise of Dr.Jit's parallel gradient sums).
     for name in ("base_color", "roughness"):
         np.testing.assert_allclose(resumed.values[name], whole.values[name], atol=2e-3)
+    # and so did the photos' matched gains
+    for name, gain in whole.photo_gains.items():
+        np.testing.assert_allclose(resumed.photo_gains[name], gain, rtol=2e-3)
     # and a finished fit in the same scope returns its result without iterating
     with resumable(tmp_path / "checkpoints", every_s=0.0):
         again = engine.fit(PARAMETERS, _views(mi, scene, references / "references"), [], settings, seen.append)
