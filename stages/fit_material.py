@@ -6,12 +6,13 @@ linear radiance (undistort's EXRs) over each photo's specimen mask cut to the me
 eroded by ``erode_px`` (pipeline.fit.views), in a window around it of at most ``max_size``
 pixels. ``held_out`` photos, evenly spread over the sorted names, are never fitted: they measure
 validation error, and the best-validation state is kept. With ``exposure`` or ``white_balance``
-(each photo its own exposure, as phones shoot), each photo's gain of as many channels is
-measured first on the table it shows, where the scene has it (pipeline.fit.views.table_exposures):
-every fit, heldout/ and the later stages scale its renders by it. A training photo without one
-gets the gain matched to each of its renders (pipeline.fit.variables); a held-out one is matched
-within the range of those: an exposure no fit can know would otherwise choose the light, model
-and texture, and a free gain would forgive the fit's level.
+(each photo its own exposure, as phones shoot), a held-out photo's render is first matched to it
+by the least-squares gain of as many channels, within the range of the training photos' fitted
+gains: an exposure no fit can know would otherwise outweigh every other error and choose the
+light, model and texture, and a free gain would forgive the fit's level. Once fitted, where the
+scene has the table, each held-out photo's exposure is measured on the table it shows
+(pipeline.fit.views.table_gains): heldout/ and the later stages scale its renders by that
+gain and score them in the photo's own units.
 
 When ``[light] model`` is not given, the light is fitted with the material
 (pipeline.render.light): each model asked for (auto: constant, envmap, envmap+area, simplest
@@ -43,10 +44,10 @@ params.json         model (and model_choice: every candidate's held-out error an
                     seconds, why the winner won, and the depth check), the
                     integrator fitted with, fitted values, bounds, units, best
                     iteration, validation error, why it stopped, photo_gains (each training
-                    photo's RGB gain, measured or fitted, when exposure or
-                    white_balance is; fit_texture and fit_geometry divide the
-                    photos by them; gain_channels: their channels; heldout_gains:
-                    the held-out photos' measured on the table), the
+                    photo's RGB gain, when exposure or white_balance is fitted;
+                    fit_texture and fit_geometry divide the photos by them;
+                    gain_channels: the held-out photos' matched gains;
+                    heldout_gains: those measured on the table), the
                     light (chosen model, why, every candidate's error and seconds)
 environment.exr     the fitted environment map (an envmap light)
 log.jsonl           per iteration: loss, validation error, values, seconds
@@ -82,7 +83,7 @@ from pipeline.fit.candidates import Candidate, choose, improves
 from pipeline.fit.checkpoint import resumable_stage
 from pipeline.fit.outputs import write_fit_log, write_heldout
 from pipeline.fit.settings import FitSettings
-from pipeline.fit.views import BoardPixels, PhotoGains, held_out_names, load_views, table_exposures
+from pipeline.fit.views import BoardPixels, PhotoGains, held_out_names, load_views, table_gains
 from pipeline.formats.cameras import read_views
 from pipeline.formats.masks import read_masks
 from pipeline.formats.pinhole import linear_photos
@@ -165,10 +166,8 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     board_print = description.get("board_print") if light.estimated else None
     held_level = light.estimated and not board_print
     measured_on = estimated_light.measured_surface(level_from, mesh, poses, light.frame) if held_level else None
-    # Each photo's own exposure (PhotoGains), measured on the table where it can be: known,
-    # a photo's gain does not absorb what the fit renders wrong in it.
+    # held-out photos' gains (PhotoGains): as many channels as the training photos'
     gain_channels = 3 if conf.white_balance else 1 if conf.exposure else 0
-    exposures = table_exposures(fitted, description, photos, sorted(description["views"]), gain_channels)
 
     def write_scene(model: str, values: dict, fitted_light) -> None:
         """The material's values and the light (None: the given one) into fitted/."""
@@ -176,10 +175,10 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         if fitted_light is not None:
             estimated_light.write(fitted_light, fitted, description, poses)
 
-    def views_of(model: str, integrator: dict, names=None, count_board=False, fitted_gains=None):
+    def views_of(model: str, integrator: dict, names=None, count_board=False, fitted_gains=None, measured=None):
         seen = description | {"model": model, "integrator": integrator}
         board = BoardPixels(tuple(board_print), count_board) if board_print else None
-        gains = PhotoGains(fitted_gains or {}, gain_channels, exposures)
+        gains = PhotoGains(fitted_gains or {}, gain_channels, measured or {})
         windowed = load_views(
             *(fitted, seen, *photos, conf.max_size, conf.erode_px, conf.spp), names=names, gains=gains, board=board
         )
@@ -204,10 +203,11 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
             logger.info("light %s: held-out error %.4g", end_light.model, result.validation_error or float("nan"))
         return Candidate(model, end_light, integrator, result, sorted(held), time.perf_counter() - started)
 
-    def heldout_views(candidate: Candidate, integrator: dict) -> list[engine.FitView]:
+    def heldout_views(candidate: Candidate, integrator: dict, measured=None) -> list[engine.FitView]:
         """The candidate's held-out photos, its values and light written into fitted/."""
         write_scene(candidate.model, candidate.result.values, candidate.light)
-        return views_of(candidate.model, integrator, set(candidate.held), fitted_gains=candidate.result.photo_gains)
+        gains = candidate.result.photo_gains
+        return views_of(candidate.model, integrator, set(candidate.held), fitted_gains=gains, measured=measured)
 
     # 3. The fit: the scene's model under the given light, or with each light model, simplest first.
     scene_model = description["model"]
@@ -249,8 +249,10 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         material, depth = _deeper(material, heldout_views(material, deeper), conf, refit)
     model, result = material.model, material.result
 
-    # 5. The fitted scene, light, log, renders, params.json.
-    held = heldout_views(material, material.integrator)
+    # 5. The fitted scene, light, log, held-out exposures (the table's), renders, params.json.
+    write_scene(model, result.values, material.light)
+    heldout_gains = table_gains(fitted, description, photos, result.photo_gains, material.held, gain_channels)
+    held = heldout_views(material, material.integrator, heldout_gains.get("gains"))
     write_heldout(held, 4 * conf.validation_spp, fitted / HELDOUT)
     rewrite_integrator(fitted, material.integrator)
     write_fit_log(fitted, result.log)
@@ -281,9 +283,9 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
             "validation_mse": result.validation_error,
             "held_out": material.held,
             "stopped": result.stopped,
-            "photo_gains": {n: g for n, g in exposures.items() if n not in material.held} | result.photo_gains,
+            "photo_gains": result.photo_gains,
             "gain_channels": gain_channels,
-            "heldout_gains": {"gains": {n: exposures[n] for n in material.held if n in exposures}},
+            "heldout_gains": heldout_gains,
             "light": light_report,
             "skipped_gradients": result.skipped_gradients,
         },
@@ -318,7 +320,7 @@ def _deeper(material: Candidate, held: list[engine.FitView], conf: Config, refit
 
 STAGE = Stage(
     name="fit_material",
-    version=18,
+    version=17,
     config=Config,
     main=main,
     needs=("scene.scene_dir", "scene.description", "sfm.cameras", "undistort.pinhole", "masks.masks_json"),

@@ -38,9 +38,8 @@ class FitResult:
     stopped: str
     log: list[dict] = field(default_factory=list)
     photo_gains: dict[str, list[float]] = field(default_factory=dict)
-    """Each training photo's RGB gain when exposure or white balance is fitted and its
-    gain is not known (FitView.gain): the render times it matches the photo (centred:
-    their logarithms average 0)."""
+    """Each training photo's RGB gain when exposure or white balance is fitted: the
+    render times it matches the photo (centred: their logarithms average 0)."""
     start_validation_error: float | None = None
     """Validation error of the starting values."""
     textures: dict[str, np.ndarray] = field(default_factory=dict)
@@ -90,8 +89,7 @@ def fit(
     training, validation = _with_pixels(training), _with_pixels(validation)
     if not training:
         raise PipelineError("no views to fit: every view is held out")
-    # a photo whose gain is known (FitView.gain) is scaled by it, not matched
-    gained = sorted(v.name for v in training if v.gain is None) if settings.exposure or settings.white_balance else []
+    gained = sorted(v.name for v in training) if settings.exposure or settings.white_balance else []
     variables = MaterialVariables(
         parameters, _traversed(training + validation), gained, 3 if settings.white_balance else 1
     )

@@ -74,8 +74,8 @@ class FitView:
     would forgive the fit's overall level, which only the training photos fix; None:
     the range of the gains being fitted alongside."""
     gain: np.ndarray | None = None
-    """Its photo's RGB gain when known beforehand (measured on the table it shows): its
-    renders are scaled by it before they are fitted, scored (instead of
+    """Held out, its photo's RGB gain when known beforehand (measured on the table it
+    shows): its renders are scaled by it before they are scored (instead of
     ``heldout_gain``'s match) or written. None: not known."""
 
 
@@ -277,7 +277,7 @@ class _Loop:
         losses = []
         for view, render_seed in self.batches.draw(iteration):
             self.variables.apply(id(view.scene))
-            gain_channels, scale = self.variables.gain_match(view, self.one)
+            gain_channels, scale = self.variables.gain_match(view.name, self.one)
             arguments = (
                 view.scene,
                 self.variables.traversed[id(view.scene)],

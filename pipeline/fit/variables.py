@@ -200,16 +200,11 @@ class MaterialVariables:
         shift = dr.log(mi.Float(start.astype(np.float32)) / sums)
         return type(latent)(latent.array + dr.gather(mi.Float, shift, channel), latent.shape)
 
-    def gain_match(self, view, one) -> tuple[int, Any]:
-        """How a training view's (FitView's) render is matched to its photo: the channels
-        of the gain matched to each render (0: none), and what the render is multiplied
-        by besides (the inverse of the matched gains' geometric mean; the photo's known
-        gain, FitView.gain; or ``one``)."""
-        if view.gain is not None:
-            known = self.mi.TensorXf(np.asarray(view.gain, np.float32), (3,))
-            self.dr.make_opaque(known)
-            return 0, known
-        if view.name not in self.gain_views:
+    def gain_match(self, view_name: str, one) -> tuple[int, Any]:
+        """How a training view's render is matched to its photo: the channels of the gain
+        matched to each render (0: none), and what that gain is multiplied by (the
+        inverse of the gains' geometric mean, or ``one``)."""
+        if view_name not in self.gain_views:
             return 0, one
         inverse_mean = self.mi.TensorXf((1.0 / self._mean_gain()).astype(np.float32), (self.gain_channels,))
         self.dr.make_opaque(inverse_mean)
@@ -293,7 +288,7 @@ class ShapeVariables:
         self.traversed[scene_key][self.key] = self.dr.ravel(self.steps.from_differential(self.optimizer["u"]))
         self.traversed[scene_key].update()
 
-    def gain_match(self, view, one) -> tuple[int, Any]:
+    def gain_match(self, view_name: str, one) -> tuple[int, Any]:
         """No gains: a shape fit renders the photos as the material fit saw them."""
         return 0, one
 

@@ -128,10 +128,9 @@ class PhotoGains:
     of that many channels, within the range of ``fitted``, before its error is scored
     (FitView.heldout_gain), unless ``measured`` has its gain."""
     measured: dict[str, list[float]] = field(default_factory=dict)
-    """Photos' RGB gains measured on the table they show (table_exposures): their
-    renders are scaled by them (FitView.gain), so that they are fitted, scored and
-    written in the photo's own units (fit_material: every photo; the later stages: the
-    held-out ones, the training photos being divided by ``fitted``)."""
+    """Held-out photos' RGB gains measured on the table they show (table_gains): their
+    renders are scaled by them (FitView.gain), so that they are scored, as they are
+    written, in the photo's own units."""
 
     @staticmethod
     def of(params: dict) -> PhotoGains:
@@ -145,27 +144,27 @@ CLIPPED = 0.9
 photo reaches the sensor's ceiling) do not measure the exposure."""
 
 
-def table_exposures(
-    scene_dir: Path, description: dict, photos: tuple[dict, dict, dict], names: list[str], channels: int
-) -> dict[str, list[float]]:
-    """Each photo's RGB gain (render times gain matches the photo) measured on the table
-    it shows: its table radiance over the scene's render of it (median of photo_ratios),
-    divided by the geometric mean over the photos measured. The table's albedo in the
-    scene was measured under the starting light, so its renders are off by a factor
-    every photo shares; that factor, the overall level, is the light's and the albedo's
-    to fit. ``photos``: cameras, linear photos and masks. Photos showing under 50
-    pixels of unclipped table are left out; empty without a table in the scene or with
-    ``channels`` 0 (one exposure for the whole capture); ``channels`` 1: one gain, the
-    channels' mean.
-
-    Why the table and not the specimen: a gain per photo fitted on the specimen also
-    absorbs what the fit renders wrong in that view (a mask past the outline, a face lit
-    from the wrong side). On porous-cube the specimen's least-squares gains spread over
-    0.55-1.58 where the table's spread over 0.76-1.18 (correlation 0.46)."""
+def table_gains(
+    scene_dir: Path,
+    description: dict,
+    photos: tuple[dict, dict, dict],
+    fitted: dict[str, list[float]],
+    names: list[str],
+    channels: int,
+) -> dict:
+    """The RGB gains of the photos ``names`` (held out: no fit saw them), measured on the
+    table: each photo's table radiance over the fitted scene's render of it (median of
+    photo_ratios), times the factor (median over the training photos) that takes their
+    table ratios to their ``fitted`` gains: the table's albedo was measured under the
+    starting light, so its renders are off by a factor every photo shares. ``photos``:
+    cameras, linear photos and masks. Returns {"gains": by name (photos showing under
+    50 pixels of table left out), "training_error": the median and largest relative
+    error of the gains so predicted for the training photos}; empty without a table in
+    the scene or fitted gains. ``channels`` 1: one gain, the channels' mean."""
     import mitsuba as mi
 
     ground = description.get("ground")
-    if not ground or not names or not channels:
+    if not ground or not fitted or not names:
         return {}
     cameras, linear, masks = photos
     region = table_region(ground["radius"], description.get("board_print"))
@@ -177,18 +176,27 @@ def table_exposures(
             loaded[file] = mi.load_file(file)
         return loaded[file]
 
+    near_clip = description["near_clip"]
+    training = sorted(fitted)[:: max(1, len(fitted) // 24)]
     ratios = {}
-    for name in progress.track(list(names), "exposure from the table"):
-        found = photo_ratios(
-            scene_of, *cameras[name], linear[name], masks[name], region, description["near_clip"], name, CLIPPED
-        )
+    for name in progress.track(training + list(names), "exposure from the table"):
+        found = photo_ratios(scene_of, *cameras[name], linear[name], masks[name], region, near_clip, name, CLIPPED)
         if found is not None:
-            ratio = np.median(found, axis=0)
-            ratios[name] = np.full(3, ratio.mean()) if channels == 1 else ratio
-    if not ratios:
+            ratios[name] = np.median(found, axis=0)
+    known = [n for n in training if n in ratios]
+    if not known:
         return {}
-    mean = np.exp(np.mean(np.log(list(ratios.values())), axis=0))
-    return {name: [float(v) for v in ratio / mean] for name, ratio in ratios.items()}
+    factor = np.median([np.asarray(fitted[n]) / ratios[n] for n in known], axis=0)
+
+    def gain(name: str) -> list[float]:
+        value = factor * ratios[name]
+        return [float(v) for v in (np.full(3, value.mean()) if channels == 1 else value)]
+
+    errors = [np.max(np.abs(np.asarray(gain(n)) / np.asarray(fitted[n]) - 1)) for n in known]
+    return {
+        "gains": {n: gain(n) for n in names if n in ratios},
+        "training_error": {"median": float(np.median(errors)), "max": float(np.max(errors)), "photos": len(known)},
+    }
 
 
 BOARD_MARGIN = 0.3

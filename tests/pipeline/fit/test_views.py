@@ -9,7 +9,7 @@ import pytest
 import trimesh
 
 from pipeline.camera.model import Pose, scaled
-from pipeline.fit.views import BOARD_MARGIN, BoardPixels, board_weight, mask_windows, specimen_masks, table_exposures
+from pipeline.fit.views import BOARD_MARGIN, BoardPixels, board_weight, mask_windows, specimen_masks, table_gains
 from pipeline.render import scene_xml
 from tests.support.sphere_views import RADIUS, K, ring_poses, sphere_mask, sphere_views
 
@@ -152,17 +152,18 @@ def _table_capture(folder, exposures: dict[str, float]):
 
 
 @pytest.mark.slow
-def test_each_photos_exposure_is_measured_on_the_table(mi, tmp_path):
-    """Photos at exposures 1.0, 1.25, 0.8 and 0.5: the table, though the scene's is off by
-    a factor, gives each photo's gain relative to their geometric mean (RGB, or one gain)."""
-    exposures = {"a": 1.0, "b": 1.25, "c": 0.8, "d": 0.5}
+def test_a_held_out_photos_exposure_is_measured_on_the_table(mi, tmp_path):
+    """Training photos at exposures 1.0, 1.25 and 0.8 (their fitted gains), a held-out one at
+    0.5: the table, though the scene's is off by a factor, gives the held-out gain (RGB,
+    or one gain), and predicts the training gains it was calibrated on."""
+    exposures = {"a": 1.0, "b": 1.25, "c": 0.8, "held": 0.5}
     description, photos = _table_capture(tmp_path, exposures)
-    mean = np.exp(np.mean(np.log(list(exposures.values()))))
-    measured = table_exposures(tmp_path, description, photos, sorted(exposures), 3)
-    for name, exposure in exposures.items():
-        np.testing.assert_allclose(measured[name], [exposure / mean] * 3, rtol=0.03)
-    single = table_exposures(tmp_path, description, photos, ["a", "d"], 1)
-    assert single["d"][0] == single["d"][1] == single["d"][2] == pytest.approx(np.sqrt(0.5), rel=0.03)
-    # no table in the scene, or one exposure for the whole capture: nothing measured
-    assert table_exposures(tmp_path, description | {"ground": None}, photos, ["a"], 3) == {}
-    assert table_exposures(tmp_path, description, photos, ["a"], 0) == {}
+    fitted = {n: [e] * 3 for n, e in exposures.items() if n != "held"}
+    measured = table_gains(tmp_path, description, photos, fitted, ["held"], 3)
+    np.testing.assert_allclose(measured["gains"]["held"], [0.5] * 3, rtol=0.03)
+    assert measured["training_error"]["photos"] == 3 and measured["training_error"]["max"] < 0.03
+    single = table_gains(tmp_path, description, photos, fitted, ["held"], 1)["gains"]["held"]
+    assert single[0] == single[1] == single[2] == pytest.approx(0.5, rel=0.03)
+    # no table in the scene, or no fitted gains: nothing measured
+    assert table_gains(tmp_path, description | {"ground": None}, photos, fitted, ["held"], 3) == {}
+    assert table_gains(tmp_path, description, photos, {}, ["held"], 3) == {}
