@@ -105,9 +105,9 @@ class MaterialVariables:
     A view's gain is not stepped by Adam: it is matched in closed form to each render of
     the view (the least-squares gain, pipeline.fit.loop.Target.matched_gain) and its
     gradient detached, which is exact for the loss minimised over the gain (variable
-    projection). A latent gain got a gradient only on the steps that drew its photo (4
-    of 150 for each of porous-cube's 73 photos) and stayed near where it started (a
-    photo fitted at 0.80 matched its render at 0.57). The matched gains are divided by
+    projection). A latent gain would get a gradient only on the steps that draw its
+    photo, a few in a fit over many photos, and stay near where it started (measured in
+    docs/benchmarks.md, "Real light"). The matched gains are divided by
     their geometric mean over the views (the latest match of each), so that they move
     each photo against the others and leave the overall level and colour to the light
     and the albedo, with which they would trade off exactly."""
