@@ -370,7 +370,8 @@ def run(
         best = {"values": variables.snapshot(), "iteration": 0, "error": start_error}
     else:
         record = resumed.record
-        variables.gain_estimates = record.get("gain_estimates", {})  # none in a checkpoint from before cdbbd37
+        for name, gain in record.get("gain_estimates", {}).items():  # none in a checkpoint from before cdbbd37
+            variables.record_gain(name, np.asarray(gain))
         names = [name[len("best/") :] for name in resumed.arrays if name.startswith("best/")]
         best = {
             "values": {name: resumed.arrays[f"best/{name}"] for name in names},

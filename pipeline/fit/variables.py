@@ -122,6 +122,7 @@ class MaterialVariables:
         self.gain_views, self.gain_channels = gain_views, gain_channels
         self.gain_estimates: dict[str, list[float]] = {}
         """Each gained view's latest matched gain, before the division by their mean."""
+        self._inverse_mean = None  # gain_match's tensor, made once per change of the estimates
         self.optimizer = mi.ad.Adam(lr=0.01)
 
     def register(self, learning_rate_scale: float) -> None:
@@ -206,13 +207,15 @@ class MaterialVariables:
         inverse of the gains' geometric mean, or ``one``)."""
         if view_name not in self.gain_views:
             return 0, one
-        inverse_mean = self.mi.TensorXf((1.0 / self._mean_gain()).astype(np.float32), (self.gain_channels,))
-        self.dr.make_opaque(inverse_mean)
-        return self.gain_channels, inverse_mean
+        if self._inverse_mean is None:
+            self._inverse_mean = self.mi.TensorXf((1 / self._mean_gain()).astype(np.float32), (self.gain_channels,))
+            self.dr.make_opaque(self._inverse_mean)
+        return self.gain_channels, self._inverse_mean
 
     def record_gain(self, view_name: str, gain: np.ndarray) -> None:
         """The gain just matched to ``view_name``'s render (a gained view's)."""
         self.gain_estimates[view_name] = np.broadcast_to(gain, self.gain_channels).astype(float).tolist()
+        self._inverse_mean = None
 
     def _mean_gain(self) -> np.ndarray:
         """The geometric mean of the gains matched so far, per channel (1 before any)."""
