@@ -97,6 +97,7 @@ from pipeline.formats.scene_folder import (
     read_json,
     write_json,
 )
+from pipeline.render import light as estimated_light
 from pipeline.render import materials, mitsuba_variant, scene_xml
 from pipeline.render.materials import SPECIMEN
 
@@ -193,10 +194,14 @@ def _baker(conf: Config, slot, shape: tuple[int, ...], fit: TextureFit, material
             gains=PhotoGains.of(material),
             scenes=scenes,
         )
+        free = material["light"].get("level_from") == estimated_light.SPECIMEN_LEVEL  # a guessed level may rise
+        relit = [v.scene for v in (*fit.training, *fit.validation)] if free else []
         bounds = material["bounds"][slot.parameter]
-        texture, seen = bake_bitmap([v for v, _ in views], slot.key, SPECIMEN, shape, conf.bake_spp, bounds)
-        report["baked"] = {"max_size": conf.bake_max_size, "spp": conf.bake_spp, "texels_seen": seen}
-        logger.info("texture baked from %d photos: %.0f %% of texels seen", len(views), 100 * seen)
+        texture, seen, scale = bake_bitmap(
+            [v for v, _ in views], slot.key, SPECIMEN, shape, conf.bake_spp, bounds, relit
+        )
+        report["baked"] = dict(max_size=conf.bake_max_size, spp=conf.bake_spp, texels_seen=seen, light_scale=scale)
+        logger.info("texture baked from %d photos: %.0f %% of texels seen, light x %.3g", len(views), 100 * seen, scale)
         return texture
 
     return bake
@@ -269,6 +274,9 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     if kept:
         write_texture(textured, slot, texture, box)
         constant_values = {n: result.values[n] for n in constants}
+        if (scale := report.get("baked", {}).get("light_scale", 1.0)) != 1.0:
+            poses = {name: pose for name, (_, pose) in cameras.items()}
+            report["light"] = estimated_light.rescale_files(textured, material["light"], scale, description, poses)
     else:
         # fit_material's constant scene, with the refitted constants.
         shutil.copy2(material_dir / SPECIMEN_XML, specimen)
@@ -304,7 +312,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_texture",
-    version=17,
+    version=19,
     config=Config,
     main=main,
     needs=(

@@ -192,7 +192,7 @@ def _light_level(view_files, views, linear, masks, board, near_clip) -> tuple[tu
     level = measure_ratio(load, views, linear, masks, specimen_region, near_clip)
     if level is None:
         raise PipelineError("the masks show too little of the specimen to measure the light's level: check the masks")
-    return (float(np.mean(level)),) * 3, "specimen (grey)"
+    return (float(np.mean(level)),) * 3, estimated_light.SPECIMEN_LEVEL
 
 
 def _view_entries(view_files: dict[str, Path], out_dir: Path) -> dict:

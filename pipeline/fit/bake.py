@@ -13,6 +13,13 @@ which a gradient fit through small windows and a few dozen steps does not reach
 the value of the nearest texel seen (chart gutters: bilinear lookups near a
 chart's edge read them).
 
+Where the light's level is only a guess (no surface of known reflectance fixed it,
+pipeline.render.light), it may be too dim for the photos' brightest texels, which
+then ask for colours above the upper bound and are cut to it: the texture loses its
+contrast. The bake then also returns the smallest factor ``k >= 1`` on every emitter
+at which all but ``HEADROOM`` of the seen texels fit under the bound; with the whole
+render scaled by ``k``, ``a_t = (sum D I - k sum D S) / (k sum D^2)``.
+
 Limitations: each pixel weighs by its ``D^2`` alone (no grazing-angle or
 resolution weight beyond it); a highlight the light does not explain, or an edge
 the mesh misses, pulls its texels by least squares (no robust loss); a texel is
@@ -26,9 +33,14 @@ from scipy import ndimage
 
 from pipeline.core import progress
 from pipeline.fit.loop import FitView, seed
+from pipeline.render.light import rescale_scenes
 
 SEEN = 1e-6
 """A texel counts as seen when its sum of D^2 exceeds this fraction of the largest."""
+HEADROOM = 0.01
+"""Fraction of the seen texels whose colour may stay cut to the upper bound when the
+light is raised: a few specular glints or mesh edges the light cannot explain should
+not dim everything else."""
 
 
 def _put_bitmaps(scenes: dict, key: str, values: dict) -> None:
@@ -65,21 +77,30 @@ def texels_hit(view: FitView, shape_id: str, size: tuple[int, int]) -> np.ndarra
 
 
 def bake_bitmap(
-    views: list[FitView], key: str, shape_id: str, size: tuple[int, int], spp: int, bounds: tuple[float, float]
-) -> tuple[np.ndarray, float]:
+    views: list[FitView],
+    key: str,
+    shape_id: str,
+    size: tuple[int, int],
+    spp: int,
+    bounds: tuple[float, float],
+    relit: list | None = None,
+) -> tuple[np.ndarray, float, float]:
     """The (rows, columns, 3) bitmap at ``key`` (the base colour of shape ``shape_id``)
     that fits ``views``' photos by least squares (module docstring), held in
-    ``bounds``, and the fraction of texels some pixel saw. Each view renders twice at
-    ``spp`` with its own integrator; its weight's pixels count. The scenes' bitmap is
-    put back as it was."""
+    ``bounds``, the fraction of texels some pixel saw, and the factor on the light
+    that the bitmap assumes: 1, or with scenes in ``relit`` (whose light's level is
+    free) the smallest that keeps the texels under the upper bound, by which their
+    light is then multiplied (pipeline.render.light.rescale_scenes). Each view renders
+    twice at ``spp`` with its own integrator; its weight's pixels count. The scenes'
+    bitmap is put back as it was."""
     import mitsuba as mi
 
     scenes = {id(v.scene): v.scene for v in views}
     before = {index: mi.TensorXf(mi.traverse(scene)[key]) for index, scene in scenes.items()}
     rows, columns = size
     texels = rows * columns
-    numerator = np.zeros((texels, 3))
-    denominator = np.zeros((texels, 3))
+    # per texel and channel: sum D I, sum D S and sum D^2
+    lit, dark, denominator = np.zeros((texels, 3)), np.zeros((texels, 3)), np.zeros((texels, 3))
     renders: dict[float, dict[str, np.ndarray]] = {}
     for value in (0.0, 1.0):
         _put_bitmaps(scenes, key, dict.fromkeys(scenes, mi.TensorXf(np.full((2, 2, 3), value, np.float32))))
@@ -90,18 +111,30 @@ def bake_bitmap(
     for view in progress.track(views, "bake: photos onto texels"):
         texel = texels_hit(view, shape_id, size)
         counts = (texel >= 0) & (view.weight > 0 if view.weight is not None else True)
-        dark = renders[0.0][view.name][counts]
-        shading = renders[1.0][view.name][counts] - dark
-        wanted = view.reference[counts] - dark
+        specular = renders[0.0][view.name][counts]
+        shading = renders[1.0][view.name][counts] - specular
+        photo, at = view.reference[counts], texel[counts]
         for channel in range(3):
-            numerator[:, channel] += np.bincount(texel[counts], shading[:, channel] * wanted[:, channel], texels)
-            denominator[:, channel] += np.bincount(texel[counts], shading[:, channel] ** 2, texels)
+            lit[:, channel] += np.bincount(at, shading[:, channel] * photo[:, channel], texels)
+            dark[:, channel] += np.bincount(at, shading[:, channel] * specular[:, channel], texels)
+            denominator[:, channel] += np.bincount(at, shading[:, channel] ** 2, texels)
     _put_bitmaps(scenes, key, before)
     seen = denominator.min(axis=1) > SEEN * denominator.max()
-    texture = np.divide(numerator, denominator, out=np.zeros_like(numerator), where=denominator > 0)
+    scale = _light_scale(lit[seen], dark[seen], denominator[seen], bounds[1]) if relit and seen.any() else 1.0
+    rescale_scenes(relit or [], scale)
+    numerator = lit - scale * dark
+    texture = np.divide(numerator, scale * denominator, out=np.zeros_like(numerator), where=denominator > 0)
     texture = texture.reshape(rows, columns, 3)
     seen = seen.reshape(rows, columns)
     if seen.any():
         _, (near_row, near_column) = ndimage.distance_transform_edt(~seen, return_indices=True)
         texture = texture[near_row, near_column]
-    return np.clip(texture, *bounds).astype(np.float32), float(seen.mean())
+    return np.clip(texture, *bounds).astype(np.float32), float(seen.mean()), scale
+
+
+def _light_scale(lit: np.ndarray, dark: np.ndarray, denominator: np.ndarray, upper: float) -> float:
+    """The smallest ``k >= 1`` at which all but HEADROOM of the texels (rows: sums of
+    D I, D S and D^2 per channel) have ``(lit - k dark) / (k denominator) <= upper``
+    in every channel: per texel, ``k >= lit / (upper denominator + dark)``."""
+    needed = np.divide(lit, upper * denominator + dark, out=np.zeros_like(lit), where=denominator > 0)
+    return max(1.0, float(np.quantile(needed.max(axis=1), 1.0 - HEADROOM)))

@@ -22,6 +22,9 @@ from pipeline.render import materials, scene_xml
 PAPER, TONER = 0.80, 0.04
 """Reflectance of the board's paper and of laser toner."""
 
+GROUND_BSDF = "ground_bsdf"
+"""Id of the table disk's BSDF (its albedo changes with an estimated light's level)."""
+
 
 SPECIMEN_COMMENT = "the specimen and what it stands on; included by scene.xml and view-*.xml"
 
@@ -86,7 +89,7 @@ def write_specimen_file(
         disk = scene_xml.plugin(root, "shape", {"type": "disk", "id": "ground"})
         # Just below the board, so that the two never fight over a pixel.
         scene_xml.transform_matrix(disk, _disk_matrix(radius))
-        scene_xml.plugin(disk, "bsdf", {"type": "diffuse", "id": "ground_bsdf", "reflectance": tuple(albedo)})
+        scene_xml.plugin(disk, "bsdf", {"type": "diffuse", "id": GROUND_BSDF, "reflectance": tuple(albedo)})
     scene_xml.write(root, path, SPECIMEN_COMMENT)
 
 

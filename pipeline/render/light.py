@@ -29,7 +29,10 @@ texels that surface never sees (below the board) do not count. With the board,
 radiance and albedos are absolute (in the photos' linear units); without, albedos
 are relative to that guess, and what is measured is the light's distribution over
 directions, the softbox's share, and the materials' other parameters (roughness,
-transmission, eta, ...).
+transmission, eta, ...). A guessed level can be too dim for the specimen's brightest
+spots, whose colour would have to exceed 1: fit_texture then raises the light (and
+lowers the table's albedo) until its baked colours fit (pipeline.fit.bake), so an
+albedo is never above 1 and the level is the lowest that allows it.
 
 Limitations: the softbox's position and size come from the envmap's lobe (its
 direction and solid angle, at ``area_distance`` times the specimen's radius) and
@@ -48,6 +51,7 @@ import numpy as np
 from pipeline.camera.model import Pose
 from pipeline.core.sections import LightSection
 from pipeline.fit.variables import FitParameter, Layout
+from pipeline.formats.scene_folder import SPECIMEN_XML
 from pipeline.imaging.photo_io import read_photo, write_image
 from pipeline.render import capture_scene, scene_xml
 
@@ -56,6 +60,16 @@ LIGHT_MODELS: tuple[LightModel, ...] = ("constant", "envmap", "envmap+area")
 """Simplest first: the order in which `auto` tries them."""
 ENVIRONMENT_FILE = "environment.exr"
 LIGHT_IDS = ("environment", "softbox")
+SPECIMEN_LEVEL = "specimen (grey)"
+"""scene.json's ``level_from`` when no surface of known reflectance set the level."""
+RESCALED = {
+    "environment.scale": 1,
+    "environment.radiance.value": 1,
+    "softbox.emitter.radiance.value": 1,
+    "ground.bsdf.reflectance.value": -1,
+}
+"""``mi.traverse`` keys a change of the light's level multiplies (1) or divides (-1):
+the emitters, and the table's albedo, which the photos fix only as a product with it."""
 
 
 @dataclass(frozen=True)
@@ -213,6 +227,32 @@ def write(light: EstimatedLight, scene_dir: Path, description: dict, poses: dict
         capture_scene.lights(root, section, poses[photo], environment_file)
         ET.indent(root)
         tree.write(path, encoding="unicode", xml_declaration=True)
+
+
+def rescale_scenes(scenes: list, factor: float) -> None:
+    """Multiply the light of every distinct scene in ``scenes`` by ``factor`` (RESCALED)."""
+    import mitsuba as mi
+
+    for scene in {id(s): s for s in scenes}.values():
+        params = mi.traverse(scene)
+        for key in [k for k in RESCALED if k in params]:
+            params[key] = params[key] * factor ** RESCALED[key]
+        params.update()
+
+
+def rescale_files(scene_dir: Path, report: dict, factor: float, description: dict, poses: dict[str, Pose]) -> dict:
+    """The light fit_material chose (``report``: its params.json's ``light``; the map in
+    ``scene_dir``) times ``factor`` in every scene file of ``scene_dir``, and the table's
+    albedo in its specimen file divided by it; the new light's summary."""
+    light = read(report["chosen"], scene_dir)
+    area = light.area and replace(light.area, radiance=tuple(factor * v for v in light.area.radiance))
+    scaled = replace(light, environment=light.environment * np.float32(factor), area=area)
+    write(scaled, scene_dir, description, poses)
+    specimen = scene_dir / SPECIMEN_XML
+    for bsdf in [b for b in ET.parse(specimen).iter("bsdf") if b.get("id") == capture_scene.GROUND_BSDF]:
+        albedo = [float(v) / factor for v in next(bsdf.iter("rgb")).get("value").replace(",", " ").split()]
+        scene_xml.set_values(specimen, {"ground.bsdf.reflectance.value": albedo}, specimen)
+    return scaled.summary()
 
 
 def directions(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:

@@ -234,8 +234,8 @@ def refit_parameters(
     slot = TEXTURE_SLOTS[model]
     parameters = []
     if texture is not None:
-        spec = PARAMETERS[slot.parameter]
-        parameters.append(FitParameter(slot.parameter, slot.key, spec.lower, spec.upper, False, *texture))
+        lower, upper = bounds[slot.parameter]  # the texels keep the constant's bounds (the bake's too)
+        parameters.append(FitParameter(slot.parameter, slot.key, lower, upper, False, *texture))
     if constants:
         parameters += [p for p in fit_parameters(model, bounds) if texture is None or p.name != slot.parameter]
     return parameters

@@ -1,6 +1,7 @@
 """Stage fit_texture on the bundled sample bird, with a fit small enough for a test."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -70,3 +71,27 @@ def test_a_texture_not_kept_leaves_the_constant_colour_with_the_refitted_constan
         assert np.ravel(scene[f"specimen.bsdf.{name}.value"])[0] == pytest.approx(report["params"][name][0], rel=1e-5)
     assert np.ravel(scene["specimen.bsdf.eta"])[0] == pytest.approx(report["params"]["eta"][0], rel=1e-5)
     assert score_heldout(folder / "heldout")["views"] == 2
+
+
+def test_a_guessed_light_too_dim_for_the_texture_is_raised_in_every_scene_file(run_stages, bird_capture, mi):
+    """Without the board's print the light's level is a guess (measured on the specimen
+    as if grey); with colours bounded at 0.3 the bird's baked texels cannot reach the
+    photos under it. The bake raises the light until all but 1 % of them fit, and the
+    scene files carry the raised light with the texture (params.json says by how much)."""
+    light = ("scene.board_plane=false", "light.model=constant", 'fit_material.bounds=["base_color=0.001:0.3"]')
+    texture = (*TINY_TEXTURE, "fit_texture.start=photos", "fit_texture.texture=on")
+    outputs = run_stages(bird_capture, "fit_texture", *TINY_FIT, *light, *texture)
+    fitted = json.loads(outputs["fit_material"]["params"].read_text())["light"]
+    report = json.loads(outputs["fit_texture"]["params"].read_text())
+    scale = report["baked"]["light_scale"]
+    assert fitted["level_from"] == "specimen (grey)" and scale > 1.2
+    assert report["light"]["environment_mean"] == pytest.approx(
+        [scale * v for v in fitted["chosen"]["environment_mean"]]
+    )
+    for name in ("scene.xml", f"view-{Path(report['held_out'][0]).stem}.xml"):
+        scene = mi.traverse(mi.load_file(str(outputs["fit_texture"]["textured_dir"] / name)))
+        np.testing.assert_allclose(
+            np.ravel(scene["environment.radiance.value"]), report["light"]["environment_mean"], rtol=1e-5
+        )
+    colours = scene["specimen.bsdf.base_color.data"]
+    assert np.max(colours) <= 0.3 and np.mean(np.max(colours, axis=-1) >= 0.2999) < 0.1

@@ -7,7 +7,7 @@ import pytest
 from pipeline.camera.model import Intrinsics, Pose
 from pipeline.fit.bake import bake_bitmap, texels_hit
 from pipeline.fit.loop import FitView
-from pipeline.render import scene_xml
+from pipeline.render import light, scene_xml
 
 pytestmark = pytest.mark.slow
 K = Intrinsics(96, 96, 120.0, 120.0, 47.5, 47.5)
@@ -26,7 +26,11 @@ def _views(mi, texture: np.ndarray, references: list[np.ndarray] | None = None) 
     scene = mi.load_dict(
         {
             "type": "scene",
-            "sky": {"type": "constant", "id": "sky", "radiance": {"type": "rgb", "value": [0.4, 0.4, 0.4]}},
+            "environment": {
+                "type": "constant",
+                "id": "environment",
+                "radiance": {"type": "rgb", "value": [0.4, 0.4, 0.4]},
+            },
             "softbox": {
                 "type": "rectangle",
                 "id": "softbox",
@@ -91,8 +95,8 @@ def test_the_bake_recovers_the_true_texels_from_the_photos(mi, photos):
     bitmap is put back."""
     start = np.full((2, 2, 3), 0.5, np.float32)
     views = _views(mi, start, photos)
-    texture, seen = bake_bitmap(views, KEY, "specimen", SIZE, 64, (0.001, 1.0))
-    assert seen == 1.0
+    texture, seen, scale = bake_bitmap(views, KEY, "specimen", SIZE, 64, (0.001, 1.0), [v.scene for v in views])
+    assert seen == 1.0 and scale == 1.0  # the light is bright enough: it stays
     assert np.abs(texture - _truth()).mean() < 0.025
     assert np.abs(texture - _truth()).max() < 0.1
     assert np.array(mi.traverse(views[0].scene)[KEY]).shape == (2, 2, 3)
@@ -102,8 +106,28 @@ def test_texels_no_photo_sees_take_the_nearest_seen_value(mi, photos):
     """A bitmap four times finer than any view resolves leaves texels unseen: they take
     their nearest seen neighbour's value, never 0 or the bounds; values stay in bounds."""
     views = _views(mi, np.full((2, 2, 3), 0.5, np.float32), photos)
-    texture, seen = bake_bitmap(views[:1], KEY, "specimen", (128, 128), 16, (0.2, 0.8))
+    texture, seen, _ = bake_bitmap(views[:1], KEY, "specimen", (128, 128), 16, (0.2, 0.8))
     assert 0.05 < seen < 0.9
     assert texture.min() >= 0.2 and texture.max() <= 0.8
     coarse = texture.reshape(8, 16, 8, 16, 3).mean(axis=(1, 3))
     assert np.abs(coarse - np.clip(_truth(), 0.2, 0.8)).mean() < 0.04
+
+
+def test_a_light_too_dim_for_the_brightest_texels_is_raised_until_they_fit(mi, photos):
+    """The photos' light halved (a level guessed too low): the true texels would need
+    colours up to 1.8. Without ``relit`` they are cut to 1 and the scene is left alone;
+    with it the light rises by the smallest factor that fits 99 % of the texels under
+    1, the texels come out as the truth over that factor (relative to the true light),
+    and every emitter of the scene is multiplied by it."""
+    views = _views(mi, np.full((2, 2, 3), 0.5, np.float32), photos)
+    scene = views[0].scene
+    light.rescale_scenes([scene], 0.5)
+    cut, _, kept = bake_bitmap(views, KEY, "specimen", SIZE, 64, (0.001, 1.0))
+    assert kept == 1.0 and (cut.max(axis=-1) >= 1.0).mean() > 0.3
+    texture, _, scale = bake_bitmap(views, KEY, "specimen", SIZE, 64, (0.001, 1.0), [scene])
+    needed = 2 * _truth().max(axis=-1).ravel()
+    assert scale == pytest.approx(np.quantile(needed, 0.99), rel=0.05)
+    assert np.abs(texture * scale / 2 - _truth()).mean() < 0.03
+    params = mi.traverse(scene)
+    assert np.allclose(params["softbox.emitter.radiance.value"], 4.0 * 0.5 * scale, rtol=1e-5)
+    assert np.allclose(params["environment.radiance.value"], 0.4 * 0.5 * scale, rtol=1e-5)

@@ -5,9 +5,12 @@ import numpy as np
 import pytest
 import trimesh
 
-from pipeline.camera.model import Pose
+from pipeline.camera.model import Intrinsics, Pose
 from pipeline.fit.variables import FitParameter, MaterialVariables
-from pipeline.render import light, scene_xml
+from pipeline.formats.scene_folder import SPECIMEN_XML
+from pipeline.render import capture_scene, light, scene_xml
+
+K_SMALL = Intrinsics(24, 24, 30.0, 30.0, 11.5, 11.5)
 
 
 def _scene_with_map(mi, folder, environment):
@@ -199,3 +202,34 @@ def test_the_softbox_starts_round_the_specimens_box_centre_in_the_lights_frame()
     assert distance == pytest.approx(3.0 * np.sqrt(6.0))
     centre, _ = light.specimen_sphere(vertices, LightSection(frame="camera", area_distance=3.0), poses)
     np.testing.assert_allclose(centre, [1.0, 2.0, 6.0])
+
+
+def test_a_raised_level_in_the_files_renders_as_the_raised_scenes_and_keeps_the_tables_look(mi, tmp_path):
+    """rescale_files writes what rescale_scenes does in memory: the map and the softbox
+    times the factor, the table's albedo divided by it (the photos fix its product with
+    the light), so the view renders the same from the files as from the scaled scene."""
+    pose = Pose.look_at([0.5, 0.0, 0.3], [0, 0, 0], up=[0, 0, 1])
+    specimen = scene_xml.new_scene()
+    disk = scene_xml.plugin(specimen, "shape", {"type": "disk", "id": "ground"})
+    scene_xml.plugin(disk, "bsdf", {"type": "diffuse", "id": capture_scene.GROUND_BSDF, "reflectance": (0.6, 0.5, 0.4)})
+    scene_xml.write(specimen, tmp_path / SPECIMEN_XML)
+    for name in ("scene.xml", "view-a.xml"):
+        root = scene_xml.new_scene()
+        scene_xml.include(root, SPECIMEN_XML)
+        scene_xml.write(root, tmp_path / name)
+    description = {"views": {"a.jpg": {"xml": "view-a.xml"}}}
+    lit = light.with_area(light.start("envmap", "world", np.array([0.3, 0.2, 0.1]), 16), np.zeros(3), 1.0)
+    light.write(lit, tmp_path, description, {"a.jpg": pose})
+    sensor = scene_xml.load_sensor(scene_xml.sensor_properties(K_SMALL, pose, 16, 0.01))
+    scaled = mi.load_file(str(tmp_path / "view-a.xml"))
+    light.rescale_scenes([scaled, scaled], 2.5)  # a scene listed twice is scaled once
+    summary = light.rescale_files(tmp_path, {"chosen": lit.summary()}, 2.5, description, {"a.jpg": pose})
+    assert summary["area"]["radiance"] == pytest.approx([2.5 * v for v in lit.area.radiance])
+    assert summary["environment_mean"] == pytest.approx([0.75, 0.5, 0.25], rel=1e-3)  # a half-float map
+    written = mi.load_file(str(tmp_path / "view-a.xml"))
+    assert np.allclose(np.ravel(mi.traverse(written)["ground.bsdf.reflectance.value"]), [0.24, 0.2, 0.16], rtol=1e-5)
+    path = mi.load_dict({"type": "path", "max_depth": 3})
+    in_memory = np.array(mi.render(scaled, sensor=sensor, integrator=path, spp=16, seed=1))
+    from_files = np.array(mi.render(written, sensor=sensor, integrator=path, spp=16, seed=1))
+    assert from_files.mean() > 0.05  # the table and the sky are in view
+    assert np.abs(in_memory - from_files).max() < 1e-3 * from_files.max()  # the map is half floats
