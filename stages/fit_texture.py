@@ -21,12 +21,12 @@ roughness ended 0.15 off the truth). The texture is fitted by pipeline.fit.engin
 (the same loop, loss, views and held-out photos as fit_material). A bitmap starts
 (``start = photos``) baked from the training photos under the fitted light and
 constants (pipeline.fit.bake: per texel, the least-squares colour of the photos'
-pixels that see it, from windows of ``bake_max_size`` pixels, finer than the fit's),
-and is then fitted at ``max_resolution`` texels a side alone. From the constant
-(``start = constant``, and always for a grid) it is fitted at ``levels``
-resolutions, each twice the last, ending at ``max_resolution``
-(``max_grid_resolution`` along a grid's longest side); every level starts from the
-last one's best state, resampled. A smoothness prior (``smoothness`` times the
+pixels that see it, from windows of ``bake_max_size`` pixels, finer than the fit's;
+a guessed light's level rises until the colours fit their bound, and the scene files carry
+the raised light), and is then fitted at ``max_resolution`` texels alone. From the constant
+(``start = constant``, and always for a grid) it is fitted at ``levels`` resolutions, each twice
+the last, ending at ``max_resolution`` (``max_grid_resolution`` along a grid's longest side);
+every level starts from the last one's best state, resampled. A smoothness prior (``smoothness`` times the
 mean squared difference of neighbouring texels) keeps texels from absorbing
 highlights and noise and fills texels no photo sees from their neighbours.
 
@@ -47,8 +47,8 @@ params.json          kept or not and why, validation error with and without the
                      texture, per level (and for the constants alone):
                      resolution, iterations, best iteration, held-out error at
                      the start and the best, non-finite gradient entries
-                     dropped (skipped_gradients); ``baked``: the bake's window
-                     size, samples and share of texels seen; ``params`` and
+                     dropped (skipped_gradients); ``baked``: the bake's window, samples,
+                     share of texels seen and light_scale (``light``: the raised light); ``params`` and
                      ``bounds``: the scene's values as in fit_material's
                      params.json (a kept texture's mean for the textured one);
                      the texture's ``smoothness`` and ``learning_rate``, which
