@@ -16,9 +16,10 @@ chart's edge read them).
 Where the light's level is only a guess (no surface of known reflectance fixed it,
 pipeline.render.light), it may be too dim for the photos' brightest texels, which
 then ask for colours above the upper bound and are cut to it: the texture loses its
-contrast. The bake then also returns the smallest factor ``k >= 1`` on every emitter
-at which all but ``HEADROOM`` of the seen texels fit under the bound; with the whole
-render scaled by ``k``, ``a_t = (sum D I - k sum D S) / (k sum D^2)``.
+contrast. Given the scenes to relight, the bake then finds the smallest factor
+``k >= 1`` on every emitter at which all but ``HEADROOM`` of the seen texels fit under
+the bound, multiplies their light by it and, the whole render being scaled by ``k``,
+solves ``a_t = (sum D I - k sum D S) / (k sum D^2)``.
 
 Limitations: each pixel weighs by its ``D^2`` alone (no grazing-angle or
 resolution weight beyond it); a highlight the light does not explain, or an edge
