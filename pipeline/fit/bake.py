@@ -122,7 +122,8 @@ def bake_bitmap(
     _put_bitmaps(scenes, key, before)
     seen = denominator.min(axis=1) > SEEN * denominator.max()
     scale = _light_scale(lit[seen], dark[seen], denominator[seen], bounds[1]) if relit and seen.any() else 1.0
-    rescale_scenes(relit or [], scale)
+    if scale != 1.0:  # an update with nothing changed would still rebuild every scene's emitters
+        rescale_scenes(relit, scale)
     numerator = lit - scale * dark
     texture = np.divide(numerator, scale * denominator, out=np.zeros_like(numerator), where=denominator > 0)
     texture = texture.reshape(rows, columns, 3)
