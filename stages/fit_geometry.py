@@ -16,11 +16,11 @@ Each of ``rounds`` rounds is a geometry pass, then a material pass:
 ==============  ===================================================================
 loss            what is compared, with which integrator
 ==============  ===================================================================
-photometric     the photo over each view's window (specimen, silhouette, board and
-                table around it). Surface models: ``prb_projective``, silhouette
-                edges included. Volumetric: ``prbvolpath`` (no projective
-                integrator handles a medium), interior terms only, with evaluated
-                loops (Dr.Jit 1.5 needs them for vertex gradients)
+photometric     the whole window: the photo in the mask, the scene's own backdrop
+                outside (passes.backdrop_views). Surface models: ``prb_projective``,
+                silhouette edges included. Volumetric: ``prbvolpath`` (no
+                projective integrator handles a medium), interior terms only,
+                evaluated loops (Dr.Jit 1.5 needs them for vertex gradients)
 silhouette      the mask against the specimen's coverage (black specimen under a
                 white sky), ``direct_projective``; needs no material
 auto            photometric for surface models, silhouette for the volumetric one
@@ -309,7 +309,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_geometry",
-    version=20,
+    version=21,
     config=Config,
     main=main,
     needs=(

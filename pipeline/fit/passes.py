@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -45,6 +46,45 @@ def silhouette_views(
     return result
 
 
+BACKDROP_SPP = 64
+"""Samples per pixel of the backdrop the photometric pass compares outside the masks."""
+
+
+def backdrop_views(
+    views: list[tuple[engine.FitView, Window]], masks: dict[str, Path], spp: int = BACKDROP_SPP
+) -> list[engine.FitView]:
+    """The same windows, every pixel weighted, each reference the photo inside its
+    specimen mask and, outside it, the scene as it renders there without the specimen
+    (its environment, softbox, table), blended by the mask's cover of each pixel.
+
+    The photo's own backdrop (a black cloth, the room) is not in the scene: where an
+    estimated environment is seen instead, an outline compared with the photo there
+    moves to make the specimen look like that cloth (temple-ring's raised map, far
+    brighter than its black cloth, gave a pass error of 0.043 against 0.011 and a worse
+    mesh). Against the scene's own backdrop, an outline pixel costs what its mask says
+    and the photo decides only the specimen's pixels. Shadows on a table are in the
+    renders but not in this backdrop: the pass differentiates primary visibility only
+    (``sppi = 0``), so they add a constant to its error and nothing to its gradient."""
+    import mitsuba as mi
+
+    backdrops: dict[int, Any] = {}
+    result = []
+    for view, window in views:
+        if id(view.scene) not in backdrops:
+            parts = {s.id(): s for s in view.scene.shapes() if s.id() != materials.SPECIMEN}
+            if view.scene.environment() is not None:
+                parts["environment"] = view.scene.environment()
+            backdrops[id(view.scene)] = mi.load_dict({"type": "scene", "integrator": {"type": "path"}, **parts})
+        backdrop = np.asarray(mi.render(backdrops[id(view.scene)], sensor=view.sensor, spp=spp), np.float32)[..., :3]
+        if view.gain is not None:
+            backdrop = backdrop * np.asarray(view.gain, np.float32)
+        mask = cv2.imread(str(masks[view.name]), cv2.IMREAD_GRAYSCALE) > 127
+        cover = window.cut(mask.astype(np.float32))[..., None]
+        reference = cover * view.reference + (1 - cover) * backdrop
+        result.append(replace(view, reference=np.ascontiguousarray(reference, np.float32), weight=window.inside()))
+    return result
+
+
 def shape_pass(
     geometry: Path,
     description: dict,
@@ -69,7 +109,7 @@ def shape_pass(
         integrator = {"type": "direct_projective", "sppi": 0}
     else:
         # The silhouette and its surroundings carry the shape: every window pixel counts.
-        views = [replace(v, weight=window.inside()) for v, window in windowed]
+        views = backdrop_views(windowed, masks)
         kind, depth = description["integrator"]["differentiable"], description["integrator"]["max_depth"]
         integrator = (
             {"type": "prb_projective", "max_depth": depth, "sppi": 0}
