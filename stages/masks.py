@@ -16,8 +16,10 @@ Where the masks come from, first match wins (``masks.source = "auto"``):
    anything else: GrabCut seeded with the specimen near the image centre.
 
 Every mask is then cleaned: components smaller than a fraction of the largest are
-removed and holes filled (a specimen's silhouette has no holes as seen from most
-views; for a ring-shaped specimen, set ``fill_holes = false``).
+removed, and holes smaller than ``max_hole_fraction`` of the silhouette filled (specimen
+pixels taken for backdrop); larger holes are the backdrop seen through the specimen
+and stay open: temple-ring's colonnade, filled, left the visual hull a wall between
+its columns.
 
 ==================  ============================================================
 output              content
@@ -81,8 +83,9 @@ class Config:
     Smaller photos are enlarged, which places their edges to a fraction of a pixel."""
     min_component_fraction: Annotated[float, Range(0.0, 1.0)] = 0.1
     """Components smaller than this fraction of the largest are dropped (dust, board bits)."""
-    fill_holes: bool = True
-    """Fill holes inside the silhouette."""
+    max_hole_fraction: Annotated[float, Range(0.0, 1.0)] = 0.01
+    """Holes in the silhouette smaller than this fraction of its area (holes included)
+    are filled; larger ones are kept open. 0 keeps every hole, 1 fills every one."""
 
 
 def _user_masks(capture_dir: Path, files: tuple[Path, ...], photos: dict[str, dict]) -> dict[str, Path]:
@@ -153,7 +156,7 @@ def _mask(
         mask = segment(
             srgb, conf.segmenter, conf.backdrop_chroma, conf.centre_fraction, conf.grabcut_iterations, conf.working_size
         )
-    return clean(mask, conf.min_component_fraction, conf.fill_holes)
+    return clean(mask, conf.min_component_fraction, conf.max_hole_fraction)
 
 
 GRAYSCALE_CHROMA = 0.01
@@ -234,7 +237,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="masks",
-    version=3,
+    version=4,
     config=Config,
     main=main,
     needs=("undistort.pinhole",),

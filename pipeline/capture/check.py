@@ -323,7 +323,7 @@ def check_masks(
                 conf.grabcut_iterations,
                 MASK_WORKING_SIZE,
             )
-        mask = masks[photo.name] = clean(mask, conf.min_component_fraction, conf.fill_holes)
+        mask = masks[photo.name] = clean(mask, conf.min_component_fraction, conf.max_hole_fraction)
         coverage = float(mask.mean())
         file = f"images/{photo.name}"
         if coverage < MIN_MASK_COVERAGE:

@@ -139,15 +139,23 @@ def segment_plate_difference(
     return _photo_size(mask, linear.shape[:2])
 
 
-def clean(mask: np.ndarray, min_component_fraction: float, fill_holes: bool) -> np.ndarray:
-    """Keep components at least ``min_component_fraction`` of the largest; fill holes."""
+def clean(mask: np.ndarray, min_component_fraction: float, max_hole_fraction: float) -> np.ndarray:
+    """Keep components at least ``min_component_fraction`` of the largest; fill the
+    holes smaller than ``max_hole_fraction`` of the silhouette's area (specimen pixels
+    taken for backdrop), keep larger ones open (the backdrop seen through a colonnade
+    or a handle, which the visual hull must carve)."""
     labels, count = ndimage.label(mask)
     if count == 0:
         return mask
     sizes = ndimage.sum_labels(mask, labels, index=np.arange(1, count + 1))
     keep = np.flatnonzero(sizes >= min_component_fraction * sizes.max()) + 1
     mask = np.isin(labels, keep)
-    return ndimage.binary_fill_holes(mask) if fill_holes else mask
+    holes, count = ndimage.label(ndimage.binary_fill_holes(mask) & ~mask)
+    if count == 0:
+        return mask
+    hole_sizes = ndimage.sum_labels(np.ones_like(mask), holes, index=np.arange(1, count + 1))
+    small = np.flatnonzero(hole_sizes < max_hole_fraction * (mask.sum() + hole_sizes.sum())) + 1
+    return mask | np.isin(holes, small)
 
 
 def iou(a: np.ndarray, b: np.ndarray) -> float:
