@@ -57,6 +57,28 @@ def test_user_masks_win_and_are_undistorted_with_the_photos(run_stages, mask_cap
     assert min(_ious(capture, outputs)) > 0.99
 
 
+@pytest.mark.parametrize("speck_filled", [True, False])
+def test_an_opening_through_the_specimen_stays_open_and_a_speck_is_filled(
+    run_stages, mask_capture, tmp_path, speck_filled
+):
+    """Twin of temple-ring, whose colonnade shows the backdrop between its columns: filled,
+    its gaps left the visual hull a wall there."""
+    import cv2
+
+    capture = _copy(mask_capture, tmp_path)
+    shutil.copytree(capture / "ground_truth" / "masks", capture / "masks")
+    drawn = capture / "masks" / "view_000.png"
+    mask = cv2.imread(str(drawn), cv2.IMREAD_GRAYSCALE)
+    rows, cols = np.nonzero(mask > 127)
+    cy, cx, side = int(rows.mean()), int(cols.mean()), int(0.25 * np.sqrt(len(rows)))
+    mask[cy - side // 2 : cy + side // 2, cx - side // 2 : cx + side // 2] = 0  # 6 % of the silhouette
+    mask[cy + side - 2 : cy + side + 2, cx - 2 : cx + 2] = 0  # a speck: 16 px
+    cv2.imwrite(str(drawn), mask)
+    outputs = run_stages(capture, "masks", *([] if speck_filled else ["masks.max_hole_fraction=0"]))
+    kept = cv2.imread(str(outputs["masks"]["masks_json"].parent / "masks" / "view_000.png"), cv2.IMREAD_GRAYSCALE)
+    assert kept[cy, cx] == 0 and kept[cy + side, cx] == (255 if speck_filled else 0)
+
+
 def test_a_missing_user_mask_is_named(run_stages, mask_capture, tmp_path):
     capture = _copy(mask_capture, tmp_path)
     shutil.copytree(capture / "ground_truth" / "masks", capture / "masks")
