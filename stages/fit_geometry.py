@@ -16,11 +16,12 @@ Each of ``rounds`` rounds is a geometry pass, then a material pass:
 ==============  ===================================================================
 loss            what is compared, with which integrator
 ==============  ===================================================================
-photometric     the whole window: the photo in the mask, the scene's own backdrop
-                outside (passes.backdrop_views). Surface models: ``prb_projective``,
-                silhouette edges included. Volumetric: ``prbvolpath`` (no
-                projective integrator handles a medium), interior terms only,
-                evaluated loops (Dr.Jit 1.5 needs them for vertex gradients)
+photometric     the whole window: the photo in the mask and on the table, the
+                scene's own backdrop beyond (passes.backdrop_views). Surface
+                models: ``prb_projective``, silhouette edges included.
+                Volumetric: ``prbvolpath`` (no projective integrator handles a
+                medium), interior terms only, evaluated loops (Dr.Jit 1.5 needs
+                them for vertex gradients)
 silhouette      the mask against the specimen's coverage (black specimen under a
                 white sky), ``direct_projective``; needs no material
 auto            photometric for surface models, silhouette for the volumetric one
@@ -49,9 +50,8 @@ compare (with ``enabled = false``, the start scene's passed through).
 Limitations: vertices move, connectivity does not (no remeshing), so a start far
 from the truth (the sphere) cannot grow handles or thin limbs. The geometry loss
 is plain L2 (one render per view): its Monte Carlo variance counts in the loss.
-No render differentiates geometry and a medium at once. A step costs seconds
-even at 32-96 px on a CPU (volumetric photometric: about 4.8 s at 96 px, 8 spp,
-two views, 2 cores).
+No render differentiates geometry and a medium at once. A step costs seconds on a
+CPU (volumetric photometric: about 4.8 s at 96 px, 8 spp, two views, 2 cores).
 """
 
 from __future__ import annotations
@@ -309,7 +309,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_geometry",
-    version=21,
+    version=22,
     config=Config,
     main=main,
     needs=(

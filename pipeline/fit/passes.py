@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 import trimesh
 
+from pipeline.camera.model import Intrinsics, Pose, ground_hits
 from pipeline.fit import engine
 from pipeline.fit.outputs import write_texture_files
 from pipeline.fit.views import Window, load_views
@@ -51,20 +52,24 @@ BACKDROP_SPP = 64
 
 
 def backdrop_views(
-    views: list[tuple[engine.FitView, Window]], masks: dict[str, Path], spp: int = BACKDROP_SPP
+    views: list[tuple[engine.FitView, Window]],
+    masks: dict[str, Path],
+    cameras: dict[str, tuple[Intrinsics, Pose]],
+    description: dict,
+    spp: int = BACKDROP_SPP,
 ) -> list[engine.FitView]:
     """The same windows, every pixel weighted, each reference the photo inside its
-    specimen mask and, outside it, the scene as it renders there without the specimen
-    (its environment, softbox, table), blended by the mask's cover of each pixel.
+    specimen mask and on the scene's set (its table disk, the board's print), and
+    elsewhere the scene as it renders there without the specimen (its environment,
+    softbox), blended by the mask's cover of each pixel.
 
-    The photo's own backdrop (a black cloth, the room) is not in the scene: where an
-    estimated environment is seen instead, an outline compared with the photo there
-    moves to make the specimen look like that cloth (temple-ring's raised map, far
-    brighter than its black cloth, gave a pass error of 0.043 against 0.011 and a worse
-    mesh). Against the scene's own backdrop, an outline pixel costs what its mask says
-    and the photo decides only the specimen's pixels. Shadows on a table are in the
-    renders but not in this backdrop: the pass differentiates primary visibility only
-    (``sppi = 0``), so they add a constant to its error and nothing to its gradient."""
+    Beyond the set the photo shows what the scene does not hold (a black cloth, the
+    room): where an estimated environment is seen instead, an outline compared with
+    the photo there moves to make the specimen look like that cloth (temple-ring's
+    raised map, far brighter than its black cloth, gave a pass error of 0.043 against
+    0.011 and a worse mesh). Against the scene's own backdrop an outline pixel there
+    costs what its mask says. The set keeps its photo: the scene holds it, with the
+    specimen's shadow on it."""
     import mitsuba as mi
 
     backdrops: dict[int, Any] = {}
@@ -79,10 +84,25 @@ def backdrop_views(
         if view.gain is not None:
             backdrop = backdrop * np.asarray(view.gain, np.float32)
         mask = cv2.imread(str(masks[view.name]), cv2.IMREAD_GRAYSCALE) > 127
-        cover = window.cut(mask.astype(np.float32))[..., None]
-        reference = cover * view.reference + (1 - cover) * backdrop
+        intrinsics, pose = cameras[view.name]
+        photo = np.maximum(
+            window.cut(mask.astype(np.float32)), _on_set(window.intrinsics(intrinsics), pose, description)
+        )
+        reference = photo[..., None] * view.reference + (1 - photo[..., None]) * backdrop
         result.append(replace(view, reference=np.ascontiguousarray(reference, np.float32), weight=window.inside()))
     return result
+
+
+def _on_set(camera: Intrinsics, pose: Pose, description: dict) -> np.ndarray:
+    """(h, w) float: 1 where a pixel centre's ray meets the scene's table disk or the
+    board's print (scene.json's ``ground`` and ``board_print``), else 0."""
+    hits, distance = ground_hits(camera, pose)
+    reached, on = distance > 0, np.zeros(distance.shape, bool)
+    if description.get("ground"):
+        on |= reached & (np.linalg.norm(hits[..., :2], axis=-1) < description["ground"]["radius"])
+    if description.get("board_print"):
+        on |= reached & np.all(np.abs(hits[..., :2]) < np.asarray(description["board_print"]), axis=-1)
+    return on.astype(np.float32)
 
 
 def shape_pass(
@@ -109,7 +129,7 @@ def shape_pass(
         integrator = {"type": "direct_projective", "sppi": 0}
     else:
         # The silhouette and its surroundings carry the shape: every window pixel counts.
-        views = backdrop_views(windowed, masks)
+        views = backdrop_views(windowed, masks, cameras, description)
         kind, depth = description["integrator"]["differentiable"], description["integrator"]["max_depth"]
         integrator = (
             {"type": "prb_projective", "max_depth": depth, "sppi": 0}

@@ -14,10 +14,11 @@ K = Intrinsics(32, 32, 40.0, 40.0, 15.5, 15.5)
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("gain", [None, 2.0])
-def test_outside_its_mask_a_photo_is_replaced_by_the_scenes_own_backdrop(mi, tmp_path, gain):
+@pytest.mark.parametrize("gain, table", [(None, False), (2.0, False), (None, True)])
+def test_outside_its_mask_and_off_the_table_a_photo_is_the_scenes_own_backdrop(mi, tmp_path, gain, table):
     # A black square filling the view under a sky of 0.4; the photo (0.9 everywhere, a
-    # bright cloth behind the specimen) masks only the left half as specimen.
+    # bright cloth behind the specimen) masks only the left half as specimen. With a
+    # table under it (as the scene stage puts one) every ray meets the table first.
     scene = mi.load_dict(
         {
             "type": "scene",
@@ -39,8 +40,11 @@ def test_outside_its_mask_a_photo_is_replaced_by_the_scenes_own_backdrop(mi, tmp
     view = FitView("photo", scene, sensor, photo, np.zeros((K.height, K.width), np.float32), gain=measured)
     window = Window(1.0, 0, 0, K.width, K.height, (K.height, K.width))
 
-    (compared,) = backdrop_views([(view, window)], {"photo": tmp_path / "mask.png"}, spp=4)
+    description = {"ground": {"radius": 10.0} if table else None, "board_print": None}
+    (compared,) = backdrop_views(
+        [(view, window)], {"photo": tmp_path / "mask.png"}, {"photo": (K, pose)}, description, 4
+    )
     np.testing.assert_allclose(compared.reference[:, :16], 0.9)
     # the specimen covers the right half too, but the backdrop is the sky behind it
-    np.testing.assert_allclose(compared.reference[:, 16:], 0.4 * (gain or 1.0), rtol=1e-5)
+    np.testing.assert_allclose(compared.reference[:, 16:], 0.9 if table else 0.4 * (gain or 1.0), rtol=1e-5)
     np.testing.assert_array_equal(compared.weight, 1.0)
