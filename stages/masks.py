@@ -17,9 +17,9 @@ Where the masks come from, first match wins (``masks.source = "auto"``):
 
 Every mask is then cleaned: components smaller than a fraction of the largest are
 removed, and holes smaller than ``max_hole_fraction`` of the silhouette filled (specimen
-pixels taken for backdrop); larger holes are the backdrop seen through the specimen
-and stay open: temple-ring's colonnade, filled, left the visual hull a wall between
-its columns.
+pixels taken for backdrop). By default every hole is: opened at 1 %, temple-ring's
+colonnade carved the hull between its columns but re-rendered 1 dB worse end to end
+(docs/benchmarks.md); a ring-shaped specimen needs its hole open.
 
 ==================  ============================================================
 output              content
@@ -83,9 +83,10 @@ class Config:
     Smaller photos are enlarged, which places their edges to a fraction of a pixel."""
     min_component_fraction: Annotated[float, Range(0.0, 1.0)] = 0.1
     """Components smaller than this fraction of the largest are dropped (dust, board bits)."""
-    max_hole_fraction: Annotated[float, Range(0.0, 1.0)] = 0.01
+    max_hole_fraction: Annotated[float, Range(0.0, 1.0)] = 1.0
     """Holes in the silhouette smaller than this fraction of its area (holes included)
-    are filled; larger ones are kept open. 0 keeps every hole, 1 fills every one."""
+    are filled; larger ones are kept open (the backdrop seen through the specimen: a
+    handle, a colonnade, 0.01 keeps those). 0 keeps every hole, 1 fills every one."""
 
 
 def _user_masks(capture_dir: Path, files: tuple[Path, ...], photos: dict[str, dict]) -> dict[str, Path]:
@@ -237,7 +238,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="masks",
-    version=4,
+    version=3,
     config=Config,
     main=main,
     needs=("undistort.pinhole",),
