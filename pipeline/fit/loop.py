@@ -367,7 +367,7 @@ def run(
         start_error = loop.validate() if loop.validation else None
         record = {"iteration": 0, "seconds": 0.0, "losses": [], "first_loss": {}, "log": [], "stopped": None}
         record["start_error"] = start_error
-        best = {"values": variables.snapshot(), "iteration": 0, "error": start_error}
+        best = {"values": variables.snapshot(), "gains": {}, "iteration": 0, "error": start_error}
     else:
         record = resumed.record
         for name, gain in record.get("gain_estimates", {}).items():  # none in a checkpoint from before cdbbd37
@@ -375,6 +375,7 @@ def run(
         names = [name[len("best/") :] for name in resumed.arrays if name.startswith("best/")]
         best = {
             "values": {name: resumed.arrays[f"best/{name}"] for name in names},
+            "gains": record.get("best_gain_estimates", dict(variables.gain_estimates)),
             "iteration": record["best_iteration"],
             "error": record["best_error"],
         }
@@ -385,7 +386,7 @@ def run(
     stopped = record["stopped"]
 
     def save(iteration: int, why: str | None) -> None:
-        record["gain_estimates"] = variables.gain_estimates
+        record["gain_estimates"], record["best_gain_estimates"] = variables.gain_estimates, best["gains"]
         checkpoint.save_loop(variables.optimizer, record, iteration, started, why, best | {"arrays": best["values"]})
 
     last = settings.iterations if stopped is None else record["iteration"]
@@ -402,6 +403,8 @@ def run(
             for name, _, gain in step_losses:
                 if gain is not None:
                     variables.record_gain(name, np.ravel(np.array(gain, np.float64)))
+            if best["iteration"] == iteration - 1:  # this step rendered the best state: its gains are that state's
+                best["gains"] = dict(variables.gain_estimates)
             relative = 0.0
             for (name, _, _), value in zip(step_losses, values):
                 # Views differ in brightness and size: the stopping rule compares each
@@ -421,9 +424,9 @@ def run(
             if loop.validation and (iteration % settings.validate_every == 0 or iteration == settings.iterations):
                 entry["validation_error"] = loop.validate()
                 if entry["validation_error"] < best["error"]:
-                    best = {"values": variables.snapshot(), "iteration": iteration, "error": entry["validation_error"]}
+                    best = _best(variables, iteration, entry["validation_error"])
             elif not loop.validation:
-                best = {"values": variables.snapshot(), "iteration": iteration, "error": None}
+                best = _best(variables, iteration, None)
             log.append(entry)
             advance(_status(entry, best))
             if on_iteration is not None:
@@ -437,6 +440,10 @@ def run(
     if checkpoint is not None:
         save(len(log), stopped)
     variables.restore(best["values"])
+    # the photos' gains as they were matched to the best state's renders, not the last ones
+    variables.gain_estimates.clear()
+    for name, gain in best["gains"].items():
+        variables.record_gain(name, np.asarray(gain))
     with loop.dr.suspend_grad():
         for scene_key in variables.traversed:
             variables.apply(scene_key)
@@ -468,6 +475,16 @@ def _stop_reason(settings: LoopSettings, losses: list[float], entry: dict) -> st
 
 def _number(value: float | None) -> str:
     return "-" if value is None else f"{value:.4g}"
+
+
+def _best(variables, iteration: int, error: float | None) -> dict:
+    """The state to return to: the values, and each photo's gain as matched so far."""
+    return {
+        "values": variables.snapshot(),
+        "gains": dict(variables.gain_estimates),
+        "iteration": iteration,
+        "error": error,
+    }
 
 
 def _status(entry: dict, best: dict) -> str:

@@ -3,6 +3,7 @@ under a constant sky and one softbox, seen by three 40x30 sensors."""
 
 import json
 import xml.etree.ElementTree as ET
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -526,6 +527,34 @@ def test_each_photos_exposure_is_right_after_its_first_draw(mi, references, tmp_
         result = engine.fit(PARAMETERS, views, [], settings)
         for name, exposure in exposures.items():
             np.testing.assert_allclose(result.photo_gains[name], [exposure] * 3, rtol=0.03, err_msg=loss)
+
+
+def test_the_photos_gains_are_those_of_the_state_the_fit_returns(mi, references, tmp_path):
+    """Started at the truth and stepped far past it (porous-cube's envmap+area candidate
+    was best at step 30 of 150), the fit returns its start: the photos' gains must be
+    the ones matched to that state's renders, not to the last step's (porous-cube's ran
+    to 122 in green and spoiled every stage after)."""
+    exposures = {"ref_0": 0.5, "ref_1": 1.0, "ref_2": 2.0}
+    scene = _scene_file(tmp_path, TRUTH["base_color"], TRUTH["roughness"])
+    views = _views(mi, scene, references / "references")
+    for view in views:
+        view.reference = view.reference * np.float32(exposures[view.name])
+    held = [replace(_views(mi, scene, references / "references")[0], name="held")]
+    settings = engine.FitSettings(
+        iterations=6,
+        batch=3,
+        spp=8,
+        loss="l2",
+        tolerance=0.0,
+        white_balance=True,
+        validate_every=1,
+        validation_spp=32,
+        learning_rate_scale=100.0,
+    )
+    result = engine.fit(PARAMETERS, views, held, settings)
+    assert result.best_iteration == 0
+    for name, exposure in exposures.items():
+        np.testing.assert_allclose(result.photo_gains[name], [exposure] * 3, rtol=0.01)
 
 
 def test_held_out_photos_with_their_own_exposure_are_scored_after_a_matched_gain(mi, references, tmp_path):
