@@ -43,8 +43,7 @@ def _property(parent: ET.Element, name: str, value) -> ET.Element:
 
 def plugin(parent: ET.Element, tag: str, properties: dict, name: str | None = None) -> ET.Element:
     """``<tag type=... id=...>`` with its properties; ``properties`` holds "type",
-    optionally "id", and name -> value, where a dict value is a nested plugin whose
-    tag is its name (a film's ``rfilter``)."""
+    optionally "id", and name -> value."""
     attributes = {"type": properties["type"]}
     if name is not None:
         attributes["name"] = name
@@ -52,9 +51,7 @@ def plugin(parent: ET.Element, tag: str, properties: dict, name: str | None = No
         attributes["id"] = properties["id"]
     element = ET.SubElement(parent, tag, attributes)
     for key, value in properties.items():
-        if isinstance(value, dict):
-            plugin(element, key, value)
-        elif key not in ("type", "id"):
+        if key not in ("type", "id"):
             _property(element, key, value)
     return element
 
@@ -92,25 +89,13 @@ def sensor_properties(
     the film, positive moving the image content left/up; Mitsuba puts pixel
     centres at +0.5, OpenCV at 0). ``crop`` = (x, y, width, height) renders only
     that window of the full image. ``sample_border`` lets geometry that moves across
-    the window's edge be differentiated (projective integrators want it).
-
-    Each pixel is the mean radiance over its square (a box reconstruction filter), as
-    a photo averaged down to the fit's windows is (``cv2.INTER_AREA``); Mitsuba's
-    default Gaussian filter (standard deviation 0.5 px, reaching 2 px) blurs a render
-    beyond its reference: on temple-ring's held-out photos at 128 px the fitted scene
-    re-rendered 0.5 dB closer with the box (docs/benchmarks.md)."""
+    the window's edge be differentiated (projective integrators want it)."""
     if abs(intrinsics.fx - intrinsics.fy) > 1e-3 * intrinsics.fx:
         raise PipelineError(
             f"a camera has fx = {intrinsics.fx:.2f} and fy = {intrinsics.fy:.2f}: Mitsuba's "
             "perspective sensor needs square pixels (rerun undistort and sfm)"
         )
-    film = {
-        "type": "hdrfilm",
-        "width": int(intrinsics.width),
-        "height": int(intrinsics.height),
-        "pixel_format": "rgb",
-        "rfilter": {"type": "box"},
-    }
+    film = {"type": "hdrfilm", "width": int(intrinsics.width), "height": int(intrinsics.height), "pixel_format": "rgb"}
     if sample_border:
         film["sample_border"] = True
     if crop is not None:
