@@ -41,8 +41,7 @@ def silhouette_views(
     )
     result = []
     for view, window in views:
-        mask = (cv2.imread(str(masks[view.name]), cv2.IMREAD_GRAYSCALE) > 127).astype(np.float32)
-        reference = np.repeat(1.0 - window.cut(mask)[..., None], 3, axis=2).astype(np.float32)
+        reference = np.repeat(1.0 - _mask_cover(window, masks[view.name])[..., None], 3, axis=2).astype(np.float32)
         result.append(engine.FitView(view.name, scene, view.sensor, reference, window.inside()))
     return result
 
@@ -83,14 +82,18 @@ def backdrop_views(
         backdrop = np.asarray(mi.render(backdrops[id(view.scene)], sensor=view.sensor, spp=spp), np.float32)[..., :3]
         if view.gain is not None:
             backdrop = backdrop * np.asarray(view.gain, np.float32)
-        mask = cv2.imread(str(masks[view.name]), cv2.IMREAD_GRAYSCALE) > 127
         intrinsics, pose = cameras[view.name]
         photo = np.maximum(
-            window.cut(mask.astype(np.float32)), _on_set(window.intrinsics(intrinsics), pose, description)
+            _mask_cover(window, masks[view.name]), _on_set(window.intrinsics(intrinsics), pose, description)
         )
         reference = photo[..., None] * view.reference + (1 - photo[..., None]) * backdrop
         result.append(replace(view, reference=np.ascontiguousarray(reference, np.float32), weight=window.inside()))
     return result
+
+
+def _mask_cover(window: Window, mask_file: Path) -> np.ndarray:
+    """(h, w) float: the share of each window pixel the photo's mask covers."""
+    return window.cut((cv2.imread(str(mask_file), cv2.IMREAD_GRAYSCALE) > 127).astype(np.float32))
 
 
 def _on_set(camera: Intrinsics, pose: Pose, description: dict) -> np.ndarray:
