@@ -321,6 +321,28 @@ class _Loop:
                 dr.set_grad(value, dr.select(finite, gradient, 0))
                 logger.warning("%s, step %d: non-finite gradient of %s dropped", self.label, iteration, key)
 
+    def match_gains(self) -> None:
+        """Each gained training view's gain matched again, to two renders of the state
+        the scenes stand in (the one the fit returns). A gain matched during the fit is
+        that of the state the step that last drew its view rendered, up to
+        ``len(training) / batch`` steps before; early in a fit over many photos those
+        states differ more than the photos' exposures do (porous-cube's 73 photos, best
+        at step 40: gains 0.34-2.41 as recorded, 0.55-1.36 matched again;
+        docs/benchmarks.md, "The photos' gains matched to the state a fit returns")."""
+        dr, mi = self.dr, self.mi
+        with dr.suspend_grad():
+            for index, view in enumerate(self.training):
+                channels, _ = self.variables.gain_match(view.name, self.one)
+                if not channels:
+                    continue
+                integrator, spp = self.integrator or view.integrator, self.settings.spp
+                image, second = (
+                    mi.render(view.scene, sensor=view.sensor, integrator=integrator, spp=spp, seed=seed(s))
+                    for s in (2 * index, 2 * index + 1)
+                )
+                gain = self.targets[view.name].matched_gain(image, second, channels, dr)
+                self.variables.record_gain(view.name, np.ravel(np.array(gain, np.float64)))
+
     def validate(self) -> float:
         with self.dr.suspend_grad():
             for scene_key in {id(view.scene) for view in self.validation}:
@@ -367,7 +389,7 @@ def run(
         start_error = loop.validate() if loop.validation else None
         record = {"iteration": 0, "seconds": 0.0, "losses": [], "first_loss": {}, "log": [], "stopped": None}
         record["start_error"] = start_error
-        best = {"values": variables.snapshot(), "gains": {}, "iteration": 0, "error": start_error}
+        best = {"values": variables.snapshot(), "iteration": 0, "error": start_error}
     else:
         record = resumed.record
         for name, gain in record.get("gain_estimates", {}).items():  # none in a checkpoint from before cdbbd37
@@ -375,7 +397,6 @@ def run(
         names = [name[len("best/") :] for name in resumed.arrays if name.startswith("best/")]
         best = {
             "values": {name: resumed.arrays[f"best/{name}"] for name in names},
-            "gains": record.get("best_gain_estimates", dict(variables.gain_estimates)),
             "iteration": record["best_iteration"],
             "error": record["best_error"],
         }
@@ -386,7 +407,7 @@ def run(
     stopped = record["stopped"]
 
     def save(iteration: int, why: str | None) -> None:
-        record["gain_estimates"], record["best_gain_estimates"] = variables.gain_estimates, best["gains"]
+        record["gain_estimates"] = variables.gain_estimates
         checkpoint.save_loop(variables.optimizer, record, iteration, started, why, best | {"arrays": best["values"]})
 
     last = settings.iterations if stopped is None else record["iteration"]
@@ -403,8 +424,6 @@ def run(
             for name, _, gain in step_losses:
                 if gain is not None:
                     variables.record_gain(name, np.ravel(np.array(gain, np.float64)))
-            if best["iteration"] == iteration - 1:  # this step rendered the best state: its gains are that state's
-                best["gains"] = dict(variables.gain_estimates)
             relative = 0.0
             for (name, _, _), value in zip(step_losses, values):
                 # Views differ in brightness and size: the stopping rule compares each
@@ -440,13 +459,10 @@ def run(
     if checkpoint is not None:
         save(len(log), stopped)
     variables.restore(best["values"])
-    # the photos' gains as they were matched to the best state's renders, not the last ones
-    variables.gain_estimates.clear()
-    for name, gain in best["gains"].items():
-        variables.record_gain(name, np.asarray(gain))
     with loop.dr.suspend_grad():
         for scene_key in variables.traversed:
             variables.apply(scene_key)
+    loop.match_gains()
     logger.info(
         "%s stopped (%s) after %d steps in %.0f s; best at step %d (held-out error %s -> %s)",
         label,
@@ -478,13 +494,8 @@ def _number(value: float | None) -> str:
 
 
 def _best(variables, iteration: int, error: float | None) -> dict:
-    """The state to return to: the values, and each photo's gain as matched so far."""
-    return {
-        "values": variables.snapshot(),
-        "gains": dict(variables.gain_estimates),
-        "iteration": iteration,
-        "error": error,
-    }
+    """The state to return to."""
+    return {"values": variables.snapshot(), "iteration": iteration, "error": error}
 
 
 def _status(entry: dict, best: dict) -> str:
