@@ -309,7 +309,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_geometry",
-    version=23,
+    version=24,
     config=Config,
     main=main,
     needs=(

@@ -312,7 +312,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_texture",
-    version=21,
+    version=22,
     config=Config,
     main=main,
     needs=(

@@ -11,7 +11,9 @@ busy backdrop is cut back to the specimen (the mesh, a visual hull at first, is
 carved by every mask, so one mask's excess does not reach it). They are then eroded
 by ``erode_px`` at full resolution, so that silhouette pixels, where the mesh's error
 shows, do not count. While a light is estimated on a capture with a board, the board's
-print beside the specimen counts too (BoardPixels).
+print beside the specimen counts too (BoardPixels). A window's render is filtered as
+its photo was made (pixel_filter): the photo's own blur, scaled down with it, and each
+window pixel's average over its square.
 """
 
 from __future__ import annotations
@@ -98,6 +100,23 @@ def mask_windows(
         x, y = (int(round(c)) for c in centre - [width / 2, height / 2])
         windows[name] = Window(scale, x, y, int(width), int(height), masks[name].shape[:2])
     return windows
+
+
+PHOTO_BLUR_PX = 0.75
+"""The photos' own blur at full resolution, as a Gaussian's standard deviation in pixels:
+a lens and demosaicing, and undistortion's bilinear resampling (about 0.4 px alone);
+the synthetic captures' photos are rendered with Mitsuba's 0.5 px filter and resampled
+twice (distortion, then undistortion): about 0.75 px."""
+
+
+def pixel_filter(scale: float) -> dict:
+    """The reconstruction filter of a window's sensor (a ``mi.load_dict`` dict) for
+    photos scaled by ``scale``: a Gaussian whose variance is that of the photo's own
+    blur scaled with it, plus that of a window pixel's square (1/12 px^2: the photo is
+    averaged down over each pixel's square, ``cv2.INTER_AREA``). Mitsuba's default
+    (0.5 px) is about right for photos halved, and blurs a render past a photo averaged
+    down 3-5 times (docs/benchmarks.md, "What a texture can reach")."""
+    return {"type": "gaussian", "stddev": float(np.sqrt(1 / 12 + (PHOTO_BLUR_PX * scale) ** 2))}
 
 
 @dataclass(frozen=True)
@@ -246,6 +265,8 @@ def load_views(
     )
     every = specimen_masks(scene_dir / MESH_PLY, cameras, {n: masks[n] for n in sorted(description["views"])})
     windows = mask_windows(every, max_size, board_margin=BOARD_MARGIN if board else 0.0)
+    # one filter for every window (Dr.Jit bakes it into the kernels), at their median scale
+    rfilter = pixel_filter(float(np.median([w.scale for w in windows.values()]))) if windows else None
     # held out, a render is matched to its photo by a gain (FitView.heldout_gain)
     matched = (gains.channels, gain_range(gains.fitted) if gains.fitted else None) if gains else (0, None)
     views = []
@@ -269,7 +290,12 @@ def load_views(
             scene = shared_scene or mi.load_file(str(scene_dir / description["views"][name]["xml"]))
         sensor = scene_xml.load_sensor(
             scene_xml.sensor_properties(
-                window.intrinsics(intrinsics), pose, spp, description["near_clip"], sample_border=sample_border
+                window.intrinsics(intrinsics),
+                pose,
+                spp,
+                description["near_clip"],
+                sample_border=sample_border,
+                rfilter=rfilter,
             )
         )
         # a held-out photo whose gain was measured: its renders are scaled by it (FitView.gain

@@ -82,6 +82,7 @@ def sensor_properties(
     near_clip: float,
     crop: tuple[int, int, int, int] | None = None,
     sample_border: bool = False,
+    rfilter: dict | None = None,
 ) -> dict:
     """A perspective sensor reproducing a pinhole camera with square pixels, as a
     ``mi.load_dict`` dict (``to_world`` a 4x4 nested list): focal length as
@@ -89,7 +90,9 @@ def sensor_properties(
     the film, positive moving the image content left/up; Mitsuba puts pixel
     centres at +0.5, OpenCV at 0). ``crop`` = (x, y, width, height) renders only
     that window of the full image. ``sample_border`` lets geometry that moves across
-    the window's edge be differentiated (projective integrators want it)."""
+    the window's edge be differentiated (projective integrators want it). ``rfilter``:
+    the film's reconstruction filter as a ``mi.load_dict`` dict (for load_sensor only:
+    the XML writer takes no nested plugin); None: Mitsuba's default Gaussian."""
     if abs(intrinsics.fx - intrinsics.fy) > 1e-3 * intrinsics.fx:
         raise PipelineError(
             f"a camera has fx = {intrinsics.fx:.2f} and fy = {intrinsics.fy:.2f}: Mitsuba's "
@@ -98,6 +101,8 @@ def sensor_properties(
     film = {"type": "hdrfilm", "width": int(intrinsics.width), "height": int(intrinsics.height), "pixel_format": "rgb"}
     if sample_border:
         film["sample_border"] = True
+    if rfilter is not None:
+        film["rfilter"] = rfilter
     if crop is not None:
         film.update(zip(("crop_offset_x", "crop_offset_y", "crop_width", "crop_height"), map(int, crop)))
     return {

@@ -8,8 +8,17 @@ import numpy as np
 import pytest
 import trimesh
 
-from pipeline.camera.model import Pose, scaled
-from pipeline.fit.views import BOARD_MARGIN, BoardPixels, board_weight, mask_windows, specimen_masks, table_gains
+from pipeline.camera.model import Pose, resize_exact, scaled
+from pipeline.fit.views import (
+    BOARD_MARGIN,
+    PHOTO_BLUR_PX,
+    BoardPixels,
+    board_weight,
+    mask_windows,
+    pixel_filter,
+    specimen_masks,
+    table_gains,
+)
 from pipeline.render import scene_xml
 from tests.support.sphere_views import RADIUS, K, ring_poses, sphere_mask, sphere_views
 
@@ -167,3 +176,36 @@ def test_a_held_out_photos_exposure_is_measured_on_the_table(mi, tmp_path):
     # no table in the scene, or no fitted gains: nothing measured
     assert table_gains(tmp_path, description | {"ground": None}, photos, fitted, ["held"], 3) == {}
     assert table_gains(tmp_path, description, photos, {}, ["held"], 3) == {}
+
+
+@pytest.mark.slow
+def test_a_window_averaged_down_from_its_photo_renders_as_sharp_as_the_photo(mi):
+    """A photo of a fine checker (Mitsuba's default filter at full resolution), averaged
+    down four times: the window's filter (pixel_filter) re-renders it closer than
+    Mitsuba's default, which blurs past the averaged photo, and a photo shown at its own
+    resolution keeps about the default (0.5 px)."""
+    pose = Pose.look_at([0.25, 0.1, 0.12], [0.0, 0.0, 0.0], up=[0.0, 0.0, 1.0])
+    checker = {"type": "checkerboard", "to_uv": mi.ScalarTransform4f().scale([24, 24, 1])}
+    scene = mi.load_dict(
+        {
+            "type": "scene",
+            "integrator": {"type": "path", "max_depth": 2},
+            "sky": {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}},
+            "ball": {"type": "sphere", "radius": 0.05, "bsdf": {"type": "diffuse", "reflectance": checker}},
+        }
+    )
+    big = scaled(K, 4.0, exact=True)
+
+    def render(intrinsics, rfilter):
+        properties = scene_xml.sensor_properties(intrinsics, pose, 128, 0.01, rfilter=rfilter)
+        return np.asarray(mi.render(scene, sensor=scene_xml.load_sensor(properties), spp=128, seed=3))
+
+    photo = resize_exact(render(big, None), 0.25)
+    errors = {
+        label: float(np.mean((render(K, rfilter) - photo) ** 2))
+        for label, rfilter in (("window", pixel_filter(0.25)), ("default", None))
+    }
+    # measured: window 0.000026, default 0.000175 (seven times the error)
+    assert errors["window"] < 0.5 * errors["default"], errors
+    assert pixel_filter(1.0)["stddev"] == pytest.approx(np.sqrt(1 / 12 + PHOTO_BLUR_PX**2))
+    assert 0.45 < pixel_filter(0.5)["stddev"] < 0.5  # the sample bird's windows: about the default

@@ -1,0 +1,160 @@
+"""What a capture's mesh, UV atlas and fitted light allow on its held-out photos: the
+ceiling of the held-out PSNR that a texture alone can reach (issue 26, point 4).
+
+For a real capture whose stages up to fit_texture are cached (or run here), the
+base-colour bitmap is baked (pipeline.fit.bake: per texel the least-squares colour of
+the pixels that see it, under fit_texture's light and constants) with the colours
+left unbounded, from
+
+- the held-out photo itself (one bake per held-out photo): what the mesh, the atlas's
+  texels and the render's filter lose of the very photo the texture came from;
+- the training photos (what fit_texture starts from, without the colour's bound);
+- every photo, held-out ones included: the training photos' disagreement with the
+  held-out photo (the mesh's error, view-dependent light, shadows the light misses)
+  added to the first row's losses,
+
+and each is re-rendered in the held-out photo's window and scored as heldout/ is
+(pipeline.synthetic.score.score_heldout: PSNR over the eroded specimen mask; in
+brackets, after an RGB gain matched on the specimen). The first row bounds what any
+texture can give with this mesh and light; the gap from the last row to fit_texture's
+own figure is the texture fit's, the rest the geometry's and the light's.
+
+Usage: ``.venv/bin/python bench/ceiling.py CAPTURE [-s KEY=VALUE ...]`` with the
+overrides its runs used (bench/light.py's REAL), after bin/bootstrap and a
+``pipeline run CAPTURE --until fit_texture`` with them. Prints a
+Markdown table; rewrites the section ``ceiling-NAME`` of docs/benchmarks.md with
+``--write``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+from pathlib import Path
+
+import numpy as np
+from report import write_section
+
+from pipeline.fit.bake import bake_bitmap
+from pipeline.fit.outputs import write_heldout
+from pipeline.fit.views import PhotoGains, load_views
+from pipeline.formats.cameras import read_views
+from pipeline.formats.masks import read_masks
+from pipeline.formats.pinhole import linear_photos
+from pipeline.formats.scene_folder import fitted_description, read_json
+from pipeline.render import materials, mitsuba_variant
+from pipeline.render.materials import SPECIMEN
+from pipeline.synthetic.score import score_heldout
+
+UNBOUNDED = (0.0, 100.0)
+"""The colours' range in these bakes: no texel is cut, so the light's level does not matter."""
+HELDOUT_SPP = 256
+"""Samples per pixel of the scored renders (fit_texture writes heldout/ at 4 x 64)."""
+
+
+def _scored(views: list, texture: np.ndarray | None, key: str, folder: Path) -> dict:
+    """``views`` rendered with ``texture`` as their bitmap (None: as loaded), scored."""
+    import mitsuba as mi
+
+    if texture is not None:
+        for scene in {id(v.scene): v.scene for v in views}.values():
+            params = mi.traverse(scene)
+            params[key] = mi.TensorXf(texture)
+            params.update()
+    write_heldout(views, HELDOUT_SPP, folder)
+    return score_heldout(folder)
+
+
+def cached_outputs(capture: Path, until: str, overrides: list[str]) -> dict:
+    """Each stage's outputs up to ``until``, all cached (a plan takes no lock: a run
+    of later stages may go on beside this)."""
+    from pipeline.core.config import load_config
+    from pipeline.core.runner import Runner, Selection
+    from pipeline.core.sections import schema
+    from stages import STAGES
+
+    plan = Runner(capture, STAGES, load_config(schema(STAGES), capture, "standard", overrides)).plan(
+        Selection(until=until)
+    )
+    if missing := [item.stage.name for item in plan if item.entry is None]:
+        raise SystemExit(f"{capture}: not cached with these settings: {', '.join(missing)} (pipeline run first)")
+    return {item.stage.name: item.entry.outputs for item in plan}
+
+
+def ceiling(capture: Path, overrides: list[str], keep: Path | None = None) -> list[tuple[str, dict]]:
+    """(what the texture came from, score_heldout's scores) per row of the module docstring;
+    each row's heldout/-like folder kept under ``keep`` when given."""
+    import mitsuba as mi
+
+    outputs = cached_outputs(capture, "fit_texture", overrides)
+    material = read_json(outputs["fit_material"]["params"])
+    textured = outputs["fit_texture"]["textured_dir"]
+    bitmap = textured / "base_color.exr"
+    if not bitmap.is_file():
+        raise SystemExit(f"{capture.name}: fit_texture kept no bitmap ({textured}): nothing to bake into")
+    description = fitted_description(read_json(outputs["scene"]["description"]), material)
+    texture_conf = json.loads((outputs["fit_texture"]["params"]).read_text())
+    mitsuba_variant.activate("auto")
+    shape = np.array(mi.Bitmap(str(bitmap))).shape[:2]
+    key = materials.TEXTURE_SLOTS[description["model"]].key
+    photos = (
+        read_views(outputs["sfm"]["cameras"]),
+        linear_photos(outputs["undistort"]["pinhole"]),
+        read_masks(outputs["masks"]["masks_json"]),
+    )
+    gains = PhotoGains.of(material)
+    held = set(material["held_out"])
+    baked = texture_conf.get("baked", {})
+    # the bake's windows and samples as fit_texture's; the scored windows as heldout/'s
+    bake_views = [
+        v for v, _ in load_views(textured, description, *photos, baked.get("max_size", 512), 2, 32, gains=gains)
+    ]
+    for view in bake_views:
+        if view.gain is not None:  # a held-out photo in the scene's units
+            view.reference = view.reference / view.gain.astype(np.float32)
+    scored = [v for v, _ in load_views(textured, description, *photos, 128, 2, 64, names=held, gains=gains)]
+    rows = []
+    with tempfile.TemporaryDirectory() as temporary:
+        folder = keep or temporary
+        Path(folder).mkdir(parents=True, exist_ok=True)
+        rows.append(("fit_texture's texture", _scored(scored, None, key, Path(folder) / "stage")))
+        for name in sorted(held):
+            alone = [v for v in bake_views if v.name == name]
+            texture, _, _ = bake_bitmap(alone, key, SPECIMEN, shape, 32, UNBOUNDED)
+            scores = _scored([v for v in scored if v.name == name], texture, key, Path(folder) / f"self-{name}")
+            rows.append((f"{name} alone (scored on it alone)", scores))
+        for slug, label, subset in (
+            ("training", "the training photos, unbounded", [v for v in bake_views if v.name not in held]),
+            ("every", "every photo, held-out ones too", bake_views),
+        ):
+            texture, _, _ = bake_bitmap(subset, key, SPECIMEN, shape, 32, UNBOUNDED)
+            rows.append((label, _scored(scored, texture, key, Path(folder) / slug)))
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("capture", type=Path)
+    parser.add_argument("-s", "--set", dest="overrides", action="append", default=[])
+    parser.add_argument("--write", action="store_true", help="rewrite docs/benchmarks.md's section")
+    parser.add_argument("--keep", type=Path, help="keep each row's renders, references and masks here")
+    args = parser.parse_args()
+    rows = ceiling(args.capture, args.overrides, args.keep)
+    lines = [
+        f"| texture baked from ({args.capture.name}) | held-out PSNR | per photo |",
+        "|---|---|---|",
+        *(
+            f"| {label} | {s['psnr_db_mean']:.2f} dB ({s['psnr_gain_db_mean']:.2f}) | "
+            + ", ".join(f"{n} {v:.2f}" for n, v in sorted(s["per_view"].items()))
+            + " |"
+            for label, s in rows
+        ),
+    ]
+    print("\n".join(lines))
+    if args.write:
+        write_section(f"ceiling-{args.capture.name}", lines)
+
+
+if __name__ == "__main__":
+    main()
