@@ -7,7 +7,8 @@ Each of ``rounds`` rounds is a geometry pass, then a material pass:
   LargeSteps' differential coordinates, Nicolet et al. 2021), the material frozen.
   Only primary visibility is differentiated (``sppi = 0``): edges seen through
   reflections, refraction and shadows would need a guiding pass per render that
-  costs more than the rest of the step on a CPU.
+  costs more than the rest of the step on a CPU. The moved mesh is kept only if its
+  best held-out error is ``geometry_min_improvement`` (relative) below where it started.
 - Material pass (``material_iterations`` > 0): the constants, and the texture if
   fit_texture kept one, fitted again on the refined mesh with fit_material's loop,
   the geometry frozen; kept only if its best held-out error is
@@ -40,7 +41,7 @@ Outputs, in geometry/ (exported to CAPTURE/output/geometry/), a scene folder
 (pipeline.formats.scene_folder): the scene with the refined mesh.ply (UVs kept)
 and material; params.json (loss, start, per round each pass's held-out error
 before and after, best iteration, non-finite gradient entries dropped
-(skipped_gradients), whether the material pass was kept;
+(skipped_gradients), whether the pass was kept;
 ``params`` and ``bounds`` as in fit_texture's; vertices, seconds); log.jsonl
 (every iteration with its round and pass); loss.png; heldout/ rendered with
 the final scene in windows of ``material_max_size`` pixels, the size fit_material's
@@ -116,6 +117,10 @@ class Config:
     """Samples per pixel of each material-pass render."""
     material_max_size: Annotated[int, Range(16, None)] = 128
     """Longer side, in pixels, of the window each view is rendered in by the material pass."""
+    geometry_min_improvement: Annotated[float, Range(0.0, 1.0)] = 0.02
+    """Relative drop of held-out error a geometry pass must bring for its mesh to
+    replace the one it started from; smaller gains are within the held-out renders'
+    noise, and a mesh moved for them can leave the specimen worse (docs/fit_geometry.md)."""
     material_min_improvement: Annotated[float, Range(0.0, 1.0)] = 0.02
     """Relative drop of held-out error a material pass must bring for its values to
     replace the ones it started from; smaller gains are within the held-out renders' noise."""
@@ -190,14 +195,24 @@ def _rounds(
     for round_index in range(conf.rounds):
         seed = conf.seed + round_index
         shape_settings = _shape_settings(conf, diagonal, seed)
-        shape = shape_pass(geometry, description, loss, views_inputs, held, conf.max_size, shape_settings)
+        shape, moved = shape_pass(
+            geometry,
+            description,
+            loss,
+            views_inputs,
+            held,
+            conf.max_size,
+            shape_settings,
+            conf.geometry_min_improvement,
+        )
         record(shape, round_index, "geometry")
-        rounds.append({"geometry": pass_summary(shape)})
+        rounds.append({"geometry": pass_summary(shape) | {"kept": moved}})
         logger.info(
-            "round %d, geometry: held-out MSE %s -> %s",
+            "round %d, geometry: held-out MSE %s -> %s (%s)",
             round_index + 1,
             shape.start_validation_error,
             shape.validation_error,
+            "kept" if moved else f"gain below {conf.geometry_min_improvement:.0%}, not kept",
         )
         if conf.material_iterations:
             material_settings = _material_settings(conf, seed)
@@ -309,7 +324,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_geometry",
-    version=24,
+    version=25,
     config=Config,
     main=main,
     needs=(

@@ -116,11 +116,13 @@ def shape_pass(
     held: set[str],
     max_size: int,
     settings: engine.ShapeSettings,
-) -> engine.ShapeResult:
+    min_improvement: float,
+) -> tuple[engine.ShapeResult, bool]:
     """Vertices of the scene folder's mesh.ply refined with the scene's material
     frozen, compared by ``loss`` (photometric or silhouette) in windows of at most
-    ``max_size`` px; the mesh written back. ``photos``: (cameras, linear photos, masks,
-    fit_material's PhotoGains)."""
+    ``max_size`` px; the mesh written back when the held-out error drops by
+    ``min_improvement`` (relative). ``photos``: (cameras, linear photos, masks,
+    fit_material's PhotoGains). Returns the fit and whether its mesh was kept."""
     import mitsuba as mi
 
     cameras, linear, masks, gains = photos
@@ -147,8 +149,10 @@ def shape_pass(
         settings,
         mi.load_dict(integrator),
     )
+    if result.validation_error > (1 - min_improvement) * result.start_validation_error:
+        return result, False
     next(s for s in views[0].scene.shapes() if s.id() == "specimen").write_ply(str(geometry / MESH_PLY))
-    return result
+    return result, True
 
 
 def material_pass(
