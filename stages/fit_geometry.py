@@ -180,64 +180,42 @@ def _rounds(
     ``values`` takes a kept material pass's values. Returns (per round summary, log)."""
     rounds, log = [], []
 
-    def record(result, round_index: int, name: str) -> None:
+    def record(result, round_index: int, name: str, kept: bool, threshold: float) -> dict:
+        """A pass's steps into the log and a line into the run's; its summary."""
         offset = len(log)
         log.extend(
-            {
-                "iteration": e["iteration"] + offset,
-                "round": round_index,
-                "pass": name,
-                **{k: v for k, v in e.items() if k != "iteration"},
-            }
+            {"iteration": e["iteration"] + offset, "round": round_index, "pass": name}
+            | {k: v for k, v in e.items() if k != "iteration"}
             for e in result.log
         )
+        logger.info(
+            "round %d, %s: held-out error %s -> %s (%s)",
+            round_index + 1,
+            name,
+            result.start_validation_error,
+            result.validation_error,
+            "kept" if kept else f"gain below {threshold:.0%}, not kept",
+        )
+        return pass_summary(result) | {"kept": kept}
 
     for round_index in range(conf.rounds):
         seed = conf.seed + round_index
+        threshold = conf.geometry_min_improvement
         shape_settings = _shape_settings(conf, diagonal, seed)
         shape, moved = shape_pass(
-            geometry,
-            description,
-            loss,
-            views_inputs,
-            held,
-            conf.max_size,
-            shape_settings,
-            conf.geometry_min_improvement,
+            geometry, description, loss, views_inputs, held, conf.max_size, shape_settings, threshold
         )
-        record(shape, round_index, "geometry")
-        rounds.append({"geometry": pass_summary(shape) | {"kept": moved}})
-        logger.info(
-            "round %d, geometry: held-out MSE %s -> %s (%s)",
-            round_index + 1,
-            shape.start_validation_error,
-            shape.validation_error,
-            "kept" if moved else f"gain below {conf.geometry_min_improvement:.0%}, not kept",
-        )
+        rounds.append({"geometry": record(shape, round_index, "geometry", moved, threshold)})
         if conf.material_iterations:
-            material_settings = _material_settings(conf, seed)
+            threshold = conf.material_min_improvement
+            settings = _material_settings(conf, seed)
+            window = (conf.material_max_size, conf.erode_px)
             refit, kept = material_pass(
-                geometry,
-                description,
-                views_inputs,
-                held,
-                parameters,
-                conf.material_max_size,
-                conf.erode_px,
-                material_settings,
-                conf.material_min_improvement,
+                geometry, description, views_inputs, held, parameters, *window, settings, threshold
             )
-            record(refit, round_index, "material")
-            rounds[-1]["material"] = pass_summary(refit) | {"kept": kept}
+            rounds[-1]["material"] = record(refit, round_index, "material", kept, threshold)
             if kept:
                 values |= refit.values
-            logger.info(
-                "round %d, material: held-out error %s -> %s (%s)",
-                round_index + 1,
-                refit.start_validation_error,
-                refit.validation_error,
-                "kept" if kept else f"gain below {conf.material_min_improvement:.0%}, not kept",
-            )
     return rounds, log
 
 
