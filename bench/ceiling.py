@@ -1,7 +1,7 @@
 """What a capture's mesh, UV atlas and fitted light allow on its held-out photos: the
 ceiling of the held-out PSNR that a texture alone can reach (issue 26, point 4).
 
-For a real capture whose stages up to fit_texture are cached (or run here), the
+For a real capture whose stages up to fit_texture are cached, the
 base-colour bitmap is baked (pipeline.fit.bake: per texel the least-squares colour of
 the pixels that see it, under fit_texture's light and constants) with the colours
 left unbounded, from
@@ -13,11 +13,12 @@ left unbounded, from
   held-out photo (the mesh's error, view-dependent light, shadows the light misses)
   added to the first row's losses,
 
-and each is re-rendered in the held-out photo's window and scored as heldout/ is
-(pipeline.synthetic.score.score_heldout: PSNR over the eroded specimen mask; in
-brackets, after an RGB gain matched on the specimen). The first row bounds what any
-texture can give with this mesh and light; the gap from the last row to fit_texture's
-own figure is the texture fit's, the rest the geometry's and the light's.
+and each is re-rendered in the held-out photo's window (128 px, the presets' fit
+windows) and scored as heldout/ is (pipeline.synthetic.score.score_heldout: PSNR over
+the eroded specimen mask; in brackets, after an RGB gain matched on the specimen). The
+first row bounds what any texture can give with this mesh and light; the gap from the
+training photos' row to fit_texture's own figure is the texture fit's, and that from
+the first row to the training photos' the geometry's and the light's.
 
 Usage: ``.venv/bin/python bench/ceiling.py CAPTURE [-s KEY=VALUE ...]`` with the
 overrides its runs used (bench/light.py's REAL), after bin/bootstrap and a
