@@ -326,16 +326,15 @@ class _Loop:
         the scenes stand in (the one the fit returns). A gain matched during the fit is
         that of the state the step that last drew its view rendered, up to
         ``len(training) / batch`` steps before; early in a fit over many photos those
-        states differ more than the photos' exposures do (porous-cube's 73 photos, best
-        at step 40: gains 0.34-2.41 as recorded, 0.55-1.36 matched again;
-        docs/benchmarks.md, "The photos' gains matched to the state a fit returns")."""
-        dr, mi = self.dr, self.mi
+        states differ more than the photos' exposures do (docs/benchmarks.md, "What a
+        texture can reach, the pixel filter and the geometry pass's threshold", porous-cube)."""
+        dr, mi, spp = self.dr, self.mi, self.settings.spp
         with dr.suspend_grad():
             for index, view in enumerate(self.training):
                 channels, _ = self.variables.gain_match(view.name, self.one)
                 if not channels:
                     continue
-                integrator, spp = self.integrator or view.integrator, self.settings.spp
+                integrator = self.integrator or view.integrator
                 image, second = (
                     mi.render(view.scene, sensor=view.sensor, integrator=integrator, spp=spp, seed=seed(s))
                     for s in (2 * index, 2 * index + 1)
