@@ -231,9 +231,8 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
                 candidates.append(fit(scene_model, start))
     chosen, why = choose(candidates, light.margin, "light")
 
-    # 4. The material model, when the scene leaves it open: opaque under the chosen light
-    # (from principled's fit), volumetric only when principled beat opaque by more than
-    # model_margin; the simplest within the margin of the best is kept. Then the path depth.
+    # 4. The material model, when the scene leaves it open: opaque under the chosen light (from principled's
+    # fit), volumetric only when principled beat opaque by more than model_margin; then the path depth.
     material_candidates, depth = [chosen], None
     if len(models) > 1:
         material_candidates.insert(
@@ -247,6 +246,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         deeper = material.integrator | {"max_depth": 2 * material.integrator["max_depth"]}
         refit = partial(fit, material.model, material.light, material.result.values, deeper)
         material, depth = _deeper(material, heldout_views(material, deeper), conf, refit)
+    material = material.level_in_light()  # the gains' mean into an estimated light: the average photo's level
     model, result = material.model, material.result
 
     # 5. The fitted scene, light, log, held-out exposures (the table's), renders, params.json.

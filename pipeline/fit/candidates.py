@@ -15,8 +15,10 @@ on the same budget, not to convergence.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Literal
+
+import numpy as np
 
 from pipeline.fit.engine import FitResult
 
@@ -47,6 +49,19 @@ class Candidate:
         if of == "depth":
             return f"max_depth {self.integrator['max_depth']}"
         return self.light.model if self.light else "given"
+
+    def level_in_light(self) -> Candidate:
+        """The candidate with its photos' gains' geometric mean (per channel) moved into
+        its estimated light: the gains' logarithms then average 0, so the scene renders
+        at the level of the average photo, and each render times its photo's gain is
+        what it was (every emitter's radiance scales a render exactly). As it is with
+        the light given (its level is the user's: the gains keep theirs) or no gains."""
+        gains = self.result.photo_gains
+        if self.light is None or not gains:
+            return self
+        mean = np.exp(np.mean(np.log(np.asarray(list(gains.values()), np.float64)), axis=0))
+        centred = {name: (np.asarray(gain) / mean).tolist() for name, gain in gains.items()}
+        return replace(self, light=self.light.scaled(mean), result=replace(self.result, photo_gains=centred))
 
     def summary(self, of: Choice) -> dict:
         return {

@@ -39,7 +39,8 @@ class FitResult:
     log: list[dict] = field(default_factory=list)
     photo_gains: dict[str, list[float]] = field(default_factory=dict)
     """Each training photo's RGB gain when exposure or white balance is fitted: the
-    render times it matches the photo (centred: their logarithms average 0)."""
+    render times it matches the photo, as the scenes stand (their geometric mean: how
+    much brighter the photos are than the scene renders, in each channel)."""
     start_validation_error: float | None = None
     """Validation error of the starting values."""
     textures: dict[str, np.ndarray] = field(default_factory=dict)

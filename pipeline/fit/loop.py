@@ -188,24 +188,23 @@ def scaled_dual(image: np.ndarray, second: np.ndarray, view: FitView, gain) -> f
     return float(np.sum(error) / (3 * np.sum(weight)))
 
 
-def view_loss(
-    scene, params, sensor, integrator, spp: int, seeds, gain_channels: int, scale, target: Target, dual, share
-):
-    """One view's loss (``dual``: from two renders, else l2 from one), its gradient
-    backpropagated with weight ``share``, and the gain matched to the renders with
-    ``gain_channels`` (1 or 3; Target.matched_gain; else ``scale`` is returned). The
-    renders are multiplied by ``scale`` and that gain. What changes between calls is a
-    Dr.Jit value or holds them, so that ``dr.freeze`` replays it correctly."""
+def view_loss(scene, params, sensor, integrator, spp: int, seeds, gain_channels: int, target: Target, dual, share):
+    """One view's loss (``dual``: from two renders, else l2 from one) after the renders
+    are multiplied by the gain matched to them with ``gain_channels`` (1 or 3;
+    Target.matched_gain; 0: none, and None returned for it), and its gradient
+    backpropagated with weight ``share``. What changes between calls is a Dr.Jit value
+    or holds them, so that ``dr.freeze`` replays it correctly."""
     import drjit as dr
     import mitsuba as mi
 
     image = mi.render(scene, params, sensor=sensor, integrator=integrator, spp=spp, seed=seeds[0])
     second = mi.render(scene, params, sensor=sensor, integrator=integrator, spp=spp, seed=seeds[1]) if dual else image
-    matched = target.matched_gain(image, second, gain_channels, dr) if gain_channels else scale
-    gain = scale * matched if gain_channels else scale
-    loss = target.dual(image * gain, second * gain, dr) if dual else target.mse(image * gain, dr)
+    gain = target.matched_gain(image, second, gain_channels, dr) if gain_channels else None
+    if gain is not None:
+        image, second = image * gain, second * gain
+    loss = target.dual(image, second, dr) if dual else target.mse(image, dr)
     dr.backward(loss * share)
-    return loss, matched
+    return loss, gain
 
 
 class _Batches:
@@ -243,7 +242,6 @@ class _Loop:
         self.targets = {v.name: Target.of(v, mi, dr) for v in self.training + self.validation}
         self.batches = _Batches(self.training, settings.batch, settings.seed)
         self.share = dr.opaque(mi.Float, 1.0 / self.batches.size)
-        self.one = dr.opaque(mi.Float, 1.0)
         # Frozen functions per loop: their recordings belong to this loop's scenes.
         self.frozen: dict[int, Callable] = {}
         self.skipped = 0
@@ -277,7 +275,7 @@ class _Loop:
         losses = []
         for view, render_seed in self.batches.draw(iteration):
             self.variables.apply(id(view.scene))
-            gain_channels, scale = self.variables.gain_match(view.name, self.one)
+            gain_channels = self.variables.gain_channels_of(view.name)
             arguments = (
                 view.scene,
                 self.variables.traversed[id(view.scene)],
@@ -286,7 +284,6 @@ class _Loop:
                 self.settings.spp,
                 (seed(render_seed), seed(render_seed + 1)),
                 gain_channels,
-                scale,
                 self.targets[view.name],
                 self.settings.loss == "dual",
                 self.share,
@@ -305,7 +302,7 @@ class _Loop:
                 )
                 self.settings = replace(self.settings, freeze=False)
                 loss, gain = view_loss(*arguments)
-            losses.append((view.name, loss, gain if gain_channels else None))
+            losses.append((view.name, loss, gain))
         return losses
 
     def drop_non_finite_gradients(self, iteration: int) -> None:
@@ -331,7 +328,7 @@ class _Loop:
         dr, mi, spp = self.dr, self.mi, self.settings.spp
         with dr.suspend_grad():
             for index, view in enumerate(self.training):
-                channels, _ = self.variables.gain_match(view.name, self.one)
+                channels = self.variables.gain_channels_of(view.name)
                 if not channels:
                     continue
                 integrator = self.integrator or view.integrator

@@ -5,7 +5,7 @@ Both kinds share one protocol: they hold their latents in the loop's optimiser
 inside their bounds after each step (``clamp``), add their priors' gradients
 (``add_priors``), and give (``snapshot``) and take back (``restore``) their values
 as NumPy arrays, which the loop keeps as the best state and checkpoints. They say
-how a view's render is matched to its photo (``gain_match``) and keep the gains
+how a view's render is matched to its photo (``gain_channels_of``) and keep the gains
 matched (``gain_estimates``).
 
 =================  ===========================================================  ==========================
@@ -107,10 +107,16 @@ class MaterialVariables:
     gradient detached, which is exact for the loss minimised over the gain (variable
     projection). A latent gain would get a gradient only on the steps that draw its
     photo, a few in a fit over many photos, and stay near where it started (measured in
-    docs/benchmarks.md, "Real light"). The matched gains are divided by
-    their geometric mean over the views (the latest match of each), so that they move
-    each photo against the others and leave the overall level and colour to the light
-    and the albedo, with which they would trade off exactly."""
+    docs/benchmarks.md, "Real light"). The loss is thereby blind to the overall level
+    and colour of the renders, which the gains trade off exactly with the light and the
+    albedo: those keep their start's (a light held at a measured level, the albedo's
+    guess) unless something of known reflectance is in the loss with a known exposure.
+    The gains are those of the scenes as they stand (render times gain matches the
+    photo); fit_material folds their geometric mean into an estimated light. A pull
+    towards a mean of 1 through the loss acted on gains matched up to
+    ``len(training) / batch`` steps earlier, and Adam's steps of fixed size turned
+    that delay into a limit cycle of the level and colour (docs/benchmarks.md,
+    "The photos' gains without a pull on the level")."""
 
     def __init__(
         self, parameters: list[FitParameter], traversed: dict[int, Any], gain_views: list[str], gain_channels: int = 1
@@ -121,8 +127,7 @@ class MaterialVariables:
         self.parameters, self.traversed, self.dr, self.mi = parameters, traversed, dr, mi
         self.gain_views, self.gain_channels = gain_views, gain_channels
         self.gain_estimates: dict[str, list[float]] = {}
-        """Each gained view's latest matched gain, before the division by their mean."""
-        self._inverse_mean = None  # gain_match's tensor, made once per change of the estimates
+        """Each gained view's latest matched gain."""
         self.optimizer = mi.ad.Adam(lr=0.01)
 
     def register(self, learning_rate_scale: float) -> None:
@@ -201,27 +206,14 @@ class MaterialVariables:
         shift = dr.log(mi.Float(start.astype(np.float32)) / sums)
         return type(latent)(latent.array + dr.gather(mi.Float, shift, channel), latent.shape)
 
-    def gain_match(self, view_name: str, one) -> tuple[int, Any]:
-        """How a training view's render is matched to its photo: the channels of the gain
-        matched to each render (0: none), and what that gain is multiplied by (the
-        inverse of the gains' geometric mean, or ``one``)."""
-        if view_name not in self.gain_views:
-            return 0, one
-        if self._inverse_mean is None:
-            self._inverse_mean = self.mi.TensorXf((1 / self._mean_gain()).astype(np.float32), (self.gain_channels,))
-            self.dr.make_opaque(self._inverse_mean)
-        return self.gain_channels, self._inverse_mean
+    def gain_channels_of(self, view_name: str) -> int:
+        """The channels of the gain a training view's render is matched to its photo by
+        at each render (0: none)."""
+        return self.gain_channels if view_name in self.gain_views else 0
 
     def record_gain(self, view_name: str, gain: np.ndarray) -> None:
         """The gain just matched to ``view_name``'s render (a gained view's)."""
         self.gain_estimates[view_name] = np.broadcast_to(gain, self.gain_channels).astype(float).tolist()
-        self._inverse_mean = None
-
-    def _mean_gain(self) -> np.ndarray:
-        """The geometric mean of the gains matched so far, per channel (1 before any)."""
-        if not self.gain_estimates:
-            return np.ones(self.gain_channels)
-        return np.exp(np.mean(np.log(np.asarray(list(self.gain_estimates.values()))), axis=0))
 
     def add_priors(self) -> None:
         dr = self.dr
@@ -258,11 +250,12 @@ class MaterialVariables:
             self.optimizer[parameter.name] = kind(latent) if value.ndim > 1 else kind(*[float(v) for v in latent])
 
     def gains(self) -> dict[str, list[float]]:
-        """Each view's RGB gain (render times gain matches the photo), divided by their
-        geometric mean; 1 for a view never drawn."""
-        mean = self._mean_gain()
+        """Each view's RGB gain (render times gain matches the photo); for a view never
+        drawn, the geometric mean of the others' (1 before any)."""
+        matched = np.asarray(list(self.gain_estimates.values())) if self.gain_estimates else np.ones((1, 1))
+        mean = np.exp(np.mean(np.log(matched), axis=0))
         return {
-            name: np.broadcast_to(np.asarray(self.gain_estimates.get(name, mean)) / mean, 3).tolist()
+            name: np.broadcast_to(np.asarray(self.gain_estimates.get(name, mean)), 3).tolist()
             for name in self.gain_views
         }
 
@@ -291,9 +284,9 @@ class ShapeVariables:
         self.traversed[scene_key][self.key] = self.dr.ravel(self.steps.from_differential(self.optimizer["u"]))
         self.traversed[scene_key].update()
 
-    def gain_match(self, view_name: str, one) -> tuple[int, Any]:
+    def gain_channels_of(self, view_name: str) -> int:
         """No gains: a shape fit renders the photos as the material fit saw them."""
-        return 0, one
+        return 0
 
     def record_gain(self, view_name: str, gain: np.ndarray) -> None:
         raise AssertionError("a shape fit matches no gains")

@@ -105,6 +105,12 @@ class EstimatedLight:
             frame=self.frame,
         )
 
+    def scaled(self, factor) -> EstimatedLight:
+        """Every radiance times ``factor`` (a number, or one per colour channel)."""
+        factor = np.broadcast_to(np.asarray(factor, np.float32), 3)
+        area = self.area and replace(self.area, radiance=tuple(float(v) for v in factor * self.area.radiance))
+        return replace(self, environment=self.environment * factor, area=area)
+
     def summary(self) -> dict:
         """For the stage's JSON."""
         summary = {
@@ -244,9 +250,7 @@ def rescale_files(scene_dir: Path, report: dict, factor: float, description: dic
     """The light fit_material chose (``report``: its params.json's ``light``; the map in
     ``scene_dir``) times ``factor`` in every scene file of ``scene_dir``, and the table's
     albedo in its specimen file divided by it; the new light's summary."""
-    light = read(report["chosen"], scene_dir)
-    area = light.area and replace(light.area, radiance=tuple(factor * v for v in light.area.radiance))
-    scaled = replace(light, environment=light.environment * np.float32(factor), area=area)
+    scaled = read(report["chosen"], scene_dir).scaled(factor)
     write(scaled, scene_dir, description, poses)
     specimen = scene_dir / SPECIMEN_XML
     for bsdf in [b for b in ET.parse(specimen).iter("bsdf") if b.get("id") == capture_scene.GROUND_BSDF]:

@@ -35,18 +35,22 @@ def test_fit_material_moves_base_colour_toward_the_truth_within_bounds(run_stage
 
 
 def test_white_balance_writes_centred_gains_by_which_the_views_divide_their_photos(run_stages, bird_capture, mi):
-    from pipeline.fit.views import PhotoGains, load_views
+    """With the light estimated, the gains' mean is moved into it: the gains are centred
+    and the scene as written, times a photo's gain, renders like the photo."""
+    from pipeline.fit.loop import matched_gain
+    from pipeline.fit.views import BoardPixels, PhotoGains, load_views
     from pipeline.formats.cameras import read_views
     from pipeline.formats.masks import read_masks
     from pipeline.formats.pinhole import linear_photos
 
-    outputs = run_stages(bird_capture, "fit_material", *TINY_FIT, "fit_material.white_balance=true")
+    overrides = (*TINY_FIT, "fit_material.white_balance=true", "light.model=constant")
+    outputs = run_stages(bird_capture, "fit_material", *overrides)
     params = json.loads(outputs["fit_material"]["params"].read_text())
     gains = params["photo_gains"]
     assert set(gains).isdisjoint(params["held_out"]) and len(gains) >= 3
     logarithms = np.log(np.array(list(gains.values())))
     assert logarithms.shape[1] == 3 and np.all(np.isfinite(logarithms))
-    np.testing.assert_allclose(logarithms.mean(axis=0), 0.0, atol=1e-5)  # centred: the light keeps the level
+    np.testing.assert_allclose(logarithms.mean(axis=0), 0.0, atol=1e-5)  # centred: the light took the level
     name = sorted(gains)[0]
     photos = (
         read_views(outputs["sfm"]["cameras"]),
@@ -64,6 +68,15 @@ def test_white_balance_writes_centred_gains_by_which_the_views_divide_their_phot
     # the range of the training photos' gains
     assert params["gain_channels"] == 3 and (plain.heldout_gain, divided.heldout_gain) == (0, 3)
     assert divided.heldout_gain_range == (0.5, 4.0)
+    # the scene as written renders a training photo divided by its gain (on the pixels
+    # its gain was matched on: the specimen and the board's print beside it)
+    board = BoardPixels(tuple(description["board_print"]), True)
+    fitted = load_views(
+        folder, description, *photos, 48, 2, 4, names={name}, gains=PhotoGains.of(params), board=board
+    )[0][0]
+    render = np.asarray(mi.render(fitted.scene, sensor=fitted.sensor, integrator=fitted.integrator, spp=64))
+    matched = matched_gain(render, render, fitted.reference, fitted.weight[..., None], 3)
+    np.testing.assert_allclose(matched, 1.0, rtol=0.1)
 
 
 def test_fit_material_rejects_bounds_of_unknown_parameters(run_stages, bird_capture):
