@@ -71,9 +71,9 @@ def test_white_balance_writes_centred_gains_by_which_the_views_divide_their_phot
     # the scene as written renders a training photo divided by its gain (on the pixels
     # its gain was matched on: the specimen and the board's print beside it)
     board = BoardPixels(tuple(description["board_print"]), True)
-    fitted = load_views(
-        folder, description, *photos, 48, 2, 4, names={name}, gains=PhotoGains.of(params), board=board
-    )[0][0]
+    fitted = load_views(folder, description, *photos, 48, 2, 4, names={name}, gains=PhotoGains.of(params), board=board)[
+        0
+    ][0]
     render = np.asarray(mi.render(fitted.scene, sensor=fitted.sensor, integrator=fitted.integrator, spp=64))
     matched = matched_gain(render, render, fitted.reference, fitted.weight[..., None], 3)
     np.testing.assert_allclose(matched, 1.0, rtol=0.1)
