@@ -44,8 +44,8 @@ params.json         model (and model_choice: every candidate's held-out error an
                     seconds, why the winner won, and the depth check), the
                     integrator fitted with, fitted values, bounds, units, best
                     iteration, validation error, why it stopped, photo_gains (each training
-                    photo's RGB gain, when exposure or white_balance is fitted;
-                    fit_texture and fit_geometry divide the photos by them;
+                    photo's RGB gain, when exposure or white_balance is fitted: the
+                    render times it is the photo; fit_texture, fit_geometry divide by it;
                     gain_channels: the held-out photos' matched gains;
                     heldout_gains: those measured on the table), the
                     light (chosen model, why, every candidate's error and seconds)
