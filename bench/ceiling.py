@@ -50,8 +50,6 @@ from pipeline.synthetic.score import score_heldout
 
 UNBOUNDED = (0.0, 100.0)
 """The colours' range in these bakes: no texel is cut, so the light's level does not matter."""
-HELDOUT_SPP = 256
-"""Samples per pixel of the scored renders (fit_texture writes heldout/ at 4 x 64)."""
 
 
 def _scored(views: list, texture: np.ndarray | None, key: str, folder: Path) -> dict:
@@ -63,7 +61,7 @@ def _scored(views: list, texture: np.ndarray | None, key: str, folder: Path) -> 
             params = mi.traverse(scene)
             params[key] = mi.TensorXf(texture)
             params.update()
-    write_heldout(views, HELDOUT_SPP, folder)
+    write_heldout(views, folder)
     return score_heldout(folder)
 
 

@@ -131,7 +131,7 @@ class Config:
     validate_every: Annotated[int, Range(1, None)] = 10
     """Iterations between held-out renders (both passes)."""
     validation_spp: Annotated[int, Range(1, None)] = 64
-    """Samples per pixel of held-out renders (and 4x that for heldout/)."""
+    """Samples per pixel of held-out renders (heldout/'s: pipeline.fit.outputs.HELDOUT_SPP)."""
     erode_px: Annotated[int, Range(0, None)] = 2
     """Mask erosion at full resolution of the pixels heldout/ scores (as fit_material's)."""
     seed: int = 0
@@ -275,7 +275,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         names=held,
         gains=PhotoGains.of(material),
     )
-    write_heldout([v for v, _ in final], 4 * conf.validation_spp, geometry / HELDOUT)
+    write_heldout([v for v, _ in final], geometry / HELDOUT)
     write_fit_log(geometry, log)
     positions = trimesh.load(geometry / MESH_PLY, force="mesh", process=False).vertices
     moved = np.linalg.norm(positions - start, axis=1)

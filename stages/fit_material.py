@@ -106,8 +106,8 @@ class Config(FitSettings):
     erode_px: Annotated[int, Range(0, None)] = 2
     """Mask erosion at full resolution before scoring pixels."""
     held_out: Annotated[int, Range(0, None)] = 2
-    """Photos kept out of fitting to measure validation error (their renders at 4x
-    validation_spp are written to heldout/)."""
+    """Photos kept out of fitting to measure validation error (their renders are written
+    to heldout/ at pipeline.fit.outputs.HELDOUT_SPP)."""
     model_margin: Annotated[float, Range(0.0, 1.0)] = 0.02
     """When the scene leaves the material model open (scene.json's model_choice), the
     simplest model whose held-out error is within this fraction of the best one's is
@@ -253,7 +253,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     write_scene(model, result.values, material.light)
     heldout_gains = table_gains(fitted, description, photos, result.photo_gains, material.held, gain_channels)
     held = heldout_views(material, material.integrator, heldout_gains.get("gains"))
-    write_heldout(held, 4 * conf.validation_spp, fitted / HELDOUT)
+    write_heldout(held, fitted / HELDOUT)
     rewrite_integrator(fitted, material.integrator)
     write_fit_log(fitted, result.log)
     material_values = {p.name: result.values[p.name] for p in parameters[model]}

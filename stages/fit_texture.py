@@ -210,7 +210,7 @@ def _baker(conf: Config, slot, shape: tuple[int, ...], fit: TextureFit, material
 def _render_heldout(conf: Config, textured: Path, description: dict, photos: tuple, held: set[str], gains) -> None:
     # the photos' gains: a held-out photo's measured one scales its render
     views = load_views(textured, description, *photos, conf.max_size, conf.erode_px, conf.spp, names=held, gains=gains)
-    write_heldout([view for view, _ in views], 4 * conf.validation_spp, textured / HELDOUT)
+    write_heldout([view for view, _ in views], textured / HELDOUT)
 
 
 @resumable_stage

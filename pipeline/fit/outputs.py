@@ -15,8 +15,14 @@ from pipeline.formats.scene_folder import LOG_JSONL, LOSS_PNG, heldout_files, wr
 from pipeline.imaging.photo_io import to_uint8, write_image
 from pipeline.render import materials
 
+HELDOUT_SPP = 1024
+"""Samples per pixel of the held-out renders written and scored: enough that their PSNR
+measures the scene, not Monte Carlo noise (porous-cube's principled fit, glossy under
+an envmap: 17.4 dB at 128 spp, 20.3 dB at 1024; the sample bird's 21.89 at 256, 21.90
+at 1024)."""
 
-def write_heldout(views: list[engine.FitView], spp: int, folder: Path) -> None:
+
+def write_heldout(views: list[engine.FitView], folder: Path, spp: int = HELDOUT_SPP) -> None:
     """Each view's render at ``spp`` (fixed seeds), its reference and the pixels scored;
     and to look at, the reference, the render and their absolute difference (four times
     brighter) as sRGB PNGs."""
