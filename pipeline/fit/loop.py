@@ -131,10 +131,12 @@ class Target:
         """Deng et al.'s dual-buffer estimator of the squared error of the expected image."""
         return self.mean((image - self.reference) * (second - self.reference), dr)
 
-    def matched_gain(self, image, second, channels: int, dr):
-        """matched_gain on the device, detached: the gain (one, or one per colour channel)
-        minimising the weighted error of the renders (``second`` is ``image`` for l2)."""
-        image, second = dr.detach(image), dr.detach(second)
+    def matched_gain(self, image, second, channels: int, dr, detached: bool = True):
+        """matched_gain on the device: the gain (one, or one per colour channel)
+        minimising the weighted error of the renders (``second`` is ``image`` for l2);
+        ``detached``: without a gradient."""
+        if detached:
+            image, second = dr.detach(image), dr.detach(second)
         axis = (0, 1) if channels == 3 else None
         numerator = dr.sum(self.weight * self.reference * (image + second), axis=axis)
         denominator = 2 * dr.sum(self.weight * image * second, axis=axis)
@@ -188,6 +190,15 @@ def scaled_dual(image: np.ndarray, second: np.ndarray, view: FitView, gain) -> f
     return float(np.sum(error) / (3 * np.sum(weight)))
 
 
+LEVEL_PULL = 1e-2
+"""Weight of each gained photo's squared log gain (the gain matched to its render, with
+its gradient) beside its loss, which the matched gain makes blind to the renders'
+overall level and colour: over the photos it pulls the level to where their gains
+average 1 in logarithm, the average photo's, and keeps the albedo off the flat valley
+along which Adam's noise would walk it (porous-cube's base colour reached its bound
+of 1 without it). The gain is the rendered photo's own, so the pull has no delay."""
+
+
 def view_loss(scene, params, sensor, integrator, spp: int, seeds, gain_channels: int, target: Target, dual, share):
     """One view's loss (``dual``: from two renders, else l2 from one) after the renders
     are multiplied by the gain matched to them with ``gain_channels`` (1 or 3;
@@ -200,10 +211,13 @@ def view_loss(scene, params, sensor, integrator, spp: int, seeds, gain_channels:
     image = mi.render(scene, params, sensor=sensor, integrator=integrator, spp=spp, seed=seeds[0])
     second = mi.render(scene, params, sensor=sensor, integrator=integrator, spp=spp, seed=seeds[1]) if dual else image
     gain = target.matched_gain(image, second, gain_channels, dr) if gain_channels else None
+    pull = 0.0
     if gain is not None:
+        # the level's pull: this photo's gain, fresh, towards 1 (LEVEL_PULL)
+        pull = LEVEL_PULL * dr.mean(dr.square(dr.log(target.matched_gain(image, second, gain_channels, dr, False))))
         image, second = image * gain, second * gain
     loss = target.dual(image, second, dr) if dual else target.mse(image, dr)
-    dr.backward(loss * share)
+    dr.backward((loss + pull) * share)
     return loss, gain
 
 

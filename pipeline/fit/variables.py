@@ -109,14 +109,13 @@ class MaterialVariables:
     photo, a few in a fit over many photos, and stay near where it started (measured in
     docs/benchmarks.md, "Real light"). The loss is thereby blind to the overall level
     and colour of the renders, which the gains trade off exactly with the light and the
-    albedo: those keep their start's (a light held at a measured level, the albedo's
-    guess) unless something of known reflectance is in the loss with a known exposure.
-    The gains are those of the scenes as they stand (render times gain matches the
-    photo); fit_material folds their geometric mean into an estimated light. A pull
-    towards a mean of 1 through the loss acted on gains matched up to
-    ``len(training) / batch`` steps earlier, and Adam's steps of fixed size turned
-    that delay into a limit cycle of the level and colour (docs/benchmarks.md,
-    "The photos' gains without a pull on the level")."""
+    albedo; each rendered photo's own gain pulls them towards 1 (pipeline.fit.loop.LEVEL_PULL),
+    so the level and colour settle at the average photo's. The gains are those of the
+    scenes as they stand (render times gain matches the photo); fit_material moves
+    what is left of their geometric mean into an estimated light. An earlier pull
+    through the gains' mean acted on gains matched up to ``len(training) / batch``
+    steps before, and Adam's steps of fixed size turned that delay into a limit cycle
+    of the level and colour (docs/benchmarks.md, "The photos' gains: a limit cycle")."""
 
     def __init__(
         self, parameters: list[FitParameter], traversed: dict[int, Any], gain_views: list[str], gain_channels: int = 1

@@ -575,14 +575,15 @@ def test_the_photos_gains_are_matched_to_the_state_the_fit_returns(mi, reference
     )
     result = engine.fit(PARAMETERS, views, [], settings)
     assert np.max(np.abs(np.asarray(result.values["base_color"]) - 0.2)) > 0.3, "the state did not move"
-    # The sky left out, nothing in the loss fixes the level and colour: the gains are
-    # those of the state returned, whose colour is wrong, so they share its error; over
-    # their geometric mean (the exposures' is 1) they are the exposures within 5 %
-    # (a white balance gain matches each view's mix of shading and highlight a little
-    # differently: 3 % here; 22 % off when each was matched to the state that drew it).
+    # The sky left out, only the gains' pull (loop.LEVEL_PULL) fixes the level and
+    # colour: the gains are those of the state returned, whose colour is wrong, so they
+    # share its error; over their geometric mean (the exposures' is 1) they are the
+    # exposures within 8 % (a white balance gain matches each view's mix of shading and
+    # highlight a little differently: 5.4 % here; 22 % off when each was matched to the
+    # state that drew it).
     gains = np.asarray([result.photo_gains[name] for name in exposures])
     centred = gains / np.exp(np.log(gains).mean(axis=0))
-    np.testing.assert_allclose(centred, np.repeat([[e] for e in exposures.values()], 3, axis=1), rtol=0.05)
+    np.testing.assert_allclose(centred, np.repeat([[e] for e in exposures.values()], 3, axis=1), rtol=0.08)
     # and each is the one that matches that state's render to its photo
     for index, view in enumerate(views):
         render = np.asarray(mi.render(view.scene, sensor=view.sensor, spp=64, seed=100 + index), np.float64)
@@ -591,14 +592,15 @@ def test_the_photos_gains_are_matched_to_the_state_the_fit_returns(mi, reference
         np.testing.assert_allclose(result.photo_gains[view.name], matched, rtol=0.03)
 
 
-def test_gains_matched_to_many_photos_leave_the_level_alone(mi, references, tmp_path):
-    """Twelve photos at three exposures, one drawn per step, nothing of known radiance in
-    view: the gains take each photo's exposure and the loss, blind to the overall level
-    and colour, stays low. A pull towards gains averaging 1 acted through gains matched
-    up to 12 steps earlier, and Adam's fixed-size steps made the delay a limit cycle:
-    the colour swung (green 0.002-0.83) and the loss of steps 20-60 averaged 0.011,
-    peaking at 0.040 (now 0.0016 and 0.0043; porous-cube: base colour 0.001-0.81, the
-    loss to 0.14)."""
+def test_gains_matched_to_many_photos_pull_the_level_to_the_average_photo_without_a_cycle(mi, references, tmp_path):
+    """Twelve photos at three exposures (their logarithms averaging 0), one drawn per
+    step, nothing of known radiance in view: each photo's gain, fresh, pulls the level
+    towards gains of 1 (loop.LEVEL_PULL), so the fit finds the true colour and the
+    gains average 1, and the loss stays low. A pull through the mean of gains matched
+    up to 12 steps earlier made, with Adam's fixed-size steps, a limit cycle: the colour
+    swung (green 0.002-0.83) and the loss of steps 20-60 averaged 0.011, peaking at
+    0.040 (now about 0.0016 and 0.004; porous-cube: base colour 0.001-0.81, loss to
+    0.14). Without any pull the colour wandered off along the level (red at 1)."""
     exposures = {"ref_0": 0.5, "ref_1": 1.0, "ref_2": 2.0}
     scene = _scene_file(tmp_path, [0.2, 0.2, 0.2], TRUTH["roughness"])
     views = []
@@ -611,6 +613,9 @@ def test_gains_matched_to_many_photos_leave_the_level_alone(mi, references, tmp_
     result = engine.fit(PARAMETERS, views, [], settings)
     late = [entry["loss"] for entry in result.log[20:]]
     assert np.mean(late) < 0.004 and np.max(late) < 0.012, (np.mean(late), np.max(late))
+    gains = np.asarray(list(result.photo_gains.values()))
+    np.testing.assert_allclose(np.exp(np.log(gains).mean(axis=0)), 1.0, atol=0.1)
+    np.testing.assert_allclose(result.values["base_color"], TRUTH["base_color"], atol=0.1)
 
 
 def test_held_out_photos_with_their_own_exposure_are_scored_after_a_matched_gain(mi, references, tmp_path):
