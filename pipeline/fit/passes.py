@@ -149,10 +149,15 @@ def shape_pass(
         settings,
         mi.load_dict(integrator),
     )
-    if result.validation_error > (1 - min_improvement) * result.start_validation_error:
+    if not improved(result, min_improvement):
         return result, False
     next(s for s in views[0].scene.shapes() if s.id() == "specimen").write_ply(str(geometry / MESH_PLY))
     return result, True
+
+
+def improved(result, min_improvement: float) -> bool:
+    """Whether a pass's best held-out error is ``min_improvement`` (relative) below its start's."""
+    return result.validation_error <= (1 - min_improvement) * result.start_validation_error
 
 
 def material_pass(
@@ -176,7 +181,7 @@ def material_pass(
     result = engine.fit(
         parameters, [v for v in views if v.name not in held], [v for v in views if v.name in held], settings
     )
-    if result.validation_error > (1 - min_improvement) * result.start_validation_error:
+    if not improved(result, min_improvement):
         return result, False
     slot = materials.TEXTURE_SLOTS[description["model"]]
     constants = {p.name: result.values[p.name] for p in parameters if p.key != slot.key}
