@@ -302,7 +302,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_geometry",
-    version=25,
+    version=26,
     config=Config,
     main=main,
     needs=(

@@ -320,7 +320,7 @@ def _deeper(material: Candidate, held: list[engine.FitView], conf: Config, refit
 
 STAGE = Stage(
     name="fit_material",
-    version=22,
+    version=23,
     config=Config,
     main=main,
     needs=("scene.scene_dir", "scene.description", "sfm.cameras", "undistort.pinhole", "masks.masks_json"),

@@ -312,7 +312,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_texture",
-    version=22,
+    version=23,
     config=Config,
     main=main,
     needs=(
