@@ -210,11 +210,13 @@ def view_loss(scene, params, sensor, integrator, spp: int, seeds, gain_channels:
 
     image = mi.render(scene, params, sensor=sensor, integrator=integrator, spp=spp, seed=seeds[0])
     second = mi.render(scene, params, sensor=sensor, integrator=integrator, spp=spp, seed=seeds[1]) if dual else image
-    gain = target.matched_gain(image, second, gain_channels, dr) if gain_channels else None
-    pull = 0.0
-    if gain is not None:
-        # the level's pull: this photo's gain, fresh, towards 1 (LEVEL_PULL)
-        pull = LEVEL_PULL * dr.mean(dr.square(dr.log(target.matched_gain(image, second, gain_channels, dr, False))))
+    gain, pull = None, 0.0
+    if gain_channels:
+        # matched with its gradient for the level's pull (this photo's gain, fresh,
+        # towards 1: LEVEL_PULL), detached where it scales the renders
+        attached = target.matched_gain(image, second, gain_channels, dr, detached=False)
+        gain = dr.detach(attached)
+        pull = LEVEL_PULL * dr.mean(dr.square(dr.log(attached)))
         image, second = image * gain, second * gain
     loss = target.dual(image, second, dr) if dual else target.mse(image, dr)
     dr.backward((loss + pull) * share)
