@@ -10,9 +10,9 @@ validation error, and the best-validation state is kept. With ``exposure`` or ``
 by the least-squares gain of as many channels, within the range of the training photos' fitted
 gains: an exposure no fit can know would otherwise outweigh every other error and choose the
 light, model and texture, and a free gain would forgive the fit's level. Once fitted, where the
-scene has the table, each held-out photo's exposure is measured on the table it shows
-(pipeline.fit.views.table_gains): heldout/ and the later stages scale its renders by that
-gain and score them in the photo's own units.
+scene has the table, each held-out photo's exposure is read off the table it shares with the
+nearest training photos (pipeline.fit.exposure): heldout/ and the later stages scale its
+renders by that gain and score them in the photo's own units.
 
 When ``[light] model`` is not given, the light is fitted with the material
 (pipeline.render.light): each model asked for (auto: constant, envmap, envmap+area, simplest
@@ -47,7 +47,7 @@ params.json         model (and model_choice: every candidate's held-out error an
                     photo's RGB gain, when exposure or white_balance is fitted: the
                     render times it is the photo; fit_texture, fit_geometry divide by it;
                     gain_channels: the held-out photos' matched gains;
-                    heldout_gains: those measured on the table), the
+                    heldout_gains: those read off the table), the
                     light (chosen model, why, every candidate's error and seconds)
 environment.exr     the fitted environment map (an envmap light)
 log.jsonl           per iteration: loss, validation error, values, seconds
@@ -57,8 +57,9 @@ heldout/            per held-out photo: NAME.render.exr, NAME.reference.exr (the
                     NAME.reference/render/difference.png to look at
 ==================  =============================================================
 
-Limitations: a constant material (texture is fit_texture's job). Without the table in the
-scene (sfm found no plane), its bounce light is attributed to the specimen; empty masks are skipped.
+Limitations: a constant material (texture is fit_texture's job). Without the table in the scene
+(sfm found no plane) its bounce light goes to the specimen, held-out photos' gains are matched;
+empty masks are skipped.
 """
 
 from __future__ import annotations
@@ -81,9 +82,10 @@ from pipeline.core.stage import Stage, StageInputs, StageResult
 from pipeline.fit import engine
 from pipeline.fit.candidates import Candidate, choose, improves
 from pipeline.fit.checkpoint import resumable_stage
+from pipeline.fit.exposure import table_gains
 from pipeline.fit.outputs import write_fit_log, write_heldout
 from pipeline.fit.settings import FitSettings
-from pipeline.fit.views import BoardPixels, PhotoGains, held_out_names, load_views, table_gains
+from pipeline.fit.views import BoardPixels, PhotoGains, held_out_names, load_views
 from pipeline.formats.cameras import read_views
 from pipeline.formats.masks import read_masks
 from pipeline.formats.pinhole import linear_photos
@@ -150,11 +152,8 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
     # 2. Every photo as a view in its mask's window; a few held out for validation.
     cameras = read_views(inputs.upstream["sfm"]["cameras"])
-    photos = (
-        cameras,
-        linear_photos(inputs.upstream["undistort"]["pinhole"]),
-        read_masks(inputs.upstream["masks"]["masks_json"]),
-    )
+    upstream = inputs.upstream
+    photos = (cameras, linear_photos(upstream["undistort"]["pinhole"]), read_masks(upstream["masks"]["masks_json"]))
 
     initial = {name: entry["value"] for name, entry in description["parameters"].items()}
     poses = {name: pose for name, (_, pose) in cameras.items()}
@@ -251,7 +250,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
     # 5. The fitted scene, light, log, held-out exposures (the table's), renders, params.json.
     write_scene(model, result.values, material.light)
-    heldout_gains = table_gains(fitted, description, photos, result.photo_gains, material.held, gain_channels)
+    heldout_gains = table_gains(description, photos, result.photo_gains, material.held, gain_channels)
     held = heldout_views(material, material.integrator, heldout_gains.get("gains"))
     write_heldout(held, fitted / HELDOUT)
     rewrite_integrator(fitted, material.integrator)
@@ -320,7 +319,7 @@ def _deeper(material: Candidate, held: list[engine.FitView], conf: Config, refit
 
 STAGE = Stage(
     name="fit_material",
-    version=23,
+    version=24,
     config=Config,
     main=main,
     needs=("scene.scene_dir", "scene.description", "sfm.cameras", "undistort.pinhole", "masks.masks_json"),

@@ -28,12 +28,10 @@ import trimesh
 
 from pipeline import logger
 from pipeline.camera.model import Intrinsics, Pose, ground_hits, mesh_coverage, resize_exact, scaled
-from pipeline.core import progress
 from pipeline.fit.loop import FitView, gain_range
 from pipeline.formats.scene_folder import MESH_PLY, SCENE_XML
 from pipeline.imaging.photo_io import read_photo
 from pipeline.render import scene_xml
-from pipeline.render.capture_scene import photo_ratios, table_region
 
 
 @dataclass(frozen=True)
@@ -148,7 +146,7 @@ class PhotoGains:
     of that many channels, within the range of ``fitted``, before its error is scored
     (FitView.heldout_gain), unless ``measured`` has its gain."""
     measured: dict[str, list[float]] = field(default_factory=dict)
-    """Held-out photos' RGB gains measured on the table they show (table_gains): their
+    """Held-out photos' RGB gains measured on the table they show (pipeline.fit.exposure.table_gains): their
     renders are scaled by them (FitView.gain), so that they are scored, as they are
     written, in the photo's own units."""
 
@@ -157,66 +155,6 @@ class PhotoGains:
         """fit_material's params.json's photo_gains, gain_channels and heldout_gains."""
         measured = (params.get("heldout_gains") or {}).get("gains") or {}
         return PhotoGains(params.get("photo_gains") or {}, params.get("gain_channels", 0), measured)
-
-
-CLIPPED = 0.9
-"""Table pixels at or above this linear radiance in a channel (a white table in a phone
-photo reaches the sensor's ceiling) do not measure the exposure."""
-
-
-def table_gains(
-    scene_dir: Path,
-    description: dict,
-    photos: tuple[dict, dict, dict],
-    fitted: dict[str, list[float]],
-    names: list[str],
-    channels: int,
-) -> dict:
-    """The RGB gains of the photos ``names`` (held out: no fit saw them), measured on the
-    table: each photo's table radiance over the fitted scene's render of it (median of
-    photo_ratios), times the factor (median over the training photos) that takes their
-    table ratios to their ``fitted`` gains: the table's albedo was measured under the
-    starting light, so its renders are off by a factor every photo shares. ``photos``:
-    cameras, linear photos and masks. Returns {"gains": by name (photos showing under
-    50 pixels of table left out), "training_error": the median and largest relative
-    error of the gains so predicted for the training photos}; empty without a table in
-    the scene or fitted gains. ``channels`` 1: one gain, the channels' mean."""
-    import mitsuba as mi
-
-    ground = description.get("ground")
-    if not ground or not fitted or not names:
-        return {}
-    cameras, linear, masks = photos
-    region = table_region(ground["radius"], description.get("board_print"))
-    loaded: dict[str, Any] = {}
-
-    def scene_of(name: str):
-        file = str(scene_dir / description["views"][name]["xml"])
-        if file not in loaded:
-            loaded[file] = mi.load_file(file)
-        return loaded[file]
-
-    near_clip = description["near_clip"]
-    training = sorted(fitted)[:: max(1, len(fitted) // 24)]
-    ratios = {}
-    for name in progress.track(training + list(names), "exposure from the table"):
-        found = photo_ratios(scene_of, *cameras[name], linear[name], masks[name], region, near_clip, name, CLIPPED)
-        if found is not None:
-            ratios[name] = np.median(found, axis=0)
-    known = [n for n in training if n in ratios]
-    if not known:
-        return {}
-    factor = np.median([np.asarray(fitted[n]) / ratios[n] for n in known], axis=0)
-
-    def gain(name: str) -> list[float]:
-        value = factor * ratios[name]
-        return [float(v) for v in (np.full(3, value.mean()) if channels == 1 else value)]
-
-    errors = [np.max(np.abs(np.asarray(gain(n)) / np.asarray(fitted[n]) - 1)) for n in known]
-    return {
-        "gains": {n: gain(n) for n in names if n in ratios},
-        "training_error": {"median": float(np.median(errors)), "max": float(np.max(errors)), "photos": len(known)},
-    }
 
 
 BOARD_MARGIN = 0.3

@@ -17,10 +17,9 @@ from pipeline.fit.views import (
     mask_windows,
     pixel_filter,
     specimen_masks,
-    table_gains,
 )
 from pipeline.render import scene_xml
-from tests.support.sphere_views import RADIUS, K, ring_poses, sphere_mask, sphere_views
+from tests.support.sphere_views import RADIUS, K, sphere_mask, sphere_views
 
 
 def _box_mask(shape, x0, y0, x1, y1):
@@ -124,58 +123,6 @@ def test_the_boards_print_counts_outside_the_specimen_and_widens_the_window():
         assert np.all(np.abs(hits[:, :2]) < [0.12, 0.09])
         assert not (weight & (window.cut(view.mask.astype(np.float32)) > 0)).any()
         assert weight.sum() > 0.1 * weight.size  # the cameras look down on the print round the sphere
-
-
-def _table_capture(folder, exposures: dict[str, float]):
-    """A sphere on a table disk of albedo 0.5 under a sky, seen by ring cameras; each
-    photo the render of the same sphere on a table of albedo 0.8, times its exposure:
-    the scene's table is off by 0.8 / 0.5, as a table measured under the wrong light."""
-    import mitsuba as mi
-
-    from pipeline.imaging.photo_io import write_image
-
-    def scene_file(path, table_albedo):
-        root = scene_xml.new_scene()
-        scene_xml.plugin(root, "integrator", {"type": "path", "id": "integrator", "max_depth": 3})
-        scene_xml.plugin(root, "emitter", {"type": "constant", "id": "sky", "radiance": (0.6, 0.5, 0.4)})
-        sphere = scene_xml.plugin(root, "shape", {"type": "sphere", "id": "specimen", "radius": RADIUS})
-        scene_xml.plugin(sphere, "bsdf", {"type": "diffuse", "id": "specimen_bsdf", "reflectance": (0.3, 0.3, 0.3)})
-        disk = scene_xml.plugin(root, "shape", {"type": "disk", "id": "ground"})
-        scene_xml.transform_matrix(disk, np.diag([0.5, 0.5, 1.0, 1.0]))
-        scene_xml.plugin(disk, "bsdf", {"type": "diffuse", "id": "ground_bsdf", "reflectance": (table_albedo,) * 3})
-        return scene_xml.write(root, path)
-
-    folder.mkdir(exist_ok=True)
-    truth = mi.load_file(str(scene_file(folder / "truth.xml", 0.8)))
-    scene_file(folder / "scene.xml", 0.5)
-    cameras, linear, masks = {}, {}, {}
-    poses = ring_poses(len(exposures), 0.3, 30.0, 45.0)
-    for (name, exposure), pose in zip(sorted(exposures.items()), poses):
-        sensor = scene_xml.load_sensor(scene_xml.sensor_properties(K, pose, 64, 0.01))
-        photo = exposure * np.asarray(mi.render(truth, sensor=sensor, spp=64, seed=3), np.float32)
-        cameras[name], linear[name] = (K, pose), write_image(folder / f"{name}.exr", photo)
-        masks[name] = folder / f"{name}.png"
-        cv2.imwrite(str(masks[name]), sphere_mask(pose).astype(np.uint8) * 255)
-    description = {"ground": {"radius": 0.5}, "views": {n: {"xml": "scene.xml"} for n in exposures}, "near_clip": 0.01}
-    return description, (cameras, linear, masks)
-
-
-@pytest.mark.slow
-def test_a_held_out_photos_exposure_is_measured_on_the_table(mi, tmp_path):
-    """Training photos at exposures 1.0, 1.25 and 0.8 (their fitted gains), a held-out one at
-    0.5: the table, though the scene's is off by a factor, gives the held-out gain (RGB,
-    or one gain), and predicts the training gains it was calibrated on."""
-    exposures = {"a": 1.0, "b": 1.25, "c": 0.8, "held": 0.5}
-    description, photos = _table_capture(tmp_path, exposures)
-    fitted = {n: [e] * 3 for n, e in exposures.items() if n != "held"}
-    measured = table_gains(tmp_path, description, photos, fitted, ["held"], 3)
-    np.testing.assert_allclose(measured["gains"]["held"], [0.5] * 3, rtol=0.03)
-    assert measured["training_error"]["photos"] == 3 and measured["training_error"]["max"] < 0.03
-    single = table_gains(tmp_path, description, photos, fitted, ["held"], 1)["gains"]["held"]
-    assert single[0] == single[1] == single[2] == pytest.approx(0.5, rel=0.03)
-    # no table in the scene, or no fitted gains: nothing measured
-    assert table_gains(tmp_path, description | {"ground": None}, photos, fitted, ["held"], 3) == {}
-    assert table_gains(tmp_path, description, photos, {}, ["held"], 3) == {}
 
 
 @pytest.mark.slow
