@@ -74,8 +74,8 @@ class FitView:
     would forgive the fit's overall level, which only the training photos fix; None:
     the range of the gains being fitted alongside."""
     gain: np.ndarray | None = None
-    """Held out, its photo's RGB gain when known beforehand (measured on the table it
-    shows): its renders are scaled by it before they are scored (instead of
+    """Held out, its photo's RGB gain when known beforehand (read off the table,
+    pipeline.fit.exposure): its renders are scaled by it before they are scored (instead of
     ``heldout_gain``'s match) or written. None: not known."""
 
 

@@ -146,9 +146,9 @@ class PhotoGains:
     of that many channels, within the range of ``fitted``, before its error is scored
     (FitView.heldout_gain), unless ``measured`` has its gain."""
     measured: dict[str, list[float]] = field(default_factory=dict)
-    """Held-out photos' RGB gains measured on the table they show (pipeline.fit.exposure.table_gains): their
-    renders are scaled by them (FitView.gain), so that they are scored, as they are
-    written, in the photo's own units."""
+    """Held-out photos' RGB gains read off the table they share with the training photos
+    (pipeline.fit.exposure): their renders are scaled by them (FitView.gain), so that
+    they are scored, as they are written, in the photo's own units."""
 
     @staticmethod
     def of(params: dict) -> PhotoGains:
