@@ -319,7 +319,7 @@ def _deeper(material: Candidate, held: list[engine.FitView], conf: Config, refit
 
 STAGE = Stage(
     name="fit_material",
-    version=24,
+    version=25,
     config=Config,
     main=main,
     needs=("scene.scene_dir", "scene.description", "sfm.cameras", "undistort.pinhole", "masks.masks_json"),

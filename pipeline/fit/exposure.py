@@ -94,9 +94,11 @@ def exposure_ratio(photo: TablePixels, other: TablePixels) -> np.ndarray | None:
     return np.median(photo.values[inside][shared] / theirs[shared], axis=0)
 
 
-def predicted_gain(name: str, pixels: dict[str, TablePixels], fitted: dict[str, list[float]]) -> np.ndarray | None:
-    """``name``'s RGB gain from the NEAREST photos of ``fitted`` (not itself) that share
-    table with it: the median of their fitted gains times the exposure ratios."""
+def predicted_gain(
+    name: str, pixels: dict[str, TablePixels], fitted: dict[str, list[float]], nearest: int = NEAREST
+) -> np.ndarray | None:
+    """``name``'s RGB gain from the ``nearest`` photos of ``fitted`` (not itself) that
+    share table with it: the median of their fitted gains times the exposure ratios."""
     center = pixels[name].pose.center
     others = sorted((n for n in fitted if n != name), key=lambda n: np.linalg.norm(pixels[n].pose.center - center))
     estimates = []
@@ -104,7 +106,7 @@ def predicted_gain(name: str, pixels: dict[str, TablePixels], fitted: dict[str, 
         ratio = exposure_ratio(pixels[name], pixels[other])
         if ratio is not None:
             estimates.append(ratio * np.asarray(fitted[other]))
-        if len(estimates) == NEAREST:
+        if len(estimates) == nearest:
             break
     return np.median(estimates, axis=0) if estimates else None
 
@@ -115,14 +117,16 @@ def table_gains(
     fitted: dict[str, list[float]],
     names: list[str],
     channels: int,
+    nearest: int = NEAREST,
 ) -> dict:
     """The RGB gains of the photos ``names`` (held out: no fit saw them), from the table
     they share with the training photos (predicted_gain). ``photos``: cameras, linear
     photos and masks; ``fitted``: the training photos' gains. Returns {"gains": by name
-    (photos that share too little table left out), "training_error": the median and
-    largest relative error of each training photo's gain predicted from the others};
+    (photos that share too little table left out), "training_error": the median, 90th
+    percentile and largest relative error of each training photo's gain predicted from
+    the others};
     empty without a table in the scene or fitted gains. ``channels`` 1: one gain, the
-    channels' mean."""
+    channels' mean; ``nearest``: predicted_gain's."""
     ground = description.get("ground")
     if not ground or not fitted or not names:
         return {}
@@ -134,7 +138,7 @@ def table_gains(
     }
 
     def gain(name: str) -> np.ndarray | None:
-        value = predicted_gain(name, pixels, fitted)
+        value = predicted_gain(name, pixels, fitted, nearest)
         if value is None or channels != 1:
             return value
         return np.full(3, value.mean())
@@ -146,5 +150,10 @@ def table_gains(
     held = {n: gain(n) for n in names}
     return {
         "gains": {n: [float(v) for v in g] for n, g in held.items() if g is not None},
-        "training_error": {"median": float(np.median(errors)), "max": float(np.max(errors)), "photos": len(errors)},
+        "training_error": {
+            "median": float(np.median(errors)),
+            "p90": float(np.percentile(errors, 90)),
+            "max": float(np.max(errors)),
+            "photos": len(errors),
+        },
     }

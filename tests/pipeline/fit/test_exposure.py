@@ -64,7 +64,8 @@ def test_a_held_out_photos_exposure_is_read_off_the_table_it_shares(mi, tmp_path
     fitted = {n: list(e * WHITE_BALANCE) for n, e in exposures.items() if n != "held"}
     measured = table_gains(description, photos, fitted, ["held"], 3)
     np.testing.assert_allclose(measured["gains"]["held"], 0.45 * WHITE_BALANCE, rtol=0.03)
-    assert measured["training_error"]["photos"] == 7 and measured["training_error"]["max"] < 0.03
+    error = measured["training_error"]
+    assert error["photos"] == 7 and error["median"] <= error["p90"] <= error["max"] < 0.03
     single = table_gains(description, photos, {n: [np.mean(g)] * 3 for n, g in fitted.items()}, ["held"], 1)
     assert single["gains"]["held"] == pytest.approx([0.45] * 3, rel=0.03)
     # a photo that shows no table (its mask covers the frame) gets no gain; no table in the

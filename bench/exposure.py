@@ -1,0 +1,61 @@
+"""How well a held-out photo's exposure is read off the table it shares with the training
+photos (pipeline.fit.exposure), for several numbers of nearest cameras: each training
+photo's gain predicted from the others (leave one out) against the gain fit_material
+fitted to it, and the held-out photos' predicted gains.
+
+Usage: ``.venv/bin/python bench/exposure.py CAPTURE [-s KEY=VALUE ...]`` with the
+overrides its runs used (bench/light.py's REAL), after bin/bootstrap and a
+``pipeline run CAPTURE --until fit_material`` with them, on a capture whose photos'
+gains are fitted (``fit_material.exposure`` or ``white_balance``). Prints a Markdown
+table.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ceiling import cached_outputs
+
+from pipeline.fit.exposure import NEAREST, table_gains
+from pipeline.formats.cameras import read_views
+from pipeline.formats.masks import read_masks
+from pipeline.formats.pinhole import linear_photos
+from pipeline.formats.scene_folder import read_json
+
+COUNTS = (2, 3, 4, 6, 10)
+"""Numbers of nearest cameras compared."""
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("capture", type=Path)
+    parser.add_argument("-s", "--set", dest="overrides", action="append", default=[])
+    args = parser.parse_args()
+    outputs = cached_outputs(args.capture, "fit_material", args.overrides)
+    params = read_json(outputs["fit_material"]["params"])
+    if not params.get("photo_gains"):
+        raise SystemExit(f"{args.capture}: fit_material fitted no photo gains (fit_material.exposure, white_balance)")
+    photos = (
+        read_views(outputs["sfm"]["cameras"]),
+        linear_photos(outputs["undistort"]["pinhole"]),
+        read_masks(outputs["masks"]["masks_json"]),
+    )
+    description = read_json(outputs["scene"]["description"])
+    held = params["held_out"]
+    print(f"| nearest cameras ({args.capture.name}) | median | 90th percentile | largest | " + " | ".join(held) + " |")
+    print("|---|---|---|---|" + "---|" * len(held))
+    for count in COUNTS:
+        found = table_gains(description, photos, params["photo_gains"], held, 3, count)
+        error = found["training_error"]
+        gains = [found["gains"].get(name) for name in held]
+        cells = [f"{min(g):.2f}-{max(g):.2f}" if g else "none" for g in gains]
+        kept = " (kept)" if count == NEAREST else ""
+        print(
+            f"| {count}{kept} | {100 * error['median']:.1f} % | {100 * error['p90']:.1f} % | "
+            f"{100 * error['max']:.1f} % | " + " | ".join(cells) + " |"
+        )
+
+
+if __name__ == "__main__":
+    main()
