@@ -7,7 +7,7 @@ Usage: ``.venv/bin/python bench/exposure.py CAPTURE [-s KEY=VALUE ...]`` with th
 overrides its runs used (bench/light.py's REAL), after bin/bootstrap and a
 ``pipeline run CAPTURE --until fit_material`` with them, on a capture whose photos'
 gains are fitted (``fit_material.exposure`` or ``white_balance``). Prints a Markdown
-table.
+table; rewrites the section ``exposure-NAME`` of docs/benchmarks.md with ``--write``.
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ import argparse
 from pathlib import Path
 
 from ceiling import cached_outputs
+from report import write_section
 
 from pipeline.fit.exposure import NEAREST, table_gains
 from pipeline.formats.cameras import read_views
@@ -31,6 +32,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("capture", type=Path)
     parser.add_argument("-s", "--set", dest="overrides", action="append", default=[])
+    parser.add_argument("--write", action="store_true", help="rewrite docs/benchmarks.md's section")
     args = parser.parse_args()
     outputs = cached_outputs(args.capture, "fit_material", args.overrides)
     params = read_json(outputs["fit_material"]["params"])
@@ -43,18 +45,23 @@ def main() -> None:
     )
     description = read_json(outputs["scene"]["description"])
     held = params["held_out"]
-    print(f"| nearest cameras ({args.capture.name}) | median | 90th percentile | largest | " + " | ".join(held) + " |")
-    print("|---|---|---|---|" + "---|" * len(held))
+    lines = [
+        f"| nearest cameras ({args.capture.name}) | median | 90th percentile | largest | " + " | ".join(held) + " |",
+        "|---|---|---|---|" + "---|" * len(held),
+    ]
     for count in COUNTS:
         found = table_gains(description, photos, params["photo_gains"], held, 3, count)
         error = found["training_error"]
         gains = [found["gains"].get(name) for name in held]
         cells = [f"{min(g):.2f}-{max(g):.2f}" if g else "none" for g in gains]
         kept = " (kept)" if count == NEAREST else ""
-        print(
+        lines.append(
             f"| {count}{kept} | {100 * error['median']:.1f} % | {100 * error['p90']:.1f} % | "
             f"{100 * error['max']:.1f} % | " + " | ".join(cells) + " |"
         )
+    print("\n".join(lines))
+    if args.write:
+        write_section(f"exposure-{args.capture.name}", lines)
 
 
 if __name__ == "__main__":
