@@ -51,6 +51,8 @@ def main() -> None:
     ]
     for count in COUNTS:
         found = table_gains(description, photos, params["photo_gains"], held, 3, count)
+        if not found:
+            raise SystemExit(f"{args.capture}: its scene has no table, or no two photos share enough of it")
         error = found["training_error"]
         gains = [found["gains"].get(name) for name in held]
         cells = [f"{min(g):.2f}-{max(g):.2f}" if g else "none" for g in gains]
