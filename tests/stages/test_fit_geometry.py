@@ -94,7 +94,10 @@ def test_fit_geometry_alternates_shape_and_material_and_the_scene_holds_the_resu
         assert steps[-1][name] != textured["params"][name], name
     vertices = np.asarray(scene["specimen.vertex_positions"]).reshape(-1, 3)
     hull = trimesh.load(outputs["fit_texture"]["textured_dir"] / "mesh.ply", process=False).vertices
-    assert vertices.shape == hull.shape and report["median_vertex_move_of_diagonal"] > 0
+    # four steps a pass may end the specimen's error where it started, to the renders'
+    # noise: then the start scene is kept whole (tested on its own below)
+    assert vertices.shape == hull.shape
+    assert (report["median_vertex_move_of_diagonal"] > 0) == report["kept"]
 
 
 def test_a_material_pass_below_the_minimum_gain_leaves_the_material_as_it_was(run_stages, bird_capture, mi):
