@@ -25,10 +25,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipeline.camera.model import Intrinsics, Pose, ground_hits, project, resize_exact, scaled
+from pipeline.camera.model import Intrinsics, Pose, ground_hits, project
 from pipeline.core import progress
-from pipeline.imaging.photo_io import read_photo
-from pipeline.render.capture_scene import table_region
+from pipeline.render.capture_scene import photo_at_most, table_region
 
 CLIPPED = 0.9
 """Table pixels at or above this linear radiance in a channel (a white table in a phone
@@ -64,11 +63,7 @@ class TablePixels:
 def table_pixels(intrinsics: Intrinsics, pose: Pose, photo: Path, mask: Path, region) -> TablePixels:
     """``photo`` (linear) and its specimen ``mask`` at PHOTO_PX, with the table points
     ``region`` selects whose radiance is measurable (DARK to CLIPPED in every channel)."""
-    scale = min(1.0, PHOTO_PX / max(intrinsics.width, intrinsics.height))
-    small = scaled(intrinsics, scale, exact=True)
-    radiance = resize_exact(read_photo(photo).pixels, scale)[: small.height, : small.width]
-    specimen = cv2.imread(str(mask), cv2.IMREAD_GRAYSCALE) > 127
-    specimen = resize_exact(specimen.astype(np.float32), scale)[: small.height, : small.width] > 0.5
+    small, radiance, specimen = photo_at_most(intrinsics, photo, mask, PHOTO_PX)
     specimen = cv2.dilate(specimen.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
     hits, distance = ground_hits(small, pose)
     seen = region(hits, distance > 0, specimen) & _measurable(radiance)

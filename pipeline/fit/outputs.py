@@ -22,15 +22,16 @@ an envmap: 17.4 dB at 128 spp, 20.3 dB at 1024; the sample bird's 21.89 at 256, 
 at 1024)."""
 
 
-def write_heldout(views: list[engine.FitView], folder: Path, spp: int = HELDOUT_SPP) -> None:
-    """Each view's render at ``spp`` (fixed seeds), its reference and the pixels scored;
+def write_heldout(views: list[engine.FitView], folder: Path) -> None:
+    """Each view's render at HELDOUT_SPP (fixed seeds), its reference and the pixels scored;
     and to look at, the reference, the render and their absolute difference (four times
     brighter) as sRGB PNGs."""
     import mitsuba as mi
 
     folder.mkdir()
     for index, view in enumerate(views):
-        render = mi.render(view.scene, sensor=view.sensor, integrator=view.integrator, spp=spp, seed=10_000 + index)
+        seed = 10_000 + index
+        render = mi.render(view.scene, sensor=view.sensor, integrator=view.integrator, spp=HELDOUT_SPP, seed=seed)
         # a held-out photo's known gain: the render as the photo's exposure shows it
         image = np.asarray(render, dtype=np.float32) * np.float32(1.0 if view.gain is None else view.gain)
         render_path, reference_path, mask_path = heldout_files(folder, view.name)

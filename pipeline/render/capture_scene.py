@@ -194,6 +194,19 @@ def _dilated(mask: np.ndarray) -> np.ndarray:
     return cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
 
 
+def photo_at_most(
+    intrinsics: Intrinsics, photo: Path, mask: Path, longest: int
+) -> tuple[Intrinsics, np.ndarray, np.ndarray]:
+    """The camera, the linear ``photo`` and its specimen ``mask`` (boolean) scaled
+    down (never up) to ``longest`` pixels on the longer side."""
+    scale = min(1.0, longest / max(intrinsics.width, intrinsics.height))
+    small = scaled(intrinsics, scale, exact=True)
+    pixels = resize_exact(read_photo(photo).pixels, scale)[: small.height, : small.width]
+    specimen = cv2.imread(str(mask), cv2.IMREAD_GRAYSCALE) > 127
+    specimen = resize_exact(specimen.astype(np.float32), scale)[: small.height, : small.width] > 0.5
+    return small, pixels, specimen
+
+
 def photo_ratios(
     load_scene: Callable[[str], object],
     intrinsics: Intrinsics,
@@ -210,17 +223,13 @@ def photo_ratios(
     ``below`` in every channel; None when the photo shows fewer than 50 of them."""
     import mitsuba as mi
 
-    scale = min(1.0, 160 / max(intrinsics.width, intrinsics.height))
-    small = scaled(intrinsics, scale, exact=True)
+    small, pixels, specimen = photo_at_most(intrinsics, photo, mask, 160)
     hits, distance = ground_hits(small, pose)
-    specimen = cv2.imread(str(mask), cv2.IMREAD_GRAYSCALE) > 127
-    specimen = resize_exact(specimen.astype(np.float32), scale)[: small.height, : small.width] > 0.5
     seen = region(hits, distance > 0, specimen)
     if np.count_nonzero(seen) < 50:
         return None
     sensor = scene_xml.load_sensor(scene_xml.sensor_properties(small, pose, 64, near_clip))
     rendered = np.asarray(mi.render(load_scene(name), sensor=sensor, spp=64), dtype=np.float32)
-    pixels = resize_exact(read_photo(photo).pixels, scale)[: small.height, : small.width]
     seen &= np.all(pixels < below, axis=-1)
     if np.count_nonzero(seen) < 50:
         return None
