@@ -12,6 +12,9 @@ left unbounded, from
 - every photo, held-out ones included: the training photos' disagreement with the
   held-out photo (the mesh's error, view-dependent light, shadows the light misses)
   added to the first row's losses,
+- the N training photos whose cameras are nearest the held-out photo's (``--nearest``,
+  each scored on its held-out photo alone): how much of that disagreement comes with
+  the camera's place (such a texture is one per view, not one material),
 
 and each is re-rendered in the held-out photo's window (128 px, the presets' fit
 windows) and scored as heldout/ is (pipeline.synthetic.score.score_heldout: PSNR over
@@ -20,7 +23,14 @@ first row bounds what any texture can give with this mesh and light; the gap fro
 training photos' row to fit_texture's own figure is the texture fit's, and that from
 the first row to the training photos' the geometry's and the light's.
 
-Usage: ``.venv/bin/python bench/ceiling.py CAPTURE [-s KEY=VALUE ...]`` with the
+``--photographer DISTANCE:RADIUS`` puts a black disk into every view's scene, for the
+bakes and the scored renders alike: RADIUS times the camera's distance from the
+specimen's centre across, DISTANCE times that distance behind the camera, facing the
+specimen: an occluder that moves with the camera (the photographer's body, a gantry's
+arm), which shades the side of the specimen the camera faces.
+
+Usage: ``.venv/bin/python bench/ceiling.py CAPTURE [-s KEY=VALUE ...] [--nearest 2,4,8]
+[--photographer 1:0.5]`` with the
 overrides its runs used (bench/light.py's REAL), after bin/bootstrap and a
 ``pipeline run CAPTURE --until fit_texture`` with them. Prints a
 Markdown table; rewrites the section ``ceiling-NAME`` of docs/benchmarks.md with
@@ -31,6 +41,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import tempfile
 from pathlib import Path
 
@@ -65,6 +76,31 @@ def _scored(views: list, texture: np.ndarray | None, key: str, folder: Path) -> 
     return score_heldout(folder)
 
 
+def photographer_scenes(textured: Path, description: dict, cameras: dict, distance: float, radius: float) -> dict:
+    """Each view's scene (its XML without the sensor) with a black disk behind its camera
+    (the module docstring's ``--photographer``)."""
+    import mitsuba as mi
+
+    box = mi.load_dict({"type": "ply", "filename": str(textured / "mesh.ply")}).bbox()
+    centre = (np.array(box.min) + np.array(box.max)) / 2
+    mi.file_resolver().prepend(str(textured))
+    scenes = {}
+    for name, view in description["views"].items():
+        camera = np.asarray(cameras[name][1].center, float)
+        away = camera - centre
+        reach = float(np.linalg.norm(away))
+        at = camera + distance * away
+        disk = (
+            f'<shape type="disk" id="photographer"><transform name="to_world">'
+            f'<scale value="{radius * reach} {radius * reach} 1"/>'
+            f'<lookat origin="{at[0]} {at[1]} {at[2]}" target="{centre[0]} {centre[1]} {centre[2]}" up="0 0 1"/>'
+            '</transform><bsdf type="diffuse" id="photographer_bsdf"><rgb name="reflectance" value="0"/></bsdf></shape>'
+        )
+        xml = re.sub(r"\s*<sensor .*?</sensor>", "", (textured / view["xml"]).read_text(), flags=re.S)
+        scenes[name] = mi.load_string(xml.replace("</scene>", disk + "</scene>"))
+    return scenes
+
+
 def cached_outputs(capture: Path, until: str, overrides: list[str]) -> dict:
     """Each stage's outputs up to ``until``, all cached (a plan takes no lock: a run
     of later stages may go on beside this)."""
@@ -81,7 +117,13 @@ def cached_outputs(capture: Path, until: str, overrides: list[str]) -> dict:
     return {item.stage.name: item.entry.outputs for item in plan}
 
 
-def ceiling(capture: Path, overrides: list[str], keep: Path | None = None) -> list[tuple[str, dict]]:
+def ceiling(
+    capture: Path,
+    overrides: list[str],
+    keep: Path | None = None,
+    nearest: tuple[int, ...] = (),
+    photographer: tuple[float, float] | None = None,
+) -> list[tuple[str, dict]]:
     """(what the texture came from, score_heldout's scores) per row of the module docstring;
     each row's heldout/-like folder kept under ``keep`` when given."""
     import mitsuba as mi
@@ -104,15 +146,21 @@ def ceiling(capture: Path, overrides: list[str], keep: Path | None = None) -> li
     )
     gains = PhotoGains.of(material)
     held = set(material["held_out"])
+    scenes = photographer_scenes(textured, description, photos[0], *photographer) if photographer else None
     baked = texture_conf.get("baked", {})
     # the bake's windows and samples as fit_texture's; the scored windows as heldout/'s
     bake_views = [
-        v for v, _ in load_views(textured, description, *photos, baked.get("max_size", 512), 2, 32, gains=gains)
+        v
+        for v, _ in load_views(
+            textured, description, *photos, baked.get("max_size", 512), 2, 32, gains=gains, scenes=scenes
+        )
     ]
     for view in bake_views:
         if view.gain is not None:  # a held-out photo in the scene's units
             view.reference = view.reference / view.gain.astype(np.float32)
-    scored = [v for v, _ in load_views(textured, description, *photos, 128, 2, 64, names=held, gains=gains)]
+    scored = [
+        v for v, _ in load_views(textured, description, *photos, 128, 2, 64, names=held, gains=gains, scenes=scenes)
+    ]
     rows = []
     with tempfile.TemporaryDirectory() as temporary:
         folder = keep or temporary
@@ -129,6 +177,16 @@ def ceiling(capture: Path, overrides: list[str], keep: Path | None = None) -> li
         ):
             texture, _, _ = bake_bitmap(subset, key, SPECIMEN, shape, 32, UNBOUNDED)
             rows.append((label, _scored(scored, texture, key, Path(folder) / slug)))
+        for name in sorted(held):
+            centre = photos[0][name][1].center
+            training = [v for v in bake_views if v.name not in held]
+            by_distance = sorted(training, key=lambda v: np.linalg.norm(photos[0][v.name][1].center - centre))
+            for count in nearest:
+                texture, _, _ = bake_bitmap(by_distance[:count], key, SPECIMEN, shape, 32, UNBOUNDED)
+                scores = _scored(
+                    [v for v in scored if v.name == name], texture, key, Path(folder) / f"near{count}-{name}"
+                )
+                rows.append((f"the {count} training photos nearest {name} (scored on it alone)", scores))
     return rows
 
 
@@ -138,8 +196,12 @@ def main() -> None:
     parser.add_argument("-s", "--set", dest="overrides", action="append", default=[])
     parser.add_argument("--write", action="store_true", help="rewrite docs/benchmarks.md's section")
     parser.add_argument("--keep", type=Path, help="keep each row's renders, references and masks here")
+    parser.add_argument("--nearest", default="", help="counts of nearest training photos to bake from, e.g. 2,4,8")
+    parser.add_argument("--photographer", help="DISTANCE:RADIUS of a black disk behind every camera")
     args = parser.parse_args()
-    rows = ceiling(args.capture, args.overrides, args.keep)
+    nearest = tuple(int(n) for n in args.nearest.split(",") if n)
+    photographer = tuple(float(x) for x in args.photographer.split(":")) if args.photographer else None
+    rows = ceiling(args.capture, args.overrides, args.keep, nearest, photographer)
     lines = [
         f"| texture baked from ({args.capture.name}) | held-out PSNR | per photo |",
         "|---|---|---|",
@@ -152,7 +214,8 @@ def main() -> None:
     ]
     print("\n".join(lines))
     if args.write:
-        write_section(f"ceiling-{args.capture.name}", lines)
+        suffix = f"-photographer-{args.photographer}" if args.photographer else ""
+        write_section(f"ceiling-{args.capture.name}{suffix}", lines)
 
 
 if __name__ == "__main__":

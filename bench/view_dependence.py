@@ -1,0 +1,154 @@
+"""Whether a capture's photos see the same surface differently from different places
+(issue 26, point 4): fit_texture's scene re-rendered for every training photo, each
+render matched to its photo by an RGB gain, and the ratio photo / render (both blurred
+by a 2 px Gaussian within the eroded specimen mask) read per pixel with the surface
+normal and the direction to the camera.
+
+The normals are clustered (k-means on the unit sphere, ``--faces`` clusters; pixels
+within 18 degrees of their cluster's mean count), and per cluster the median ratio is
+binned by the camera's azimuth about the normal, measured from the horizontal tangent
+(``normal x up``; for a vertical face -90 degrees is the camera straight in front and
+above, 0 and -180 grazing to either side). One light and one texture give every
+photo the same ratio, up to noise: a face whose ratio swings with the azimuth is seen
+differently from different places (light that moves with the camera, such as the
+photographer's shadow, or a reflectance the model lacks), which no texture fixes.
+Each cell: the median ratio, the camera's median angle from the normal and the
+photos in the bin (bins with fewer than 300 pixels are left out).
+
+Usage: ``.venv/bin/python bench/view_dependence.py CAPTURE [-s KEY=VALUE ...]`` with
+the overrides its runs used (bench/light.py's REAL), after bin/bootstrap and a
+``pipeline run CAPTURE --until fit_texture`` with them. Prints a Markdown table;
+rewrites the section ``view-dependence-NAME`` of docs/benchmarks.md with ``--write``.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import cv2
+import numpy as np
+from ceiling import cached_outputs
+from report import write_section
+
+from pipeline.fit.views import PhotoGains, load_views
+from pipeline.formats.cameras import read_views
+from pipeline.formats.masks import read_masks
+from pipeline.formats.pinhole import linear_photos
+from pipeline.formats.scene_folder import fitted_description, read_json
+from pipeline.render import mitsuba_variant
+
+BINS_DEG = np.arange(-180, 181, 30)
+"""Azimuth bins about a face's normal."""
+FACE_COS = np.cos(np.radians(18.0))
+"""A pixel counts for its cluster when its normal is this close to the cluster's mean."""
+MIN_PIXELS = 300
+"""Fewest pixels in a reported bin."""
+
+
+def pixel_samples(capture: Path, overrides: list[str]) -> np.ndarray:
+    """(n, 8): per specimen pixel of every training photo its normal, the unit vector to
+    the camera, the ratio photo / gain-matched render, and the photo's index."""
+    import mitsuba as mi
+
+    outputs = cached_outputs(capture, "fit_texture", overrides)
+    material = read_json(outputs["fit_material"]["params"])
+    textured = outputs["fit_texture"]["textured_dir"]
+    description = fitted_description(read_json(outputs["scene"]["description"]), material)
+    photos = (
+        read_views(outputs["sfm"]["cameras"]),
+        linear_photos(outputs["undistort"]["pinhole"]),
+        read_masks(outputs["masks"]["masks_json"]),
+    )
+    mitsuba_variant.activate("auto")
+    held = set(material["held_out"])
+    views = load_views(textured, description, *photos, 128, 2, 64, gains=PhotoGains.of(material))
+    samples = []
+    for index, (view, _) in enumerate(v for v in views if v[0].name not in held):
+        render = np.asarray(mi.render(view.scene, sensor=view.sensor, integrator=view.integrator, spp=64, seed=1))
+        film = view.sensor.film().size()
+        width, height = int(film[0]), int(film[1])
+        x, y = np.meshgrid((np.arange(width) + 0.5) / width, (np.arange(height) + 0.5) / height)
+        rays, _ = view.sensor.sample_ray(0.0, 0.0, mi.Point2f(x.ravel(), y.ravel()), mi.Point2f(0.5, 0.5))
+        hit = view.scene.ray_intersect(rays)
+        normal = np.array(hit.sh_frame.n).T.reshape(height, width, 3)
+        to_camera = -np.array(rays.d).T.reshape(height, width, 3)
+        inside = (view.weight > 0) & np.array(hit.is_valid()).reshape(height, width)
+        inside = cv2.erode(inside.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+        if inside.sum() < MIN_PIXELS:
+            continue
+        photo = view.reference
+        gain = (photo[inside] * render[inside]).sum(0) / (render[inside] ** 2).sum(0)
+        blurred_photo = cv2.GaussianBlur(photo.mean(-1) * inside, (0, 0), 2)
+        blurred_render = cv2.GaussianBlur((render * gain).mean(-1) * inside, (0, 0), 2)
+        ratio = blurred_photo / np.maximum(blurred_render, 1e-4)
+        count = int(inside.sum())
+        samples.append(
+            np.concatenate([normal[inside], to_camera[inside], ratio[inside][:, None], np.full((count, 1), index)], 1)
+        )
+    return np.concatenate(samples)
+
+
+def face_table(samples: np.ndarray, faces: int) -> list[tuple[np.ndarray, int, list[str]]]:
+    """Per normal cluster (largest first): its mean normal, its photos, and a cell per
+    azimuth bin (the module docstring)."""
+    normal, to_camera, ratio, photo = samples[:, :3], samples[:, 3:6], samples[:, 6], samples[:, 7]
+    valid = np.isfinite(ratio) & (ratio > 0.2) & (ratio < 5.0)
+    normal, to_camera, ratio, photo = normal[valid], to_camera[valid], ratio[valid], photo[valid]
+    rng = np.random.default_rng(0)
+    means = normal[rng.choice(len(normal), faces, replace=False)]
+    for _ in range(30):
+        label = np.argmax(normal @ means.T, axis=1)
+        means = np.stack([normal[label == k].mean(0) if (label == k).any() else means[k] for k in range(faces)])
+        means /= np.linalg.norm(means, axis=1, keepdims=True)
+    label = np.argmax(normal @ means.T, axis=1)
+    rows = []
+    for k in np.argsort(-np.bincount(label, minlength=faces)):
+        on_face = (label == k) & (normal @ means[k] > FACE_COS)
+        if on_face.sum() < MIN_PIXELS:
+            continue
+        axis = means[k]
+        tangent = np.cross(axis, [0.0, 0.0, 1.0])
+        if np.linalg.norm(tangent) < 0.3:  # a horizontal face: azimuth from the x axis
+            tangent = np.cross(axis, [1.0, 0.0, 0.0])
+        tangent /= np.linalg.norm(tangent)
+        bitangent = np.cross(axis, tangent)
+        seen = to_camera[on_face]
+        azimuth = np.degrees(np.arctan2(seen @ bitangent, seen @ tangent))
+        tilt = np.degrees(np.arccos(np.clip(seen @ axis, -1.0, 1.0)))
+        cells = []
+        for low, high in zip(BINS_DEG[:-1], BINS_DEG[1:]):
+            in_bin = (azimuth >= low) & (azimuth < high)
+            if in_bin.sum() < MIN_PIXELS:
+                cells.append("")
+                continue
+            photos = len(np.unique(photo[on_face][in_bin]))
+            cells.append(f"{np.median(ratio[on_face][in_bin]):.2f} ({np.median(tilt[in_bin]):.0f}°, {photos})")
+        rows.append((axis, len(np.unique(photo[on_face])), cells))
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("capture", type=Path)
+    parser.add_argument("-s", "--set", dest="overrides", action="append", default=[])
+    parser.add_argument("--faces", type=int, default=6, help="normal clusters")
+    parser.add_argument("--write", action="store_true", help="rewrite docs/benchmarks.md's section")
+    args = parser.parse_args()
+    rows = face_table(pixel_samples(args.capture, args.overrides), args.faces)
+    centres = [f"{(low + high) // 2}°" for low, high in zip(BINS_DEG[:-1], BINS_DEG[1:])]
+    lines = [
+        f"| normal ({args.capture.name}) | photos | " + " | ".join(centres) + " |",
+        "|---|---|" + "---|" * len(centres),
+        *(
+            f"| {' '.join(f'{c:.2f}' for c in axis)} | {photos} | " + " | ".join(cells) + " |"
+            for axis, photos, cells in rows
+        ),
+    ]
+    print("\n".join(lines))
+    if args.write:
+        write_section(f"view-dependence-{args.capture.name}", lines)
+
+
+if __name__ == "__main__":
+    main()
