@@ -24,8 +24,8 @@ training photos' row to fit_texture's own figure is the texture fit's, and that 
 the first row to the training photos' the geometry's and the light's.
 
 ``--photographer DISTANCE:RADIUS`` puts a black disk into every view's scene, for the
-bakes and the scored renders alike: RADIUS times the camera's distance from the
-specimen's centre across, DISTANCE times that distance behind the camera, facing the
+bakes and the scored renders alike: its radius RADIUS times the camera's distance from
+the specimen's centre, DISTANCE times that distance behind the camera, facing the
 specimen: an occluder that moves with the camera (the photographer's body, a gantry's
 arm), which shades the side of the specimen the camera faces.
 
@@ -177,9 +177,9 @@ def ceiling(
         ):
             texture, _, _ = bake_bitmap(subset, key, SPECIMEN, shape, 32, UNBOUNDED)
             rows.append((label, _scored(scored, texture, key, Path(folder) / slug)))
+        training = [v for v in bake_views if v.name not in held]
         for name in sorted(held):
             centre = photos[0][name][1].center
-            training = [v for v in bake_views if v.name not in held]
             by_distance = sorted(training, key=lambda v: np.linalg.norm(photos[0][v.name][1].center - centre))
             for count in nearest:
                 texture, _, _ = bake_bitmap(by_distance[:count], key, SPECIMEN, shape, 32, UNBOUNDED)
