@@ -31,6 +31,8 @@ import numpy as np
 from ceiling import cached_outputs
 from report import write_section
 
+from pipeline.fit.bake import pixel_rays
+from pipeline.fit.loop import matched_gain
 from pipeline.fit.views import PhotoGains, load_views
 from pipeline.formats.cameras import read_views
 from pipeline.formats.masks import read_masks
@@ -61,15 +63,12 @@ def pixel_samples(capture: Path, overrides: list[str]) -> np.ndarray:
         read_masks(outputs["masks"]["masks_json"]),
     )
     mitsuba_variant.activate("auto")
-    held = set(material["held_out"])
-    views = load_views(textured, description, *photos, 128, 2, 64, gains=PhotoGains.of(material))
+    training = set(description["views"]) - set(material["held_out"])
+    views = load_views(textured, description, *photos, 128, 2, 64, names=training, gains=PhotoGains.of(material))
     samples = []
-    for index, (view, _) in enumerate(v for v in views if v[0].name not in held):
+    for index, (view, _) in enumerate(views):
         render = np.asarray(mi.render(view.scene, sensor=view.sensor, integrator=view.integrator, spp=64, seed=1))
-        film = view.sensor.film().size()
-        width, height = int(film[0]), int(film[1])
-        x, y = np.meshgrid((np.arange(width) + 0.5) / width, (np.arange(height) + 0.5) / height)
-        rays, _ = view.sensor.sample_ray(0.0, 0.0, mi.Point2f(x.ravel(), y.ravel()), mi.Point2f(0.5, 0.5))
+        rays, (height, width) = pixel_rays(view.sensor)
         hit = view.scene.ray_intersect(rays)
         normal = np.array(hit.sh_frame.n).T.reshape(height, width, 3)
         to_camera = -np.array(rays.d).T.reshape(height, width, 3)
@@ -78,7 +77,7 @@ def pixel_samples(capture: Path, overrides: list[str]) -> np.ndarray:
         if inside.sum() < MIN_PIXELS:
             continue
         photo = view.reference
-        gain = (photo[inside] * render[inside]).sum(0) / (render[inside] ** 2).sum(0)
+        gain = matched_gain(render, render, photo, inside[..., None], 3)
         blurred_photo = cv2.GaussianBlur(photo.mean(-1) * inside, (0, 0), 2)
         blurred_render = cv2.GaussianBlur((render * gain).mean(-1) * inside, (0, 0), 2)
         ratio = blurred_photo / np.maximum(blurred_render, 1e-4)

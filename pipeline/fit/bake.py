@@ -54,6 +54,18 @@ def _put_bitmaps(scenes: dict, key: str, values: dict) -> None:
         params.update()
 
 
+def pixel_rays(sensor):
+    """The rays through the centres of ``sensor``'s film pixels (row by row) and the
+    film's (height, width)."""
+    import mitsuba as mi
+
+    film = sensor.film().size()
+    width, height = int(film[0]), int(film[1])
+    x, y = np.meshgrid((np.arange(width) + 0.5) / width, (np.arange(height) + 0.5) / height)
+    rays, _ = sensor.sample_ray(0.0, 0.0, mi.Point2f(x.ravel(), y.ravel()), mi.Point2f(0.5, 0.5))
+    return rays, (height, width)
+
+
 def texels_hit(view: FitView, shape_id: str, size: tuple[int, int]) -> np.ndarray:
     """(h, w) flat index of the texel (in a ``size`` = (rows, columns) bitmap) that the
     ray through each pixel's centre meets on the shape ``shape_id``; -1 where the ray
@@ -62,10 +74,7 @@ def texels_hit(view: FitView, shape_id: str, size: tuple[int, int]) -> np.ndarra
     import drjit as dr
     import mitsuba as mi
 
-    film = view.sensor.film().size()
-    width, height = int(film[0]), int(film[1])
-    x, y = np.meshgrid((np.arange(width) + 0.5) / width, (np.arange(height) + 0.5) / height)
-    rays, _ = view.sensor.sample_ray(0.0, 0.0, mi.Point2f(x.ravel(), y.ravel()), mi.Point2f(0.5, 0.5))
+    rays, (height, width) = pixel_rays(view.sensor)
     hit = view.scene.ray_intersect(rays)
     target = [s for s in view.scene.shapes() if s.id() == shape_id]
     on_shape = hit.is_valid() & (hit.shape == mi.ShapePtr(target[0])) if target else dr.zeros(mi.Bool, 1)
