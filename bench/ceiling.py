@@ -123,6 +123,7 @@ def ceiling(
     keep: Path | None = None,
     nearest: tuple[int, ...] = (),
     photographer: tuple[float, float] | None = None,
+    rounds: int | None = None,
 ) -> list[tuple[str, dict]]:
     """(what the texture came from, score_heldout's scores) per row of the module docstring;
     each row's heldout/-like folder kept under ``keep`` when given."""
@@ -148,6 +149,7 @@ def ceiling(
     held = set(material["held_out"])
     scenes = photographer_scenes(textured, description, photos[0], *photographer) if photographer else None
     baked = texture_conf.get("baked", {})
+    rounds = rounds or baked.get("rounds", 1)
     # the bake's windows and samples as fit_texture's; the scored windows as heldout/'s
     bake_views = [
         v
@@ -168,21 +170,21 @@ def ceiling(
         rows.append(("fit_texture's texture", _scored(scored, None, key, Path(folder) / "stage")))
         for name in sorted(held):
             alone = [v for v in bake_views if v.name == name]
-            texture, _, _ = bake_bitmap(alone, key, SPECIMEN, shape, 32, UNBOUNDED)
+            texture, _, _ = bake_bitmap(alone, key, SPECIMEN, shape, 32, UNBOUNDED, rounds=rounds)
             scores = _scored([v for v in scored if v.name == name], texture, key, Path(folder) / f"self-{name}")
             rows.append((f"{name} alone (scored on it alone)", scores))
         for slug, label, subset in (
             ("training", "the training photos, unbounded", [v for v in bake_views if v.name not in held]),
             ("every", "every photo, held-out ones too", bake_views),
         ):
-            texture, _, _ = bake_bitmap(subset, key, SPECIMEN, shape, 32, UNBOUNDED)
+            texture, _, _ = bake_bitmap(subset, key, SPECIMEN, shape, 32, UNBOUNDED, rounds=rounds)
             rows.append((label, _scored(scored, texture, key, Path(folder) / slug)))
         training = [v for v in bake_views if v.name not in held]
         for name in sorted(held):
             centre = photos[0][name][1].center
             by_distance = sorted(training, key=lambda v: np.linalg.norm(photos[0][v.name][1].center - centre))
             for count in nearest:
-                texture, _, _ = bake_bitmap(by_distance[:count], key, SPECIMEN, shape, 32, UNBOUNDED)
+                texture, _, _ = bake_bitmap(by_distance[:count], key, SPECIMEN, shape, 32, UNBOUNDED, rounds=rounds)
                 scores = _scored(
                     [v for v in scored if v.name == name], texture, key, Path(folder) / f"near{count}-{name}"
                 )
@@ -198,10 +200,11 @@ def main() -> None:
     parser.add_argument("--keep", type=Path, help="keep each row's renders, references and masks here")
     parser.add_argument("--nearest", default="", help="counts of nearest training photos to bake from, e.g. 2,4,8")
     parser.add_argument("--photographer", help="DISTANCE:RADIUS of a black disk behind every camera")
+    parser.add_argument("--rounds", type=int, help="the bakes' rounds (default: fit_texture's)")
     args = parser.parse_args()
     nearest = tuple(int(n) for n in args.nearest.split(",") if n)
     photographer = tuple(float(x) for x in args.photographer.split(":")) if args.photographer else None
-    rows = ceiling(args.capture, args.overrides, args.keep, nearest, photographer)
+    rows = ceiling(args.capture, args.overrides, args.keep, nearest, photographer, args.rounds)
     lines = [
         f"| texture baked from ({args.capture.name}) | held-out PSNR | per photo |",
         "|---|---|---|",
@@ -215,6 +218,7 @@ def main() -> None:
     print("\n".join(lines))
     if args.write:
         suffix = f"-photographer-{args.photographer}" if args.photographer else ""
+        suffix += f"-rounds-{args.rounds}" if args.rounds else ""
         write_section(f"ceiling-{args.capture.name}{suffix}", lines)
 
 

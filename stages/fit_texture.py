@@ -21,9 +21,10 @@ roughness ended 0.15 off the truth). The texture is fitted by pipeline.fit.engin
 (the same loop, loss, views and held-out photos as fit_material). A bitmap starts
 (``start = photos``) baked from the training photos under the fitted light and
 constants (pipeline.fit.bake: per texel, the least-squares colour of the photos'
-pixels that see it, from windows of ``bake_max_size`` pixels, finer than the fit's;
-a guessed light's level rises until the colours fit their bound, and the scene files carry
-the raised light), and is then fitted at ``max_resolution`` texels alone. From the constant
+pixels that see it, from windows of ``bake_max_size`` pixels, finer than the fit's,
+corrected over ``bake_rounds`` by what renders with it still miss; a guessed light's level
+rises until the colours fit their bound, and the scene files carry the raised light),
+and is then fitted at ``max_resolution`` texels alone. From the constant
 (``start = constant``, and always for a grid) it is fitted at ``levels`` resolutions, each twice
 the last, ending at ``max_resolution`` (``max_grid_resolution`` along a grid's longest side);
 every level starts from the last one's best state, resampled. A smoothness prior (``smoothness`` times the
@@ -142,7 +143,12 @@ class Config(LoopSettings):
     """Longer side, in pixels, of the windows the photos are baked from (a photo is
     never enlarged)."""
     bake_spp: Annotated[int, Range(1, None)] = 32
-    """Samples per pixel of the bake's two renders per photo."""
+    """Samples per pixel of the bake's renders."""
+    bake_rounds: Annotated[int, Range(1, None)] = 3
+    """Rounds of the bake: the first solves for the colours with the specimen's light on
+    itself taken at colour 1; each further one renders every training photo with the
+    colours as they stand and moves them by what the renders still miss
+    (pipeline.fit.bake)."""
 
 
 def _keep_texture(conf: Config, constant_error: float | None, texture_error: float) -> tuple[bool, str]:
@@ -198,9 +204,11 @@ def _baker(conf: Config, slot, shape: tuple[int, ...], fit: TextureFit, material
         relit = [v.scene for v in (*fit.training, *fit.validation)] if free else []
         bounds = material["bounds"][slot.parameter]
         texture, seen, scale = bake_bitmap(
-            [v for v, _ in views], slot.key, SPECIMEN, shape, conf.bake_spp, bounds, relit
+            [v for v, _ in views], slot.key, SPECIMEN, shape, conf.bake_spp, bounds, relit, conf.bake_rounds
         )
-        report["baked"] = dict(max_size=conf.bake_max_size, spp=conf.bake_spp, texels_seen=seen, light_scale=scale)
+        report["baked"] = dict(
+            max_size=conf.bake_max_size, spp=conf.bake_spp, rounds=conf.bake_rounds, texels_seen=seen, light_scale=scale
+        )
         logger.info("texture baked from %d photos: %.0f %% of texels seen, light x %.3g", len(views), 100 * seen, scale)
         return texture
 
@@ -312,7 +320,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_texture",
-    version=23,
+    version=24,
     config=Config,
     main=main,
     needs=(

@@ -4,14 +4,22 @@ gradient step.
 
 A principled BSDF's diffuse lobe is linear in its base colour and its specular lobe
 does not depend on it, so a pixel's radiance is ``I = a D + S``: ``S`` rendered with
-the bitmap at 0, ``D + S`` with it at 1 (the specimen's light reflected onto itself
-makes this only nearly linear). Over the pixels whose centre's ray meets the
+the bitmap at 0, ``D + S`` with it at 1. Over the pixels whose centre's ray meets the
 specimen at texel ``t`` in every view, per channel,
 ``a_t = sum D (I - S) / sum D^2``: the photos' detail at their own resolution,
 which a gradient fit through small windows and a few dozen steps does not reach
 (docs/benchmarks.md, "A texture baked from the photos"). Texels no pixel sees take
 the value of the nearest texel seen (chart gutters: bilinear lookups near a
 chart's edge read them).
+
+The specimen's light reflected onto itself makes ``I`` only nearly linear in ``a``:
+``D`` holds the bounces at colour 1, which a darker surface does not return, so the
+first solution renders darker than the photos where the surface sees itself (a
+temple's colonnade), and the render's pixel filter and bilinear lookups blur what
+the nearest texel assumed. Each further round (``rounds``) renders the scenes with
+the bitmap as it stands (``R``) and moves every texel by
+``sum D (I - R) / sum D^2``: a Gauss-Newton step with ``D`` for the Jacobian, whose
+fixed point is where the renders themselves match the photos in least squares.
 
 Where the light's level is only a guess (no surface of known reflectance fixed it,
 pipeline.render.light), it may be too dim for the photos' brightest texels, which
@@ -24,7 +32,8 @@ solves ``a_t = (sum D I - k sum D S) / (k sum D^2)``.
 Limitations: each pixel weighs by its ``D^2`` alone (no grazing-angle or
 resolution weight beyond it); a highlight the light does not explain, or an edge
 the mesh misses, pulls its texels by least squares (no robust loss); a texel is
-the nearest one to the ray's UV (no bilinear splat).
+the nearest one to the ray's UV (no bilinear splat); a round's render brings its
+Monte Carlo noise into the step.
 """
 
 from __future__ import annotations
@@ -94,6 +103,7 @@ def bake_bitmap(
     spp: int,
     bounds: tuple[float, float],
     relit: list | None = None,
+    rounds: int = 1,
 ) -> tuple[np.ndarray, float, float]:
     """The (rows, columns, 3) bitmap at ``key`` (the base colour of shape ``shape_id``)
     that fits ``views``' photos by least squares (module docstring), held in
@@ -101,7 +111,8 @@ def bake_bitmap(
     that the bitmap assumes: 1, or with scenes in ``relit`` (whose light's level is
     free) the smallest that keeps the texels under the upper bound, by which their
     light is then multiplied (pipeline.render.light.rescale_scenes). Each view renders
-    twice at ``spp`` with its own integrator; its weight's pixels count. The scenes'
+    twice at ``spp`` with its own integrator, and once more in each of the
+    ``rounds - 1`` rounds after the first; its weight's pixels count. The scenes'
     bitmap is put back as it was."""
     import mitsuba as mi
 
@@ -109,38 +120,65 @@ def bake_bitmap(
     before = {index: mi.TensorXf(mi.traverse(scene)[key]) for index, scene in scenes.items()}
     rows, columns = size
     texels = rows * columns
-    # per texel and channel: sum D I, sum D S and sum D^2
-    lit, dark, denominator = np.zeros((texels, 3)), np.zeros((texels, 3)), np.zeros((texels, 3))
     renders: dict[float, dict[str, np.ndarray]] = {}
     for value in (0.0, 1.0):
         _put_bitmaps(scenes, key, dict.fromkeys(scenes, mi.TensorXf(np.full((2, 2, 3), value, np.float32))))
         renders[value] = {
-            v.name: np.array(mi.render(v.scene, sensor=v.sensor, integrator=v.integrator, spp=spp, seed=seed(i)))
+            v.name: _render(v, spp, i)
             for i, v in enumerate(progress.track(views, f"bake: renders with the colour at {value:g}"))
         }
+    # per view, the pixels that count: their texel, D and the photo; per texel and
+    # channel: sum D I, sum D S and sum D^2
+    pixels = []
+    lit, dark, denominator = np.zeros((texels, 3)), np.zeros((texels, 3)), np.zeros((texels, 3))
     for view in progress.track(views, "bake: photos onto texels"):
         texel = texels_hit(view, shape_id, size)
         counts = (texel >= 0) & (view.weight > 0 if view.weight is not None else True)
         specular = renders[0.0][view.name][counts]
         shading = renders[1.0][view.name][counts] - specular
         photo, at = view.reference[counts], texel[counts]
-        for channel in range(3):
-            lit[:, channel] += np.bincount(at, shading[:, channel] * photo[:, channel], texels)
-            dark[:, channel] += np.bincount(at, shading[:, channel] * specular[:, channel], texels)
-            denominator[:, channel] += np.bincount(at, shading[:, channel] ** 2, texels)
-    _put_bitmaps(scenes, key, before)
+        lit += _per_texel(at, shading * photo, texels)
+        dark += _per_texel(at, shading * specular, texels)
+        denominator += _per_texel(at, shading**2, texels)
+        pixels.append((view, counts, at, shading, photo))
+    del renders
     seen = denominator.min(axis=1) > SEEN * denominator.max()
     scale = _light_scale(lit[seen], dark[seen], denominator[seen], bounds[1]) if relit and seen.any() else 1.0
     if scale != 1.0:  # an update with nothing changed would still rebuild every scene's emitters
         rescale_scenes(relit, scale)
     numerator = lit - scale * dark
+    # after a rescale every render, D included, is ``scale`` times brighter
     texture = np.divide(numerator, scale * denominator, out=np.zeros_like(numerator), where=denominator > 0)
-    texture = texture.reshape(rows, columns, 3)
-    seen = seen.reshape(rows, columns)
-    if seen.any():
-        _, (near_row, near_column) = ndimage.distance_transform_edt(~seen, return_indices=True)
-        texture = texture[near_row, near_column]
-    return np.clip(texture, *bounds).astype(np.float32), float(seen.mean()), scale
+    texture = _filled(np.clip(texture, *bounds), seen, size)
+    for round_ in range(1, rounds):
+        _put_bitmaps(scenes, key, dict.fromkeys(scenes, mi.TensorXf(texture.reshape(rows, columns, 3))))
+        step = np.zeros((texels, 3))
+        for i, (view, counts, at, shading, photo) in enumerate(progress.track(pixels, f"bake: round {round_ + 1}")):
+            residual = photo - _render(view, spp, (round_ + 1) * len(views) + i)[counts]
+            step += _per_texel(at, shading * residual, texels)
+        step = np.divide(step, scale * denominator, out=np.zeros_like(step), where=denominator > 0)
+        texture = _filled(np.clip(texture + step, *bounds), seen, size)
+    _put_bitmaps(scenes, key, before)
+    return texture.reshape(rows, columns, 3).astype(np.float32), float(seen.mean()), scale
+
+
+def _render(view: FitView, spp: int, index: int) -> np.ndarray:
+    import mitsuba as mi
+
+    return np.array(mi.render(view.scene, sensor=view.sensor, integrator=view.integrator, spp=spp, seed=seed(index)))
+
+
+def _per_texel(at: np.ndarray, values: np.ndarray, texels: int) -> np.ndarray:
+    """(texels, channels): ``values`` (pixels, channels) summed per texel ``at``."""
+    return np.stack([np.bincount(at, values[:, c], texels) for c in range(values.shape[1])], axis=1)
+
+
+def _filled(texture: np.ndarray, seen: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """(texels, 3) ``texture`` whose unseen texels take their nearest seen texel's value."""
+    if not seen.any():
+        return texture
+    _, (near_row, near_column) = ndimage.distance_transform_edt(~seen.reshape(size), return_indices=True)
+    return texture.reshape(*size, 3)[near_row, near_column].reshape(-1, 3)
 
 
 def _light_scale(lit: np.ndarray, dark: np.ndarray, denominator: np.ndarray, upper: float) -> float:

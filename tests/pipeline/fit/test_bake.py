@@ -131,3 +131,61 @@ def test_a_light_too_dim_for_the_brightest_texels_is_raised_until_they_fit(mi, p
     params = mi.traverse(scene)
     assert np.allclose(params["softbox.emitter.radiance.value"], 4.0 * 0.5 * scale, rtol=1e-5)
     assert np.allclose(params["environment.radiance.value"], 0.4 * 0.5 * scale, rtol=1e-5)
+
+
+def _groove_views(mi, folder, texture: np.ndarray, references: list[np.ndarray] | None = None) -> list[FitView]:
+    """A pale diffuse V-groove (two 0.4 m walls meeting at a right angle, one bitmap
+    across both: u 0-0.5 on the left wall, 0.5-1 on the right) under a sky, seen from
+    three places above it: each wall sees the other over a quarter of its sky."""
+    obj = folder / "groove.obj"
+    obj.write_text(
+        "v -0.2 -0.2 0.2\nv 0 -0.2 0\nv 0 0.2 0\nv -0.2 0.2 0.2\nv 0.2 -0.2 0.2\nv 0.2 0.2 0.2\n"
+        "vt 0 0\nvt 0.5 0\nvt 0.5 1\nvt 0 1\nvt 1 0\nvt 1 1\n"
+        "f 1/1 2/2 3/3\nf 1/1 3/3 4/4\nf 2/2 5/5 6/6\nf 2/2 6/6 3/3\n"
+    )
+    bitmap = {"type": "bitmap", "id": "specimen_base_color", "data": mi.TensorXf(texture), "raw": True}
+    scene = mi.load_dict(
+        {
+            "type": "scene",
+            "environment": {"type": "constant", "id": "environment", "radiance": {"type": "rgb", "value": [1.0] * 3}},
+            "specimen": {
+                "type": "obj",
+                "id": "specimen",
+                "filename": str(obj),
+                "face_normals": True,
+                "bsdf": {
+                    "type": "principled",
+                    "id": "specimen_bsdf",
+                    "base_color": {**bitmap, "filter_type": "nearest"},
+                    "roughness": 1.0,
+                    "specular": 0.0,
+                },
+            },
+        }
+    )
+    integrator = mi.load_dict({"type": "prb", "max_depth": 6})
+    views = []
+    for index, eye in enumerate(([0.15, 0.0, 0.8], [-0.15, 0.05, 0.8], [0.0, -0.1, 0.8])):
+        pose = Pose.look_at(eye, [0.0, 0.0, 0.1], up=[0.0, 1.0, 0.0])
+        sensor = scene_xml.load_sensor(scene_xml.sensor_properties(K, pose, 16, 0.01))
+        reference = references[index] if references else np.zeros((K.height, K.width, 3), np.float32)
+        views.append(FitView(f"view{index}", scene, sensor, reference, None, integrator))
+    return views
+
+
+def test_rounds_remove_the_darkening_of_light_the_specimen_reflects_onto_itself(mi, tmp_path):
+    """In a pale groove each wall is lit by the other too: the first solution, whose D
+    holds those bounces at colour 1, comes out darker than the truth; two more rounds
+    bring the texels to it and the renders to the photos."""
+    truth = np.random.default_rng(5).uniform(0.6, 0.95, (*SIZE, 3)).astype(np.float32)
+    photos = [
+        np.array(mi.render(v.scene, sensor=v.sensor, integrator=v.integrator, spp=256, seed=11))
+        for v in _groove_views(mi, tmp_path, truth)
+    ]
+    views = _groove_views(mi, tmp_path, np.full((2, 2, 3), 0.5, np.float32), photos)
+    once, seen, _ = bake_bitmap(views, KEY, "specimen", SIZE, 64, (0.001, 1.0))
+    thrice, _, _ = bake_bitmap(views, KEY, "specimen", SIZE, 64, (0.001, 1.0), rounds=3)
+    assert seen == 1.0
+    assert np.mean(once - truth) < -0.04  # the one-round bake is biased dark
+    assert abs(np.mean(thrice - truth)) < 0.01
+    assert np.abs(thrice - truth).mean() < 0.4 * np.abs(once - truth).mean()
