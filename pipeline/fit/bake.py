@@ -27,7 +27,10 @@ then ask for colours above the upper bound and are cut to it: the texture loses 
 contrast. Given the scenes to relight, the bake then finds the smallest factor
 ``k >= 1`` on every emitter at which all but ``HEADROOM`` of the seen texels fit under
 the bound, multiplies their light by it and, the whole render being scaled by ``k``,
-solves ``a_t = (sum D I - k sum D S) / (k sum D^2)``.
+solves ``a_t = (sum D I - k sum D S) / (k sum D^2)``. A later round that brightens
+more than ``HEADROOM`` of the texels past the bound raises the light again, by the
+factor that brings them under it, and divides the texels by it (the next round
+corrects what the specimen's light on itself makes of that).
 
 Limitations: each pixel weighs by its ``D^2`` alone (no grazing-angle or
 resolution weight beyond it); a highlight the light does not explain, or an edge
@@ -156,8 +159,14 @@ def bake_bitmap(
         for i, (view, counts, at, shading, photo) in enumerate(progress.track(pixels, f"bake: round {round_ + 1}")):
             residual = photo - _render(view, spp, (round_ + 1) * len(views) + i)[counts]
             step += _per_texel(at, shading * residual, texels)
-        step = np.divide(step, scale * denominator, out=np.zeros_like(step), where=denominator > 0)
-        texture = _filled(np.clip(texture + step, *bounds), seen, size)
+        texture = texture + np.divide(step, scale * denominator, out=np.zeros_like(step), where=denominator > 0)
+        # the rounds brighten what the first solution darkened: the light rises again
+        # where more than HEADROOM of the texels would pass the bound
+        needed = float(np.quantile(texture[seen].max(axis=1), 1.0 - HEADROOM)) / bounds[1] if relit else 1.0
+        if needed > 1.0:
+            rescale_scenes(relit, needed)
+            scale, texture = scale * needed, texture / needed
+        texture = _filled(np.clip(texture, *bounds), seen, size)
     _put_bitmaps(scenes, key, before)
     return texture.reshape(rows, columns, 3).astype(np.float32), float(seen.mean()), scale
 

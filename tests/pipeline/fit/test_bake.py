@@ -189,3 +189,38 @@ def test_rounds_remove_the_darkening_of_light_the_specimen_reflects_onto_itself(
     assert np.mean(once - truth) < -0.04  # the one-round bake is biased dark
     assert abs(np.mean(thrice - truth)) < 0.01
     assert np.abs(thrice - truth).mean() < 0.4 * np.abs(once - truth).mean()
+
+
+def test_rounds_raise_a_guessed_light_again_when_they_brighten_texels_past_the_bound(mi, tmp_path):
+    """The groove's photos under half their light (a level guessed too low): the first
+    round raises the light until its texels fit under 1, the rounds brighten them past
+    it, and the light rises again, so that no more than HEADROOM of the texels end on
+    the bound and the renders match the photos (the first round alone renders dark)."""
+    truth = np.random.default_rng(5).uniform(0.6, 0.95, (*SIZE, 3)).astype(np.float32)
+    photos = [
+        np.array(mi.render(v.scene, sensor=v.sensor, integrator=v.integrator, spp=256, seed=11))
+        for v in _groove_views(mi, tmp_path, truth)
+    ]
+
+    def bias(rounds: int) -> tuple[float, float, float]:
+        views = _groove_views(mi, tmp_path, np.full((2, 2, 3), 0.5, np.float32), photos)
+        scene = views[0].scene
+        light.rescale_scenes([scene], 0.5)
+        texture, _, scale = bake_bitmap(views, KEY, "specimen", SIZE, 64, (0.001, 1.0), [scene], rounds)
+        params = mi.traverse(scene)
+        params[KEY] = mi.TensorXf(texture)
+        params.update()
+        rendered, seen = [], []
+        for view, photo in zip(views, photos):
+            image = np.array(mi.render(scene, sensor=view.sensor, integrator=view.integrator, spp=256, seed=3))
+            on = texels_hit(view, "specimen", SIZE) >= 0
+            rendered.append(image[on].sum())
+            seen.append(photo[on].sum())
+        at_bound = float((texture.max(axis=-1) >= 1.0).mean())
+        return sum(rendered) / sum(seen) - 1.0, at_bound, scale
+
+    once, once_at_bound, once_scale = bias(1)
+    thrice, thrice_at_bound, thrice_scale = bias(3)
+    assert once < -0.03 and once_at_bound <= 1 / 64
+    assert abs(thrice) < 0.01 and thrice_at_bound <= 1 / 64
+    assert thrice_scale > once_scale > 1.0
