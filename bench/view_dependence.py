@@ -15,7 +15,16 @@ photographer's shadow, or a reflectance the model lacks), which no texture fixes
 Each cell: the median ratio, the camera's median angle from the normal and the
 photos in the bin (bins with fewer than 300 pixels are left out).
 
-Usage: ``.venv/bin/python bench/view_dependence.py CAPTURE [-s KEY=VALUE ...]`` with
+``--camera-frame DEGREE`` asks whether that difference is light fixed to the camera (an
+occluder that moves with it, such as the photographer): the logarithm of each training
+photo's blurred ratio is fitted, by least squares over every pixel, as a polynomial of
+degree DEGREE in the surface normal expressed in that photo's camera coordinates (and,
+as the control, in the world's); each held-out photo's render is multiplied by the
+exponential of that polynomial, and its PSNR after an RGB gain matched on the specimen
+is printed before and after, with the share of the training log-ratio's variance the
+polynomial explains.
+
+Usage: ``.venv/bin/python bench/view_dependence.py CAPTURE [-s KEY=VALUE ...] [--camera-frame 3]`` with
 the overrides its runs used (bench/light.py's REAL), after bin/bootstrap and a
 ``pipeline run CAPTURE --until fit_texture`` with them. Prints a Markdown table;
 rewrites the section ``view-dependence-NAME`` of docs/benchmarks.md with ``--write``.
@@ -48,9 +57,10 @@ MIN_PIXELS = 300
 """Fewest pixels in a reported bin."""
 
 
-def pixel_samples(capture: Path, overrides: list[str]) -> np.ndarray:
-    """(n, 8): per specimen pixel of every training photo its normal, the unit vector to
-    the camera, the ratio photo / gain-matched render, and the photo's index."""
+def rendered_views(capture: Path, overrides: list[str], names: str = "training") -> list[dict]:
+    """fit_texture's scene rendered (128 px windows, 64 spp) for the ``names`` photos
+    (training or held_out): per photo its name, photo, render, the specimen pixels that
+    count (eroded by 2 px), the surface normal per pixel and the camera's rotation."""
     import mitsuba as mi
 
     outputs = cached_outputs(capture, "fit_texture", overrides)
@@ -63,29 +73,91 @@ def pixel_samples(capture: Path, overrides: list[str]) -> np.ndarray:
         read_masks(outputs["masks"]["masks_json"]),
     )
     mitsuba_variant.activate("auto")
-    training = set(description["views"]) - set(material["held_out"])
-    views = load_views(textured, description, *photos, 128, 2, 64, names=training, gains=PhotoGains.of(material))
-    samples = []
-    for index, (view, _) in enumerate(views):
+    held = set(material["held_out"])
+    chosen = held if names == "held_out" else set(description["views"]) - held
+    views = load_views(textured, description, *photos, 128, 2, 64, names=chosen, gains=PhotoGains.of(material))
+    rendered = []
+    for view, _ in views:
         render = np.asarray(mi.render(view.scene, sensor=view.sensor, integrator=view.integrator, spp=64, seed=1))
         rays, (height, width) = pixel_rays(view.sensor)
         hit = view.scene.ray_intersect(rays)
-        normal = np.array(hit.sh_frame.n).T.reshape(height, width, 3)
-        to_camera = -np.array(rays.d).T.reshape(height, width, 3)
         inside = (view.weight > 0) & np.array(hit.is_valid()).reshape(height, width)
         inside = cv2.erode(inside.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
         if inside.sum() < MIN_PIXELS:
             continue
-        photo = view.reference
-        gain = matched_gain(render, render, photo, inside[..., None], 3)
-        blurred_photo = cv2.GaussianBlur(photo.mean(-1) * inside, (0, 0), 2)
-        blurred_render = cv2.GaussianBlur((render * gain).mean(-1) * inside, (0, 0), 2)
-        ratio = blurred_photo / np.maximum(blurred_render, 1e-4)
-        count = int(inside.sum())
-        samples.append(
-            np.concatenate([normal[inside], to_camera[inside], ratio[inside][:, None], np.full((count, 1), index)], 1)
+        rendered.append(
+            {
+                "name": view.name,
+                "photo": view.reference,
+                "render": render,
+                "inside": inside,
+                "normal": np.array(hit.sh_frame.n).T.reshape(height, width, 3),
+                "to_camera": -np.array(rays.d).T.reshape(height, width, 3),
+                "rotation": photos[0][view.name][1].R,
+            }
         )
+    return rendered
+
+
+def blurred_ratio(view: dict) -> np.ndarray:
+    """Photo over the gain-matched render, both blurred by 2 px within the pixels that count."""
+    inside = view["inside"]
+    gain = matched_gain(view["render"], view["render"], view["photo"], inside[..., None], 3)
+    blurred_photo = cv2.GaussianBlur(view["photo"].mean(-1) * inside, (0, 0), 2)
+    blurred_render = cv2.GaussianBlur((view["render"] * gain).mean(-1) * inside, (0, 0), 2)
+    return blurred_photo / np.maximum(blurred_render, 1e-4)
+
+
+def pixel_samples(views: list[dict]) -> np.ndarray:
+    """(n, 8): per specimen pixel of every view its normal, the unit vector to the
+    camera, the ratio photo / gain-matched render, and the photo's index."""
+    samples = []
+    for index, view in enumerate(views):
+        inside, count = view["inside"], int(view["inside"].sum())
+        columns = [view["normal"][inside], view["to_camera"][inside], blurred_ratio(view)[inside][:, None]]
+        samples.append(np.concatenate([*columns, np.full((count, 1), index)], 1))
     return np.concatenate(samples)
+
+
+def monomials(normals: np.ndarray, degree: int) -> np.ndarray:
+    """(n, terms): every monomial of the normals' coordinates up to ``degree``."""
+    x, y, z = normals.T
+    powers = [(i, j, k) for i in range(degree + 1) for j in range(degree + 1 - i) for k in range(degree + 1 - i - j)]
+    return np.stack([x**i * y**j * z**k for i, j, k in powers], axis=1)
+
+
+def camera_frame_fit(training: list[dict], held_out: list[dict], degree: int) -> list[str]:
+    """Per frame (camera, world): the training log-ratio's variance explained by a
+    polynomial of the normal in that frame, and each held-out photo's gain-matched
+    PSNR before and after its render is multiplied by it (the module docstring)."""
+    lines = []
+    for frame in ("camera", "world"):
+
+        def normals(view: dict) -> np.ndarray:
+            return view["normal"] @ view["rotation"].T if frame == "camera" else view["normal"]
+
+        rows, targets = [], []
+        for view in training:
+            ratio = blurred_ratio(view)
+            usable = view["inside"] & np.isfinite(ratio) & (ratio > 0.2) & (ratio < 5.0)
+            rows.append(monomials(normals(view)[usable], degree))
+            targets.append(np.log(ratio[usable]))
+        rows, targets = np.concatenate(rows), np.concatenate(targets)
+        scale = np.abs(rows).max(axis=0)  # columns of one magnitude: a well-posed solve
+        coefficients = np.linalg.lstsq(rows / scale, targets, rcond=None)[0] / scale
+        explained = 1 - np.var(targets - rows @ coefficients) / np.var(targets)
+        scores = []
+        for view in held_out:
+            inside = view["inside"]
+            factor = np.exp(monomials(normals(view).reshape(-1, 3), degree) @ coefficients).reshape(inside.shape)
+            for render in (view["render"], view["render"] * factor[..., None]):
+                gain = matched_gain(render, render, view["photo"], inside[..., None], 3)
+                error = np.mean(np.square(render * gain - view["photo"])[inside])
+                scores.append(-10 * np.log10(error))
+        before, after = np.mean(scores[0::2]), np.mean(scores[1::2])
+        per_photo = ", ".join(f"{b:.2f} -> {a:.2f}" for b, a in zip(scores[0::2], scores[1::2]))
+        lines.append(f"| {frame} | {degree} | {explained:.1%} | {before:.2f} -> {after:.2f} dB | {per_photo} |")
+    return lines
 
 
 def face_table(samples: np.ndarray, faces: int) -> list[tuple[np.ndarray, int, list[str]]]:
@@ -133,8 +205,20 @@ def main() -> None:
     parser.add_argument("-s", "--set", dest="overrides", action="append", default=[])
     parser.add_argument("--faces", type=int, default=6, help="normal clusters")
     parser.add_argument("--write", action="store_true", help="rewrite docs/benchmarks.md's section")
+    parser.add_argument("--camera-frame", type=int, metavar="DEGREE", help="fit light fixed to the camera instead")
     args = parser.parse_args()
-    rows = face_table(pixel_samples(args.capture, args.overrides), args.faces)
+    training = rendered_views(args.capture, args.overrides)
+    if args.camera_frame is not None:
+        lines = [
+            "| normal in the frame of | degree | training variance explained | held-out PSNR, gain-matched | per photo |",
+            "|---|---|---|---|---|",
+            *camera_frame_fit(training, rendered_views(args.capture, args.overrides, "held_out"), args.camera_frame),
+        ]
+        print("\n".join(lines))
+        if args.write:
+            write_section(f"camera-frame-{args.capture.name}", lines)
+        return
+    rows = face_table(pixel_samples(training), args.faces)
     centres = [f"{(low + high) // 2}°" for low, high in zip(BINS_DEG[:-1], BINS_DEG[1:])]
     lines = [
         f"| normal ({args.capture.name}) | photos | " + " | ".join(centres) + " |",
