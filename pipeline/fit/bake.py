@@ -162,7 +162,9 @@ def bake_bitmap(
         texture = texture + np.divide(step, scale * denominator, out=np.zeros_like(step), where=denominator > 0)
         # the rounds brighten what the first solution darkened: the light rises again
         # where more than HEADROOM of the texels would pass the bound
-        needed = float(np.quantile(texture[seen].max(axis=1), 1.0 - HEADROOM)) / bounds[1] if relit else 1.0
+        needed = (
+            float(np.quantile(texture[seen].max(axis=1), 1.0 - HEADROOM)) / bounds[1] if relit and seen.any() else 1.0
+        )
         if needed > 1.0:
             rescale_scenes(relit, needed)
             scale, texture = scale * needed, texture / needed
