@@ -224,3 +224,13 @@ def test_rounds_raise_a_guessed_light_again_when_they_brighten_texels_past_the_b
     assert once < -0.03 and once_at_bound <= 1 / 64
     assert abs(thrice) < 0.01 and thrice_at_bound <= 1 / 64
     assert thrice_scale > once_scale > 1.0
+
+
+def test_a_bake_that_sees_no_texel_leaves_the_light_and_returns_the_lower_bound(mi, photos):
+    """No pixel meets the shape (another shape's id): nothing is seen, the light is not
+    raised in any round, and every texel is the lower bound."""
+    views = _views(mi, np.full((2, 2, 3), 0.5, np.float32), photos)
+    texture, seen, scale = bake_bitmap(views, KEY, "no-such-shape", SIZE, 4, (0.2, 1.0), [views[0].scene], 2)
+    assert seen == 0.0 and scale == 1.0
+    assert np.all(texture == np.float32(0.2))
+    assert np.allclose(mi.traverse(views[0].scene)["environment.radiance.value"], 0.4)
