@@ -145,10 +145,8 @@ class Config(LoopSettings):
     bake_spp: Annotated[int, Range(1, None)] = 32
     """Samples per pixel of the bake's renders."""
     bake_rounds: Annotated[int, Range(1, None)] = 3
-    """Rounds of the bake: the first solves for the colours with the specimen's light on
-    itself taken at colour 1; each further one renders every training photo with the
-    colours as they stand and moves them by what the renders still miss
-    (pipeline.fit.bake)."""
+    """Rounds of the bake: each after the first moves the colours by what renders with them
+    still miss (the specimen's light on itself, pipeline.fit.bake)."""
 
 
 def _keep_texture(conf: Config, constant_error: float | None, texture_error: float) -> tuple[bool, str]:
@@ -193,22 +191,16 @@ def _baker(conf: Config, slot, shape: tuple[int, ...], fit: TextureFit, material
 
     def bake() -> np.ndarray:
         scenes = {v.name: v.scene for v in fit.training}
-        views = load_views(
-            *where,
-            *(conf.bake_max_size, conf.erode_px, conf.bake_spp),
-            names=set(scenes),
-            gains=PhotoGains.of(material),
-            scenes=scenes,
-        )
+        window_and_samples = (conf.bake_max_size, conf.erode_px, conf.bake_spp)
+        views = load_views(*where, *window_and_samples, names=set(scenes), gains=PhotoGains.of(material), scenes=scenes)
         free = material["light"].get("level_from") == estimated_light.SPECIMEN_LEVEL  # a guessed level may rise
         relit = [v.scene for v in (*fit.training, *fit.validation)] if free else []
         bounds = material["bounds"][slot.parameter]
         texture, seen, scale = bake_bitmap(
             [v for v, _ in views], slot.key, SPECIMEN, shape, conf.bake_spp, bounds, relit, conf.bake_rounds
         )
-        report["baked"] = dict(
-            max_size=conf.bake_max_size, spp=conf.bake_spp, rounds=conf.bake_rounds, texels_seen=seen, light_scale=scale
-        )
+        report["baked"] = dict(max_size=conf.bake_max_size, spp=conf.bake_spp, rounds=conf.bake_rounds)
+        report["baked"] |= dict(texels_seen=seen, light_scale=scale)
         logger.info("texture baked from %d photos: %.0f %% of texels seen, light x %.3g", len(views), 100 * seen, scale)
         return texture
 
