@@ -52,10 +52,17 @@ def _views(mi, texture: np.ndarray, references: list[np.ndarray] | None = None) 
             },
         }
     )
-    integrator = mi.load_dict({"type": "prb", "max_depth": 3})
+    eyes = ([0.3, 0.0, 0.6], [0.0, 0.3, 0.6], [-0.3, 0.0, 0.6], [0.0, -0.3, 0.6])
+    return _seen_from(mi, scene, 3, eyes, ([0.0, 0.0, 0.0], [0.0, 0.0, 1.0]), references)
+
+
+def _seen_from(mi, scene, depth: int, eyes, target_up, references: list[np.ndarray] | None) -> list[FitView]:
+    """``scene`` as a view from each eye towards ``target_up``'s target, ``references``
+    its photos (black when None)."""
+    integrator = mi.load_dict({"type": "prb", "max_depth": depth})
     views = []
-    for index, eye in enumerate(([0.3, 0.0, 0.6], [0.0, 0.3, 0.6], [-0.3, 0.0, 0.6], [0.0, -0.3, 0.6])):
-        pose = Pose.look_at(eye, [0.0, 0.0, 0.0], up=[0.0, 0.0, 1.0])
+    for index, eye in enumerate(eyes):
+        pose = Pose.look_at(eye, target_up[0], up=target_up[1])
         sensor = scene_xml.load_sensor(scene_xml.sensor_properties(K, pose, 16, 0.01))
         reference = references[index] if references else np.zeros((K.height, K.width, 3), np.float32)
         views.append(FitView(f"view{index}", scene, sensor, reference, None, integrator))
@@ -163,14 +170,8 @@ def _groove_views(mi, folder, texture: np.ndarray, references: list[np.ndarray] 
             },
         }
     )
-    integrator = mi.load_dict({"type": "prb", "max_depth": 6})
-    views = []
-    for index, eye in enumerate(([0.15, 0.0, 0.8], [-0.15, 0.05, 0.8], [0.0, -0.1, 0.8])):
-        pose = Pose.look_at(eye, [0.0, 0.0, 0.1], up=[0.0, 1.0, 0.0])
-        sensor = scene_xml.load_sensor(scene_xml.sensor_properties(K, pose, 16, 0.01))
-        reference = references[index] if references else np.zeros((K.height, K.width, 3), np.float32)
-        views.append(FitView(f"view{index}", scene, sensor, reference, None, integrator))
-    return views
+    eyes = ([0.15, 0.0, 0.8], [-0.15, 0.05, 0.8], [0.0, -0.1, 0.8])
+    return _seen_from(mi, scene, 6, eyes, ([0.0, 0.0, 0.1], [0.0, 1.0, 0.0]), references)
 
 
 def test_rounds_remove_the_darkening_of_light_the_specimen_reflects_onto_itself(mi, tmp_path):
