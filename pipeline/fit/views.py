@@ -91,7 +91,10 @@ def mask_windows(
         boxes[name] = (lo, hi, min(1.0, max_size / float(max(hi - lo))))
     if not boxes:
         return {}
-    width, height = np.max([np.ceil((hi - lo) * scale) for lo, hi, scale in boxes.values()], axis=0).astype(int)
+    # less a rounding error's worth: (hi - lo) * (max_size / (hi - lo)) may land just above
+    # max_size (for 105 box sizes in 49-2000 at 48 px), and the ceiling a pixel past it
+    sizes = [np.ceil((hi - lo) * scale - 1e-6) for lo, hi, scale in boxes.values()]
+    width, height = np.max(sizes, axis=0).astype(int)
     windows = {}
     for name, (lo, hi, scale) in boxes.items():
         centre = (lo + hi) / 2 * scale

@@ -45,6 +45,16 @@ def test_every_window_has_one_size_and_holds_its_mask():
         assert covered == pytest.approx(masks[name].sum(), rel=0.02), name
 
 
+def test_a_window_is_at_most_max_size_whatever_the_boxs_size():
+    """Scaling a box to max_size lands a rounding error above it for some sizes (187 px at
+    48, for one): the window must not grow a pixel past max_size for it."""
+    windows = [
+        mask_windows({"v": _box_mask((300, 2100), 20, 100, 20 + span, 140)}, max_size=48)["v"]
+        for span in range(60, 2000)
+    ]
+    assert {max(window.width, window.height) for window in windows} == {48}
+
+
 def test_a_window_past_the_photos_edge_is_zero_there_and_scores_nothing_there():
     shape = (120, 160)
     corner = _box_mask(shape, 0, 0, 20, 20)
