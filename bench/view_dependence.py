@@ -130,6 +130,7 @@ def camera_frame_fit(training: list[dict], held_out: list[dict], degree: int) ->
     """Per frame (camera, world): the training log-ratio's variance explained by a
     polynomial of the normal in that frame, and each held-out photo's gain-matched
     PSNR before and after its render is multiplied by it (the module docstring)."""
+    ratios = [blurred_ratio(view) for view in training]
     lines = []
     for frame in ("camera", "world"):
 
@@ -137,8 +138,7 @@ def camera_frame_fit(training: list[dict], held_out: list[dict], degree: int) ->
             return view["normal"] @ view["rotation"].T if frame == "camera" else view["normal"]
 
         rows, targets = [], []
-        for view in training:
-            ratio = blurred_ratio(view)
+        for view, ratio in zip(training, ratios):
             usable = view["inside"] & np.isfinite(ratio) & (ratio > 0.2) & (ratio < 5.0)
             rows.append(monomials(normals(view)[usable], degree))
             targets.append(np.log(ratio[usable]))

@@ -115,8 +115,8 @@ def bake_bitmap(
     free) the smallest that keeps the texels under the upper bound, by which their
     light is then multiplied (pipeline.render.light.rescale_scenes). Each view renders
     twice at ``spp`` with its own integrator, and once more in each of the
-    ``rounds - 1`` rounds after the first; its weight's pixels count. The scenes'
-    bitmap is put back as it was."""
+    ``rounds - 1`` rounds after the first (none when no texel is seen); its weight's
+    pixels count. The scenes' bitmap is put back as it was."""
     import mitsuba as mi
 
     scenes = {id(v.scene): v.scene for v in views}
@@ -146,14 +146,15 @@ def bake_bitmap(
         pixels.append((view, counts, at, shading, photo))
     del renders
     seen = denominator.min(axis=1) > SEEN * denominator.max()
-    scale = _light_scale(lit[seen], dark[seen], denominator[seen], bounds[1]) if relit and seen.any() else 1.0
+    free = bool(relit) and seen.any()  # a light whose level may rise, and texels to say by how much
+    scale = _light_scale(lit[seen], dark[seen], denominator[seen], bounds[1]) if free else 1.0
     if scale != 1.0:  # an update with nothing changed would still rebuild every scene's emitters
         rescale_scenes(relit, scale)
     numerator = lit - scale * dark
     # after a rescale every render, D included, is ``scale`` times brighter
     texture = np.divide(numerator, scale * denominator, out=np.zeros_like(numerator), where=denominator > 0)
     texture = _filled(np.clip(texture, *bounds), seen, size)
-    for round_ in range(1, rounds):
+    for round_ in range(1, rounds if seen.any() else 1):  # no texel seen: nothing to move
         _put_bitmaps(scenes, key, dict.fromkeys(scenes, mi.TensorXf(texture.reshape(rows, columns, 3))))
         step = np.zeros((texels, 3))
         for i, (view, counts, at, shading, photo) in enumerate(progress.track(pixels, f"bake: round {round_ + 1}")):
@@ -162,9 +163,7 @@ def bake_bitmap(
         texture = texture + np.divide(step, scale * denominator, out=np.zeros_like(step), where=denominator > 0)
         # the rounds brighten what the first solution darkened: the light rises again
         # where more than HEADROOM of the texels would pass the bound
-        needed = (
-            float(np.quantile(texture[seen].max(axis=1), 1.0 - HEADROOM)) / bounds[1] if relit and seen.any() else 1.0
-        )
+        needed = float(np.quantile(texture[seen].max(axis=1), 1.0 - HEADROOM)) / bounds[1] if free else 1.0
         if needed > 1.0:
             rescale_scenes(relit, needed)
             scale, texture = scale * needed, texture / needed
