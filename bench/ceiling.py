@@ -23,6 +23,18 @@ first row bounds what any texture can give with this mesh and light; the gap fro
 training photos' row to fit_texture's own figure is the texture fit's, and that from
 the first row to the training photos' the geometry's and the light's.
 
+``--view-dependent STRENGTH,...`` adds rows for a colour that depends on the view:
+per texel and channel ``c0 + c1 x + c2 y + c3 z``, (x, y, z) the unit direction from
+the surface to the camera, solved by least squares from the training photos'
+pixels (each pixel's shading and the light's other paths from one render at colour
+0 and one at 1, as the bake's first solve) with a ridge of STRENGTH times the
+texel's own weight on c1..c3, and evaluated per texel at the direction to the
+held-out camera; a row of the constant colour from the same single solve goes with
+them (the bake's later rounds are not applied to either). Where the photos disagree
+smoothly with the viewpoint (a sheen, a light that moves with the camera) such a
+colour predicts a held-out photo between training photos; where they disagree texel
+by texel (detail the mesh places a pixel off) it cannot.
+
 ``--photographer DISTANCE:RADIUS`` puts a black disk into every view's scene, for the
 bakes and the scored renders alike: its radius RADIUS times the camera's distance from
 the specimen's centre, DISTANCE times that distance behind the camera, facing the
@@ -30,7 +42,7 @@ specimen: an occluder that moves with the camera (the photographer's body, a gan
 arm), which shades the side of the specimen the camera faces.
 
 Usage: ``.venv/bin/python bench/ceiling.py CAPTURE [-s KEY=VALUE ...] [--nearest 2,4,8]
-[--photographer 1:0.5]`` with the
+[--photographer 1:0.5] [--view-dependent 0.1,1]`` with the
 overrides its runs used (bench/light.py's REAL), after bin/bootstrap and a
 ``pipeline run CAPTURE --until fit_texture`` with them. Prints a
 Markdown table; rewrites the section ``ceiling-NAME`` of docs/benchmarks.md with
@@ -48,7 +60,7 @@ from pathlib import Path
 import numpy as np
 from report import write_section
 
-from pipeline.fit.bake import bake_bitmap
+from pipeline.fit.bake import bake_bitmap, fill_unseen, pixel_rays, render_view, texels_hit
 from pipeline.fit.outputs import write_heldout
 from pipeline.fit.views import PhotoGains, load_views
 from pipeline.formats.cameras import read_views
@@ -101,6 +113,84 @@ def photographer_scenes(textured: Path, description: dict, cameras: dict, distan
     return scenes
 
 
+def _texels_and_directions(view, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Per pixel of ``view``, the specimen's texel its ray meets (-1: none) and the unit
+    direction from that surface point to the camera."""
+    texel = texels_hit(view, SPECIMEN, shape).ravel()
+    rays, _ = pixel_rays(view.sensor)
+    towards_camera = -np.array(rays.d).T
+    return texel, towards_camera / np.linalg.norm(towards_camera, axis=1, keepdims=True)
+
+
+def _linear_in_direction(directions: np.ndarray) -> np.ndarray:
+    return np.concatenate([np.ones((len(directions), 1)), directions], axis=1)
+
+
+def view_dependent_rows(
+    training: list, scored: list, key: str, shape: tuple[int, int], strengths: list[float], folder: Path
+) -> list[tuple[str, dict]]:
+    """The ``--view-dependent`` rows (module docstring): the constant colour, then one
+    row per ridge strength."""
+    import mitsuba as mi
+
+    texels, terms = shape[0] * shape[1], 4
+    scenes = {id(v.scene): v.scene for v in training}
+    renders = {}
+    for value in (0.0, 1.0):
+        for scene in scenes.values():
+            params = mi.traverse(scene)
+            params[key] = mi.TensorXf(np.full((2, 2, 3), value, np.float32))
+            params.update()
+        renders[value] = {v.name: render_view(v, 32, i + int(value) * len(training)) for i, v in enumerate(training)}
+    # per texel and channel the normal equations: sum D^2 y y^T and sum D (I - S) y
+    normal = np.zeros((texels, 3, terms, terms))
+    right = np.zeros((texels, 3, terms))
+    for view in training:
+        texel, direction = _texels_and_directions(view, shape)
+        counts = (texel >= 0) & (view.weight.ravel() > 0 if view.weight is not None else True)
+        other = renders[0.0][view.name].reshape(-1, 3)[counts]
+        shading = renders[1.0][view.name].reshape(-1, 3)[counts] - other
+        photo, at, y = view.reference.reshape(-1, 3)[counts], texel[counts], _linear_in_direction(direction[counts])
+        for c in range(3):
+            for i in range(terms):
+                right[:, c, i] += np.bincount(at, shading[:, c] * (photo[:, c] - other[:, c]) * y[:, i], texels)
+                for j in range(terms):
+                    normal[:, c, i, j] += np.bincount(at, shading[:, c] ** 2 * y[:, i] * y[:, j], texels)
+    weight = normal[:, :, 0, 0]
+    seen = weight.min(axis=1) > 1e-6 * weight.max()
+    constant = np.divide(right[:, :, 0], weight, out=np.zeros((texels, 3)), where=weight > 0)
+    texture = fill_unseen(np.clip(constant, *UNBOUNDED), seen, shape).reshape(*shape, 3).astype(np.float32)
+    rows = [("the training photos, a constant colour, one solve", _scored(scored, texture, key, folder / "constant"))]
+    ridge = np.diag([0.0, 1.0, 1.0, 1.0])
+    for strength in strengths:
+        system = normal[seen] + strength * weight[seen][..., None, None] * ridge
+        coefficients = np.zeros((texels, 3, terms))
+        coefficients[seen] = np.linalg.solve(system, right[seen][..., None])[..., 0]
+        per_view = {}
+        for view in scored:  # each held-out photo with the colour its camera sees
+            texel, direction = _texels_and_directions(view, shape)
+            hit = texel >= 0
+            mean = np.stack([np.bincount(texel[hit], direction[hit, i], texels) for i in range(3)], axis=1)
+            length = np.linalg.norm(mean, axis=1, keepdims=True)
+            y = _linear_in_direction(np.divide(mean, length, out=np.zeros_like(mean), where=length > 0))
+            colour = np.einsum("nck,nk->nc", coefficients, y)  # unseen by this camera: c0 alone
+            colour = fill_unseen(np.clip(colour, *UNBOUNDED), seen, shape).reshape(*shape, 3).astype(np.float32)
+            per_view[view.name] = _scored([view], colour, key, folder / f"view-dependent-{strength:g}-{view.name}")
+        rows.append(
+            (f"the training photos, a colour linear in the view direction, ridge {strength:g}", _merged(per_view))
+        )
+    return rows
+
+
+def _merged(per_view: dict[str, dict]) -> dict:
+    """One row's scores from each held-out photo's own: the means over the photos."""
+    return {
+        "psnr_db_mean": float(np.mean([s["psnr_db_mean"] for s in per_view.values()])),
+        "psnr_gain_db_mean": float(np.mean([s["psnr_gain_db_mean"] for s in per_view.values()])),
+        "per_view": {name: s["per_view"][name] for name, s in per_view.items()},
+    }
+
+
 def cached_outputs(capture: Path, until: str, overrides: list[str]) -> dict:
     """Each stage's outputs up to ``until``, all cached (a plan takes no lock: a run
     of later stages may go on beside this)."""
@@ -124,6 +214,7 @@ def ceiling(
     nearest: tuple[int, ...] = (),
     photographer: tuple[float, float] | None = None,
     rounds: int | None = None,
+    view_dependent: list[float] | None = None,
 ) -> list[tuple[str, dict]]:
     """(what the texture came from, score_heldout's scores) per row of the module docstring;
     each row's heldout/-like folder kept under ``keep`` when given."""
@@ -189,6 +280,8 @@ def ceiling(
                     [v for v in scored if v.name == name], texture, key, Path(folder) / f"near{count}-{name}"
                 )
                 rows.append((f"the {count} training photos nearest {name} (scored on it alone)", scores))
+        if view_dependent:
+            rows += view_dependent_rows(training, scored, key, shape, view_dependent, Path(folder))
     return rows
 
 
@@ -201,10 +294,12 @@ def main() -> None:
     parser.add_argument("--nearest", default="", help="counts of nearest training photos to bake from, e.g. 2,4,8")
     parser.add_argument("--photographer", help="DISTANCE:RADIUS of a black disk behind every camera")
     parser.add_argument("--rounds", type=int, help="the bakes' rounds (default: fit_texture's)")
+    parser.add_argument("--view-dependent", help="ridge strengths of a colour linear in the view direction, e.g. 0.1,1")
     args = parser.parse_args()
     nearest = tuple(int(n) for n in args.nearest.split(",") if n)
     photographer = tuple(float(x) for x in args.photographer.split(":")) if args.photographer else None
-    rows = ceiling(args.capture, args.overrides, args.keep, nearest, photographer, args.rounds)
+    strengths = [float(x) for x in args.view_dependent.split(",")] if args.view_dependent else None
+    rows = ceiling(args.capture, args.overrides, args.keep, nearest, photographer, args.rounds, strengths)
     lines = [
         f"| texture baked from ({args.capture.name}) | held-out PSNR | per photo |",
         "|---|---|---|",

@@ -127,7 +127,7 @@ def bake_bitmap(
     for value in (0.0, 1.0):
         _put_bitmaps(scenes, key, dict.fromkeys(scenes, mi.TensorXf(np.full((2, 2, 3), value, np.float32))))
         renders[value] = {
-            v.name: _render(v, spp, i)
+            v.name: render_view(v, spp, i)
             for i, v in enumerate(progress.track(views, f"bake: renders with the colour at {value:g}"))
         }
     # per view, the pixels that count: their texel, D and the photo; per texel and
@@ -153,12 +153,12 @@ def bake_bitmap(
     numerator = lit - scale * dark
     # after a rescale every render, D included, is ``scale`` times brighter
     texture = np.divide(numerator, scale * denominator, out=np.zeros_like(numerator), where=denominator > 0)
-    texture = _filled(np.clip(texture, *bounds), seen, size)
+    texture = fill_unseen(np.clip(texture, *bounds), seen, size)
     for round_ in range(1, rounds if seen.any() else 1):  # no texel seen: nothing to move
         _put_bitmaps(scenes, key, dict.fromkeys(scenes, mi.TensorXf(texture.reshape(rows, columns, 3))))
         step = np.zeros((texels, 3))
         for i, (view, counts, at, shading, photo) in enumerate(progress.track(pixels, f"bake: round {round_ + 1}")):
-            residual = photo - _render(view, spp, (round_ + 1) * len(views) + i)[counts]
+            residual = photo - render_view(view, spp, (round_ + 1) * len(views) + i)[counts]
             step += _per_texel(at, shading * residual, texels)
         texture = texture + np.divide(step, scale * denominator, out=np.zeros_like(step), where=denominator > 0)
         # the rounds brighten what the first solution darkened: the light rises again
@@ -167,12 +167,13 @@ def bake_bitmap(
         if needed > 1.0:
             rescale_scenes(relit, needed)
             scale, texture = scale * needed, texture / needed
-        texture = _filled(np.clip(texture, *bounds), seen, size)
+        texture = fill_unseen(np.clip(texture, *bounds), seen, size)
     _put_bitmaps(scenes, key, before)
     return texture.reshape(rows, columns, 3).astype(np.float32), float(seen.mean()), scale
 
 
-def _render(view: FitView, spp: int, index: int) -> np.ndarray:
+def render_view(view: FitView, spp: int, index: int) -> np.ndarray:
+    """``view`` rendered with its own integrator at ``spp``, seeded by ``index`` (as an array)."""
     import mitsuba as mi
 
     return np.array(mi.render(view.scene, sensor=view.sensor, integrator=view.integrator, spp=spp, seed=seed(index)))
@@ -183,7 +184,7 @@ def _per_texel(at: np.ndarray, values: np.ndarray, texels: int) -> np.ndarray:
     return np.stack([np.bincount(at, values[:, c], texels) for c in range(values.shape[1])], axis=1)
 
 
-def _filled(texture: np.ndarray, seen: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+def fill_unseen(texture: np.ndarray, seen: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     """(texels, 3) ``texture`` whose unseen texels take their nearest seen texel's value."""
     if not seen.any():
         return texture
