@@ -314,6 +314,7 @@ def main() -> None:
     if args.write:
         suffix = f"-photographer-{args.photographer}" if args.photographer else ""
         suffix += f"-rounds-{args.rounds}" if args.rounds else ""
+        suffix += f"-view-dependent-{args.view_dependent}" if args.view_dependent else ""
         write_section(f"ceiling-{args.capture.name}{suffix}", lines)
 
 
