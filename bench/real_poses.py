@@ -1,37 +1,44 @@
-"""Poses on real captures and on synthetic captures made to fail like real ones:
-photos posed, by what, errors against a reference, self-calibration, time.
+"""Poses on real captures and on a randomised suite of synthetic turntables: photos
+placed, how many within a degree, stacked photos, errors against a reference, the
+reported uncertainty, self-calibration, time.
 
     .venv/bin/python bench/real_poses.py [--captures ../shared/captures] [--work /tmp/real-poses]
-                                         [--preset standard] [--only NAME ...]
+                                         [--suite 12] [--only NAME ...] [--write]
 
 Cases (``--only`` picks some by name):
 
-- ``temple-ring`` (rig handheld) and ``temple-ring-ring`` (rig ring): Middlebury's
-  templeRing from ``--captures``, scored against its calibrated reference cameras.
-- ``porous-cube``: 76 handheld phone photos, one of them a stray room shot (no reference).
-- ``hard-turntable`` and ``hard-turntable-room``: the synthetic twin of the real turntable
-  capture issue 24 describes (`pipeline synth --rig turntable`, 60 views at 256x256, a glossy
-  plain specimen, a dark plate with sparse dots, a still textured room, no board, no EXIF
-  focal length, uneven steps); features from what moves (the room masked out, the default)
-  and from everywhere (``sfm.feature_mask = everywhere``).
-- ``hard-turntable-white``: the same photos cut out on white.
-- ``bird``: the bundled sample (handheld rings, the board), the targets of the earlier issues.
+- Real captures from ``--captures`` (each skipped when absent), every one scored against
+  its own reference: ``oxford-dino`` (turntable; Oxford's projective turntable
+  reconstruction: turntable angles and centres against reference/cameras.txt, viewing
+  directions against reference/cameras_upgraded.txt, see its README), ``dino-sparse-ring``
+  (ring; Middlebury's calibrated cameras), ``temple-ring`` (handheld) and
+  ``temple-ring-ring`` (ring; Middlebury's calibrated cameras), ``porous-cube`` (handheld,
+  76 phone photos with one stray room shot; no reference).
+- ``suite-SEED``: synthetic turntables drawn from seeds (``suite_options``): resolution
+  256-1024 px; steps of 3-15 degrees, even, jittered or alternating short and long; one
+  turn, a turn restarted part-way or a second partial turn; the specimen shifted half-way
+  (wobble) or not; a glossy plain or a textured specimen; a dotted, grey or board table; a
+  room, studio, white or black backdrop; camera height 10-45 degrees; EXIF focal length or
+  not. Each is rendered once into ``--work``.
+- ``small-on-white`` and ``small-on-white-held``: a handheld synthetic capture whose
+  features cover under a third of the frame (a small specimen centred on white, no EXIF
+  focal length), with self-calibration and with the focal length kept where it started.
+- ``bird``: the bundled sample (handheld rings, the board).
 
-Each capture becomes a pipeline capture in ``--work`` (`pipeline new` with the rig and the
-photos for the real ones; `pipeline synth` for the synthetic ones, rendered once) and runs
-`pipeline run --until sfm` (real captures with `-s board.kind=none`: no board was photographed).
-Errors are after a similarity alignment of the camera centres (Umeyama): rotation, and
-viewing direction (R^T [0 0 1]), median and max.
+Each becomes a pipeline capture in ``--work`` and runs `pipeline run --until sfm`
+(real captures with ``-s board.kind=none``: no board was photographed). Errors are after
+a similarity alignment of the camera centres (Umeyama): viewing direction (R^T [0 0 1]),
+and for a turntable or ring the angle about the reference circle's axis (its median
+offset removed) and the centres' RMS as a fraction of the circle's radius. "within 1 deg"
+counts the photos whose viewing direction is within a degree, over all photos of the
+capture. "stacked" counts placed photos within 0.1 degrees of another placed photo's
+direction whose true directions are more than half a step apart. "angle std" is the
+uncertainty the solver reports for each placed photo (sfm.json).
 
 temple-ring's reference (reference/templeR_par.txt, Middlebury's K [R t]) fits the photos as
-published only when turned by 90 degrees: with K, R, t as given, a quarter of the reference
-bounding box projects outside the 480x640 photos and the masks carve no visual hull; turned
-(u' = v, v' = 639 - u, the camera's axes turned about its optical axis to match), the box
-projects inside every photo and the hull builds. Its principal point is then (246.9, 336.7),
-7 and 17 px from the centre. The reference cameras of the 16 photos from the opposite gantry
-latitude lack the 180-degree turn those photos were published with, so their rotation errors
-read 180 degrees while their viewing directions are right: the rotation column counts the
-turn out (``--reference-as-given`` scores against the par file as it is).
+published only when turned by 90 degrees (u' = v, v' = 639 - u); the 16 photos from the
+opposite gantry latitude were published turned by 180 degrees, which viewing directions
+do not see. dino-sparse-ring's reference fits its photos as given.
 """
 
 from __future__ import annotations
@@ -42,7 +49,6 @@ import shutil
 import subprocess
 import sys
 import time
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -52,38 +58,86 @@ from pipeline.camera.model import Pose
 from pipeline.formats.cameras import read_cameras
 from pipeline.synthetic.score import score_cameras
 
+ROOT = Path(__file__).resolve().parents[1]
+DOCS = ROOT / "docs" / "benchmarks.md"
+SECTION = "## Real poses"
 TURN = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 """The reference camera's axes turned about its optical axis: x' = y, y' = -x."""
-HALF_TURN = np.diag([-1.0, -1.0, 1.0])
-HARD_TURNTABLE = [
-    "--rig", "turntable", "--views", "60", "--width", "256", "--height", "256", "--rings", "25",
-    "--material", "glossy_paint", "--texture", "plain", "--table", "dots", "--calibration-shots", "0",
-    "--no-exif-focal", "--turn-jitter", "0.3", "--spp", "32", "--seed", "7",
+SMALL_ON_WHITE = [
+    "--views", "24", "--rings", "20", "45", "--width", "640", "--height", "480", "--distance", "0.75",
+    "--backdrop", "white", "--table", "grey", "--calibration-shots", "0", "--no-exif-focal", "--spp", "16",
+    "--seed", "5",
 ]  # fmt: skip
+"""A small specimen centred on white, no EXIF focal length: features cover under a third of the frame."""
 
 
 @dataclass(frozen=True)
 class Case:
     name: str
     source: str
-    """'shared:NAME' (a folder of ../shared/captures), 'synth:BACKDROP' (the hard turntable
-    with that backdrop, rendered once into the work folder) or 'sample:NAME'."""
+    """'shared:NAME' (a folder of ``--captures``), 'suite:SEED' (a drawn synthetic turntable),
+    'synth:NAME' (a fixed synthetic capture) or 'sample:NAME'."""
     rig: str = "handheld"
     overrides: tuple[str, ...] = field(default_factory=tuple)
 
 
-CASES = [
-    Case("temple-ring", "shared:temple-ring", "handheld", overrides=("board.kind=none",)),
-    Case("temple-ring-ring", "shared:temple-ring", "ring", overrides=("board.kind=none",)),
-    Case("porous-cube", "shared:porous-cube", "handheld", overrides=("board.kind=none",)),
-    Case("hard-turntable", "synth:room"),
-    Case("hard-turntable-room", "synth:room", overrides=("sfm.feature_mask=everywhere",)),
-    Case("hard-turntable-white", "synth:white"),
+REAL = [
+    Case("oxford-dino", "shared:oxford-dino", "turntable", ("board.kind=none",)),
+    Case("dino-sparse-ring", "shared:dino-sparse-ring", "ring", ("board.kind=none",)),
+    Case("temple-ring", "shared:temple-ring", "handheld", ("board.kind=none",)),
+    Case("temple-ring-ring", "shared:temple-ring", "ring", ("board.kind=none",)),
+    Case("porous-cube", "shared:porous-cube", "handheld", ("board.kind=none",)),
+]
+OTHERS = [
+    Case("small-on-white", "synth:small-on-white"),
+    Case("small-on-white-held", "synth:small-on-white", overrides=("sfm.self_calibrate=false",)),
     Case("bird", "sample:bird"),
 ]
 
 
+def suite_options(seed: int) -> tuple[list[str], str]:
+    """`pipeline synth` arguments of the suite's capture ``seed``, and a short description."""
+    rng = np.random.default_rng(1000 + seed)
+    size = int(rng.choice([256, 384, 512, 768, 1024]))
+    step = float(rng.uniform(3.0, 15.0))
+    steps = str(rng.choice(["even", "jittered", "alternating"]))
+    order = str(rng.choice(["one turn", "restart", "second partial turn"]))
+    wobble = float(rng.choice([0.0, 0.01], p=[0.6, 0.4]))
+    look = str(rng.choice(["glossy plain", "textured"]))
+    table = str(rng.choice(["dots", "grey", "board"]))
+    backdrop = str(rng.choice(["room", "studio", "white", "dark"]))
+    height = float(rng.uniform(10.0, 45.0))
+    exif = bool(rng.integers(2))
+    extra = float(rng.uniform(0.2, 0.5)) if order == "second partial turn" else 0.0
+    views = int(round(360.0 * (1 + extra) / step))
+    arguments = [
+        "--rig", "turntable", "--views", str(views), "--width", str(size), "--height", str(size),
+        "--rings", f"{height:.1f}", "--table", table, "--backdrop", backdrop, "--calibration-shots", "0",
+        "--spp", "8", "--seed", str(seed), "--extra-turn", f"{extra:.2f}", "--wobble", str(wobble),
+        "--material", "glossy_paint" if look == "glossy plain" else "principled",
+        "--texture", "plain" if look == "glossy plain" else "blotches",
+    ]  # fmt: skip
+    if steps == "jittered":
+        arguments += ["--turn-jitter", "0.3"]
+    if steps == "alternating":
+        arguments += ["--turn-alternation", "2.1"]
+    if order == "restart":
+        arguments += ["--turn-restart-deg", f"{rng.uniform(8.0, 12.0):.1f}"]
+    if not exif:
+        arguments.append("--no-exif-focal")
+    description = (
+        f"{size} px, {views} views, {step:.1f} deg {steps}, {order}{', wobble' if wobble else ''}, {look}, "
+        f"{table} table, {backdrop}, {height:.0f} deg high{'' if exif else ', no EXIF'}"
+    )
+    return arguments, description
+
+
+# --- references --------------------------------------------------------------------------
+
+
 def middlebury_poses(par: Path, turned: bool) -> dict[str, Pose]:
+    """Middlebury's ``name K R t`` lines, the camera turned by 90 degrees about its optical
+    axis when ``turned`` (temple-ring's photos as published)."""
     poses = {}
     for line in par.read_text().splitlines()[1:]:
         if not line.strip():
@@ -95,27 +149,91 @@ def middlebury_poses(par: Path, turned: bool) -> dict[str, Pose]:
     return poses
 
 
-def direction_errors(estimate: dict[str, Pose], truth: dict[str, Pose], rotation: np.ndarray) -> np.ndarray:
-    """Angles between aligned and true viewing directions (R^T [0, 0, 1]), degrees."""
-    angles = []
-    for name in sorted(set(estimate) & set(truth)):
-        seen = rotation @ estimate[name].R.T @ np.array([0.0, 0.0, 1.0])
-        true = truth[name].R.T @ np.array([0.0, 0.0, 1.0])
-        angles.append(np.degrees(np.arccos(np.clip(seen @ true, -1.0, 1.0))))
-    return np.array(angles)
+def oxford_poses(path: Path) -> dict[str, Pose]:
+    """oxford-dino's ``name fx fy cx cy skew R t`` lines."""
+    poses = {}
+    for line in path.read_text().splitlines():
+        if line.strip():
+            name, *values = line.split()
+            numbers = np.array(values, float)
+            poses[name] = Pose(numbers[5:14].reshape(3, 3), numbers[14:17])
+    return poses
 
 
-def rotation_errors(estimate: dict[str, Pose], truth: dict[str, Pose], rotation: np.ndarray) -> np.ndarray:
-    """Rotation errors (degrees) after the alignment, a half turn about the optical axis
-    counted out (temple-ring's reference lacks it for half its photos)."""
-    errors = []
-    for name in sorted(set(estimate) & set(truth)):
-        relative = estimate[name].R @ rotation.T @ truth[name].R.T
-        angles = [
-            np.degrees(np.arccos(np.clip((np.trace(M) - 1) / 2, -1, 1))) for M in (relative, HALF_TURN @ relative)
-        ]
-        errors.append(min(angles))
-    return np.array(errors)
+def references(case: Case, captures: Path, capture: Path) -> tuple[dict[str, Pose] | None, dict[str, Pose] | None]:
+    """(centres and angles reference, viewing directions reference); None where there is none."""
+    kind, _, name = case.source.partition(":")
+    if kind == "shared":
+        folder = captures / name / "reference"
+        if name == "oxford-dino":
+            return oxford_poses(folder / "cameras.txt"), oxford_poses(folder / "cameras_upgraded.txt")
+        par = next(folder.glob("*_par.txt"), None) if folder.is_dir() else None
+        poses = middlebury_poses(par, turned=name == "temple-ring") if par else None
+        return poses, poses
+    truth = read_cameras(capture / "ground_truth" / "cameras.json")[1]
+    return truth, truth
+
+
+# --- scores -------------------------------------------------------------------------------
+
+
+def _directions(poses: dict[str, Pose], names: list[str]) -> np.ndarray:
+    return np.array([poses[n].R.T @ np.array([0.0, 0.0, 1.0]) for n in names])
+
+
+def direction_errors(estimate: dict[str, Pose], truth: dict[str, Pose]) -> dict[str, float]:
+    """Per photo, degrees between the aligned and the true viewing direction."""
+    common = sorted(set(estimate) & set(truth))
+    if len(common) < 3:
+        return {}
+    _, similarity = score_cameras(estimate, truth)
+    seen = _directions(estimate, common) @ similarity.R.T
+    true = _directions(truth, common)
+    return dict(zip(common, np.degrees(np.arccos(np.clip(np.sum(seen * true, axis=1), -1.0, 1.0)))))
+
+
+def circle_errors(estimate: dict[str, Pose], truth: dict[str, Pose]) -> tuple[np.ndarray, float]:
+    """Angle errors (degrees) about the reference circle's axis, the median offset removed,
+    and the centres' RMS error as a fraction of the circle's radius, after a similarity
+    alignment of the centres."""
+    common = sorted(set(estimate) & set(truth))
+    if len(common) < 3:
+        return np.zeros(0), float("nan")
+    _, similarity = score_cameras(estimate, truth)
+    true = np.array([truth[n].center for n in common])
+    seen = similarity.points(np.array([estimate[n].center for n in common]))
+    centre = true.mean(axis=0)
+    normal = np.linalg.svd(true - centre)[2][2]
+    u = np.linalg.svd(true - centre)[2][0]
+    v = np.cross(normal, u)
+    radius = float(np.median(np.linalg.norm((true - centre) - np.outer((true - centre) @ normal, normal), axis=1)))
+
+    def angles(points: np.ndarray) -> np.ndarray:
+        return np.arctan2((points - centre) @ v, (points - centre) @ u)
+
+    difference = np.angle(np.exp(1j * (angles(seen) - angles(true))))
+    offset = np.angle(np.mean(np.exp(1j * difference)))
+    errors = np.degrees(np.abs(np.angle(np.exp(1j * (difference - offset)))))
+    rms = float(np.sqrt(np.mean(np.sum((seen - true) ** 2, axis=1))))
+    return errors, rms / radius
+
+
+def stacked(estimate: dict[str, Pose], truth: dict[str, Pose]) -> int:
+    """Placed photos within 0.1 degrees of another's viewing direction whose true
+    directions are more than half the median nearest-neighbour step apart."""
+    names = sorted(set(estimate) & set(truth))
+    if len(names) < 2:
+        return 0
+    seen, true = _directions(estimate, names), _directions(truth, names)
+    seen_angle = np.degrees(np.arccos(np.clip(seen @ seen.T, -1, 1)))
+    true_angle = np.degrees(np.arccos(np.clip(true @ true.T, -1, 1)))
+    np.fill_diagonal(true_angle, np.inf)
+    half_step = 0.5 * float(np.median(true_angle.min(axis=1)))
+    np.fill_diagonal(seen_angle, np.inf)
+    return int(np.sum(np.any((seen_angle < 0.1) & (true_angle > half_step), axis=1)))
+
+
+# --- running ------------------------------------------------------------------------------
 
 
 def _pipeline(*arguments: str) -> list[str]:
@@ -131,101 +249,161 @@ def prepare(case: Case, captures: Path, work: Path) -> Path:
         subprocess.run(_pipeline("new", str(capture), "--rig", case.rig), check=True)
         for photo in sorted((captures / name / "images").iterdir()):
             shutil.copy2(photo, capture / "images" / photo.name)
-    elif kind == "sample":
-        shutil.copytree(
-            Path(__file__).resolve().parents[1] / "sample_captures" / name,
-            capture,
-            ignore=shutil.ignore_patterns(".pipeline", "output"),
-        )
-    else:
-        twin = work / f"synth-{name}"
-        if not (twin / "capture.toml").is_file():
-            subprocess.run(_pipeline("synth", str(twin), *HARD_TURNTABLE, "--backdrop", name), check=True)
-        shutil.copytree(twin, capture, ignore=shutil.ignore_patterns(".pipeline", "output"))
+        return capture
+    if kind == "sample":
+        shutil.copytree(ROOT / "sample_captures" / name, capture, ignore=shutil.ignore_patterns(".pipeline", "output"))
+        return capture
+    rendered = work / f"rendered-{name}"
+    if not (rendered / "capture.toml").is_file():
+        shutil.rmtree(rendered, ignore_errors=True)
+        arguments = suite_options(int(name))[0] if kind == "suite" else SMALL_ON_WHITE
+        subprocess.run(_pipeline("synth", str(rendered), *arguments), check=True)
+    shutil.copytree(rendered, capture, ignore=shutil.ignore_patterns(".pipeline", "output"))
     return capture
 
 
-def reference(case: Case, captures: Path, capture: Path, as_given: bool) -> dict[str, Pose] | None:
-    if case.source.startswith("shared:"):
-        par = captures / case.source.split(":")[1] / "reference" / "templeR_par.txt"
-        return middlebury_poses(par, turned=not as_given) if par.is_file() else None
-    _, truth = read_cameras(capture / "ground_truth" / "cameras.json")
-    return truth
-
-
 def calibration_summary(report: dict) -> str:
-    """f, principal point and k1 as sfm.json reports them: adjusted or held."""
+    """f and k1 as sfm.json reports them: adjusted or held."""
     found = report.get("circular", {}).get("self_calibration") or next(
         iter(report.get("self_calibration", {}).values()), None
     )
     if not found or "values" not in found:
         return found.get("skipped", "-") if found else "board or not tried"
     values = found["values"]
-    parts = []
-    for name in ("f", "cx", "cy", "k1"):
-        entry = values[name]
-        parts.append(f"{name} {entry['value']:.4g}{'' if entry['adjusted'] else ' (held)'}")
-    return ", ".join(parts)
+    return ", ".join(
+        f"{name} {values[name]['value']:.4g}{'' if values[name]['adjusted'] else ' (held)'}" for name in ("f", "k1")
+    )
+
+
+def run_case(case: Case, captures: Path, work: Path) -> dict:
+    """Run sfm on the case and score it: a dict of the table's cells."""
+    capture = prepare(case, captures, work)
+    command = _pipeline("run", str(capture), "--until", "sfm")
+    if case.source.startswith("shared:"):
+        command += ["-s", f"capture.rig={case.rig}"]
+    for override in case.overrides:
+        command += ["-s", override]
+    started = time.perf_counter()
+    log = work / f"{case.name}.log"
+    with log.open("w") as stream:
+        finished = subprocess.run(command, stdout=stream, stderr=subprocess.STDOUT).returncode == 0
+    seconds = time.perf_counter() - started
+    photos = len([p for p in (capture / "images").iterdir() if p.is_file()])
+    row = {"case": case.name, "photos": photos, "seconds": seconds, "finished": finished}
+    if not finished:
+        lines = [line for line in log.read_text().splitlines() if line.startswith("error")]
+        row["error"] = lines[-1][:160] if lines else "failed"
+        return row
+    output = capture / "output"
+    poses = read_cameras(output / "cameras.json")[1]
+    key = json.loads((output / "manifest.json").read_text())["cameras.json"]["key"]
+    report = json.loads((capture / ".pipeline" / "cache" / "sfm" / key / "sfm.json").read_text())
+    circular = report.get("circular", {})
+    row |= {
+        "rig": report.get("poses_from", ""),
+        "placed": len(poses),
+        "by": {k: len(v) for k, v in circular.get("pose_source", {}).items() if v} or {"SfM": len(poses)},
+        "calibration": calibration_summary(report),
+        "angle_std": list(circular.get("angle_std_deg", {}).values()),
+    }
+    circle_truth, direction_truth = references(case, captures, capture)
+    if direction_truth is not None:
+        errors = direction_errors(poses, direction_truth)
+        values = np.array(list(errors.values()))
+        row |= {
+            "within_1deg": int(np.sum(values <= 1.0)),
+            "direction": (float(np.median(values)), float(values.max())) if len(values) else None,
+            "stacked": stacked(poses, direction_truth),
+        }
+    if circle_truth is not None and case.rig in ("turntable", "ring"):
+        angle_errors, centre_rms = circle_errors(poses, circle_truth)
+        if len(angle_errors):
+            row |= {"angle": (float(np.median(angle_errors)), float(angle_errors.max())), "centre": centre_rms}
+    return row
+
+
+def table_row(row: dict, description: str) -> str:
+    def pair(value, unit=" deg") -> str:
+        return f"{value[0]:.2f} / {value[1]:.2f}{unit}" if value else "-"
+
+    if not row["finished"]:
+        return f"| {row['case']} | {description} | {row['photos']} | failed: {row['error']} ||||||| {row['seconds']:.0f} s |"
+    std = np.array(row["angle_std"])
+    std_cell = f"{np.median(std):.2f} / {std.max():.2f} deg" if len(std) else "-"
+    by = ", ".join(f"{k} {v}" for k, v in row["by"].items())
+    centre = f"{100 * row['centre']:.2f} %" if "centre" in row else "-"
+    within = str(row.get("within_1deg", "-"))
+    return (
+        f"| {row['case']} | {description} | {row['photos']} | {row['placed']} ({by}) | {within} | "
+        f"{row.get('stacked', '-')} | {pair(row.get('direction'))} | {pair(row.get('angle'))} | {centre} | "
+        f"{std_cell} | {row['calibration']} | {row['seconds']:.0f} s |"
+    )
+
+
+HEADER = (
+    "| capture | what | photos | placed (by) | within 1 deg | stacked | direction error median / max | "
+    "turn angle error median / max | centres (RMS, % of radius) | angle std median / max | "
+    "intrinsics (self-calibration) | sfm |\n|---|---|---|---|---|---|---|---|---|---|---|---|"
+)
+
+
+def write_section(lines: list[str], summary: list[str], command: str) -> None:
+    """Replace the "Real poses" section of docs/benchmarks.md."""
+    text = DOCS.read_text()
+    start = text.index(SECTION)
+    end = text.find("\n## ", start + len(SECTION))
+    body = "\n".join(
+        [
+            f"{SECTION} (issue 51)",
+            "",
+            f"Machine: the 2-core, 24 GiB VM (no GPU). Command: `{command}` (regenerates this section;",
+            "synthetic captures are rendered once into the work folder). Columns: bench/real_poses.py's docstring.",
+            "",
+            HEADER,
+            *lines,
+            "",
+            *summary,
+            "",
+        ]
+    )
+    DOCS.write_text(text[:start] + body + (text[end + 1 :] if end >= 0 else ""))
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--captures", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "captures")
+    parser.add_argument("--captures", type=Path, default=ROOT.parent / "shared" / "captures")
     parser.add_argument("--work", type=Path, default=Path("/tmp/real-poses"))
-    parser.add_argument("--preset", default="standard")
-    parser.add_argument("--only", nargs="*", default=[case.name for case in CASES])
-    parser.add_argument("--reference-as-given", action="store_true")
+    parser.add_argument("--suite", type=int, default=12, help="synthetic turntables drawn (seeds 0..N-1)")
+    parser.add_argument("--only", nargs="*", default=None)
+    parser.add_argument("--write", action="store_true", help="rewrite docs/benchmarks.md's section")
     args = parser.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
-    print(
-        "| capture | rig | photos | posed | posed by | rotation error median / max | "
-        "direction error median / max | intrinsics (self-calibration) | sfm stage |"
-    )
-    print("|---|---|---|---|---|---|---|---|---|")
-    for case in CASES:
-        if case.name not in args.only:
-            continue
+    suite = [Case(f"suite-{seed:02d}", f"suite:{seed}", "turntable") for seed in range(args.suite)]
+    cases = [c for c in REAL + suite + OTHERS if args.only is None or c.name in args.only]
+    print(HEADER, flush=True)
+    lines, suite_rows = [], []
+    for case in cases:
         if case.source.startswith("shared:") and not (args.captures / case.source.split(":")[1]).is_dir():
-            print(f"| {case.name} | {case.rig} | (not in {args.captures}) |||||||")
             continue
-        capture = prepare(case, args.captures, args.work)
-        overrides = (
-            [f"capture.rig={case.rig}", *case.overrides] if case.source.startswith("shared:") else list(case.overrides)
+        description = suite_options(int(case.source.split(":")[1]))[1] if case.source.startswith("suite:") else case.rig
+        row = run_case(case, args.captures, args.work)
+        lines.append(table_row(row, description))
+        print(lines[-1], flush=True)
+        if case.source.startswith("suite:"):
+            suite_rows.append(row)
+    summary = []
+    if suite_rows:
+        photos = sum(r["photos"] for r in suite_rows)
+        within = sum(r.get("within_1deg", 0) for r in suite_rows)
+        stacked_count = sum(r.get("stacked", 0) for r in suite_rows)
+        failed = sum(not r["finished"] for r in suite_rows)
+        summary.append(
+            f"Randomised suite ({len(suite_rows)} captures, {photos} photos): {within} photos "
+            f"({100 * within / photos:.1f} %) placed within 1 degree, {stacked_count} stacked, {failed} stages failed."
         )
-        command = _pipeline("run", str(capture), "--until", "sfm", "--preset", args.preset)
-        for override in overrides:
-            command += ["-s", override]
-        rig = tomllib.loads((capture / "capture.toml").read_text())["capture"]["rig"]
-        rig = next((o.split("=")[1] for o in overrides if o.startswith("capture.rig=")), rig)
-        started = time.perf_counter()
-        finished = subprocess.run(command).returncode == 0
-        seconds = time.perf_counter() - started
-        if not finished:
-            print(f"| {case.name} | {rig} | - | failed (see its log) | - | - | - | - | {seconds:.0f} s |")
-            continue
-        output = capture / "output"
-        _, poses = read_cameras(output / "cameras.json")
-        key = json.loads((output / "manifest.json").read_text())["cameras.json"]["key"]
-        entry = capture / ".pipeline" / "cache" / "sfm" / key
-        report = json.loads((entry / "sfm.json").read_text())
-        stage_seconds = json.loads((entry / "status.json").read_text()).get("seconds", seconds)
-        sources = report.get("circular", {}).get("pose_source") or {report.get("poses_from", "SfM"): list(poses)}
-        by = ", ".join(f"{source} {len(names)}" for source, names in sources.items() if names)
-        errors = "-", "-"
-        truth = reference(case, args.captures, capture, args.reference_as_given)
-        if truth is not None:
-            _, similarity = score_cameras(poses, truth)
-            rotations = rotation_errors(poses, truth, similarity.R)
-            directions = direction_errors(poses, truth, similarity.R)
-            errors = (
-                f"{np.median(rotations):.2f} / {rotations.max():.2f} deg",
-                f"{np.median(directions):.2f} / {directions.max():.2f} deg",
-            )
-        print(
-            f"| {case.name} | {rig} | {report['photos']} | {len(poses)} | {by} | {errors[0]} | {errors[1]} "
-            f"| {calibration_summary(report)} | {stage_seconds:.0f} s |",
-            flush=True,
-        )
+        print(summary[-1])
+    if args.write:
+        write_section(lines, summary, "bench/real_poses.py " + " ".join(sys.argv[1:]).replace(" --write", ""))
 
 
 if __name__ == "__main__":

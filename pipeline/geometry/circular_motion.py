@@ -24,21 +24,33 @@ The solver:
    left out.
 3. **Angles**: synchronised over the graph of pairs (the leading eigenvector of the
    pairs' unit phasors, then robust least squares), so any matched pair counts and
-   the photos need not be in order; the photos outside the largest connected ring
-   are left unplaced.
+   the photos need not be in order (a restarted or second turn is no exception).
+   The largest connected set of photos is the ring; each other connected set (a
+   ring broken by a gap in matching) is a group whose angles are known up to one
+   offset, which the sfm stage finds from the group's silhouettes
+   (pipeline.geometry.turntable_placement).
 4. **Bundle adjustment** of the model (pipeline.geometry.bundle): axis, ``p``, one
    angle per photo, focal length, radial distortion when the photos constrain it
    (``self_calibrate``; the principal point is held, see ``_self_calibration``),
    and the feature tracks' points, with Cauchy's loss; observations off by more
-   than ``outlier_px`` are dropped and it is solved again. An optional prior makes
-   the steps between photos in file order even (a timed turntable).
-5. **Which photos it placed**: a photo with fewer than ``min_observations`` inlier
-   observations, or whose angle is uncertain by more than ``max_angle_std_deg``,
-   is not placed; the sfm stage then tries its board pose or its silhouette.
+   than ``outlier_px`` are dropped and it is solved again. Every group's angles
+   share the axis, offset and intrinsics; each group holds one of its angles fixed.
+   An optional prior makes the ring's steps between photos in file order even (a
+   timed turntable).
+5. **Which photos it placed**: no threshold in degrees or pixels, since what a photo's
+   angle can be known to depends on the photos' size and noise. A photo is placed
+   when it has ``min_observations`` inlier observations, its
+   residuals are no worse than the other photos' (a one-sided sign test against the
+   pooled median, at ``misfit_significance`` over the photos, and a median more
+   than ``misfit_ratio`` times the pooled one) and its angle's uncertainty (one
+   standard deviation, from the bundle adjustment's covariance) is under a third of
+   the angle to its nearest placed neighbour, so that it cannot trade places with
+   it. Each placed photo's uncertainty is reported; the sfm stage tries the others'
+   board pose or silhouette.
 
-Limitations: one camera setting; the photos' matches must form one connected ring
-(photos in other components are left unplaced); the axis must not point at the
-camera (a camera looking straight down the axis sees only a rotation of the image).
+Limitations: one camera setting; a group no silhouette can place is left out; the
+axis must not point at the camera (a camera looking straight down the axis sees
+only a rotation of the image).
 """
 
 from __future__ import annotations
@@ -49,6 +61,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial.transform import Rotation
+from scipy.stats import binom
 
 from pipeline import logger
 from pipeline.camera.model import Intrinsics, Pose
@@ -71,8 +84,13 @@ class CircularSettings:
 
     min_observations: int = 15
     """Inlier observations a photo needs to be placed by its features."""
-    max_angle_std_deg: float = 0.5
-    """A photo whose angle is more uncertain than this (one standard deviation) is not placed."""
+    misfit_significance: float = 1e-3
+    """A photo whose residuals exceed the pooled median more often than chance allows at
+    this level (a one-sided sign test, divided among the photos) fits the circle worse
+    than the others ..."""
+    misfit_ratio: float = 1.5
+    """... and is left out when its median residual is also this many times the pooled one
+    (with hundreds of observations a slight excess is significant and harmless)."""
     outlier_px: float = 3.0
     """Observations farther than this from their reprojection (or 4 robust standard
     deviations, whichever is larger) are dropped between solves."""
@@ -87,9 +105,6 @@ class CircularSettings:
     min_frame_coverage: float = 0.4
     """Self-calibration needs observations in at least this fraction of a 6x6 grid over
     the frame: distortion and principal point show only towards the edges."""
-    in_file_order: bool = False
-    """The photos are named in the order the table turned (a turntable): a photo whose
-    angle breaks that order is not placed by its features."""
     even_steps_deg: float = 0.0
     """Above 0: a prior that consecutive photos in file order are one equal step apart,
     with this standard deviation (degrees): a turntable turned by a timer."""
@@ -105,10 +120,15 @@ class CircularMotion:
     angles: dict[str, float]
     intrinsics: Intrinsics
     points: np.ndarray
-    """(M, 3) track points in the frame of the photo at angle 0."""
+    """(M, 3) track points in the frame of the photo at angle 0 (a group's: of its own
+    first photo, see ``place_group``)."""
     tracks: list[dict[str, int]]
     """Per point: photo name -> keypoint index of its inlier observations."""
+    point_groups: np.ndarray
+    """(M,) the group of each point's photos: 0 for the ring, k for ``groups[k - 1]``."""
     angle_std_deg: dict[str, float]
+    """One standard deviation of each placed or grouped photo's angle (degrees; a group's
+    relative to its own fixed photo)."""
     observations: dict[str, int]
     """Inlier observations per photo (placed or not)."""
     calibration: dict
@@ -117,6 +137,22 @@ class CircularMotion:
     """Median reprojection error of the inlier observations."""
     unplaced: dict[str, str] = field(default_factory=dict)
     """Photos the features could not place, with the reason."""
+    groups: list[dict[str, float]] = field(default_factory=list)
+    """Photos the features tie to each other but not to the ring: per group, each photo's
+    angle relative to the group's first (radians); the group as a whole is still to place."""
+
+
+def place_group(solution: "CircularMotion", offsets: dict[int, float]) -> tuple[np.ndarray, list[dict[str, int]]]:
+    """The solution's points and tracks with each placed group's (``offsets``: group
+    number, 1 for ``groups[0]``, -> the angle its first photo was placed at) turned into
+    the ring's frame, and the points of groups not placed dropped."""
+    keep = (solution.point_groups == 0) | np.isin(solution.point_groups, list(offsets))
+    points = solution.points.copy()
+    for group, offset in offsets.items():
+        own = solution.point_groups == group
+        points[own] = axis_rotation(solution.axis, np.full(int(own.sum()), -offset), points[own] - solution.point)
+        points[own] += solution.point
+    return points[keep], [track for track, kept in zip(solution.tracks, keep) if kept]
 
 
 def axis_rotation(axis: np.ndarray, angles: np.ndarray, vectors: np.ndarray) -> np.ndarray:
@@ -305,48 +341,24 @@ def _spanning_tree(n: int, pairs: np.ndarray, edge_order: np.ndarray) -> np.ndar
 
 
 def _tree_angles(n: int, pairs: np.ndarray, turns: np.ndarray) -> np.ndarray:
-    """Angles along a spanning forest (nan for photos outside the largest tree)."""
+    """Angles along a spanning forest, each tree's from its own first photo (nan for
+    photos in no pair)."""
     neighbours: dict[int, list[tuple[int, float]]] = {}
     for (i, j), turn in zip(pairs, turns):
         neighbours.setdefault(int(i), []).append((int(j), float(turn)))
         neighbours.setdefault(int(j), []).append((int(i), -float(turn)))
     angles = np.full(n, np.nan)
-    best: list[int] = []
     for start in neighbours:
         if np.isfinite(angles[start]):
             continue
-        angles[start], stack, members = 0.0, [start], [start]
+        angles[start], stack = 0.0, [start]
         while stack:
             i = stack.pop()
             for j, turn in neighbours[i]:
                 if not np.isfinite(angles[j]):
                     angles[j] = angles[i] + turn
                     stack.append(j)
-                    members.append(j)
-        if len(members) > len(best):
-            best = members
-    keep = np.zeros(n, bool)
-    keep[best] = True
-    return np.where(keep, angles, np.nan)
-
-
-def out_of_order(angles: np.ndarray) -> np.ndarray:
-    """Indices of ``angles`` (in file order) to drop so that the rest increase within one
-    turn from the first: the complement of the longest increasing subsequence of the
-    angles counted forward from the first, modulo a full turn."""
-    forward = np.mod(angles - angles[0], 2 * np.pi)
-    # Longest increasing subsequence, O(n^2): a capture has at most a few hundred photos.
-    length = np.ones(len(forward), int)
-    previous = -np.ones(len(forward), int)
-    for j in range(len(forward)):
-        for i in range(j):
-            if forward[i] < forward[j] and length[i] + 1 > length[j]:
-                length[j], previous[j] = length[i] + 1, i
-    keep, k = set(), int(np.argmax(length))
-    while k >= 0:
-        keep.add(k)
-        k = previous[k]
-    return np.array([i for i in range(len(angles)) if i not in keep], int)
+    return angles
 
 
 def synchronise_angles(n: int, pairs: np.ndarray, turns: np.ndarray, weights: np.ndarray, reference: int) -> np.ndarray:
@@ -440,6 +452,9 @@ class _Solver:
         self.model: Model | None = None
         self.angles = np.zeros(len(order))
         self.placed = np.zeros(len(order), bool)
+        """Photos in the bundle adjustment: the ring's and the groups'."""
+        self.group = np.full(len(order), -1)
+        """0 for the ring, 1, 2, ... for groups the features do not tie to it, -1 for none."""
         self.trusted_pairs: set[tuple[str, str]] = set()
         """Feature pairs the model explains with turns the other pairs agree with."""
         self.known_rotations: dict[int, np.ndarray] = {}
@@ -517,22 +532,20 @@ def _initial_axis_and_angles(
         axis, turns = -axis, -turns
     graph = coo_matrix((np.ones(int(consistent.sum())), tuple(index[consistent].T)), shape=(n, n))
     _, labels = connected_components(graph, directed=False)
-    component = labels == np.bincount(labels[index[consistent].ravel()]).argmax()
-    keep = consistent & component[index[:, 0]]
-    members = np.flatnonzero(component)
-    local = -np.ones(n, int)
-    local[members] = np.arange(len(members))
-    angles = synchronise_angles(len(members), local[index[keep]], turns[keep], weights[keep], 0)
-    solver.angles[members] = angles
+    linked = np.bincount(labels[index[consistent].ravel()], minlength=labels.max() + 1)
     solver.placed[:] = False
-    solver.placed[members] = True
-    if solver.settings.in_file_order:
-        # A photo joined to the others only by a false pair lands out of turning order.
-        solver.placed[members[out_of_order(angles)]] = False
+    solver.group[:] = -1
+    # The ring is the largest set of linked photos, the groups the other sets (largest first).
+    for group, label in enumerate(label for label in np.argsort(-linked, kind="stable") if linked[label]):
+        members = np.flatnonzero(labels == label)
+        keep = consistent & (labels[index[:, 0]] == label)
+        local = -np.ones(n, int)
+        local[members] = np.arange(len(members))
+        solver.angles[members] = synchronise_angles(len(members), local[index[keep]], turns[keep], weights[keep], 0)
+        solver.placed[members] = True
+        solver.group[members] = group
     solver.trusted_pairs = {
-        (solver.order[i], solver.order[j])
-        for i, j in index[: len(pairs)][keep[: len(pairs)]]
-        if solver.placed[i] and solver.placed[j]
+        (solver.order[i], solver.order[j]) for i, j in index[: len(pairs)][consistent[: len(pairs)]]
     }
     solver.model = Model(axis)
     p = facing_point(axis)
@@ -541,11 +554,13 @@ def _initial_axis_and_angles(
     solver.g[2] = np.arctan2(p @ v, p @ u)
     logger.info(
         "circular motion: %d photo pairs by features (%d not explained by one turn or disagreeing), %d by known "
-        "poses; %d photos in the largest ring",
+        "poses; %d photos in the largest ring, %d in %d groups apart from it",
         len(pairs),
         int((~consistent[: len(pairs)]).sum()),
         len(known_pairs),
-        len(members),
+        int(np.sum(solver.group == 0)),
+        int(np.sum(solver.group > 0)),
+        int(solver.group.max()),
     )
 
 
@@ -580,8 +595,10 @@ def _tracks_to_problem(solver: _Solver, tracks: list[dict[str, int]]) -> tuple[n
 
 def _problem(solver: _Solver, observations: Observations, free_global: np.ndarray) -> Problem:
     free_views = solver.placed[:, None].copy()
-    free_views[int(np.flatnonzero(solver.placed)[0]), 0] = False  # the angle's origin
-    placed = np.flatnonzero(solver.placed)
+    for group in np.unique(solver.group[solver.placed]):
+        # Each group's angles are known up to one offset: its first photo holds it.
+        free_views[int(np.flatnonzero(solver.placed & (solver.group == group))[0]), 0] = False
+    placed = np.flatnonzero(solver.placed & (solver.group == 0))
     priors = []
     if solver.settings.even_steps_deg > 0:
         sigma = np.radians(solver.settings.even_steps_deg)
@@ -697,30 +714,56 @@ def _global_std(problem: Problem, covariance: np.ndarray) -> np.ndarray:
 
 
 def _solve_placing(solver: _Solver, tracks, free: np.ndarray, unplaced: dict[str, str]):
-    """``_solve``, and photos too weakly constrained, or whose observations fit the
-    circle much worse than the others' (not the same camera on it: a photo turned in
-    the image plane after it was taken, say), left unplaced and solved again."""
-    settings = solver.settings
+    """``_solve``, then the photos that fail step 5's tests left unplaced and solved
+    again, until every photo left passes."""
     while True:
         result, problem, points, observations = _solve(solver, tracks, free)
         counts = np.bincount(observations.view, minlength=len(solver.order))
         std = _angle_std_deg(solver, problem, result.covariance)
-        typical = float(np.median(result.errors_px))
-        misfit = np.array(
-            [np.median(result.errors_px[observations.view == i]) if counts[i] else 0.0 for i in range(len(counts))]
-        )
-        weak = solver.placed & ((counts < settings.min_observations) | (std > settings.max_angle_std_deg))
-        weak |= solver.placed & (misfit > max(1.0, 3 * typical))
-        if not weak.any() or solver.placed.sum() - weak.sum() < 3:
+        reasons = _placement_failures(solver, result.errors_px, observations, counts, std)
+        if not reasons or np.sum(solver.placed & (solver.group == 0)) - len(reasons) < 3:
             return result, problem, points, observations, counts, std
-        for i in np.flatnonzero(weak):
-            unplaced[solver.order[i]] = (
-                f"{counts[i]} inlier observations fitting the circle to {misfit[i]:.2f} px (the photos' median: "
-                f"{typical:.2f} px), its angle uncertain by {std[i]:.2f} degrees (needs {settings.min_observations} "
-                f"observations, at most {max(1.0, 3 * typical):.2f} px and {settings.max_angle_std_deg} degrees)"
+        for i, reason in reasons.items():
+            unplaced[solver.order[i]] = reason
+            logger.info("%s: %s", solver.order[i], reason)
+            solver.placed[i] = False
+        for group in np.unique(solver.group[solver.placed]):
+            members = np.flatnonzero(solver.placed & (solver.group == group))
+            if group > 0 and len(members) < 2:
+                for i in members:
+                    unplaced[solver.order[i]] = "the one photo left of a group of photos not matched into the ring"
+                    solver.placed[i] = False
+
+
+def _placement_failures(
+    solver: _Solver, errors_px: np.ndarray, observations: Observations, counts: np.ndarray, std: np.ndarray
+) -> dict[int, str]:
+    """Step 5: why each placed photo that fails a test is not placed, by index."""
+    settings = solver.settings
+    placed = np.flatnonzero(solver.placed)
+    pooled = float(np.median(errors_px)) if len(errors_px) else 0.0
+    reasons = {}
+    for i in placed:
+        own = errors_px[observations.view == i]
+        median = float(np.median(own)) if len(own) else 0.0
+        exceed = int(np.sum(own > pooled))
+        significance = float(binom.sf(exceed - 1, len(own), 0.5)) if len(own) else 1.0
+        same_group = placed[(solver.group[placed] == solver.group[i]) & (placed != i)]
+        gaps = np.abs(np.angle(np.exp(1j * (solver.angles[same_group] - solver.angles[i]))))
+        nearest_deg = float(np.degrees(gaps.min())) if len(gaps) else np.inf
+        if counts[i] < settings.min_observations:
+            reasons[i] = f"{counts[i]} inlier observations (needs {settings.min_observations})"
+        elif significance < settings.misfit_significance / len(placed) and median > settings.misfit_ratio * pooled:
+            reasons[i] = (
+                f"its observations fit the circle to {median:.2f} px against the photos' {pooled:.2f} px (sign test "
+                f"p = {significance:.1e}): not the same camera on the circle"
             )
-            logger.info("%s: %s", solver.order[i], unplaced[solver.order[i]])
-        solver.placed &= ~weak
+        elif std[i] > nearest_deg / 3:
+            reasons[i] = (
+                f"its angle is uncertain by {std[i]:.2f} degrees, more than a third of the {nearest_deg:.2f} degrees "
+                "to its nearest placed neighbour"
+            )
+    return reasons
 
 
 def solve(
@@ -751,7 +794,7 @@ def solve(
         if len(pairs) < 2:
             raise ValueError(f"only {len(pairs)} photo pairs share {settings.min_observations} verified matches")
         _initial_axis_and_angles(solver, pairs, known or {}, axis)
-        if solver.placed.sum() < 3:
+        if np.sum(solver.group == 0) < 3:
             raise ValueError("fewer than three photos are connected by consistent matches")
         unplaced = {n: "not matched into the ring of the other photos" for n, p in zip(order, solver.placed) if not p}
         # 4. Bundle adjustment with the focal length, then self-calibration; tracks only
@@ -767,30 +810,45 @@ def solve(
     # Tracks from the inlier observations (outliers were dropped from tracks, not from
     # the keypoint graph); the solution's points are in the inliers' order.
     kept: list[dict[str, int]] = [{} for _ in range(len(points))]
+    point_groups = np.zeros(len(points), int)
     for view, point, keypoint in zip(observations.view, observations.point, observations.keypoint):
         kept[point][order[view]] = int(keypoint)
-    # 5. The solution, angles unwrapped in file order.
+        point_groups[point] = solver.group[view]
+    # 5. The solution: the ring's angles unwrapped in file order, the groups' relative to their first photo.
     global_std = _global_std(problem, result.covariance)
     calibration["values"] = {
         name: {"value": float(solver.g[i]), "std": float(global_std[i]) if free[i] else None, "adjusted": bool(free[i])}
         for name, i in (("f", FOCAL), ("cx", CX), ("cy", CY), ("k1", K1))
     }
     axis, p = solver.model.axis_and_point(solver.g)
-    placed = np.flatnonzero(solver.placed)
-    angles = np.unwrap(solver.angles[placed])
+    ring = np.flatnonzero(solver.placed & (solver.group == 0))
+    groups = []
+    renumbered = np.zeros(len(points), int)
+    for group in np.unique(solver.group[solver.placed & (solver.group > 0)]):
+        members = np.flatnonzero(solver.placed & (solver.group == group))
+        base = solver.angles[members[0]]
+        groups.append(
+            {order[i]: float(a) for i, a in zip(members, np.angle(np.exp(1j * (solver.angles[members] - base))))}
+        )
+        # The group's points in the frame of its first photo at angle 0, as its relative angles say.
+        own = point_groups == group
+        points[own] = axis_rotation(axis, np.full(int(own.sum()), base), points[own] - p) + p
+        renumbered[own] = len(groups)
     g = solver.g
     return CircularMotion(
         axis=axis,
         point=p,
-        angles={order[i]: float(a) for i, a in zip(placed, angles)},
+        angles={order[i]: float(a) for i, a in zip(ring, np.unwrap(solver.angles[ring]))},
         intrinsics=Intrinsics(
             intrinsics.width, intrinsics.height, g[FOCAL], g[FOCAL], g[CX], g[CY], [float(g[K1]), 0, 0, 0, 0]
         ),
         points=points,
         tracks=kept,
-        angle_std_deg={order[i]: float(std[i]) for i in placed},
+        point_groups=renumbered,
+        angle_std_deg={order[i]: float(std[i]) for i in np.flatnonzero(solver.placed)},
         observations={n: int(counts[solver.index[n]]) for n in order},
         calibration=calibration,
         reprojection_px=float(np.median(result.errors_px)) if len(result.errors_px) else 0.0,
-        unplaced=unplaced,
+        unplaced={n: reason for n, reason in unplaced.items() if not any(n in group for group in groups)},
+        groups=groups,
     )

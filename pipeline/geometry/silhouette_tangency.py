@@ -5,7 +5,9 @@ the object: in each view it is an epipolar line tangent to the silhouette (its
 outer tangents from the epipole), and the two tangents correspond (Wong and
 Cipolla, "Structure and motion from silhouettes", 2001). With the circular motion
 known from the photos that features placed, a photo's angle is the one at which
-its outline's tangents and those of placed photos agree. Unlike matching a
+its outline's tangents and those of placed photos agree; a group of photos whose
+angles are known relative to each other (features tie them together but not to
+the placed photos) is placed as one, all its outlines at once. Unlike matching a
 silhouette against a visual hull, it needs no hull, and unlike features it works
 on a plain, glossy or translucent specimen.
 
@@ -105,33 +107,37 @@ class Placement:
     partners: int
 
 
-def _errors_px(hull, pose, partners, focal_px: float) -> np.ndarray:
-    """(partners, 4) tangency errors in pixels, capped; nan where a partner gives no constraint."""
+def _errors_px(members, angle: float, pose_at, partners, focal_px: float) -> np.ndarray:
+    """(members x partners, 4) tangency errors in pixels of the ``members`` (hull,
+    relative angle) at ``angle``, capped; nan where a partner gives no constraint."""
     rows = []
-    for partner_hull, partner_pose in partners:
-        errors = pair_errors(hull, pose, partner_hull, partner_pose)
-        rows.append(np.full(4, np.nan) if errors is None else np.minimum(errors * focal_px, CAP_PX))
+    for hull, relative in members:
+        pose = pose_at(angle + relative)
+        for partner_hull, partner_pose in partners:
+            errors = pair_errors(hull, pose, partner_hull, partner_pose)
+            rows.append(np.full(4, np.nan) if errors is None else np.minimum(errors * focal_px, CAP_PX))
     return np.array(rows).reshape(-1, 4)
 
 
 def place(
-    hull: np.ndarray,
+    members: list[tuple[np.ndarray, float]],
     pose_at: "callable",
     partners: list[tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]],
     candidates: np.ndarray,
     focal_px: float,
     separation_deg: float = 5.0,
 ) -> Placement | None:
-    """The candidate angle whose pose (``pose_at(angle)`` -> (R, t)) makes ``hull``'s
-    tangents agree best with those of the ``partners`` (hull, pose), refined to 1/32
-    degree; None when no partner constrains any candidate.
+    """The candidate angle whose pose (``pose_at(angle)`` -> (R, t)) makes the tangents
+    of the ``members`` (outline, angle relative to the one placed: one photo's is 0)
+    agree best with those of the ``partners`` (outline, pose), refined to 1/32 degree;
+    None when no partner constrains any candidate.
 
     Two passes, for masks that are wrong along part of the outline (where the specimen
     meets the table, cut off or fattened by shadow: on a synthetic turntable 4-10 px
     off where the rest agreed to 0.2-1.3 px): the median error over all tangents finds
     the angle roughly; the tangents within 3 times the median there (at least 2 px)
     are kept, and their RMS error places the photo and judges the placement."""
-    errors = np.array([_errors_px(hull, pose_at(a), partners, focal_px) for a in candidates])
+    errors = np.array([_errors_px(members, a, pose_at, partners, focal_px) for a in candidates])
     with np.errstate(all="ignore"):
         rough = np.nanmedian(errors.reshape(len(candidates), -1), axis=1)
     if not np.isfinite(rough).any():
@@ -148,7 +154,7 @@ def place(
     best = int(np.argmin(costs))
     step = float(np.median(np.diff(candidates))) if len(candidates) > 1 else np.radians(0.25)
     fine = np.arange(candidates[best] - step, candidates[best] + step, np.radians(1 / 32))
-    fine_costs = [cost(_errors_px(hull, pose_at(a), partners, focal_px)) for a in fine]
+    fine_costs = [cost(_errors_px(members, a, pose_at, partners, focal_px)) for a in fine]
     angle = float(fine[int(np.argmin(fine_costs))])
     far = np.abs(np.angle(np.exp(1j * (candidates - angle)))) > np.radians(separation_deg)
     runner_up = float(costs[far].min()) if far.any() else np.inf

@@ -1,14 +1,16 @@
 """Poses of a turntable or ring capture: the circular motion solved from the photos'
 feature matches (pipeline.geometry.circular_motion), then the photos the features
-could not place put on the circle by their board pose, by even steps (a timed
-turntable, when asked for) or by their silhouette (epipolar tangency with placed
-photos); a photo none of these places reliably is left out with the reason.
-Two photos are never put at one angle by anything but their features."""
+could not place put on the circle by their board pose, each group of photos the
+features tie together but not to the ring by the group's silhouettes at once, the
+rest by even steps (a timed turntable, when asked for) or by their own silhouette
+(epipolar tangency with placed photos); a photo none of these places reliably is
+left out with the reason. Two photos are never put at one angle by anything but
+their features."""
 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -30,18 +32,17 @@ from pipeline.geometry.world_frame import robust_similarity
 class RigSettings:
     """How a turntable's or ring's photos are placed on their circle (sfm's section)."""
 
-    max_angle_std_deg: Annotated[float, Range(0.0, None, exclusive_lo=True)] = 0.5
-    """Turntable or ring: a photo whose angle its features leave more uncertain than this
-    (one standard deviation, degrees) is placed by other means or left out."""
     turntable_steps: Literal["free", "even"] = "free"
     """Turntable: free, any angle per photo; even, the table turned by equal steps (a
     timed table): a prior holds the steps equal (even_step_std_deg), and photos without
     features are put at their step."""
     even_step_std_deg: Annotated[float, Range(0.0, None, exclusive_lo=True)] = 0.2
     """How far a step may differ from the others when turntable_steps is even."""
-    max_silhouette_error_px: Annotated[float, Range(0.0, None, exclusive_lo=True)] = 1.5
+    silhouette_noise_factor: Annotated[float, Range(1.0, None)] = 2.0
     """Turntable or ring: a photo placed by its silhouette needs its outline's epipolar
-    tangents within this of the placed photos' (RMS, pixels)."""
+    tangents to meet the placed photos' within this many times as well as those of the
+    photos the features placed meet each other at their own angles (the masks' and the
+    model's own error, measured on every capture)."""
     silhouette_ambiguity: Annotated[float, Range(1.0, None)] = 2.0
     """... and every angle more than 5 degrees away must fit this many times worse."""
 
@@ -55,8 +56,8 @@ class PlacementSettings:
     in_file_order: bool
     """The photos are named in the order the table turned (a turntable): a photo placed
     by its silhouette is searched for between its placed neighbours."""
-    max_silhouette_error_px: float
-    """A silhouette placement needs its outline's tangents within this of its partners' (RMS)."""
+    silhouette_noise_factor: float
+    """A silhouette placement's tangency error may be this many times the feature-placed photos'."""
     silhouette_ambiguity: float
     """... and every angle more than 5 degrees away must do this many times worse."""
     max_partners: int = 16
@@ -74,15 +75,13 @@ class PlacementSettings:
         """The settings for a turntable (photos in turning order) or a ring."""
         circular = CircularSettings(
             min_observations=min_observations,
-            max_angle_std_deg=rig.max_angle_std_deg,
             refine_focal=refine_focal,
             self_calibrate=refine_focal and calibration.self_calibrate,
             max_calibration_std_px=calibration.max_calibration_std_px,
             min_frame_coverage=calibration.min_frame_coverage,
-            in_file_order=turntable,
             even_steps_deg=rig.even_step_std_deg if turntable and rig.turntable_steps == "even" else 0.0,
         )
-        return cls(circular, turntable, rig.max_silhouette_error_px, rig.silhouette_ambiguity)
+        return cls(circular, turntable, rig.silhouette_noise_factor, rig.silhouette_ambiguity)
 
 
 def circular_poses(
@@ -95,7 +94,8 @@ def circular_poses(
     board_poses: dict[str, Pose],
 ) -> tuple[Turntable, dict[str, Pose], CircularMotion, dict]:
     """The circle in the frame of the photo at angle 0, a pose for every photo that
-    could be placed, the solver's solution, and the report (sfm.json's "circular")."""
+    could be placed, the solver's solution (its points and tracks those of the ring and
+    the groups placed, in the ring's frame), and the report (sfm.json's "circular")."""
     if len({json.dumps(k.to_json(), sort_keys=True) for k in intrinsics.values()}) > 1:
         raise PipelineError(
             "a turntable or ring needs one camera setting, but the photos were taken with several (see "
@@ -116,6 +116,11 @@ def circular_poses(
     details: dict[str, dict] = {}
     for name, angle in _by_board(table, solution, board_poses, unplaced).items():
         table.angles[name], source[name] = angle, "board"
+    offsets, grouped = _groups_by_silhouette(settings, table, solution, masks, unplaced)
+    for name, found in grouped.items():
+        table.angles[name], source[name], details[name] = found["angle"], "group_silhouette", found
+    points, tracks = circular_motion.place_group(solution, offsets)
+    solution = replace(solution, points=points, tracks=tracks, point_groups=np.zeros(len(points), int))
     if settings.circular.even_steps_deg > 0:
         for name, angle in _by_even_steps(table, order, unplaced).items():
             table.angles[name], source[name] = angle, "even_steps"
@@ -138,7 +143,9 @@ def circular_poses(
     return table, poses, solution, report
 
 
-_SOURCES = ("features", "board", "even_steps", "silhouette")
+GROUP_OUTLINES = 8
+"""Outlines of a group compared at each candidate offset: more cost time and add little."""
+_SOURCES = ("features", "board", "group_silhouette", "even_steps", "silhouette")
 
 
 def _by_board(
@@ -185,6 +192,93 @@ def _by_even_steps(table: Turntable, order: list[str], unplaced: dict[str, str])
     return found
 
 
+class _Outlines:
+    """The photos' outlines in normalised camera coordinates, the circle's poses, and the
+    partners a silhouette is compared with: photos placed by features, spread round it."""
+
+    def __init__(self, settings: PlacementSettings, table: Turntable, solution: CircularMotion, masks: dict[str, Path]):
+        K = solution.intrinsics
+        self.focal = K.fx
+        self.table = table
+        self.masks = masks
+        self.model = circular_motion.Model(table.axis)
+        self.g = np.array([0, 0, 0, K.fx, K.cx, K.cy, K.dist[0]], float)
+        feature_placed = sorted(solution.angles, key=solution.angles.get)
+        spread = feature_placed[:: max(1, len(feature_placed) // settings.max_partners)]
+        self.partners = [(hull, self.pose_at(table.angles[n])) for n in spread if (hull := self.of(n)) is not None]
+        steps = np.diff(np.sort(np.mod(list(solution.angles.values()), 2 * np.pi)))
+        self.typical_step = float(np.median(steps)) if len(steps) else np.radians(5)
+        # The masks' own tangency error: the partners at the angles their features gave.
+        own = [
+            self.place([(hull, 0.0)], np.array([table.angles[n]])) for n in spread if (hull := self.of(n)) is not None
+        ]
+        errors = [placement.error_px for placement in own if placement is not None]
+        self.noise_px = float(np.median(errors)) if errors else np.inf
+
+    def of(self, name: str) -> np.ndarray | None:
+        hull = silhouette_tangency.outline(cv2.imread(str(self.masks[name]), cv2.IMREAD_GRAYSCALE) > 127)
+        return None if hull is None else self.model.undistorted_rays(self.g, hull)
+
+    def pose_at(self, angle: float) -> tuple[np.ndarray, np.ndarray]:
+        pose = self.table.pose(angle)
+        return pose.R, pose.t
+
+    def place(self, members: list[tuple[np.ndarray, float]], candidates: np.ndarray):
+        if not len(candidates):
+            return None
+        return silhouette_tangency.place(members, self.pose_at, self.partners, candidates, self.focal)
+
+
+def _groups_by_silhouette(
+    settings: PlacementSettings,
+    table: Turntable,
+    solution: CircularMotion,
+    masks: dict[str, Path],
+    unplaced: dict[str, str],
+) -> tuple[dict[int, float], dict[str, dict]]:
+    """Angles of the photos of each group the features tie together but not to the ring:
+    the group's offset from the epipolar tangency of its outlines (a spread of at most
+    ``GROUP_OUTLINES`` of them) with those of the ring's photos, kept only when reliable
+    and no member is stacked; a group not placed leaves its photos to be placed alone.
+    Returns the offsets (group number, from 1, -> its first photo's angle) and the angles."""
+    offsets: dict[int, float] = {}
+    found: dict[str, dict] = {}
+    if not solution.groups:
+        return offsets, found
+    outlines = _Outlines(settings, table, solution, masks)
+    for number, group in enumerate(solution.groups, start=1):
+        names = sorted(group, key=group.get)
+        spread = names[:: max(1, len(names) // GROUP_OUTLINES)]
+        members = [(hull, group[n]) for n in spread if (hull := outlines.of(n)) is not None]
+        placement = outlines.place(members, np.radians(np.arange(-180.0, 180.0, 0.5))) if members else None
+        taken = list(table.angles.values()) + [f["angle"] for f in found.values()]
+        reason = _unreliable(settings, placement, taken, outlines, list(group.values()))
+        if reason:
+            for name in names:
+                unplaced[name] = f"in a group of {len(names)} photos not matched into the ring; silhouette: {reason}"
+            continue
+        offsets[number] = placement.angle
+        for name in names:
+            angle = placement.angle + group[name]
+            found[name] = {
+                "angle": angle,
+                "angle_deg": float(np.degrees(angle)),
+                "error_px": placement.error_px,
+                "runner_up_px": placement.runner_up_px,
+                "partners": placement.partners,
+                "group": len(names),
+            }
+        logger.info(
+            "a group of %d photos not matched into the ring placed by their silhouettes (tangency error %.2f px, "
+            "next best %.2f px): %s",
+            len(names),
+            placement.error_px,
+            placement.runner_up_px,
+            ", ".join(names),
+        )
+    return offsets, found
+
+
 def _by_silhouette(
     settings: PlacementSettings,
     table: Turntable,
@@ -197,35 +291,19 @@ def _by_silhouette(
     those of photos placed by features, kept only when reliable and not stacked."""
     if not unplaced:
         return {}
-    K = solution.intrinsics
-    model = circular_motion.Model(table.axis)
-    g = np.array([0, 0, 0, K.fx, K.cx, K.cy, K.dist[0]], float)
-
-    def normalised_outline(name: str) -> np.ndarray | None:
-        hull = silhouette_tangency.outline(cv2.imread(str(masks[name]), cv2.IMREAD_GRAYSCALE) > 127)
-        return None if hull is None else model.undistorted_rays(g, hull)
-
-    def pose_at(angle: float) -> tuple[np.ndarray, np.ndarray]:
-        pose = table.pose(angle)
-        return pose.R, pose.t
-
-    feature_placed = sorted(solution.angles, key=solution.angles.get)
-    spread = feature_placed[:: max(1, len(feature_placed) // settings.max_partners)]
-    partners = [(hull, pose_at(table.angles[n])) for n in spread if (hull := normalised_outline(n)) is not None]
+    outlines = _Outlines(settings, table, solution, masks)
     monotonic = settings.in_file_order and _monotonic(table, order)
-    steps = np.abs(np.diff(np.unwrap([table.angles[n] for n in order if n in table.angles])))
-    typical_step = float(np.median(steps)) if len(steps) else np.radians(5)
     found: dict[str, dict] = {}
     for name in list(unplaced):
-        hull = normalised_outline(name)
+        hull = outlines.of(name)
         if hull is None:
             unplaced[name] += "; its mask is empty"
             continue
         low, high = _bracket(table, order, name) if monotonic else (-np.pi, np.pi)
-        margin = min(0.25 * typical_step, 0.25 * (high - low))
-        candidates = np.arange(low + margin, high - margin, np.radians(0.25))
-        placement = silhouette_tangency.place(hull, pose_at, partners, candidates, K.fx) if len(candidates) else None
-        reason = _unreliable(settings, placement, table, found, typical_step)
+        margin = min(0.25 * outlines.typical_step, 0.25 * (high - low))
+        placement = outlines.place([(hull, 0.0)], np.arange(low + margin, high - margin, np.radians(0.25)))
+        taken = list(table.angles.values()) + [f["angle"] for f in found.values()]
+        reason = _unreliable(settings, placement, taken, outlines, [0.0])
         if reason:
             unplaced[name] += f"; silhouette: {reason}"
             continue
@@ -247,22 +325,30 @@ def _by_silhouette(
     return found
 
 
-def _unreliable(settings: PlacementSettings, placement, table: Turntable, found: dict, typical_step: float) -> str:
-    """Why a silhouette placement is not trusted ('' when it is)."""
+def _unreliable(
+    settings: PlacementSettings, placement, taken: list[float], outlines: _Outlines, offsets: list[float]
+) -> str:
+    """Why a silhouette placement is not trusted ('' when it is): ``taken`` are the angles
+    already placed, ``offsets`` the placed photos' angles relative to the placement's."""
+    noise_px, typical_step = outlines.noise_px, outlines.typical_step
     if placement is None:
         return "no placed photo sees it from a constraining angle"
-    if placement.error_px > settings.max_silhouette_error_px:
+    limit = settings.silhouette_noise_factor * noise_px
+    if placement.error_px > limit:
         return (
-            f"its outline's tangents miss those of the placed photos by {placement.error_px:.2f} px "
-            f"(> sfm.max_silhouette_error_px = {settings.max_silhouette_error_px})"
+            f"its outline's tangents miss those of the placed photos by {placement.error_px:.2f} px, more than "
+            f"sfm.silhouette_noise_factor = {settings.silhouette_noise_factor} times the {noise_px:.2f} px by which "
+            "the photos placed by features miss each other"
         )
     if placement.runner_up_px < settings.silhouette_ambiguity * placement.error_px:
         return (
             f"ambiguous: an angle more than 5 degrees away fits almost as well ({placement.runner_up_px:.2f} px "
             f"against {placement.error_px:.2f} px)"
         )
-    taken = [a for a in list(table.angles.values()) + [f["angle"] for f in found.values()]]
-    nearest = min((abs(np.angle(np.exp(1j * (placement.angle - a)))) for a in taken), default=np.inf)
+    nearest = min(
+        (abs(np.angle(np.exp(1j * (placement.angle + offset - a)))) for a in taken for offset in offsets),
+        default=np.inf,
+    )
     if nearest < 0.2 * typical_step:
         return f"its angle is {np.degrees(nearest):.2f} degrees from a placed photo's: photos are never stacked"
     return ""

@@ -39,17 +39,30 @@ class SynthOptions:
     """What the specimen stands on: board, the capture's ChArUco board printed on a grey plate;
     dots, a dark plate with sparse white dots (a turntable without a board); grey, a plain
     grey plate."""
-    backdrop: Literal["studio", "room", "white"] = "studio"
+    backdrop: Literal["studio", "room", "white", "dark"] = "studio"
     """What is seen behind the specimen: studio, the constant environment (a plain grey
     surround); room, a textured room (an environment map that also lights the scene), still
     while a turntable turns; white, photos cut out on white (everything but the specimen
-    replaced by white, as a matting tool leaves them)."""
+    replaced by white, as a matting tool leaves them); dark, a studio hung with black cloth:
+    the surround nearly black, the softbox the only light."""
     exif_focal: bool = True
     """Write the focal length into the photos' EXIF; False: a camera or tool that strips it."""
     rig: Literal["handheld", "turntable"] = "handheld"
     """handheld: camera moves, light fixed in the world; turntable: the object turns."""
     turn_jitter: Annotated[float, Range(0.0, 0.9)] = 0.0
     """Turntable only: random unevenness of the steps, as a fraction of the mean step."""
+    turn_alternation: Annotated[float, Range(1.0, 4.0)] = 1.0
+    """Turntable only: every second step is this many times longer than the one before (a
+    table turned by hand in short and long steps); 1: no alternation."""
+    turn_restart_deg: Annotated[float, Range(0.0, 90.0)] = 0.0
+    """Turntable only: half-way through the photos the table goes back by this many degrees
+    (a capture restarted part-way): file order is not turning order there."""
+    extra_turn: Annotated[float, Range(0.0, 1.0)] = 0.0
+    """Turntable only: the photos cover one turn and this fraction of a second one."""
+    wobble: Annotated[float, Range(0.0, 0.1)] = 0.0
+    """Turntable only: the specimen shifts on the table half-way through the photos, so that
+    the camera's height above it changes by this fraction of the camera's distance: the
+    photos no longer lie on one circle."""
     calibration_shots: Annotated[int, Range(0, 100)] = 12
     """Number of ChArUco board photos written to calibration/."""
     background_plates: bool = False

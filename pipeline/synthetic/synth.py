@@ -11,10 +11,14 @@ poses, mesh, material, light, board placement and true masks).
 
 Turntable captures (``--rig turntable``) keep camera and light fixed while the
 object turns: in the object's frame the camera circles one ring and the light
-travels with it. ``--turn-jitter`` makes the steps uneven like a hand-turned table.
+travels with it. ``--turn-jitter`` makes the steps uneven like a hand-turned table,
+``--turn-alternation`` alternates short and long steps, ``--turn-restart-deg`` turns the
+table back half-way, ``--extra-turn`` adds part of a second turn and ``--wobble`` shifts
+the specimen half-way, as real turntable captures do.
 ``--table`` and ``--backdrop`` build the hard cases of real captures: a plate with
 sparse dots instead of the board, a still textured room (an environment map, which
-also lights the scene: written to ``ground_truth/room.exr``), photos cut out on white.
+also lights the scene: written to ``ground_truth/room.exr``), photos cut out on white,
+a dark studio lit by the softbox alone.
 """
 
 from __future__ import annotations
@@ -81,6 +85,10 @@ PLATE_RADIUS = 0.2
 """Radius of the turntable plate, metres."""
 
 
+DARK_SURROUND = (0.01, 0.01, 0.01)
+"""The environment's radiance with ``--backdrop dark``: black cloth round a softbox."""
+
+
 def lens_intrinsics(options: SynthOptions) -> Intrinsics:
     """The synthetic camera: ``options``' size and field of view, its lens distortion."""
     f = options.width / 2 / math.tan(math.radians(options.hfov) / 2)
@@ -102,16 +110,21 @@ def specimen_poses(options: SynthOptions, rng: np.random.Generator) -> list[Pose
     ``np.random.default_rng(options.seed)``."""
     if options.rig == "turntable":
         steps = 1.0 + options.turn_jitter * rng.uniform(-1, 1, options.views)
-        azimuths = np.concatenate([[0.0], np.cumsum(steps[:-1])]) * 2 * np.pi / steps.sum()
+        steps[1::2] *= options.turn_alternation
+        turns = 1.0 + options.extra_turn
+        azimuths = np.concatenate([[0.0], np.cumsum(steps[:-1])]) * 2 * np.pi * turns / steps.sum()
+        second_half = np.arange(options.views) >= options.views // 2
+        azimuths[second_half] -= math.radians(options.turn_restart_deg)
         elevation = math.radians(options.rings[0])
         return [
             Pose.look_at(
                 BIRD_CENTRE
                 + options.distance
-                * np.array([math.cos(a) * math.cos(elevation), math.sin(a) * math.cos(elevation), math.sin(elevation)]),
+                * np.array([math.cos(a) * math.cos(elevation), math.sin(a) * math.cos(elevation), math.sin(elevation)])
+                + [0.0, 0.0, options.wobble * options.distance * shifted],
                 BIRD_CENTRE,
             )
-            for a in azimuths
+            for a, shifted in zip(azimuths, second_half)
         ]
     poses = []
     rings = options.rings
@@ -399,6 +412,8 @@ def synthesize(out_dir: Path, options: SynthOptions, board: BoardSection = Board
     light = default_light(options)
     if options.backdrop == "room":
         light = replace(light, environment_map="ground_truth/room.exr")
+    if options.backdrop == "dark":
+        light = replace(light, environment_radiance=DARK_SURROUND)
     rng = np.random.default_rng(options.seed)
     mesh = bird_mesh()
     material = dict(TRUTHS[options.material])

@@ -20,6 +20,7 @@ CAMERA = Pose.look_at([0.4 * np.cos(np.radians(25)), 0.0, 0.4 * np.sin(np.radian
 
 @dataclass
 class TurntableViews:
+    intrinsics: Intrinsics
     names: list[str]
     angles: np.ndarray
     """True angles, radians."""
@@ -35,12 +36,30 @@ def pose_at(angle: float) -> Pose:
     return Pose(CAMERA.R @ Rotation.from_rotvec([0, 0, angle]).as_matrix(), CAMERA.t)
 
 
+def scaled(factor: float) -> Intrinsics:
+    """The lens for photos ``factor`` times the size (256 px wide at 2)."""
+    return Intrinsics(
+        round(K.width * factor), round(K.height * factor), K.fx * factor, K.fy * factor,
+        (K.cx + 0.5) * factor - 0.5, (K.cy + 0.5) * factor - 0.5, K.dist,
+    )  # fmt: skip
+
+
 def turntable_views(
-    views: int = 20, points: int = 900, neighbours: int = 3, jitter: float = 0.3, seed: int = 0
+    views: int = 20,
+    points: int = 900,
+    neighbours: int = 3,
+    jitter: float = 0.3,
+    seed: int = 0,
+    alternation: float = 1.0,
+    noise_px: float = 0.3,
+    intrinsics: Intrinsics = K,
 ) -> TurntableViews:
-    """``jitter``: the steps' unevenness, a fraction of the mean step (0: a timed table)."""
+    """``jitter``: the steps' unevenness, a fraction of the mean step (0: a timed table);
+    ``alternation``: every second step that many times the one before (a table turned by
+    hand in short and long steps); ``noise_px``: the keypoints' noise."""
     rng = np.random.default_rng(seed)
     steps = 1 + jitter * rng.uniform(-1, 1, views)
+    steps[1::2] *= alternation
     angles = np.concatenate([[0.0], np.cumsum(steps[:-1])]) * 2 * np.pi / steps.sum()
     half = points // 2
     xyz = np.vstack(
@@ -56,10 +75,13 @@ def turntable_views(
         pose = poses[name] = pose_at(angle)
         camera = xyz @ pose.R.T + pose.t
         x, y = camera[:, 0] / camera[:, 2], camera[:, 1] / camera[:, 2]
-        radial = 1 + K.dist[0] * (x * x + y * y)
-        pixels = np.column_stack([K.fx * x * radial + K.cx, K.fy * y * radial + K.cy]) + rng.normal(0, 0.3, (points, 2))
+        lens = intrinsics
+        radial = 1 + lens.dist[0] * (x * x + y * y)
+        pixels = np.column_stack([lens.fx * x * radial + lens.cx, lens.fy * y * radial + lens.cy])
+        pixels += rng.normal(0, noise_px, (points, 2))
         facing = np.einsum("ij,ij->i", normals, pose.center - xyz) > 0
-        inside = (pixels[:, 0] > 0) & (pixels[:, 0] < K.width - 1) & (pixels[:, 1] > 0) & (pixels[:, 1] < K.height - 1)
+        inside = (pixels[:, 0] > 0) & (pixels[:, 0] < lens.width - 1) & (pixels[:, 1] > 0)
+        inside &= pixels[:, 1] < lens.height - 1
         seen = np.flatnonzero(facing & inside & (rng.uniform(size=points) < 0.6))
         keypoints[name] = pixels[seen]
         visible[name] = {int(p): k for k, p in enumerate(seen)}
@@ -72,17 +94,17 @@ def turntable_views(
                 pairs[key] = int(rng.integers(len(keypoints[b])))
             matches[a, b] = pairs
             matches[b, a] = {v: u for u, v in pairs.items()}
-    return TurntableViews(names, angles, poses, keypoints, matches, visible)
+    return TurntableViews(intrinsics, names, angles, poses, keypoints, matches, visible)
 
 
-def blob_mask(pose: Pose, spheres: list[tuple[tuple[float, float, float], float]]) -> np.ndarray:
+def blob_mask(pose: Pose, spheres: list[tuple[tuple[float, float, float], float]], lens: Intrinsics = K) -> np.ndarray:
     """The exact silhouette, in the distorted photo, of a union of spheres ((centre,
     radius) in the table's frame) seen from ``pose``."""
-    u, v = np.meshgrid(np.arange(K.width, dtype=float), np.arange(K.height, dtype=float))
-    distorted = np.stack([(u - K.cx) / K.fx, (v - K.cy) / K.fy], axis=-1)
+    u, v = np.meshgrid(np.arange(lens.width, dtype=float), np.arange(lens.height, dtype=float))
+    distorted = np.stack([(u - lens.cx) / lens.fx, (v - lens.cy) / lens.fy], axis=-1)
     undistorted = distorted.copy()
     for _ in range(10):
-        undistorted = distorted / (1 + K.dist[0] * np.sum(undistorted**2, axis=-1, keepdims=True))
+        undistorted = distorted / (1 + lens.dist[0] * np.sum(undistorted**2, axis=-1, keepdims=True))
     rays = np.concatenate([undistorted, np.ones(u.shape + (1,))], axis=-1) @ pose.R
     rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
     mask = np.zeros(u.shape, bool)

@@ -6,7 +6,7 @@ import pytest
 
 from pipeline.geometry.circular_motion import CircularSettings
 from pipeline.geometry.turntable_placement import PlacementSettings, circular_poses
-from tests.pipeline.geometry.test_circular_motion import START
+from tests.pipeline.geometry.test_circular_motion import START, _broken_ring
 from tests.support.turntable_views import blob_mask, turntable_views
 
 pytestmark = pytest.mark.slow  # each test solves a turntable
@@ -17,20 +17,28 @@ BALL = [((0.0, 0.0, 0.045), 0.03)]
 """A ball on the axis: the same outline at every angle."""
 
 
-def _place(tmp_path, views, lonely: str, shape, even_steps: float = 0.0):
+def _masks(tmp_path, views, shape) -> dict:
     masks = {}
     for name in views.names:
         masks[name] = tmp_path / f"{name}.png"
         cv2.imwrite(str(masks[name]), blob_mask(views.poses[name], shape).astype(np.uint8) * 255)
-    matches = {pair: found for pair, found in views.matches.items() if lonely not in pair}
-    settings = PlacementSettings(
-        CircularSettings(in_file_order=True, even_steps_deg=even_steps),
-        True,
-        max_silhouette_error_px=1.5,
-        silhouette_ambiguity=2.0,
+    return masks
+
+
+def _settings(even_steps: float = 0.0) -> PlacementSettings:
+    return PlacementSettings(
+        CircularSettings(even_steps_deg=even_steps), True, silhouette_noise_factor=2.0, silhouette_ambiguity=2.0
     )
-    intrinsics = {name: START for name in views.names}
-    return circular_poses(settings, views.names, intrinsics, masks, views.keypoints, matches, {})
+
+
+def _intrinsics(views) -> dict:
+    return {name: START for name in views.names}
+
+
+def _place(tmp_path, views, lonely: str, shape, even_steps: float = 0.0):
+    masks = _masks(tmp_path, views, shape)
+    matches = {pair: found for pair, found in views.matches.items() if lonely not in pair}
+    return circular_poses(_settings(even_steps), views.names, _intrinsics(views), masks, views.keypoints, matches, {})
 
 
 def _angle_error_deg(table, views, name: str) -> float:
@@ -64,3 +72,40 @@ def test_even_steps_place_a_photo_of_a_timed_table(tmp_path):
     table, _, _, report = _place(tmp_path, views, lonely, BALL, even_steps=0.2)
     assert report["pose_source"]["even_steps"] == [lonely]
     assert _angle_error_deg(table, views, lonely) < 0.2
+
+
+def test_a_ring_broken_in_two_is_closed_by_the_arcs_silhouettes(tmp_path):
+    views = turntable_views()
+    masks = _masks(tmp_path, views, BIRDLIKE)
+    matches = _broken_ring(views, (5, 12))
+    table, poses, solution, report = circular_poses(
+        _settings(), views.names, _intrinsics(views), masks, views.keypoints, matches, {}
+    )
+    arc = views.names[6:13]
+    assert set(poses) == set(views.names)
+    assert report["pose_source"]["group_silhouette"] == sorted(arc)
+    assert max(_angle_error_deg(table, views, name) for name in views.names) < 0.5
+    # The arc's points are turned into the ring's frame: they project where they were seen.
+    assert len(solution.points) == len(solution.tracks) and all(set(t) <= set(poses) for t in solution.tracks)
+
+
+def test_a_photo_that_belongs_nowhere_is_left_out_not_stacked(tmp_path):
+    """A stray photo (another object) whose keypoints two photos matched by chance."""
+    views = turntable_views()
+    masks = _masks(tmp_path, views, BIRDLIKE)
+    stray = "view_999.jpg"
+    rng = np.random.default_rng(3)
+    keypoints = dict(views.keypoints, **{stray: rng.uniform(0, [START.width, START.height], (300, 2))})
+    matches = dict(views.matches)
+    for partner in views.names[3:5]:
+        chosen = rng.choice(len(views.keypoints[partner]), 40, replace=False)
+        matches[partner, stray] = {int(k): int(i) for i, k in enumerate(chosen)}
+        matches[stray, partner] = {v: k for k, v in matches[partner, stray].items()}
+    masks[stray] = tmp_path / "stray.png"
+    cv2.imwrite(str(masks[stray]), (rng.uniform(size=(START.height, START.width)) > 0.7).astype(np.uint8) * 255)
+    names = [*views.names, stray]
+    intrinsics = {name: START for name in names}
+    table, poses, _, report = circular_poses(_settings(), names, intrinsics, masks, keypoints, matches, {})
+    assert stray not in poses and stray in report["unplaced"]
+    assert set(poses) == set(views.names)
+    assert max(_angle_error_deg(table, views, name) for name in views.names) < 0.3
