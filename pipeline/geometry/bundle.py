@@ -150,27 +150,39 @@ def _camera_index(problem: Problem) -> tuple[int, np.ndarray]:
 
 def _normal_equations(problem: Problem, lin: _Linearisation, weights: np.ndarray, n_points: int):
     """Blocks of J^T W J and J^T W r: U (cameras), V (points, 3x3 each), W (cameras x
-    points, as (cameras, 3 * points)), and the two gradients."""
+    points, as (cameras, points, 3)), and the two gradients. An observation's camera
+    Jacobian has the global columns and its own view's: the view blocks are summed per
+    column rather than formed densely (observations x cameras would not fit in memory
+    for a hundred photos)."""
     obs = problem.observations
     n_cam, view_columns = _camera_index(problem)
     n_global = lin.J_global.shape[2]
-    m = len(obs.view)
-    # The camera Jacobian, dense per observation: global columns, then the view's.
-    J_cam = np.zeros((m, 2, n_cam))
-    J_cam[:, :, :n_global] = lin.J_global
-    for j in range(problem.free_views.shape[1]):
-        columns = view_columns[obs.view, j]
-        has = columns >= 0
-        J_cam[np.flatnonzero(has), :, columns[has]] = lin.J_view[has, :, j]
-    w = weights[:, None, None]
-    U = np.einsum("mic,mid->cd", J_cam * w, J_cam)
-    g_cam = np.einsum("mic,mi->c", J_cam * w, lin.residuals)
-    V = np.zeros((n_points, 3, 3))
-    np.add.at(V, obs.point, np.einsum("mia,mib->mab", lin.J_point * w, lin.J_point))
-    g_point = np.zeros((n_points, 3))
-    np.add.at(g_point, obs.point, np.einsum("mia,mi->ma", lin.J_point * w, lin.residuals))
+    weighted_global = lin.J_global * weights[:, None, None]
+    U = np.zeros((n_cam, n_cam))
+    U[:n_global, :n_global] = np.einsum("mic,mid->cd", weighted_global, lin.J_global)
+    g_cam = np.zeros(n_cam)
+    g_cam[:n_global] = np.einsum("mic,mi->c", weighted_global, lin.residuals)
     W = np.zeros((n_cam, n_points, 3))
-    np.add.at(W.transpose(1, 0, 2), obs.point, np.einsum("mic,mia->mca", J_cam * w, lin.J_point))
+    np.add.at(W[:n_global].transpose(1, 0, 2), obs.point, np.einsum("mic,mia->mca", weighted_global, lin.J_point))
+    columns = view_columns[obs.view]  # (m, k): each observation's view columns, -1 where held
+    for j in range(problem.free_views.shape[1]):
+        has = columns[:, j] >= 0
+        column = columns[has, j]
+        weighted = lin.J_view[has, :, j] * weights[has, None]
+        cross = np.zeros((n_cam, n_global))
+        np.add.at(cross, column, np.einsum("mic,mi->mc", lin.J_global[has], weighted))
+        U[:, :n_global] += cross
+        U[:n_global, :] += cross.T
+        for other in range(problem.free_views.shape[1]):
+            both = has & (columns[:, other] >= 0)
+            values = np.einsum("mi,mi->m", lin.J_view[both, :, j] * weights[both, None], lin.J_view[both, :, other])
+            np.add.at(U, (columns[both, j], columns[both, other]), values)
+        np.add.at(g_cam, column, np.einsum("mi,mi->m", weighted, lin.residuals[has]))
+        np.add.at(W, (column, obs.point[has]), np.einsum("mi,mia->ma", weighted, lin.J_point[has]))
+    V = np.zeros((n_points, 3, 3))
+    np.add.at(V, obs.point, np.einsum("mia,mib->mab", lin.J_point * weights[:, None, None], lin.J_point))
+    g_point = np.zeros((n_points, 3))
+    np.add.at(g_point, obs.point, np.einsum("mia,mi->ma", lin.J_point * weights[:, None, None], lin.residuals))
     if len(lin.prior_residuals):
         U += lin.J_prior.T @ lin.J_prior
         g_cam += lin.J_prior.T @ lin.prior_residuals

@@ -292,15 +292,16 @@ def _by_silhouette(
     if not unplaced:
         return {}
     outlines = _Outlines(settings, table, solution, masks)
-    monotonic = settings.in_file_order and _monotonic(table, order)
     found: dict[str, dict] = {}
     for name in list(unplaced):
         hull = outlines.of(name)
         if hull is None:
             unplaced[name] += "; its mask is empty"
             continue
-        low, high = _bracket(table, order, name) if monotonic else (-np.pi, np.pi)
-        margin = min(0.25 * outlines.typical_step, 0.25 * (high - low))
+        bracket = _bracket(table, order, name, outlines.typical_step) if settings.in_file_order else None
+        low, high = bracket or (-np.pi, np.pi)
+        # Inside a bracket, not at its ends: photos are never stacked on their neighbours.
+        margin = min(0.25 * outlines.typical_step, 0.25 * (high - low)) if bracket else 0.0
         placement = outlines.place([(hull, 0.0)], np.arange(low + margin, high - margin, np.radians(0.25)))
         taken = list(table.angles.values()) + [f["angle"] for f in found.values()]
         reason = _unreliable(settings, placement, taken, outlines, [0.0])
@@ -354,20 +355,21 @@ def _unreliable(
     return ""
 
 
-def _monotonic(table: Turntable, order: list[str]) -> bool:
-    """Whether the placed photos' angles increase in file order (within one turn)."""
-    angles = np.unwrap([table.angles[n] for n in order if n in table.angles])
-    return bool(np.all(np.diff(angles) > 0) and angles[-1] - angles[0] < 2 * np.pi)
-
-
-def _bracket(table: Turntable, order: list[str], name: str) -> tuple[float, float]:
-    """Angles between which an unplaced photo must lie: those of the nearest placed
-    photos before and after it in file order (wrapping round once)."""
+def _bracket(table: Turntable, order: list[str], name: str, typical_step: float) -> tuple[float, float] | None:
+    """Angles between which an unplaced photo of a turntable lies when file order holds
+    there: from the nearest placed photo before it in file order to the nearest after
+    (wrapping round once), when the turn between those two is forward and no more than
+    three typical steps for each photo in between; None where file order does not hold
+    (a restart, a second turn, photos out of order), so the whole circle is searched."""
     placed = [n for n in order if n in table.angles]
-    angles = dict(zip(placed, np.unwrap([table.angles[n] for n in placed])))
     index = order.index(name)
-    before = [n for n in order[:index] if n in angles]
-    after = [n for n in order[index + 1 :] if n in angles]
-    low = angles[before[-1]] if before else angles[placed[-1]] - 2 * np.pi
-    high = angles[after[0]] if after else angles[placed[0]] + 2 * np.pi
-    return float(low), float(high)
+    before = [n for n in order[:index] if n in table.angles] or placed[-1:]
+    after = [n for n in order[index + 1 :] if n in table.angles] or placed[:1]
+    if not before or not after:
+        return None
+    low = table.angles[before[-1]]
+    gap = float(np.mod(table.angles[after[0]] - low, 2 * np.pi))
+    between = (order.index(after[0]) - order.index(before[-1])) % len(order)
+    if gap == 0 or gap > 3 * typical_step * between:
+        return None
+    return float(low), float(low + gap)
