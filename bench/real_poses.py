@@ -64,7 +64,7 @@ SECTION = "## Real poses"
 TURN = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 """The reference camera's axes turned about its optical axis: x' = y, y' = -x."""
 SMALL_ON_WHITE = [
-    "--views", "24", "--rings", "20", "45", "--width", "640", "--height", "480", "--distance", "0.75",
+    "--views", "24", "--rings", "20", "45", "--width", "640", "--height", "480", "--hfov", "20", "--distance", "1.1",
     "--backdrop", "white", "--table", "grey", "--calibration-shots", "0", "--no-exif-focal", "--spp", "16",
     "--seed", "5",
 ]  # fmt: skip

@@ -132,6 +132,9 @@ class CircularMotion:
     relative to its own fixed photo)."""
     observations: dict[str, int]
     """Inlier observations per photo (placed or not)."""
+    partners: dict[str, int]
+    """Per placed or grouped photo, how many photos of its ring or group trusted pairs of
+    matches join it to: a photo one pair alone placed cannot be checked against another."""
     calibration: dict
     """Self-calibration: per parameter its value, standard deviation and whether adjusted."""
     reprojection_px: float
@@ -759,6 +762,16 @@ def _placement_failures(
     return reasons
 
 
+def _partners(solver: _Solver) -> dict[str, int]:
+    placed = {solver.order[i] for i in np.flatnonzero(solver.placed)}
+    partners: dict[str, set[str]] = {name: set() for name in placed}
+    for a, b in solver.trusted_pairs:
+        if a in placed and b in placed and solver.group[solver.index[a]] == solver.group[solver.index[b]]:
+            partners[a].add(b)
+            partners[b].add(a)
+    return {name: len(found) for name, found in partners.items()}
+
+
 def solve(
     settings: CircularSettings,
     order: list[str],
@@ -840,6 +853,7 @@ def solve(
         point_groups=renumbered,
         angle_std_deg={order[i]: float(std[i]) for i in np.flatnonzero(solver.placed)},
         observations={n: int(counts[solver.index[n]]) for n in order},
+        partners=_partners(solver),
         calibration=calibration,
         reprojection_px=float(np.median(result.errors_px)) if len(result.errors_px) else 0.0,
         unplaced={n: reason for n, reason in unplaced.items() if not any(n in group for group in groups)},

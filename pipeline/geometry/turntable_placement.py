@@ -111,15 +111,22 @@ def circular_poses(
             "photos per turn"
         ) from error
     table = Turntable(solution.axis, solution.point, np.eye(3), np.zeros(3), dict(solution.angles))
-    source = {name: "features" for name in solution.angles}
     unplaced = dict(solution.unplaced)
+    for name, reason in _unchecked(settings, table, solution, masks).items():
+        del table.angles[name]
+        unplaced[name] = reason
+    source = {name: "features" for name in table.angles}
     details: dict[str, dict] = {}
     for name, angle in _by_board(table, solution, board_poses, unplaced).items():
         table.angles[name], source[name] = angle, "board"
-    offsets, grouped = _groups_by_silhouette(settings, table, solution, masks, unplaced)
+    offsets, grouped = _groups_by_silhouette(settings, table, solution, order, masks, unplaced)
     for name, found in grouped.items():
         table.angles[name], source[name], details[name] = found["angle"], "group_silhouette", found
     points, tracks = circular_motion.place_group(solution, offsets)
+    # Tracks of the photos placed; a point its placed photos see fewer than twice is dropped.
+    tracks = [{n: k for n, k in track.items() if n in table.angles} for track in tracks]
+    seen = np.array([len(track) >= 2 for track in tracks], bool)
+    points, tracks = points[seen], [track for track, kept in zip(tracks, seen) if kept]
     solution = replace(solution, points=points, tracks=tracks, point_groups=np.zeros(len(points), int))
     if settings.circular.even_steps_deg > 0:
         for name, angle in _by_even_steps(table, order, unplaced).items():
@@ -128,14 +135,16 @@ def circular_poses(
         table.angles[name], source[name], details[name] = found["angle"], "silhouette", found
     for name, reason in unplaced.items():
         logger.warning("%s cannot be placed on the circle and is left out: %s", name, reason)
-    poses = {name: table.pose(table.angles[name]) for name in order if name in table.angles}
+    placed = [name for name in order if name in table.angles]
+    poses = {name: table.pose(table.angles[name]) for name in placed}
     report = {
         "pose_source": {kind: sorted(n for n in source if source[n] == kind) for kind in _SOURCES},
         "unplaced": unplaced,
         "reprojection_error_px_median": solution.reprojection_px,
         "points": len(solution.points),
         "observations": solution.observations,
-        "angle_deg": {n: float(np.degrees(a)) for n, a in sorted(table.angles.items())},
+        # Unwrapped in file order: a turntable's angles then grow as the table turned.
+        "angle_deg": dict(zip(placed, np.degrees(np.unwrap([table.angles[n] for n in placed])).tolist())),
         "angle_std_deg": solution.angle_std_deg,
         "silhouette": details,
         "self_calibration": solution.calibration,
@@ -203,10 +212,10 @@ class _Outlines:
         self.masks = masks
         self.model = circular_motion.Model(table.axis)
         self.g = np.array([0, 0, 0, K.fx, K.cx, K.cy, K.dist[0]], float)
-        feature_placed = sorted(solution.angles, key=solution.angles.get)
+        feature_placed = sorted((n for n in solution.angles if n in table.angles), key=table.angles.get)
         spread = feature_placed[:: max(1, len(feature_placed) // settings.max_partners)]
         self.partners = [(hull, self.pose_at(table.angles[n])) for n in spread if (hull := self.of(n)) is not None]
-        steps = np.diff(np.sort(np.mod(list(solution.angles.values()), 2 * np.pi)))
+        steps = np.diff(np.sort(np.mod([table.angles[n] for n in feature_placed], 2 * np.pi)))
         self.typical_step = float(np.median(steps)) if len(steps) else np.radians(5)
         # The masks' own tangency error: the partners at the angles their features gave.
         own = [
@@ -229,17 +238,44 @@ class _Outlines:
         return silhouette_tangency.place(members, self.pose_at, self.partners, candidates, self.focal)
 
 
+def _unchecked(
+    settings: PlacementSettings, table: Turntable, solution: CircularMotion, masks: dict[str, Path]
+) -> dict[str, str]:
+    """Photos of the ring that one pair of matches alone placed (a false pair can place a
+    photo anywhere, and nothing else contradicts it) and whose silhouette disagrees with
+    that angle as the placement of a silhouette would be refused; with the reason."""
+    single = [n for n in solution.angles if solution.partners.get(n, 0) < 2]
+    if not single:
+        return {}
+    outlines = _Outlines(settings, table, solution, masks)
+    refused = {}
+    for name in single:
+        hull = outlines.of(name)
+        placement = outlines.place([(hull, 0.0)], np.array([table.angles[name]])) if hull is not None else None
+        if placement is None or placement.error_px > settings.silhouette_noise_factor * outlines.noise_px:
+            error = f"{placement.error_px:.2f} px" if placement is not None else "no constraint"
+            refused[name] = (
+                f"one pair of matches alone places it, and its silhouette disagrees there ({error} against the "
+                f"{outlines.noise_px:.2f} px by which the photos placed by features miss each other)"
+            )
+            logger.info("%s: %s", name, refused[name])
+    return refused
+
+
 def _groups_by_silhouette(
     settings: PlacementSettings,
     table: Turntable,
     solution: CircularMotion,
+    order: list[str],
     masks: dict[str, Path],
     unplaced: dict[str, str],
 ) -> tuple[dict[int, float], dict[str, dict]]:
     """Angles of the photos of each group the features tie together but not to the ring:
     the group's offset from the epipolar tangency of its outlines (a spread of at most
-    ``GROUP_OUTLINES`` of them) with those of the ring's photos, kept only when reliable
-    and no member is stacked; a group not placed leaves its photos to be placed alone.
+    ``GROUP_OUTLINES`` of them) with those of the ring's photos (on a turntable between
+    the placed photos around its first in file order, where file order holds there),
+    kept only when reliable and no member is stacked; a group not placed leaves its
+    photos to be placed alone.
     Returns the offsets (group number, from 1, -> its first photo's angle) and the angles."""
     offsets: dict[int, float] = {}
     found: dict[str, dict] = {}
@@ -250,7 +286,11 @@ def _groups_by_silhouette(
         names = sorted(group, key=group.get)
         spread = names[:: max(1, len(names) // GROUP_OUTLINES)]
         members = [(hull, group[n]) for n in spread if (hull := outlines.of(n)) is not None]
-        placement = outlines.place(members, np.radians(np.arange(-180.0, 180.0, 0.5))) if members else None
+        first = min(group, key=order.index)
+        bracket = _bracket(table, order, first, outlines.typical_step) if settings.in_file_order else None
+        low, high = bracket or (-np.pi, np.pi)
+        candidates = np.arange(low, high, np.radians(0.5)) - group[first]
+        placement = outlines.place(members, candidates) if members else None
         taken = list(table.angles.values()) + [f["angle"] for f in found.values()]
         reason = _unreliable(settings, placement, taken, outlines, list(group.values()))
         if reason:
