@@ -20,9 +20,6 @@ Cases (``--only`` picks some by name):
   (wobble) or not; a glossy plain or a textured specimen; a dotted, grey or board table; a
   room, studio, white or black backdrop; camera height 10-45 degrees; EXIF focal length or
   not. Each is rendered once into ``--work``.
-- ``small-on-white`` and ``small-on-white-held``: a handheld synthetic capture whose
-  features cover under a third of the frame (a small specimen centred on white, no EXIF
-  focal length), with self-calibration and with the focal length kept where it started.
 - ``bird``: the bundled sample (handheld rings, the board).
 
 Each becomes a pipeline capture in ``--work`` and runs `pipeline run --until sfm`
@@ -63,20 +60,14 @@ DOCS = ROOT / "docs" / "benchmarks.md"
 SECTION = "## Real poses"
 TURN = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 """The reference camera's axes turned about its optical axis: x' = y, y' = -x."""
-SMALL_ON_WHITE = [
-    "--views", "24", "--rings", "20", "45", "--width", "640", "--height", "480", "--hfov", "20", "--distance", "1.1",
-    "--backdrop", "white", "--table", "grey", "--calibration-shots", "0", "--no-exif-focal", "--spp", "16",
-    "--seed", "5",
-]  # fmt: skip
-"""A small specimen centred on white, no EXIF focal length: features cover under a third of the frame."""
 
 
 @dataclass(frozen=True)
 class Case:
     name: str
     source: str
-    """'shared:NAME' (a folder of ``--captures``), 'suite:SEED' (a drawn synthetic turntable),
-    'synth:NAME' (a fixed synthetic capture) or 'sample:NAME'."""
+    """'shared:NAME' (a folder of ``--captures``), 'suite:SEED' (a drawn synthetic turntable)
+    or 'sample:NAME'."""
     rig: str = "handheld"
     overrides: tuple[str, ...] = field(default_factory=tuple)
 
@@ -88,11 +79,7 @@ REAL = [
     Case("temple-ring-ring", "shared:temple-ring", "ring", ("board.kind=none",)),
     Case("porous-cube", "shared:porous-cube", "handheld", ("board.kind=none",)),
 ]
-OTHERS = [
-    Case("small-on-white", "synth:small-on-white"),
-    Case("small-on-white-held", "synth:small-on-white", overrides=("sfm.self_calibrate=false",)),
-    Case("bird", "sample:bird"),
-]
+OTHERS = [Case("bird", "sample:bird")]
 
 
 def suite_options(seed: int) -> tuple[list[str], str]:
@@ -256,8 +243,7 @@ def prepare(case: Case, captures: Path, work: Path) -> Path:
     rendered = work / f"rendered-{name}"
     if not (rendered / "capture.toml").is_file():
         shutil.rmtree(rendered, ignore_errors=True)
-        arguments = suite_options(int(name))[0] if kind == "suite" else SMALL_ON_WHITE
-        subprocess.run(_pipeline("synth", str(rendered), *arguments), check=True)
+        subprocess.run(_pipeline("synth", str(rendered), *suite_options(int(name))[0]), check=True)
     shutil.copytree(rendered, capture, ignore=shutil.ignore_patterns(".pipeline", "output"))
     return capture
 

@@ -112,14 +112,17 @@ def circular_poses(
         ) from error
     table = Turntable(solution.axis, solution.point, np.eye(3), np.zeros(3), dict(solution.angles))
     unplaced = dict(solution.unplaced)
-    for name, reason in _unchecked(settings, table, solution, masks).items():
-        del table.angles[name]
-        unplaced[name] = reason
+    if any(solution.partners.get(n, 0) < 2 for n in solution.angles):
+        for name, reason in _unchecked(settings, _Outlines(settings, table, solution, masks), solution).items():
+            del table.angles[name]
+            unplaced[name] = reason
     source = {name: "features" for name in table.angles}
     details: dict[str, dict] = {}
     for name, angle in _by_board(table, solution, board_poses, unplaced).items():
         table.angles[name], source[name] = angle, "board"
-    offsets, grouped = _groups_by_silhouette(settings, table, solution, order, masks, unplaced)
+    # Silhouettes are compared with the photos the features placed (and kept).
+    outlines = _Outlines(settings, table, solution, masks) if solution.groups or unplaced else None
+    offsets, grouped = _groups_by_silhouette(settings, outlines, solution.groups, order, unplaced)
     for name, found in grouped.items():
         table.angles[name], source[name], details[name] = found["angle"], "group_silhouette", found
     points, tracks = circular_motion.place_group(solution, offsets)
@@ -131,7 +134,7 @@ def circular_poses(
     if settings.circular.even_steps_deg > 0:
         for name, angle in _by_even_steps(table, order, unplaced).items():
             table.angles[name], source[name] = angle, "even_steps"
-    for name, found in _by_silhouette(settings, table, solution, order, masks, unplaced).items():
+    for name, found in _by_silhouette(settings, outlines, order, unplaced).items():
         table.angles[name], source[name], details[name] = found["angle"], "silhouette", found
     for name, reason in unplaced.items():
         logger.warning("%s cannot be placed on the circle and is left out: %s", name, reason)
@@ -238,20 +241,15 @@ class _Outlines:
         return silhouette_tangency.place(members, self.pose_at, self.partners, candidates, self.focal)
 
 
-def _unchecked(
-    settings: PlacementSettings, table: Turntable, solution: CircularMotion, masks: dict[str, Path]
-) -> dict[str, str]:
+def _unchecked(settings: PlacementSettings, outlines: _Outlines, solution: CircularMotion) -> dict[str, str]:
     """Photos of the ring that one pair of matches alone placed (a false pair can place a
     photo anywhere, and nothing else contradicts it) and whose silhouette disagrees with
     that angle as the placement of a silhouette would be refused; with the reason."""
-    single = [n for n in solution.angles if solution.partners.get(n, 0) < 2]
-    if not single:
-        return {}
-    outlines = _Outlines(settings, table, solution, masks)
     refused = {}
-    for name in single:
+    for name in (n for n in solution.angles if solution.partners.get(n, 0) < 2):
         hull = outlines.of(name)
-        placement = outlines.place([(hull, 0.0)], np.array([table.angles[name]])) if hull is not None else None
+        angle = outlines.table.angles[name]
+        placement = outlines.place([(hull, 0.0)], np.array([angle])) if hull is not None else None
         if placement is None or placement.error_px > settings.silhouette_noise_factor * outlines.noise_px:
             error = f"{placement.error_px:.2f} px" if placement is not None else "no constraint"
             refused[name] = (
@@ -264,10 +262,9 @@ def _unchecked(
 
 def _groups_by_silhouette(
     settings: PlacementSettings,
-    table: Turntable,
-    solution: CircularMotion,
+    outlines: _Outlines | None,
+    groups: list[dict[str, float]],
     order: list[str],
-    masks: dict[str, Path],
     unplaced: dict[str, str],
 ) -> tuple[dict[int, float], dict[str, dict]]:
     """Angles of the photos of each group the features tie together but not to the ring:
@@ -279,10 +276,8 @@ def _groups_by_silhouette(
     Returns the offsets (group number, from 1, -> its first photo's angle) and the angles."""
     offsets: dict[int, float] = {}
     found: dict[str, dict] = {}
-    if not solution.groups:
-        return offsets, found
-    outlines = _Outlines(settings, table, solution, masks)
-    for number, group in enumerate(solution.groups, start=1):
+    for number, group in enumerate(groups, start=1):
+        table = outlines.table
         names = sorted(group, key=group.get)
         spread = names[:: max(1, len(names) // GROUP_OUTLINES)]
         members = [(hull, group[n]) for n in spread if (hull := outlines.of(n)) is not None]
@@ -320,18 +315,13 @@ def _groups_by_silhouette(
 
 
 def _by_silhouette(
-    settings: PlacementSettings,
-    table: Turntable,
-    solution: CircularMotion,
-    order: list[str],
-    masks: dict[str, Path],
-    unplaced: dict[str, str],
+    settings: PlacementSettings, outlines: _Outlines | None, order: list[str], unplaced: dict[str, str]
 ) -> dict[str, dict]:
     """Angles of unplaced photos from the epipolar tangency of their outlines with
     those of photos placed by features, kept only when reliable and not stacked."""
     if not unplaced:
         return {}
-    outlines = _Outlines(settings, table, solution, masks)
+    table = outlines.table
     found: dict[str, dict] = {}
     for name in list(unplaced):
         hull = outlines.of(name)
