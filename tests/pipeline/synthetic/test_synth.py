@@ -13,7 +13,7 @@ from pipeline.core.config import load_config
 from pipeline.core.errors import PipelineError
 from pipeline.core.sections import BoardSection, schema
 from pipeline.formats.cameras import read_cameras
-from pipeline.synthetic.synth import SENSOR_WIDTH_MM, SynthOptions, synthesize
+from pipeline.synthetic.synth import BIRD_CENTRE, SENSOR_WIDTH_MM, SynthOptions, specimen_poses, synthesize
 from stages import STAGES
 
 pytestmark = pytest.mark.slow
@@ -169,3 +169,26 @@ def test_photos_cut_out_on_white_are_white_off_the_specimen(tmp_path):
         mask = cv2.imread(str(capture / "ground_truth" / "masks" / photo.name.replace(".jpg", ".png")), 0) > 0
         outside = cv2.erode((~mask).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
         assert np.percentile(pixels[outside], 1) >= 250 and pixels[mask].mean() < 200  # JPEG rings at edges
+
+
+def test_a_hand_turned_table_alternates_restarts_goes_round_again_and_wobbles():
+    """The turntable's camera path as the randomised pose suite draws it: steps alternating
+    short and long, a turn back half-way, part of a second turn, the specimen shifted."""
+    options = SynthOptions(
+        rig="turntable",
+        views=20,
+        rings=(30.0,),
+        turn_alternation=2.0,
+        turn_restart_deg=10.0,
+        extra_turn=0.5,
+        wobble=0.01,
+    )
+    poses = specimen_poses(options, np.random.default_rng(0))
+    offsets = np.array([pose.center - BIRD_CENTRE for pose in poses])
+    steps = np.diff(np.degrees(np.unwrap(np.arctan2(offsets[:, 1], offsets[:, 0]))))
+    pairs = np.array([k for k in range(0, 18, 2) if k != 8])  # short then long, but for the restart's
+    np.testing.assert_allclose(steps[pairs + 1] / steps[pairs], 2.0)
+    assert steps[9] + 10.0 == pytest.approx(2 * steps[8])  # the turn back half-way
+    assert steps.sum() + 10.0 > 450.0  # one turn and most of half another
+    heights = offsets[:, 2]
+    np.testing.assert_allclose(heights[10:] - heights[:10], 0.01 * options.distance, atol=1e-12)
