@@ -277,8 +277,9 @@ def run_case(case: Case, captures: Path, work: Path) -> dict:
     photos = len([p for p in (capture / "images").iterdir() if p.is_file()])
     row = {"case": case.name, "photos": photos, "seconds": seconds, "finished": finished}
     if not finished:
-        lines = [line for line in log.read_text().splitlines() if line.startswith("error")]
-        row["error"] = lines[-1][:160] if lines else "failed"
+        # The run's last error line ("E ..." or "error: ..."), cut before its list of photos.
+        lines = [line for line in log.read_text().splitlines() if line.startswith(("E ", "error"))]
+        row["error"] = lines[-1].split(". Unregistered")[0].removeprefix("E ")[:160] if lines else "failed"
         return row
     output = capture / "output"
     poses = read_cameras(output / "cameras.json")[1]
