@@ -10,10 +10,11 @@
    them (pipeline.camera.self_calibration; values, deviations and decisions in
    sfm.json). Turntable and ring (``capture.rig``): the rig is the model
    (pipeline.geometry.circular_motion): one axis, one camera offset, one angle per
-   photo, bundle-adjusted with the focal length and distortion; a photo the
-   features cannot place is put on the circle by its board pose, by even steps
-   (a timed table) or by its silhouette, else left out with a warning naming it
-   (pipeline.geometry.turntable_placement). Fewer than ``min_registered_fraction``
+   photo, bundle-adjusted with the focal length and distortion, each photo's angle
+   uncertainty reported; an arc of the ring that matching left apart is placed by
+   its silhouettes at once, a photo the features cannot place by its board pose, by
+   even steps (a timed table) or by its silhouette, else left out with a warning
+   naming it (pipeline.geometry.turntable_placement). Fewer than ``min_registered_fraction``
    posed photos is an error naming the others and the likely cause for each. A
    rerun gives the same model: photos are numbered in sorted order, RANSAC and
    the mapper are seeded, and bundle adjustment runs on one thread (COLMAP's
