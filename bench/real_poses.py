@@ -367,7 +367,7 @@ def write_section(lines: list[str], summary: list[str], command: str) -> None:
             "",
         ]
     )
-    DOCS.write_text(text[:start] + body + (text[end + 1 :] if end >= 0 else ""))
+    DOCS.write_text(text[:start] + body + (text[end:] if end >= 0 else ""))
 
 
 def main() -> None:
