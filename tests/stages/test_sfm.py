@@ -21,6 +21,7 @@ SAMPLE = Path(__file__).parents[2] / "sample_captures" / "bird"
 
 
 POROUS_CUBE = Path(__file__).resolve().parents[3] / "shared" / "captures" / "porous-cube"
+DINO_SPARSE_RING = POROUS_CUBE.parent / "dino-sparse-ring"
 
 
 def test_sfm_registers_every_photo_in_the_board_frame(bird_until_uv):
@@ -110,6 +111,43 @@ def test_porous_cube_registers_all_but_the_room_shot_and_meshes_a_closed_box(run
     mesh = trimesh.load(outputs["cleanup"]["mesh"], force="mesh")
     assert mesh.is_watertight and mesh.euler_number == 2
     assert mesh.volume / mesh.bounding_box_oriented.volume > 0.7
+
+
+@pytest.mark.real_data
+@pytest.mark.skipif(not DINO_SPARSE_RING.is_dir(), reason="../shared/captures/dino-sparse-ring is not here")
+def test_dino_sparse_ring_closes_its_broken_ring_through_the_arcs_silhouettes(run_stages, tmp_path):
+    """Middlebury's 16 photos of a textureless plaster dinosaur, 23.5 degrees apart: matching
+    leaves two arcs of the ring apart, and the smaller is placed by its silhouettes at once.
+    Turn angles against the calibrated reference, their common offset removed."""
+    (tmp_path / "images").mkdir()
+    for photo in sorted((DINO_SPARSE_RING / "images").glob("*.png")):
+        (tmp_path / "images" / photo.name).symlink_to(photo)
+    (tmp_path / "capture.toml").write_text('[capture]\nrig = "ring"\n\n[board]\nkind = "none"\n')
+    outputs = run_stages(tmp_path, "sfm")
+    report = json.loads(outputs["sfm"]["report"].read_text())["circular"]
+    assert len(report["pose_source"]["group_silhouette"]) >= 5
+    _, poses = read_cameras(outputs["sfm"]["cameras"])
+    assert len(poses) >= 14
+    reference = {}
+    for line in (DINO_SPARSE_RING / "reference" / "dinoSR_par.txt").read_text().splitlines()[1:]:
+        name, *values = line.split()
+        R, t = np.array(values[9:18], float).reshape(3, 3), np.array(values[18:21], float)
+        reference[name] = -R.T @ t
+    names = sorted(poses)
+    centres = np.array([reference[n] for n in sorted(reference)])
+    u, v, _ = np.linalg.svd(centres - centres.mean(axis=0))[2]  # the reference ring's plane
+    plane = np.column_stack([(centres - centres.mean(axis=0)) @ u, (centres - centres.mean(axis=0)) @ v])
+    # The ring's centre: a least-squares circle (the photos do not cover it evenly).
+    a, b, _ = np.linalg.lstsq(np.column_stack([plane, np.ones(len(plane))]), np.sum(plane**2, axis=1), rcond=None)[0]
+    true = np.array([reference[n] for n in names]) - centres.mean(axis=0)
+    true_angle = np.arctan2(true @ v - b / 2, true @ u - a / 2)
+    estimated = np.radians([report["angle_deg"][n] for n in names])
+    for sign in (1, -1):  # the reference may turn the other way round
+        difference = np.angle(np.exp(1j * (sign * estimated - true_angle)))
+        errors = np.degrees(np.abs(np.angle(np.exp(1j * (difference - np.angle(np.mean(np.exp(1j * difference))))))))
+        if np.median(errors) < 5:
+            break
+    assert np.median(errors) < 0.5 and errors.max() < 1.5
 
 
 def test_cameras_from_another_tool_replace_calibration_and_sfm(run_stages, tiny_capture, tmp_path):
