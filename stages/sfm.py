@@ -260,7 +260,7 @@ def _too_few(conf: Config, posed: set[str], order: list[str], causes: dict[str, 
 
 STAGE = Stage(
     name="sfm",
-    version=10,
+    version=11,
     config=Config,
     main=main,
     needs=("undistort.pinhole", "masks.masks_json"),

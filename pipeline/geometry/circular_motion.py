@@ -42,10 +42,10 @@ The solver:
    when it has ``min_observations`` inlier observations and its residuals are no
    worse than the other photos' (a one-sided sign test against the pooled median, at
    ``misfit_significance`` over the photos, and a median more than ``misfit_ratio``
-   times the pooled one). Its angle's uncertainty (one standard deviation, from the
-   bundle adjustment's covariance) is reported, not judged: a small photo's angle is
-   uncertain by more than a large one's, and still the best the photos say. The sfm
-   stage tries the other photos' board pose or silhouette.
+   times the pooled one), and its angle is determined at all. Its angle's uncertainty
+   (one standard deviation, from the bundle adjustment's covariance) is reported, not
+   judged: a small photo's angle is uncertain by more than a large one's, and still the
+   best the photos say. The sfm stage tries the other photos' board pose or silhouette.
 
 Limitations: one camera setting; a group no silhouette can place is left out; the
 axis must not point at the camera (a camera looking straight down the axis sees
@@ -724,7 +724,7 @@ def _solve_placing(solver: _Solver, tracks, free: np.ndarray, unplaced: dict[str
         result, problem, points, observations = _solve(solver, tracks, free)
         counts = np.bincount(observations.view, minlength=len(solver.order))
         std = _angle_std_deg(solver, problem, result.covariance)
-        reasons = _placement_failures(solver, result.errors_px, observations, counts)
+        reasons = _placement_failures(solver, result.errors_px, observations, counts, std)
         if not reasons or np.sum(solver.placed & (solver.group == 0)) - len(reasons) < 3:
             return result, problem, points, observations, counts, std
         for i, reason in reasons.items():
@@ -740,7 +740,7 @@ def _solve_placing(solver: _Solver, tracks, free: np.ndarray, unplaced: dict[str
 
 
 def _placement_failures(
-    solver: _Solver, errors_px: np.ndarray, observations: Observations, counts: np.ndarray
+    solver: _Solver, errors_px: np.ndarray, observations: Observations, counts: np.ndarray, std: np.ndarray
 ) -> dict[int, str]:
     """Step 5: why each placed photo that fails a test is not placed, by index."""
     settings = solver.settings
@@ -754,6 +754,8 @@ def _placement_failures(
         significance = float(binom.sf(exceed - 1, len(own), 0.5)) if len(own) else 1.0
         if counts[i] < settings.min_observations:
             reasons[i] = f"{counts[i]} inlier observations (needs {settings.min_observations})"
+        elif not np.isfinite(std[i]):
+            reasons[i] = "its features leave its angle undetermined (the bundle adjustment's covariance)"
         elif significance < settings.misfit_significance / len(placed) and median > settings.misfit_ratio * pooled:
             reasons[i] = (
                 f"its observations fit the circle to {median:.2f} px against the photos' {pooled:.2f} px (sign test "
