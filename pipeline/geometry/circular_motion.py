@@ -90,8 +90,9 @@ class CircularSettings:
     misfit_ratio: float = 2.5
     """... and is left out when its median residual is also this many times the pooled one:
     with hundreds of observations a slight excess is significant and harmless (a specimen
-    that shifted on the table part-way fits the circle twice as badly, its angles no
-    worse), a photo turned in the image plane or from another camera many times worse."""
+    that shifted on the table part-way fits the circle somewhat worse, its angles no
+    worse), while a photo turned in the image plane or from another camera fits many
+    times worse."""
     outlier_px: float = 3.0
     """Observations farther than this from their reprojection (or 4 robust standard
     deviations, whichever is larger) are dropped between solves."""
