@@ -190,8 +190,7 @@ def circle_errors(estimate: dict[str, Pose], truth: dict[str, Pose]) -> tuple[np
     true = np.array([truth[n].center for n in common])
     seen = similarity.points(np.array([estimate[n].center for n in common]))
     centre = true.mean(axis=0)
-    normal = np.linalg.svd(true - centre)[2][2]
-    u = np.linalg.svd(true - centre)[2][0]
+    u, _, normal = np.linalg.svd(true - centre)[2]
     v = np.cross(normal, u)
     radius = float(np.median(np.linalg.norm((true - centre) - np.outer((true - centre) @ normal, normal), axis=1)))
 

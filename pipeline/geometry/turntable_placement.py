@@ -277,16 +277,15 @@ def _groups_by_silhouette(
     offsets: dict[int, float] = {}
     found: dict[str, dict] = {}
     for number, group in enumerate(groups, start=1):
-        table = outlines.table
         names = sorted(group, key=group.get)
         spread = names[:: max(1, len(names) // GROUP_OUTLINES)]
         members = [(hull, group[n]) for n in spread if (hull := outlines.of(n)) is not None]
         first = min(group, key=order.index)
-        bracket = _bracket(table, order, first, outlines.typical_step) if settings.in_file_order else None
+        bracket = _bracket(outlines.table, order, first, outlines.typical_step) if settings.in_file_order else None
         low, high = bracket or (-np.pi, np.pi)
         candidates = np.arange(low, high, np.radians(0.5)) - group[first]
         placement = outlines.place(members, candidates) if members else None
-        taken = list(table.angles.values()) + [f["angle"] for f in found.values()]
+        taken = list(outlines.table.angles.values()) + [f["angle"] for f in found.values()]
         reason = _unreliable(settings, placement, taken, outlines, list(group.values()))
         if reason:
             for name in names:
