@@ -24,6 +24,9 @@ from pipeline import logger
 from pipeline.camera.model import Intrinsics, Pose, Similarity
 from pipeline.camera.self_calibration import SelfCalibrationSettings, corner_radius, frame_coverage, radial_shift_px
 from pipeline.core.config import Range
+from pipeline.core.interrupts import after_native_import
+
+after_native_import()  # glog's handlers, installed as pycolmap loads, print stack dumps
 
 COLMAP_PIXEL_OFFSET = 0.5
 

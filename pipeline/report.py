@@ -40,6 +40,8 @@ from typing import Any
 import numpy as np
 
 from pipeline.core.cache import LOG_FILE
+from pipeline.core.errors import DiskFull
+from pipeline.core.fsutil import atomic_write_text, disk_full_error
 from pipeline.core.runner import PlannedStage
 from pipeline.formats.cameras import read_views
 from pipeline.formats.scene_folder import heldout_names
@@ -135,7 +137,12 @@ def write(capture_dir: Path, stages: list[StageRecord]) -> Path:
     )
     path = capture_dir / "output" / REPORT_HTML
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(page)
+    try:
+        atomic_write_text(path, page)
+    except OSError as error:
+        if disk_full_error(error):
+            raise DiskFull(path.parent, f"writing {path.name}", "the previous report was kept") from error
+        raise
     return path
 
 

@@ -23,16 +23,16 @@ keeps shape, not texture seams (there are none yet: uv runs after).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated
 
-import pymeshlab
-
 from pipeline import logger
 from pipeline.core.config import Range
 from pipeline.core.stage import Stage, StageInputs, StageResult
+from pipeline.geometry import meshlab
 
 
 @dataclass(frozen=True)
@@ -55,42 +55,13 @@ class Config:
     """Taubin smoothing steps (lambda 0.5, mu -0.53: no shrinking)."""
 
 
-def measure(meshset: pymeshlab.MeshSet) -> dict:
-    topology = meshset.get_topological_measures()
-    mesh = meshset.current_mesh()
-    return {
-        "faces": mesh.face_number(),
-        "vertices": mesh.vertex_number(),
-        "watertight": topology["boundary_edges"] == 0 and topology["non_two_manifold_edges"] == 0,
-        "genus": topology["genus"],
-        "boundary_edges": topology["boundary_edges"],
-        "components": topology["connected_components_number"],
-    }
-
-
 def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
-    meshset = pymeshlab.MeshSet()
-    meshset.load_new_mesh(str(inputs.upstream["mesh"]["mesh"]))
-    before = measure(meshset)
-    meshset.meshing_remove_duplicate_vertices()
-    meshset.meshing_remove_unreferenced_vertices()
-    meshset.meshing_repair_non_manifold_edges()
-    meshset.meshing_remove_connected_component_by_diameter(
-        mincomponentdiag=pymeshlab.PercentageValue(100 * conf.min_component_fraction)
-    )
-    meshset.meshing_close_holes(maxholesize=conf.max_hole_edges)
-    if conf.remesh_edge_fraction > 0:
-        meshset.meshing_isotropic_explicit_remeshing(
-            iterations=conf.remesh_iterations, targetlen=pymeshlab.PercentageValue(100 * conf.remesh_edge_fraction)
-        )
-    if meshset.current_mesh().face_number() > conf.target_faces:
-        meshset.meshing_decimation_quadric_edge_collapse(
-            targetfacenum=conf.target_faces, preservenormal=True, preservetopology=True, qualitythr=0.5
-        )
-    if conf.smoothing_steps:
-        meshset.apply_coord_taubin_smoothing(stepsmoothnum=conf.smoothing_steps)
-    meshset.meshing_remove_unreferenced_vertices()
-    after = measure(meshset)
+    # 1. Repair, remesh, decimate and smooth, in pymeshlab's own process.
+    mesh_ply = out_dir / "mesh.ply"
+    measures = meshlab.run("clean", inputs.upstream["mesh"]["mesh"], mesh_ply, dataclasses.asdict(conf))
+    after = measures["after"]
+
+    # 2. Say what the settings could not reach.
     if after["faces"] > conf.target_faces:
         # Seen on a sphere whose hole was closed before remeshing: the collapse makes no step.
         logger.warning(
@@ -102,10 +73,8 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
             after["boundary_edges"],
             conf.max_hole_edges,
         )
-    mesh_ply = out_dir / "mesh.ply"
-    meshset.save_current_mesh(str(mesh_ply), save_vertex_color=False, save_vertex_quality=False)
     report = out_dir / "cleanup.json"
-    report.write_text(json.dumps({"before": before, "after": after}, indent=1))
+    report.write_text(json.dumps(measures, indent=1))
     return StageResult({"mesh": mesh_ply, "report": report}, after)
 
 

@@ -187,6 +187,21 @@ def _genus(mesh: trimesh.Trimesh) -> int:
     return round(1 - mesh.euler_number / 2) if mesh.is_watertight else -1
 
 
+def _check_given_mesh(setting: str, path: Path, mesh: trimesh.Trimesh) -> None:
+    """Refuse a mesh no later step can use: corners that are not numbers, faces that
+    name corners it lacks, or no area at all."""
+    problem = None
+    bad_vertices = int(np.count_nonzero(~np.isfinite(mesh.vertices).all(axis=1)))
+    if bad_vertices:
+        problem = f"{bad_vertices} of its {len(mesh.vertices)} vertices are NaN or infinite"
+    elif mesh.faces.min() < 0 or mesh.faces.max() >= len(mesh.vertices):
+        problem = f"its faces name vertices it does not have (0-{len(mesh.vertices) - 1})"
+    elif not np.any(mesh.area_faces > 0):
+        problem = "every triangle has zero area"
+    if problem:
+        raise PipelineError(f"mesh.source = {setting!r}: {path}: {problem}; repair or re-export the mesh")
+
+
 def _given_mesh(conf: Config, capture_dir: Path, cameras_json: Path, views: list[View]) -> tuple[trimesh.Trimesh, dict]:
     """``mesh.source`` in the world frame, refused when its outlines miss the masks."""
     path = input_file_path(capture_dir, conf.source)
@@ -196,6 +211,7 @@ def _given_mesh(conf: Config, capture_dir: Path, cameras_json: Path, views: list
         raise PipelineError(f"mesh.source = {conf.source!r}: cannot read {path} as a mesh ({error})") from error
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise PipelineError(f"mesh.source = {conf.source!r}: {path} holds no triangles")
+    _check_given_mesh(conf.source, path, mesh)
     from_source = read_frame(cameras_json).get("from_source")
     if from_source is not None:
         mesh.apply_transform(Similarity.from_json(from_source).matrix())

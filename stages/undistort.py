@@ -45,8 +45,10 @@ from pipeline.imaging.photo_io import (
     read_metadata,
     read_photo,
     to_uint8,
+    unsupported_files,
     write_image,
 )
+from pipeline.render.scene_xml import sensor_id
 
 
 @dataclass(frozen=True)
@@ -72,6 +74,18 @@ def _output_names(paths: list[Path]) -> dict[Path, str]:
             "extension: rename one of each pair, the undistorted files are named by stem"
         )
     return {p: p.stem for p in paths}
+
+
+def _check_sensor_ids(photos: list[Path]) -> None:
+    """Refuse two photos whose names give the scene's cameras one id."""
+    ids: dict[str, Path] = {}
+    for path in photos:
+        same = ids.setdefault(sensor_id(path.stem), path)
+        if same is not path:
+            raise PipelineError(
+                f"photos {same} and {path} would get the same camera id in the scene "
+                f"({sensor_id(path.stem)}; ids keep only letters, digits, _ and -): rename one of them"
+            )
 
 
 def _decode_reduction(size: tuple[int, int], target: dict) -> int:
@@ -130,6 +144,14 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     for path in inputs.files:
         if path.suffix.lower() in PHOTO_SUFFIXES:
             folders[path.relative_to(inputs.capture_dir).parts[0]].append(path)
+    _check_sensor_ids(folders["images"])
+    for folder in folders:
+        for path in unsupported_files(inputs.capture_dir / folder):
+            logger.warning(
+                "%s is not a photo the pipeline reads (it reads %s): left out; convert it or move it away",
+                path,
+                ", ".join(PHOTO_SUFFIXES),
+            )
     (out_dir / "undistorted").mkdir()
     (out_dir / "linear").mkdir()
     listing: dict[str, dict[str, dict]] = {"images": {}, "background": {}}

@@ -158,6 +158,10 @@ def ground_hits(intrinsics: Intrinsics, pose: Pose) -> tuple[np.ndarray, np.ndar
     return pose.center + distance[..., None] * rays, distance
 
 
+COVERAGE_LIMIT_PX = 1e7
+"""How far outside the image mesh_coverage keeps a triangle's corner."""
+
+
 def mesh_coverage(
     vertices: np.ndarray, faces: np.ndarray, intrinsics: Intrinsics, pose: Pose, factor: int = 4
 ) -> np.ndarray:
@@ -169,8 +173,12 @@ def mesh_coverage(
     # pixel centres at integers: the fine grid's sample for coarse x is (x + 0.5) * factor - 0.5
     fine = (projected[:, 0] + 0.5) * factor - 0.5
     canvas = np.zeros((intrinsics.height * factor, intrinsics.width * factor), np.float32)
+    triangles = fine[faces]
+    # Non-finite corners have no place in the image; far ones are brought in to where
+    # 16 * x still fits an int32 (OpenCV's fixed point), which moves no visible edge.
+    triangles = np.clip(triangles[np.isfinite(triangles).all(axis=(1, 2))], -COVERAGE_LIMIT_PX, COVERAGE_LIMIT_PX)
     # one call per triangle: fillPoly would treat overlapping triangles as one even-odd shape
-    for triangle in np.round(fine[faces] * 16).astype(np.int32):
+    for triangle in np.round(triangles * 16).astype(np.int32):
         cv2.fillConvexPoly(canvas, triangle, 1.0, shift=4)
     return cv2.resize(canvas, (intrinsics.width, intrinsics.height), interpolation=cv2.INTER_AREA)
 

@@ -43,7 +43,15 @@ from pipeline.camera.board import BoardDetector
 from pipeline.core import progress
 from pipeline.core.config import Config
 from pipeline.core.errors import PipelineError
-from pipeline.imaging.photo_io import camera_setting, gray_uint8, list_photos, read_photo, to_uint8
+from pipeline.imaging.photo_io import (
+    PHOTO_SUFFIXES,
+    camera_setting,
+    gray_uint8,
+    list_photos,
+    read_photo,
+    to_uint8,
+    unsupported_files,
+)
 from pipeline.imaging.segmentation import clean, read_user_mask, segment
 
 MIN_PHOTOS = 3
@@ -363,8 +371,18 @@ def check_masks(
 def check_capture(capture_dir: Path, config: Config, features: bool = True) -> list[Problem]:
     """Every check on ``capture_dir``; ``features=False`` skips the pairwise matching."""
     paths = list_photos(capture_dir / "images")
+    unsupported = [
+        Problem(
+            "warning",
+            "unsupported",
+            f"images/{path.name}",
+            "not a photo the pipeline reads, left out",
+            f"convert it to {', '.join(PHOTO_SUFFIXES)} or move it out of images/",
+        )
+        for path in unsupported_files(capture_dir / "images")
+    ]
     if len(paths) < MIN_PHOTOS:
-        return [
+        return unsupported + [
             Problem(
                 "error",
                 "count",
@@ -373,7 +391,7 @@ def check_capture(capture_dir: Path, config: Config, features: bool = True) -> l
                 f"structure-from-motion needs at least {MIN_PHOTOS}; {ENOUGH_PHOTOS}+ from all sides is better",
             )
         ]
-    problems, photos = [], []
+    problems, photos = unsupported, []
     for path in progress.track(paths, "reading photos"):
         try:
             photo = read_photo(path)

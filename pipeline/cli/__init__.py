@@ -19,7 +19,7 @@ from pipeline import logger
 from pipeline.cli import batch, capture, fit, stages, synthetic  # noqa: F401  (each registers its commands)
 from pipeline.cli.options import add_options, parse_options
 from pipeline.cli.registry import COMMANDS
-from pipeline.core import progress
+from pipeline.core import interrupts, progress
 from pipeline.core.errors import PipelineError
 
 
@@ -50,16 +50,27 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(args.quiet, args.verbose)
     entry = COMMANDS[args.command]
+    interrupts.install()
     try:
         options = parse_options(entry.options, args, args.command)
         return entry.run(options)
     except PipelineError as e:
         if args.debug:
             raise
-        logger.error("%s", e)
-        if getattr(args, "json", False):
-            print(json.dumps({"error": str(e), "exit_code": e.exit_code}))
-        return e.exit_code
+        return _fail(str(e), e.exit_code, args)
+    except (KeyboardInterrupt, interrupts.Interrupted) as e:
+        if args.debug:
+            raise
+        code = e.exit_code if isinstance(e, interrupts.Interrupted) else 130
+        message = "interrupted; finished stages and fit checkpoints are kept, and the next run resumes from them"
+        return _fail(message, code, args)
+
+
+def _fail(message: str, code: int, args: argparse.Namespace) -> int:
+    logger.error("%s", message)
+    if getattr(args, "json", False):
+        print(json.dumps({"error": message, "exit_code": code}))
+    return code
 
 
 __all__ = ["build_parser", "main"]

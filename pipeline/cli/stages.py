@@ -122,9 +122,11 @@ def run(options: RunOptions) -> int:
         if progress.is_enabled():
             progress.console.print(_describe(item), highlight=False)
 
-    plan = runner.run(selection, on_stage_done=report)
-    ran = {p.stage.name for p in plan if p.action == "run"}
-    html_report.write(runner.capture_dir, html_report.records(runner.plan(), ran))
+    def write_report(plan: list[PlannedStage]) -> None:
+        ran = {p.stage.name for p in plan if p.action == "run"}
+        html_report.write(runner.capture_dir, html_report.records(runner.plan(), ran))
+
+    plan = runner.run(selection, on_stage_done=report, on_published=write_report)
     logger.info(
         "%d stage(s) ran, %d cached, in %.1f s; results in %s",
         sum(p.action == "run" for p in plan),
@@ -140,7 +142,8 @@ def run(options: RunOptions) -> int:
 @command("report", ReportOptions, "write output/report.html from what is cached")
 def report(options: ReportOptions) -> int:
     runner = make_runner(options.capture, options.config)
-    path = html_report.write(runner.capture_dir, html_report.records(runner.plan()))
+    with CaptureLock(runner.capture_dir, "pipeline report"):
+        path = html_report.write(runner.capture_dir, html_report.records(runner.plan()))
     print(path)
     return 0
 

@@ -146,12 +146,19 @@ class StageCache:
             os.rename(tmp, final)
         return Entry(stage=stage, key=key, path=final, status=status)
 
-    def keep_failed(self, tmp: Path, stage: str) -> Path:
-        """Move a failed run's folder out of the cache, keeping its log for the user."""
+    def keep_failed(self, tmp: Path, stage: str, log_only: bool = False) -> Path:
+        """Move a failed run's folder out of the cache, keeping its log for the user;
+        with ``log_only``, only its log (the partial results are deleted)."""
         stamp = time.strftime("%Y%m%d-%H%M%S")
         dest = self.state_dir / "failed" / stage / f"{stamp}-{os.getpid()}"
         dest.parent.mkdir(parents=True, exist_ok=True)
-        os.rename(tmp, dest)
+        if log_only:
+            dest.mkdir()
+            if (tmp / LOG_FILE).is_file():
+                os.rename(tmp / LOG_FILE, dest / LOG_FILE)
+            shutil.rmtree(tmp)
+        else:
+            os.rename(tmp, dest)
         return dest
 
     def remove(self, entry: Entry) -> None:

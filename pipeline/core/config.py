@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal, Mapping
 
 from pipeline.core.errors import ConfigError
+from pipeline.core.fsutil import special_kind
 
 PRESETS_DIR = Path(__file__).resolve().parents[2] / "configs"
 DEFAULT_PRESET = "standard"
@@ -100,6 +101,9 @@ def _check_input_files(name: str, section: Any, capture_dir: Path, origins: Mapp
             raise ConfigError(
                 f'{name}.{key} = {value!r} is not a file or folder (looked for {path}): fix the path or set it to ""'
             )
+        special = special_kind(path)
+        if special:
+            raise ConfigError(f"{name}.{key} = {value!r} is {special}, not a file: name a regular file")
 
 
 @functools.cache

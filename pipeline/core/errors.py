@@ -3,6 +3,9 @@
 Anything else that escapes a stage is a bug and keeps its traceback.
 """
 
+import shutil
+from pathlib import Path
+
 import numpy as np
 
 
@@ -16,6 +19,18 @@ class ConfigError(PipelineError):
     """Bad usage or configuration, detected before anything runs: exit code 2."""
 
     exit_code = 2
+
+
+class DiskFull(PipelineError):
+    """The file system ran out of space (or quota) while the pipeline wrote ``what``."""
+
+    def __init__(self, folder: Path, what: str, kept: str, needed_bytes: int | None = None):
+        free = shutil.disk_usage(folder).free if folder.exists() else 0
+        need = f"at least {needed_bytes / 1e6:.0f} MB more are needed; " if needed_bytes else ""
+        super().__init__(
+            f"the disk holding {folder} is full ({free / 1e6:.0f} MB free) while {what}: {need}"
+            f"{kept}; free some space and run again"
+        )
 
 
 class NonFiniteOutput(ValueError):

@@ -1,8 +1,11 @@
-"""Content hashes of capture files, remembered by (size, mtime).
+"""Content hashes of capture files, remembered by what the file system says of them.
 
 An unchanged folder of 1,000 photos is hashed once; later runs only stat it.
-Touching a file changes its mtime, so it is re-read, but its hash, and with it
-every cache key, stays the same.
+A memo entry is trusted only while the file's size, mtime, inode and ctime all
+match. ctime is the one a user cannot set: ``cp -p`` or ``touch -d`` over a file
+keeps its size and mtime but not its ctime. As in git's "racy" rule, a file whose
+ctime lies within RACY_NS of the moment it was hashed may have changed again in the
+same clock tick, so it is hashed again next time.
 """
 
 from __future__ import annotations
@@ -10,14 +13,19 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import time
 from pathlib import Path
 
 from pipeline import logger
 from pipeline.core.fsutil import atomic_write_text
 
+RACY_NS = 2_000_000_000
+"""The coarsest timestamp resolution of the file systems captures live on (FAT: 2 s)."""
+STAT_FIELDS = ("st_size", "st_mtime_ns", "st_ctime_ns", "st_ino")
+
 
 class FileHasher:
-    """SHA-256 of files, with a JSON memo keyed by path, size and mtime."""
+    """SHA-256 of files, with a JSON memo keyed by path (see the module's docstring)."""
 
     def __init__(self, memo_path: Path):
         self.memo_path = memo_path
@@ -33,13 +41,15 @@ class FileHasher:
     def hash(self, path: Path) -> str:
         stat = path.stat()
         key = str(path.resolve())
+        seen = [getattr(stat, name) for name in STAT_FIELDS]
         known = self._memo.get(key)
-        if known and known["size"] == stat.st_size and known["mtime_ns"] == stat.st_mtime_ns:
+        if known and known.get("stat") == seen and stat.st_ctime_ns < known["hashed_ns"] - RACY_NS:
             return known["sha256"]
+        hashed_ns = time.time_ns()
         with path.open("rb") as f:
             digest = hashlib.file_digest(f, "sha256").hexdigest()
         self.files_read += 1
-        self._memo[key] = {"size": stat.st_size, "mtime_ns": stat.st_mtime_ns, "sha256": digest}
+        self._memo[key] = {"stat": seen, "hashed_ns": hashed_ns, "sha256": digest}
         self._dirty = True
         return digest
 

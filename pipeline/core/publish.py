@@ -1,19 +1,25 @@
 """Publishing results to ``CAPTURE/output/`` as a whole, atomically.
 
-``output`` is a symbolic link to one complete version under
-``CAPTURE/.pipeline/published/<version>/``. A new version is assembled beside the
-current one (one file per name: when several stages export a file of the same
-name, as mesh, cleanup and uv do with mesh.ply, the last stage in DAG order
-wins), gets its manifest.json, and replaces the link with one ``rename``. A
-reader, or a run killed at any moment, therefore sees either the old output or
-the new one, never a mixture; the versions a killed publish leaves are removed
-by the next one. A real ``output/`` folder from an older version of the pipeline
-is moved into ``published/legacy-*`` the first time and kept (users may have put
-files there).
+``output/`` is a real folder of copies: deleting ``.pipeline/`` (the cache) or copying
+``output/`` elsewhere keeps every result. A new version is assembled beside it in
+``.output.tmp-<version>/`` (one file per name: when several stages export a file of
+the same name, as mesh, cleanup and uv do with mesh.ply, the last stage in DAG order
+wins), gets its manifest.json, and trades places with ``output/`` in one
+``renameat2(RENAME_EXCHANGE)``. A reader, or a run killed at any moment, therefore sees
+either the old output or the new one, never a mixture; the folders a killed publish
+leaves are removed by the next one.
+
+The manifest holds every published file's size and SHA-256. A published file that was
+edited or removed since is restored from the cache, and an edited one is kept beside it
+as ``<name>.edited<suffix>``. Files the pipeline did not publish (notes a user put
+there, the report, score.json) are carried into every new version.
 """
 
 from __future__ import annotations
 
+import ctypes
+import errno
+import hashlib
 import json
 import os
 import shutil
@@ -22,21 +28,22 @@ from pathlib import Path
 from typing import Any
 
 from pipeline import logger
-from pipeline.core.errors import ConfigError
-from pipeline.core.fsutil import atomic_write_text
+from pipeline.core.errors import ConfigError, DiskFull
+from pipeline.core.fsutil import atomic_write_text, disk_full_error
 
 OUTPUT = "output"
-PUBLISHED = "published"
 MANIFEST = "manifest.json"
-LEGACY = "legacy-"
-"""Prefix of a real output/ folder moved aside the first time; never deleted."""
+STAGING = f".{OUTPUT}.tmp-"
+"""Prefix of a version being assembled (or one a killed publish left)."""
+OLD_LAYOUT = Path(".pipeline") / "published"
+"""Where an older pipeline kept its versions, ``output`` being a link into it."""
+_RENAME_EXCHANGE = 2
+_AT_FDCWD = -100
 
 
 def check_output_path(capture_dir: Path) -> None:
     """Refuse before anything runs when ``output`` is in the way of publishing."""
     output = capture_dir / OUTPUT
-    # A link (even to a removed version) is ours and gets replaced; a folder is one
-    # an older pipeline wrote, moved aside when publishing.
     if output.is_symlink() or output.is_dir() or not output.exists():
         return
     raise ConfigError(
@@ -54,45 +61,139 @@ def current_manifest(capture_dir: Path) -> dict[str, Any] | None:
     return manifest if isinstance(manifest, dict) else None
 
 
-def _intact(capture_dir: Path, manifest: dict[str, Any]) -> bool:
-    return all((capture_dir / OUTPUT / name).exists() for name in manifest)
+def _sha256(path: Path) -> str:
+    with path.open("rb") as f:
+        return hashlib.file_digest(f, "sha256").hexdigest()
 
 
-def publish(capture_dir: Path, files: dict[str, tuple[Path, dict[str, Any]]]) -> bool:
-    """Make ``output/`` hold exactly ``files`` (name -> (source, manifest record)).
+def _changed(output: Path, manifest: dict[str, Any]) -> dict[str, str]:
+    """Published files that are no longer what the manifest says: path -> 'removed' or 'edited'."""
+    changed = {}
+    for record in manifest.values():
+        for rel, (size, digest) in record.get("contents", {}).items():
+            path = output / rel
+            if not path.is_file() or path.is_symlink():
+                changed[rel] = "removed"
+            elif path.stat().st_size != size or _sha256(path) != digest:
+                changed[rel] = "edited"
+    return changed
 
-    Returns False when the published output already is that (nothing written).
-    """
-    manifest = {name: record for name, (_, record) in files.items()}
-    if current_manifest(capture_dir) == manifest and _intact(capture_dir, manifest):
-        return False
-    published = capture_dir / ".pipeline" / PUBLISHED
-    published.mkdir(parents=True, exist_ok=True)
-    version = time.strftime("%Y%m%d-%H%M%S") + f"-{time.time_ns() % 1_000_000_000:09d}"
-    staging = published / f".tmp-{version}"
-    staging.mkdir()
+
+def _link_or_copy(source: str, destination: str) -> None:
+    try:
+        os.link(source, destination)
+    except OSError:
+        shutil.copy2(source, destination)
+
+
+def _exchange(a: Path, b: Path) -> None:
+    """Swap two paths in one step (Linux renameat2); OSError where unsupported."""
+    renameat2 = getattr(ctypes.CDLL(None, use_errno=True), "renameat2", None)
+    if renameat2 is None:
+        raise OSError(errno.ENOSYS, "renameat2 is not available", str(a))
+    if renameat2(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) != 0:
+        code = ctypes.get_errno()
+        raise OSError(code, os.strerror(code), str(a))
+
+
+def _swap_in(staging: Path, output: Path) -> None:
+    """Make ``staging`` the folder ``output``; the old output (if any) ends at ``staging``."""
+    if not output.exists() and not output.is_symlink():
+        os.rename(staging, output)
+        return
+    try:
+        _exchange(staging, output)
+    except OSError as error:
+        if error.errno not in (errno.EINVAL, errno.ENOSYS, errno.ENOTSUP):
+            raise
+        # A file system without exchange: two renames, with a moment without output/.
+        old = staging.with_name(staging.name + "-old")
+        os.rename(output, old)
+        os.rename(staging, output)
+        os.rename(old, staging)
+
+
+def _assemble(
+    staging: Path, output: Path, files: dict[str, tuple[Path, dict[str, Any]]], old: dict[str, Any] | None
+) -> None:
     for name, (source, _) in files.items():
         if source.is_dir():
             shutil.copytree(source, staging / name)
         else:
             shutil.copy2(source, staging / name)
-    atomic_write_text(staging / MANIFEST, json.dumps(manifest, indent=2, sort_keys=True))
-    os.rename(staging, published / version)
+    if not output.is_dir():
+        return
+    ours = set(old or {}) | {MANIFEST}
+    for path in sorted(output.iterdir()):
+        if path.name in ours or path.name in files:
+            continue
+        # Not published by the pipeline's stages: the report, score.json, a user's notes.
+        if path.is_dir() and not path.is_symlink():
+            shutil.copytree(path, staging / path.name, copy_function=_link_or_copy, symlinks=True)
+        elif path.is_symlink():
+            os.symlink(os.readlink(path), staging / path.name)
+        else:
+            _link_or_copy(str(path), str(staging / path.name))
+    for rel, how in _changed(output, old or {}).items():
+        if how == "edited" and (staging / rel).parent.is_dir():
+            kept = staging / rel
+            kept = kept.with_name(f"{kept.stem}.edited{kept.suffix}")
+            _link_or_copy(str(output / rel), str(kept))
+            logger.warning(
+                "output/%s was edited after it was published: restored, your copy kept as %s", rel, kept.name
+            )
+        elif how == "removed":
+            logger.warning("output/%s was removed after it was published: restored from the cache", rel)
 
+
+def remove_leftovers(capture_dir: Path) -> None:
+    """Delete what a killed publish left and an older pipeline's version folders; the
+    caller holds the capture's lock."""
+    for stale in capture_dir.glob(f"{STAGING}*"):
+        shutil.rmtree(stale) if stale.is_dir() and not stale.is_symlink() else stale.unlink()
+    old_layout = capture_dir / OLD_LAYOUT
+    if old_layout.is_dir() and not (capture_dir / OUTPUT).is_symlink():
+        for version in old_layout.iterdir():
+            if not version.name.startswith("legacy-"):  # a user's output/ folder an older pipeline moved aside
+                shutil.rmtree(version)
+
+
+def publish(capture_dir: Path, files: dict[str, tuple[Path, dict[str, Any]]]) -> bool:
+    """Make ``output/`` hold exactly ``files`` (name -> (source, manifest record with
+    "contents": {path in output/: [size, sha256]})), besides files it did not publish.
+    The caller holds the capture's lock and has called ``remove_leftovers``.
+
+    Returns False when the published output already is that (nothing written).
+    """
     output = capture_dir / OUTPUT
-    if output.is_dir() and not output.is_symlink():
-        legacy = published / f"{LEGACY}{version}"
-        os.rename(output, legacy)
-        logger.warning("the output/ folder an older pipeline wrote was moved to %s (kept; delete it when done)", legacy)
-    for stale in capture_dir.glob(f".{OUTPUT}.tmp-*"):
-        stale.unlink()  # links a killed publish left; the caller holds the capture's lock
-    link = capture_dir / f".{OUTPUT}.tmp-{os.getpid()}"
-    os.symlink(Path(".pipeline") / PUBLISHED / version, link)
-    os.replace(link, output)
-    for old in published.iterdir():
-        if old.name != version and not old.name.startswith(LEGACY):
-            shutil.rmtree(old)
+    manifest = {name: record for name, (_, record) in files.items()}
+    old = current_manifest(capture_dir)
+    if old == manifest and not output.is_symlink() and not _changed(output, manifest):
+        return False
+    version = time.strftime("%Y%m%d-%H%M%S") + f"-{time.time_ns() % 1_000_000_000:09d}"
+    staging = capture_dir / f"{STAGING}{version}"
+    staging.mkdir()
+    try:
+        _assemble(staging, output, files, old)
+        atomic_write_text(staging / MANIFEST, json.dumps(manifest, indent=2, sort_keys=True))
+    except OSError as error:
+        shutil.rmtree(staging)
+        if disk_full_error(error):
+            raise DiskFull(
+                capture_dir,
+                f"publishing {len(files)} file(s) to {output}",
+                "the previous output/ and every cached result were kept",
+            ) from error
+        raise
+    was_link = output.is_symlink()
+    _swap_in(staging, output)
+    if staging.is_symlink():
+        staging.unlink()
+    elif staging.exists():
+        shutil.rmtree(staging)
+    if was_link:
+        remove_leftovers(capture_dir)
     return True
 
 
-__all__ = ["MANIFEST", "OUTPUT", "check_output_path", "current_manifest", "publish"]
+__all__ = ["MANIFEST", "OUTPUT", "check_output_path", "current_manifest", "publish", "remove_leftovers"]

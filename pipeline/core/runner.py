@@ -25,11 +25,11 @@ from typing import Any, Literal, Sequence
 from pipeline import logger
 from pipeline.core.cache import LOG_FILE, Entry, StageCache
 from pipeline.core.config import Config, input_file_path, input_file_settings, section_dict
-from pipeline.core.errors import ConfigError, PipelineError
-from pipeline.core.fsutil import atomic_write_text
-from pipeline.core.hashing import FileHasher, glob_capture_files
+from pipeline.core.errors import ConfigError, DiskFull, PipelineError
+from pipeline.core.fsutil import atomic_write_text, disk_full_error
+from pipeline.core.hashing import FileHasher, glob_capture_files, tree_size
 from pipeline.core.lock import CaptureLock
-from pipeline.core.publish import check_output_path, publish
+from pipeline.core.publish import check_output_path, publish, remove_leftovers
 from pipeline.core.stage import Stage, StageInputs
 
 Action = Literal["run", "cached", "disabled"]
@@ -316,13 +316,18 @@ class Runner:
 
     # -- execution ----------------------------------------------------------
 
-    def run(self, selection: Selection = Selection(), on_stage_done=None) -> list[PlannedStage]:
-        """Run what the selection needs while holding the capture's lock, then publish."""
+    def run(self, selection: Selection = Selection(), on_stage_done=None, on_published=None) -> list[PlannedStage]:
+        """Run what the selection needs while holding the capture's lock, then publish;
+        ``on_published(plan)`` runs after publishing, still under the lock (the report)."""
         with CaptureLock(self.capture_dir, "pipeline run", wait=self.wait):
             removed = self.cache.remove_unfinished()
             if removed:
                 logger.info("removed %d unfinished result folder(s) of killed runs", removed)
-            return self._run_locked(selection, on_stage_done)
+            remove_leftovers(self.capture_dir)
+            plan = self._run_locked(selection, on_stage_done)
+            if on_published is not None:
+                on_published(plan)
+            return plan
 
     def _run_locked(self, selection: Selection, on_stage_done) -> list[PlannedStage]:
         plan = self.plan(selection)
@@ -362,7 +367,6 @@ class Runner:
         final_paths = _FinalPaths(tmp, self.cache.root / stage.name / item.key)
         logger.addFilter(final_paths)
         started = time.time()
-        committed = False
         try:
             logger.info("stage %s (key %s): %s", stage.name, item.key, item.reason)
             result = stage.main(conf, inputs, tmp)
@@ -398,17 +402,35 @@ class Runner:
                 "metrics": result.metrics,
             }
             entry = self.cache.commit(tmp, stage.name, item.key, status)
-            committed = True
             if inputs.checkpoint_dir.exists():
                 shutil.rmtree(inputs.checkpoint_dir)
             return entry
+        except BaseException as error:
+            logger.removeHandler(handler)  # its file moves with the failed folder
+            handler.close()
+            self._keep_failed(stage.name, tmp, error)
+            raise
         finally:
             logger.removeFilter(final_paths)
             logger.removeHandler(handler)
             handler.close()
-            if not committed:
-                kept = self.cache.keep_failed(tmp, stage.name)
-                logger.error("stage %s failed; its log is in %s", stage.name, kept / LOG_FILE)
+
+    def _keep_failed(self, stage: str, tmp: Path, error: BaseException) -> None:
+        """Keep a failed run's log in failed/; the partial results too, unless the disk
+        is full or the user stopped the run (then they are in the way)."""
+        full = disk_full_error(error)
+        written = tree_size(tmp)
+        kept = self.cache.keep_failed(tmp, stage, log_only=full or not isinstance(error, Exception))
+        if full:
+            raise DiskFull(
+                tmp.parent,
+                f"stage {stage} wrote its results",
+                f"its partial files ({written / 1e6:.1f} MB) were removed and every earlier result kept "
+                f"(its log: {kept / LOG_FILE})",
+                needed_bytes=written,
+            ) from error
+        if isinstance(error, Exception):
+            logger.error("stage %s failed; its log is in %s", stage, kept / LOG_FILE)
 
     @staticmethod
     def _needed_outputs(stage: Stage, results: dict[str, Entry]) -> dict[str, dict[str, Path]]:
@@ -433,7 +455,19 @@ class Runner:
                 continue
             for name in stage.exports:
                 source = entry.outputs[name]
-                record = {"stage": stage.name, "output": name, "key": entry.key, "finished": entry.finished}
+                rel = source.relative_to(entry.path).as_posix()
+                contents = {
+                    source.name + path[len(rel) :]: size_and_hash
+                    for path, size_and_hash in entry.status["contents"].items()
+                    if path == rel or path.startswith(rel + "/")
+                }
+                record = {
+                    "stage": stage.name,
+                    "output": name,
+                    "key": entry.key,
+                    "finished": entry.finished,
+                    "contents": contents,
+                }
                 files[source.name] = (source, record)
         if publish(self.capture_dir, files):
             logger.info("published %d file(s) to %s", len(files), self.capture_dir / "output")

@@ -16,6 +16,10 @@ from pipeline.core.config import InputFile, Range
 from pipeline.core.stage import Stage
 
 Vec3 = tuple[float, float, float]
+NonNegative = Annotated[float, Range(0.0, None)]
+Radiance = tuple[NonNegative, NonNegative, NonNegative]
+"""Linear RGB radiance: no channel below zero (a negative one has no physical meaning,
+and the fits would bend the material to make up for it)."""
 ArucoDictionary = Literal["DICT_4X4_50", "DICT_4X4_100", "DICT_5X5_100", "DICT_6X6_250"]
 
 
@@ -73,7 +77,7 @@ class LightSection:
     lobe): estimated by fit_material, jointly with the material, then kept for texture and
     geometry. auto: each of those, simplest first, and the simplest whose held-out error is
     within ``margin`` of the best is kept."""
-    environment_radiance: tuple[float, float, float] = (0.5, 0.5, 0.5)
+    environment_radiance: Radiance = (0.5, 0.5, 0.5)
     """Constant environment radiance (linear RGB), used when environment_map is empty."""
     environment_map: Annotated[str, InputFile()] = ""
     """Path of an equirectangular EXR, relative to the capture folder (a file outside
@@ -86,7 +90,7 @@ class LightSection:
     """Point the area light faces, in the same frame."""
     area_size: Annotated[float, Range(0.0, None, exclusive_lo=True)] = 0.4
     """Side length of the square area light, in metres."""
-    area_radiance: tuple[float, float, float] = (6.0, 6.0, 6.0)
+    area_radiance: Radiance = (6.0, 6.0, 6.0)
     """Emitted radiance of the area light (linear RGB)."""
     frame: Literal["world", "camera"] = "world"
     """world: the light is fixed in the specimen's frame (handheld capture).

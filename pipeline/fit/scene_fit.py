@@ -30,13 +30,17 @@ back (a value given by a texture, say) keeps them and says what failed.
 from __future__ import annotations
 
 import copy
-import json
 import re
+import tempfile
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
+import numpy as np
+
 from pipeline import logger
+from pipeline.core import jsonio
 from pipeline.core.errors import ConfigError, PipelineError
+from pipeline.core.fsutil import atomic_write_text
 from pipeline.fit import engine
 from pipeline.fit.outputs import write_fit_log
 from pipeline.imaging.photo_io import list_photos, read_photo
@@ -136,6 +140,12 @@ def _views(
     views = []
     for index, (path, sensor, size) in enumerate(zip(files, sensors, full_sizes)):
         pixels = read_photo(path, "linear" if path.suffix.lower() in EXR_SUFFIXES else "srgb").pixels
+        bad = int(np.count_nonzero(~np.isfinite(pixels).all(axis=-1)))
+        if bad:
+            raise PipelineError(
+                f"{path}: {bad} pixel(s) are NaN or infinite, which no render can match: "
+                "fix them in the reference (e.g. replace them by their neighbours) and fit again"
+            )
         if pixels.shape[:2] != size[::-1]:
             raise PipelineError(
                 f"{path} is {pixels.shape[1]}x{pixels.shape[0]} but sensor {index} renders "
@@ -146,6 +156,21 @@ def _views(
             pixels = cv2.resize(pixels, fitted, interpolation=cv2.INTER_AREA)
         views.append(engine.FitView(path.stem, scene, sensor, pixels, integrator=integrator))
     return views
+
+
+def check_out_dir(out_dir: Path, scene_path: Path) -> None:
+    """Make ``out_dir`` and prove it writable before the fit, which may take long."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ConfigError(f"--out {out_dir} is a file: name a folder")
+    if (out_dir / scene_path.name).resolve() == scene_path.resolve():
+        raise ConfigError(f"--out {out_dir} would overwrite the scene being fitted ({scene_path}): name another folder")
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        tempfile.TemporaryFile(dir=out_dir).close()
+    except OSError as error:
+        raise ConfigError(
+            f"--out {out_dir} cannot be written ({error.strerror}): name a folder you can write to"
+        ) from error
 
 
 def fit_scene(
@@ -161,8 +186,7 @@ def fit_scene(
 ) -> Path:
     """Fit (films reduced to ``max_size`` px, 0: as they are) and write the results
     into ``out_dir``; returns its params.json."""
-    if out_dir.exists() and not out_dir.is_dir():
-        raise ConfigError(f"--out {out_dir} is a file: name a folder")
+    check_out_dir(out_dir, scene_path)
     _check_patterns(patterns)
     mitsuba_variant.activate(variant)
     import mitsuba as mi
@@ -182,10 +206,10 @@ def fit_scene(
     result = engine.fit(parameters, views, [], settings)
 
     # 3. What was found first, then the scene with it written in.
-    out_dir.mkdir(parents=True, exist_ok=True)
     params_json = out_dir / "params.json"
-    params_json.write_text(
-        json.dumps(
+    atomic_write_text(
+        params_json,
+        jsonio.dumps(
             {
                 "scene": str(scene_path),
                 "params": result.values,
@@ -195,7 +219,7 @@ def fit_scene(
                 "stopped": result.stopped,
             },
             indent=1,
-        )
+        ),
     )
     write_fit_log(out_dir, result.log)
     out_scene = out_dir / scene_path.name

@@ -40,6 +40,7 @@ import numpy as np
 from pipeline import logger
 from pipeline.camera.model import Intrinsics, Pose
 from pipeline.core.errors import PipelineError
+from pipeline.core.interrupts import after_native_import
 
 PIXEL_CENTRE = 0.5
 """COLMAP and Metashape put the first pixel's centre at (0.5, 0.5); OpenCV at (0, 0)."""
@@ -103,6 +104,7 @@ def _colmap_intrinsics(camera, source: Path) -> Intrinsics:
 def read_colmap(source: Path, photo_names: list[str]) -> ExternalCameras:
     import pycolmap
 
+    after_native_import()
     folder = source if source.is_dir() else source.parent
     try:
         model = pycolmap.Reconstruction(folder)

@@ -29,6 +29,7 @@ import shutil
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
+from pipeline.core import jsonio
 from pipeline.core.errors import require_finite
 
 SCENE_XML = "scene.xml"
@@ -74,7 +75,7 @@ def copy_scene(source: Path, target: Path) -> Path:
 def write_log(path: Path, entries: list[dict]) -> Path:
     with path.open("w") as handle:
         for entry in entries:
-            handle.write(json.dumps(entry) + "\n")
+            handle.write(jsonio.dumps(entry) + "\n")
     return path
 
 

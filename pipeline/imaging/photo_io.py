@@ -45,6 +45,18 @@ def list_photos(folder: Path) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in PHOTO_SUFFIXES)
 
 
+def unsupported_files(folder: Path) -> list[Path]:
+    """What sits directly in ``folder`` and is not a photo the pipeline reads (HEIC, RAW,
+    a FIFO named .jpg...), sorted; hidden files are left out."""
+    if not folder.is_dir():
+        return []
+    return sorted(
+        p
+        for p in folder.iterdir()
+        if not p.name.startswith(".") and not p.is_dir() and not (p.is_file() and p.suffix.lower() in PHOTO_SUFFIXES)
+    )
+
+
 @dataclass
 class Photo:
     pixels: np.ndarray
@@ -93,13 +105,16 @@ def read_photo(path: Path, encoding: Encoding = "auto", reduce: int = 1) -> Phot
     """Decode ``path`` to upright linear RGB, box-filtered down by the integer factor
     ``reduce`` while decoding: scanlines are read a strip at a time, so a huge photo is
     never held whole at full size. A file OpenImageIO cannot read is a user error."""
-    image = oiio.ImageInput.open(str(path))
+    unassociated = oiio.ImageSpec()
+    unassociated.attribute("oiio:UnassociatedAlpha", 1)  # colour as stored, not multiplied by alpha
+    image = oiio.ImageInput.open(str(path), unassociated)
     if image is None:
         raise PipelineError(f"{path}: cannot read this image ({oiio.geterror()}); remove or replace it")
     spec = image.spec()
     metadata = {attribute.name: attribute.value for attribute in spec.extra_attribs}
     width, height = spec.width // reduce * reduce, spec.height // reduce * reduce
-    channels = min(spec.nchannels, 3)
+    alpha = spec.alpha_channel
+    channels = min(alpha if alpha > 0 else spec.nchannels, 3)
     is_float = spec.format.basetype in (oiio.HALF, oiio.FLOAT, oiio.DOUBLE)
     colour_space = str(metadata.get("oiio:ColorSpace", "")).lower()
     if encoding == "auto":
@@ -108,12 +123,21 @@ def read_photo(path: Path, encoding: Encoding = "auto", reduce: int = 1) -> Phot
     strips = []
     for y in range(spec.y, spec.y + height, step):
         rows = min(step, spec.y + height - y)
-        strip = image.read_scanlines(0, 0, y, y + rows, 0, 0, channels, oiio.FLOAT)
+        read = max(channels, alpha + 1)
+        strip = image.read_scanlines(0, 0, y, y + rows, 0, 0, read, oiio.FLOAT)
         if strip is None or image.has_error:
             error = image.geterror()
             image.close()
             raise PipelineError(f"{path}: the image data is damaged ({error}); remove or replace it")
-        strip = np.asarray(strip, dtype=np.float32).reshape(rows, spec.width, channels)[:, :width]
+        strip = np.asarray(strip, dtype=np.float32).reshape(rows, spec.width, read)[:, :width]
+        if alpha >= 0 and np.any(strip[..., alpha] < 1.0):
+            image.close()
+            raise PipelineError(
+                f"{path} is partly transparent (an alpha channel below 1): the pipeline reads colour, not "
+                "transparency. Save the photo without alpha, and if the alpha outlines the specimen, save it "
+                "as the photo's mask in masks/ (same name, .png)"
+            )
+        strip = strip[..., :channels]
         if encoding == "srgb":
             strip = srgb_decode(np.clip(strip, np.float32(0.0), np.float32(1.0)))
         if reduce > 1:

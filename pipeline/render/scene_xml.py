@@ -125,21 +125,27 @@ def load_sensor(properties: dict):
     return mi.load_dict({**properties, "to_world": mi.ScalarTransform4f(properties["to_world"])})
 
 
-def object_id(name: str) -> str:
-    """An id Mitsuba's parser takes as it is, from a name users chose (a photo's): it
+SENSOR_PREFIX = "photo-"
+"""Starts every sensor's id, so that no photo's name can take the id of one of the
+scene's own objects (a photo named softbox.jpg)."""
+
+
+def sensor_id(name: str) -> str:
+    """A sensor's id Mitsuba's parser takes as it is, from a photo's name: the parser
     substitutes ``$name`` in every attribute (with no way to escape a ``$``), and
-    parameter keys are split at dots."""
-    return re.sub(r"[^A-Za-z0-9_-]", "_", name)
+    parameter keys are split at dots, so every other character becomes ``_``. Two
+    names this maps to one id are refused where photos enter (undistort)."""
+    return SENSOR_PREFIX + re.sub(r"[^A-Za-z0-9_-]", "_", name)
 
 
 def sensor(parent: ET.Element, name: str, properties: dict) -> ET.Element:
-    """``<sensor>`` from ``sensor_properties``, its id made from ``name``."""
+    """``<sensor>`` from ``sensor_properties``, its id made from the photo's ``name``."""
     element = plugin(
         parent,
         "sensor",
         {
             "type": "perspective",
-            "id": object_id(name),
+            "id": sensor_id(name),
             **{k: v for k, v in properties.items() if k not in ("type", "to_world", "sampler", "film")},
         },
     )

@@ -11,9 +11,14 @@ turntable plate in the plane z = 0, the bird standing on it facing +x.
 
 from __future__ import annotations
 
+import tempfile
+from pathlib import Path
+
 import numpy as np
 import trimesh
 from skimage import measure
+
+from pipeline.geometry import meshlab
 
 
 def _ellipsoid(p, centre, radii):
@@ -93,15 +98,12 @@ def bird_mesh(size: float = 0.09, resolution: int = 112, faces: int = 20000) -> 
     verts, tris, _, _ = measure.marching_cubes(sdf, level=0.0, spacing=(spacing,) * 3)
     mesh = trimesh.Trimesh(verts + lo, tris[:, ::-1], process=True)
     if len(mesh.faces) > faces:
-        import pymeshlab
-
-        ms = pymeshlab.MeshSet()
-        ms.add_mesh(pymeshlab.Mesh(mesh.vertices, mesh.faces))
-        ms.meshing_decimation_quadric_edge_collapse(
-            targetfacenum=faces, preservenormal=True, preservetopology=True, planarquadric=True
-        )
-        reduced = ms.current_mesh()
-        mesh = trimesh.Trimesh(reduced.vertex_matrix(), reduced.face_matrix(), process=True)
+        with tempfile.TemporaryDirectory() as folder:
+            full, reduced = Path(folder) / "full.ply", Path(folder) / "reduced.ply"
+            mesh.export(full)
+            meshlab.run("decimate", full, reduced, {"faces": faces})
+            reduced_mesh = trimesh.load(reduced, force="mesh", process=False)
+        mesh = trimesh.Trimesh(reduced_mesh.vertices, reduced_mesh.faces, process=True)
     trimesh.repair.fix_normals(mesh)
     return mesh
 

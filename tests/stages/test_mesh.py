@@ -1,6 +1,7 @@
 """Stage mesh on the bundled sample bird, and reruns of the geometry stages."""
 
 import json
+import time
 
 import pytest
 import trimesh
@@ -80,3 +81,26 @@ def test_stereo_carves_the_hull_and_keeps_it_closed(run_stages, synth_capture, t
     from_source = Similarity.from_json(read_frame(outputs["sfm"]["cameras"])["from_source"])
     truth.apply_transform(from_source.matrix())
     assert mesh.is_watertight and score_mesh(mesh, truth)["chamfer_pct_of_diagonal"] <= 1.5
+
+
+@pytest.mark.parametrize("damage", ["nan", "inf", "flat"])
+def test_a_given_mesh_no_step_can_use_is_refused_at_once(run_stages, tiny_capture, tmp_path, damage):
+    import numpy as np
+    import trimesh
+
+    from pipeline.core.errors import PipelineError
+    from tests.support.byo_capture import byo_capture
+
+    capture = byo_capture(tiny_capture, tmp_path / "byo")
+    mesh = trimesh.load(capture / "ground_truth" / "mesh.ply", process=False)
+    vertices = np.array(mesh.vertices)
+    if damage == "flat":
+        vertices[:] = vertices[0]
+    else:
+        vertices[::7] = np.nan if damage == "nan" else np.inf
+    trimesh.Trimesh(vertices, mesh.faces, process=False).export(capture / "bad.ply")
+    message = "every triangle has zero area" if damage == "flat" else "vertices are NaN or infinite"
+    started = time.time()
+    with pytest.raises(PipelineError, match=rf"mesh.source = 'bad.ply': .*bad.ply: .*{message}; repair or re-export"):
+        run_stages(capture, "mesh", "cameras.source='external'", "mesh.source='bad.ply'")
+    assert time.time() - started < 60  # a watchdog: it spun for over 11 minutes once

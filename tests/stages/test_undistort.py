@@ -110,3 +110,22 @@ def test_an_unreadable_photo_is_named(run_stages, tiny_capture, tmp_path):
     photo.write_bytes(photo.read_bytes()[:200])  # a truncated download
     with pytest.raises(PipelineError, match=rf"{photo.name}.*remove or replace it"):
         run_stages(capture, "undistort")
+
+
+def test_photos_whose_names_give_one_camera_id_are_refused_by_name(run_stages, tiny_capture, tmp_path):
+    from pipeline.core.errors import PipelineError
+
+    capture = _copy_capture(tiny_capture, tmp_path / "ids")
+    photos = sorted((capture / "images").iterdir())
+    photos[0].rename(capture / "images" / "a b.jpg")
+    photos[1].rename(capture / "images" / "a_b.jpg")
+    with pytest.raises(PipelineError, match=r"photos .*a b.jpg and .*a_b.jpg would get the same camera id.*rename one"):
+        run_stages(capture, "undistort")
+
+
+def test_files_that_are_not_photos_are_warned_about_and_left_out(run_stages, tiny_capture, tmp_path, caplog):
+    capture = _copy_capture(tiny_capture, tmp_path / "heic")
+    (capture / "images" / "IMG_0001.HEIC").write_bytes(b"ftypheic")
+    outputs = run_stages(capture, "undistort")
+    assert "IMG_0001.HEIC is not a photo the pipeline reads" in caplog.text
+    assert len(read_photos(outputs["undistort"]["pinhole"])) == 6

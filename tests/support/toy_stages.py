@@ -9,11 +9,13 @@ run recomputed. ``ingest`` can be told to fail or to SIGKILL its own process.
 
 from __future__ import annotations
 
+import errno
 import os
 import signal
 import subprocess
 import sys
 import textwrap
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal
@@ -36,8 +38,9 @@ class IngestConfig:
 
     scale: Annotated[float, Range(0.0, 10.0)] = 1.0
     """Factor applied to the sum."""
-    fail: Literal["no", "raise", "user", "sigkill"] = "no"
-    """Make the stage fail (a bug, a user error, a kill), to test crash safety."""
+    fail: Literal["no", "raise", "user", "sigkill", "diskfull", "sleep", "stubborn"] = "no"
+    """Make the stage fail (a bug, a user error, a kill, a full disk), or wait to be
+    interrupted (stubborn: it ignores the first interruption), to test crash safety."""
     extra: Annotated[str, InputFile()] = ""
     """A file with one more number to add (an input named by a setting)."""
 
@@ -66,6 +69,16 @@ def ingest(conf: IngestConfig, inputs: StageInputs, out_dir: Path) -> StageResul
         raise PipelineError(f"{inputs.files[0].name}: not a number; fix the file")
     if conf.fail == "sigkill":
         os.kill(os.getpid(), signal.SIGKILL)
+    if conf.fail == "diskfull":
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(out_dir / "total.txt"))
+    if conf.fail in ("sleep", "stubborn"):
+        (out_dir / "waiting").write_text("")
+        try:
+            time.sleep(60)
+        except KeyboardInterrupt:
+            if conf.fail == "sleep":
+                raise
+            time.sleep(60)
     (out_dir / "total.txt").write_text(str(total))
     return StageResult({"total": out_dir / "total.txt"}, {"files": len(inputs.files)})
 
@@ -150,3 +163,27 @@ def hold_lock(capture, seconds):
     )
     assert holder.stdout.readline().strip() == "held"
     return holder
+
+
+TOY_CLI = """
+import sys
+from pathlib import Path
+from pipeline import cli
+from pipeline.cli import registry
+from pipeline.core import config
+from tests.support.toy_stages import make_stages
+registry.registered_stages = make_stages
+config.PRESETS_DIR = Path(sys.argv[1])
+sys.exit(cli.main(sys.argv[2:]))
+"""
+
+
+def start_toy_cli(presets_dir: Path, *argv: str) -> subprocess.Popen:
+    """The real CLI over the toy stages in a process of its own (to be signalled)."""
+    return subprocess.Popen(
+        [sys.executable, "-c", TOY_CLI, str(presets_dir), *argv],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=REPOSITORY,
+    )

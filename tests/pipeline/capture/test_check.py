@@ -113,3 +113,11 @@ def test_photos_cut_out_on_white_are_neither_overexposed_nor_duplicates(synth_ca
     )
     problems = check_capture(capture, _config(capture), features=False)
     assert not _flagged(problems, "exposure") and not _flagged(problems, "duplicates"), problems
+
+
+def test_files_that_are_not_photos_are_listed_as_warnings(orbit_capture, tmp_path):
+    capture = Path(shutil.copytree(orbit_capture, tmp_path / "orbit"))
+    for name in ("IMG_0001.HEIC", "IMG_0002.DNG"):
+        (capture / "images" / name).write_bytes(b"x")
+    problems = check_capture(capture, _config(capture), features=False)
+    assert _flagged(problems, "unsupported") == {"IMG_0001.HEIC": "warning", "IMG_0002.DNG": "warning"}

@@ -7,11 +7,14 @@ run, then check that the good run's results are still there."""
 
 import json
 import os
+import signal
+import time
 from pathlib import Path
 
 import pytest
 
-from tests.support.toy_stages import RUNS, hold_lock, make_capture
+from pipeline.core.lock import CaptureBusy, CaptureLock
+from tests.support.toy_stages import RUNS, hold_lock, make_capture, start_toy_cli
 
 
 @pytest.fixture
@@ -177,3 +180,91 @@ def test_bad_command_lines_exit_2_with_the_fix(tmp_path, toy_cli, capsys, argv, 
     err = capsys.readouterr().err
     assert message in err and "Traceback" not in err
     assert (tmp_path / "FILE").read_text() == "x" and (tmp_path / "FULL" / "keep.txt").exists()
+
+
+def _wait_for(condition, seconds=30.0):
+    deadline = time.time() + seconds
+    while not condition():
+        assert time.time() < deadline, "timed out"
+        time.sleep(0.05)
+
+
+@pytest.mark.parametrize("signum, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)], ids=["ctrl-c", "sigterm"])
+def test_a_signal_during_a_stage_ends_in_one_line_and_cleans_up(ran_capture, presets_dir, signum, code):
+    cache = ran_capture / ".pipeline" / "cache"
+    run = start_toy_cli(presets_dir, "run", str(ran_capture), "-s", "ingest.fail='sleep'")
+    _wait_for(lambda: list(cache.glob("ingest/.tmp-*/waiting")))
+    run.send_signal(signum)
+    out, err = run.communicate(timeout=30)
+    assert run.returncode == code
+    assert err.strip().splitlines()[-1].startswith("E interrupted; finished stages")
+    assert "Traceback" not in err and "stack trace" not in err
+    assert not list(cache.glob("*/.tmp-*"))  # the partial folder is gone, its log kept
+    (failed,) = (ran_capture / ".pipeline" / "failed" / "ingest").iterdir()
+    assert [p.name for p in failed.iterdir()] == ["log.txt"]
+    with CaptureLock(ran_capture, "check", wait=False):
+        pass  # released
+    assert (ran_capture / "output" / "report.txt").read_text() == "result 12.0\n"
+
+
+def test_ctrl_c_while_waiting_for_the_lock_ends_in_one_line(ran_capture, presets_dir):
+    holder = hold_lock(ran_capture, 30)
+    try:
+        run = start_toy_cli(presets_dir, "run", str(ran_capture))
+        _wait_for(lambda: run.stderr.readline().find("waiting for it to finish") >= 0)
+        run.send_signal(signal.SIGINT)
+        out, err = run.communicate(timeout=30)
+    finally:
+        holder.kill()
+    assert run.returncode == 130 and "interrupted" in err and "Traceback" not in err
+
+
+def test_a_second_signal_stops_a_run_stuck_after_the_first(ran_capture, presets_dir):
+    """A stage that does not come back after the first Ctrl-C (a long native call)."""
+    cache = ran_capture / ".pipeline" / "cache"
+    run = start_toy_cli(presets_dir, "run", str(ran_capture), "-s", "ingest.fail='stubborn'")
+    _wait_for(lambda: list(cache.glob("ingest/.tmp-*/waiting")))
+    run.send_signal(signal.SIGINT)
+    time.sleep(0.5)
+    run.send_signal(signal.SIGINT)
+    out, err = run.communicate(timeout=10)
+    assert run.returncode == 130 and "interrupted twice: stopping at once" in err
+    assert list(cache.glob("ingest/.tmp-*"))  # left for the next run to remove
+    again = start_toy_cli(presets_dir, "run", str(ran_capture))
+    out, err = again.communicate(timeout=60)
+    assert again.returncode == 0 and "removed 1 unfinished result folder" in err, err
+
+
+def test_a_fifo_named_by_a_setting_is_refused_without_blocking(ran_capture, toy_cli, capsys):
+    os.mkfifo(ran_capture / "extra.fifo")
+    assert toy_cli(["run", str(ran_capture), "-s", "ingest.extra='extra.fifo'"]) == 2
+    err = capsys.readouterr().err
+    assert "ingest.extra = 'extra.fifo' is a FIFO, not a file: name a regular file" in err
+
+
+def test_a_full_disk_in_a_stage_ends_in_one_message(ran_capture, toy_cli, capsys):
+    assert toy_cli(["run", str(ran_capture), "-s", "ingest.fail='diskfull'"]) == 1
+    err = capsys.readouterr().err
+    assert "is full" in err and "partial files" in err and "every earlier result kept" in err
+    assert "Traceback" not in err
+    assert (ran_capture / "output" / "report.txt").read_text() == "result 12.0\n"
+
+
+def test_clean_waits_for_a_run_to_write_its_report(ran_capture, presets_dir, toy_cli, monkeypatch):
+    """The report is written under the lock: a clean queued behind a run cannot empty the
+    cache between the run's publishing and its report."""
+    from pipeline import report as html_report
+
+    calls = []
+    monkeypatch.setattr(html_report, "write", lambda capture, records: calls.append(lock_is_held(capture)))
+    monkeypatch.setattr(html_report, "records", lambda *args: [])
+    assert toy_cli(["--quiet", "run", str(ran_capture)]) == 0
+    assert calls == [True]
+
+
+def lock_is_held(capture):
+    try:
+        with CaptureLock(capture, "probe", wait=False):
+            return False
+    except CaptureBusy:
+        return True

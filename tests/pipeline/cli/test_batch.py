@@ -10,7 +10,7 @@ from pipeline import cli
 pytestmark = pytest.mark.slow
 
 
-def test_batch_runs_every_capture_and_one_failure_stops_no_other(tiny_capture, tmp_path, capsys):
+def test_batch_runs_every_capture_and_one_failure_stops_no_other(tiny_capture, tmp_path, capfd):
     good = [
         shutil.copytree(tiny_capture, tmp_path / name, ignore=shutil.ignore_patterns(".pipeline", "output"))
         for name in ("first", "second")
@@ -30,10 +30,13 @@ def test_batch_runs_every_capture_and_one_failure_stops_no_other(tiny_capture, t
     assert (result["succeeded"], result["failed"]) == (2, 1)
     for capture in good:
         assert (capture / ".pipeline" / "cache" / "undistort").is_dir()
-    table = capsys.readouterr().err
+    table = capfd.readouterr().err
     assert "broken" in table and "failed" in table
     # everything cached now: the good captures alone succeed
     assert cli.main(["batch", *map(str, good), "--until", "undistort", "--report", str(report)]) == 0
+    # The workers exit cleanly: no heap corruption or stack dump at their shutdown.
+    err = capfd.readouterr().err
+    assert not [word for word in ("malloc", "Aborted", "SIGABRT", "stack trace") if word in table + err]
 
 
 def test_batch_refuses_a_missing_capture_before_starting(tmp_path, capsys):

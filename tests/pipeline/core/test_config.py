@@ -19,7 +19,10 @@ SCHEMA = schema(make_stages())
         (["double.factor=2.5"], "double.factor = 2.5 has the wrong type: expected an integer"),
         (["double.factor=0"], "double.factor = 0 is out of range: allowed [1, 100]"),
         (["ingest.scale='big'"], "ingest.scale = 'big' has the wrong type: expected a number"),
-        (["ingest.fail=maybe"], "ingest.fail = 'maybe' is not allowed: use one of 'no', 'raise', 'user', 'sigkill'"),
+        (
+            ["ingest.fail=maybe"],
+            "ingest.fail = 'maybe' is not allowed: use one of 'no', 'raise', 'user', 'sigkill', 'diskfull', 'sleep', 'stubborn'",
+        ),
         (["mesh.voxels=3"], "unknown section [mesh]"),
         (["board.marker_mm=40"], "board.marker_mm = 40.0 must be smaller than board.square_mm = 30.0"),
         (["light.area_size=0"], "light.area_size = 0.0 is out of range: allowed (0, inf]"),
@@ -29,7 +32,9 @@ SCHEMA = schema(make_stages())
         (["board.square_mm=nan"], "board.square_mm = nan is not a finite number"),
         (["board.square_mm=inf"], "board.square_mm = inf is not a finite number"),
         (["ingest.scale=nan"], "ingest.scale = nan is not a finite number"),
-        (["light.environment_radiance=[-1, nan, inf]"], "light.environment_radiance[1] = nan is not a finite number"),
+        (["light.environment_radiance=[1, nan, inf]"], "light.environment_radiance[1] = nan is not a finite number"),
+        # a negative radiance has no physical meaning; the fits would bend the material to it
+        (["light.area_radiance=[6, -1, 6]"], "light.area_radiance[1] = -1.0 is out of range: allowed [0, inf]"),
     ],
 )
 def test_bad_overrides_name_key_value_and_allowed(presets_dir, overrides, message):

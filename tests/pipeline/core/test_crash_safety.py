@@ -1,12 +1,18 @@
 """Kills, damage and concurrency: nothing computed is lost, nothing damaged is trusted."""
 
+import errno
 import json
+import os
+import shutil
 import time
+from pathlib import Path
 
 import pytest
 
+from pipeline import report as html_report
+from pipeline.core import fsutil, publish
 from pipeline.core.cache import STATUS_FILE
-from pipeline.core.errors import ConfigError
+from pipeline.core.errors import ConfigError, DiskFull
 from pipeline.core.lock import CaptureBusy, CaptureLock
 from pipeline.core.runner import Selection
 from tests.support.toy_stages import RUNS, hold_lock, make_capture, run_python, run_toy, toy_runner
@@ -50,29 +56,133 @@ publish.shutil.copy2 = copy_then_die
 KILL_BEFORE_SWAP = """
 import os, signal
 import pipeline.core.publish as publish
-link = os.symlink
-def link_then_die(*args):
-    link(*args)
+publish._swap_in = lambda staging, output: os.kill(os.getpid(), signal.SIGKILL)
+"""
+
+KILL_AFTER_SWAP = """
+import os, signal
+import pipeline.core.publish as publish
+swap = publish._swap_in
+def swap_then_die(staging, output):
+    swap(staging, output)
     os.kill(os.getpid(), signal.SIGKILL)
-publish.os.symlink = link_then_die
+publish._swap_in = swap_then_die
 """
 
 
-@pytest.mark.parametrize("patch", [KILL_IN_COPY, KILL_BEFORE_SWAP], ids=["while-copying", "before-the-swap"])
-def test_a_kill_while_publishing_leaves_the_old_output_whole(tmp_path, presets_dir, patch):
+@pytest.mark.parametrize(
+    "patch, whole",
+    [(KILL_IN_COPY, "old"), (KILL_BEFORE_SWAP, "old"), (KILL_AFTER_SWAP, "new")],
+    ids=["while-copying", "before-the-swap", "after-the-swap"],
+)
+def test_a_kill_while_publishing_leaves_one_whole_output(tmp_path, presets_dir, patch, whole):
     capture = make_capture(tmp_path)
     run_toy(capture, presets_dir)
     before = published(capture)
     script = killed_run_script(capture, presets_dir, ["double.factor=3"], patch.replace("\n", "\n        "))
     killed = run_python(script)
     assert killed.returncode == -9, killed.stderr
-    assert published(capture) == before  # the old version, complete
+    if whole == "old":
+        assert published(capture) == before  # the old version, complete
+    else:
+        assert published(capture)[0] == "result 18.0\n"
     run_toy(capture, presets_dir, "double.factor=3")
     assert RUNS == []  # the killed run's stages had committed; only publishing was lost
     text, manifest = published(capture)
     assert text == "result 18.0\n" and manifest["report.txt"]["stage"] == "report"
-    versions = list((capture / ".pipeline" / "published").iterdir())
-    assert len(versions) == 1 and not list(capture.glob(".output.tmp-*"))  # leftovers removed
+    assert not list(capture.glob(".output.tmp-*"))  # leftovers removed
+
+
+def test_output_holds_real_files_that_outlive_the_cache(tmp_path, presets_dir, toy_cli):
+    capture = make_capture(tmp_path)
+    run_toy(capture, presets_dir)
+    assert (capture / "output").is_dir() and not (capture / "output").is_symlink()
+    shutil.copytree(capture / "output", tmp_path / "backup")
+    shutil.rmtree(capture / ".pipeline")
+    assert published(capture)[0] == "result 12.0\n"
+    assert (tmp_path / "backup" / "report.txt").read_text() == "result 12.0\n"
+    assert toy_cli(["--quiet", "status", str(capture)]) == 0
+    run_toy(capture, presets_dir)  # recomputed, republished in place
+    assert published(capture)[0] == "result 12.0\n"
+
+
+def test_an_edited_or_removed_output_file_is_restored_and_the_edit_kept(tmp_path, presets_dir, caplog):
+    capture = make_capture(tmp_path)
+    run_toy(capture, presets_dir)
+    (capture / "output" / "report.txt").write_text("result 99.0\n")
+    run_toy(capture, presets_dir)
+    assert RUNS == [] and published(capture)[0] == "result 12.0\n"
+    assert (capture / "output" / "report.edited.txt").read_text() == "result 99.0\n"
+    assert "output/report.txt was edited after it was published" in caplog.text
+    (capture / "output" / "report.txt").unlink()
+    run_toy(capture, presets_dir)
+    assert published(capture)[0] == "result 12.0\n" and "was removed after it was published" in caplog.text
+    assert (capture / "output" / "report.edited.txt").is_file()  # a user's file, kept
+
+
+def test_files_a_user_puts_in_output_are_kept(tmp_path, presets_dir):
+    capture = make_capture(tmp_path)
+    (capture / "output" / "notes").mkdir(parents=True)
+    (capture / "output" / "notes" / "my-notes.txt").write_text("keep me")
+    run_toy(capture, presets_dir)
+    run_toy(capture, presets_dir, "double.factor=3")
+    assert (capture / "output" / "notes" / "my-notes.txt").read_text() == "keep me"
+    assert published(capture)[0] == "result 18.0\n"
+
+
+def test_the_output_link_of_an_older_pipeline_becomes_a_folder(tmp_path, presets_dir):
+    capture = make_capture(tmp_path)
+    versions = capture / ".pipeline" / "published"
+    (versions / "20250101-000000-1").mkdir(parents=True)
+    (versions / "20250101-000000-1" / "report.txt").write_text("old\n")
+    (versions / "legacy-20240101").mkdir()
+    (versions / "legacy-20240101" / "my-notes.txt").write_text("keep me")
+    (capture / "output").symlink_to(Path(".pipeline") / "published" / "20250101-000000-1")
+    run_toy(capture, presets_dir)
+    assert not (capture / "output").is_symlink() and published(capture)[0] == "result 12.0\n"
+    assert [p.name for p in versions.iterdir()] == ["legacy-20240101"]
+
+
+def test_a_full_disk_while_a_stage_writes_removes_its_partial_files_and_says_so(tmp_path, presets_dir):
+    capture = make_capture(tmp_path)
+    run_toy(capture, presets_dir)
+    with pytest.raises(DiskFull, match=r"the disk holding .* is full \(\d+ MB free\) while stage ingest wrote its"):
+        run_toy(capture, presets_dir, "ingest.fail='diskfull'")
+    (failed,) = (capture / ".pipeline" / "failed" / "ingest").iterdir()
+    assert [p.name for p in failed.iterdir()] == ["log.txt"]  # partial.txt removed
+    assert not list((capture / ".pipeline" / "cache").glob("*/.tmp-*"))
+    assert published(capture)[0] == "result 12.0\n"
+
+
+def test_a_full_disk_while_publishing_keeps_the_old_output(tmp_path, presets_dir, monkeypatch):
+    capture = make_capture(tmp_path)
+    run_toy(capture, presets_dir)
+    before = published(capture)
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(publish.shutil, "copy2", full)
+    with pytest.raises(DiskFull, match="publishing 1 file.*the previous output/ and every cached result were kept"):
+        run_toy(capture, presets_dir, "double.factor=3")
+    assert published(capture) == before and not list(capture.glob(".output.tmp-*"))
+
+
+def test_a_full_disk_while_the_report_is_written_keeps_the_old_report(tmp_path, monkeypatch):
+    (tmp_path / "output").mkdir()
+    (tmp_path / "output" / "report.html").write_text("<p>the old report</p>")
+    real_fdopen = os.fdopen
+
+    def fdopen_that_fills(fd, *args, **kwargs):
+        handle = real_fdopen(fd, *args, **kwargs)
+        handle.write = lambda text: (_ for _ in ()).throw(OSError(errno.ENOSPC, "No space left on device"))
+        return handle
+
+    monkeypatch.setattr(fsutil.os, "fdopen", fdopen_that_fills)
+    with pytest.raises(DiskFull, match="writing report.html: the previous report was kept"):
+        html_report.write(tmp_path, [])
+    assert (tmp_path / "output" / "report.html").read_text() == "<p>the old report</p>"
+    assert [p.name for p in (tmp_path / "output").iterdir()] == ["report.html"]  # no partial file
 
 
 def test_output_holds_each_name_from_the_last_valid_stage(tmp_path, presets_dir):
@@ -183,14 +293,3 @@ def test_warnings_name_the_folder_a_result_ends_in(tmp_path, presets_dir, caplog
     (message,) = [r.getMessage() for r in caplog.records if r.getMessage().startswith("meta wrote")]
     assert message == f"meta wrote {plan['meta'].entry.path / 'meta.txt'}" and ".tmp-" not in message
     assert (plan["meta"].entry.path / "meta.txt").is_file()
-
-
-def test_an_output_folder_of_an_older_pipeline_is_moved_aside_and_kept(tmp_path, presets_dir, caplog):
-    capture = make_capture(tmp_path)
-    (capture / "output").mkdir()
-    (capture / "output" / "my-notes.txt").write_text("keep me")
-    run_toy(capture, presets_dir)
-    assert (capture / "output").is_symlink() and published(capture)[0] == "result 12.0\n"
-    (legacy,) = (capture / ".pipeline" / "published").glob("legacy-*")
-    run_toy(capture, presets_dir, "double.factor=3")  # a later publish keeps it too
-    assert (legacy / "my-notes.txt").read_text() == "keep me" and "was moved to" in caplog.text

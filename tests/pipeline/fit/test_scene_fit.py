@@ -2,15 +2,19 @@
 and used through <ref>, objects without ids, an included file, <default> values, IORs
 given by name, a render integrator (path) that is swapped for its differentiable one."""
 
+import errno
 import json
+import shutil
+import tempfile
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from pipeline.cli import main as cli_main
+from pipeline.fit import engine
 from pipeline.fit.scene_fit import selects
-from pipeline.imaging.photo_io import write_image
+from pipeline.imaging.photo_io import read_photo, write_image
 
 pytestmark = pytest.mark.slow
 
@@ -193,3 +197,48 @@ def test_a_fit_at_reduced_films_writes_the_scene_with_its_own(mi, references, tm
     assert abs(rough - 0.3) < 0.7 - 0.3
     written = mi.load_file(str(out / "scene.xml"))
     assert [tuple(s.film().size()) for s in written.sensors()] == [(48, 36)] * 3
+
+
+@pytest.mark.parametrize("where", ["inside-a-file", "the-scene's-folder", "read-only"])
+def test_out_is_checked_before_the_fit(mi, references, tmp_path, capsys, monkeypatch, where):
+    scene = _write_scene(tmp_path / "start", rough=0.7, colour="0.5, 0.5, 0.5", floor="0.3, 0.3, 0.3")
+    before = scene.read_text()
+    out, message = {
+        "inside-a-file": (scene / "out", "cannot be written (Not a directory)"),
+        "the-scene's-folder": (scene.parent, "would overwrite the scene being fitted"),
+        "read-only": (tmp_path / "locked", "cannot be written (Read-only file system)"),
+    }[where]
+    if where == "read-only":  # root ignores permissions: the file system refuses instead
+        real = tempfile.TemporaryFile
+
+        def refuse(*args, dir=None, **kwargs):
+            if str(dir) == str(out):
+                raise OSError(errno.EROFS, "Read-only file system")
+            return real(*args, dir=dir, **kwargs)
+
+        monkeypatch.setattr(tempfile, "TemporaryFile", refuse)
+    fitted = []
+    monkeypatch.setattr(engine, "fit", lambda *args: fitted.append(args))
+    assert _fit(scene, references, out, "roughness") == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err and fitted == [] and scene.read_text() == before
+
+
+def test_non_finite_reference_pixels_are_refused_by_file_and_count(mi, references, tmp_path, capsys):
+    scene = _write_scene(tmp_path / "start", rough=0.7, colour="0.5, 0.5, 0.5", floor="0.3, 0.3, 0.3")
+    spoilt = Path(shutil.copytree(references, tmp_path / "refs"))
+    first = sorted(spoilt.iterdir())[0]
+    pixels = read_photo(first, "linear").pixels
+    pixels[0, :3] = [np.nan, np.inf, -np.inf]
+    write_image(first, pixels)
+    assert _fit(scene, spoilt, tmp_path / "out", "roughness") == 1
+    err = capsys.readouterr().err
+    assert f"{first}: 3 pixel(s) are NaN or infinite" in err and not (tmp_path / "out" / "params.json").exists()
+
+
+def test_results_stay_json_when_the_fit_ends_non_finite(tmp_path):
+    from pipeline.formats.scene_folder import write_log
+
+    write_log(tmp_path / "log.jsonl", [{"iteration": 1, "loss": float("nan"), "value": [float("inf"), 1.0]}])
+    entry = json.loads((tmp_path / "log.jsonl").read_text(), parse_constant=lambda name: pytest.fail(name))
+    assert entry == {"iteration": 1, "loss": None, "value": [None, 1.0]}

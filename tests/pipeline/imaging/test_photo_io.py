@@ -40,3 +40,34 @@ def test_a_huge_photo_is_never_decoded_whole(tmp_path):
     width, height, grown_mb = map(int, result.stdout.split())
     assert (width, height) == (1125, 750)
     assert grown_mb < 150, f"decoding grew the process by {grown_mb} MB"
+
+
+@pytest.mark.parametrize("channels", [2, 4], ids=["grey+alpha", "rgb+alpha"])
+def test_alpha_is_never_multiplied_into_the_colour(tmp_path, channels):
+    import OpenImageIO as oiio
+
+    from pipeline.core.errors import PipelineError
+
+    colour = np.full((8, 8, channels), 200, np.uint8)
+    for alpha, name in ((255, "opaque.png"), (128, "half.png")):
+        colour[..., -1] = alpha
+        spec = oiio.ImageSpec(8, 8, channels, oiio.UINT8)
+        spec.alpha_channel = channels - 1
+        out = oiio.ImageOutput.create(str(tmp_path / name))
+        assert out.open(str(tmp_path / name), spec) and out.write_image(colour) and out.close()
+    opaque = read_photo(tmp_path / "opaque.png").pixels
+    assert opaque.shape == (8, 8, 3) and np.allclose(opaque, (200 / 255 + 0.055) ** 2.4 / 1.055**2.4, atol=1e-3)
+    with pytest.raises(PipelineError, match=r"half.png is partly transparent .* save it as the photo's mask in masks/"):
+        read_photo(tmp_path / "half.png")
+
+
+def test_files_that_are_not_photos_are_listed(tmp_path):
+    import os
+
+    from pipeline.imaging.photo_io import unsupported_files
+
+    for name in ("a.jpg", "b.HEIC", "c.dng", ".DS_Store"):
+        (tmp_path / name).write_bytes(b"x")
+    os.mkfifo(tmp_path / "d.jpg")
+    (tmp_path / "sub").mkdir()
+    assert [p.name for p in unsupported_files(tmp_path)] == ["b.HEIC", "c.dng", "d.jpg"]

@@ -1,0 +1,77 @@
+"""Ctrl-C and SIGTERM end a command in good order: the running stage's partial folder is
+removed, the lock released, and the CLI prints one line and exits 128 + the signal.
+
+Python raises KeyboardInterrupt for SIGINT; SIGTERM is turned into ``Interrupted`` the
+same way. Both only reach Python code once a native call (a render, a COLMAP step)
+returns, so a second signal of either kind while the first is pending ends the process
+at once; the next run removes the unfinished folder it leaves.
+
+Native libraries install their own handlers when they load: glog's (through pycolmap)
+prints a stack dump for SIGTERM and for every crash signal. ``after_native_import``
+puts ours back and gives crashes the default action.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+import threading
+
+CRASH_SIGNALS = (signal.SIGSEGV, signal.SIGILL, signal.SIGFPE, signal.SIGABRT, signal.SIGBUS)
+_installed = False
+
+
+class Interrupted(BaseException):
+    """SIGTERM (or SIGINT) received; a BaseException so that no ``except Exception`` keeps running."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + self.signum
+
+
+def _raise_interrupted(signum, frame) -> None:
+    raise Interrupted(signum)
+
+
+def _watch(read_fd: int) -> None:
+    """Count signals as the C handler records them; a second one ends the process."""
+    pending = 0
+    while True:
+        received = os.read(read_fd, 16)
+        pending += len(received)
+        if pending >= 2:
+            sys.stderr.write("interrupted twice: stopping at once; the next run removes the unfinished work\n")
+            sys.stderr.flush()
+            os._exit(128 + received[-1])
+
+
+def install() -> None:
+    """Install the handlers for this process (from the main thread; once)."""
+    global _installed
+    if threading.current_thread() is not threading.main_thread() or _installed:
+        return
+    signal.signal(signal.SIGTERM, _raise_interrupted)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    read_fd, write_fd = os.pipe()
+    os.set_blocking(write_fd, False)
+    signal.set_wakeup_fd(write_fd, warn_on_full_buffer=False)
+    threading.Thread(target=_watch, args=(read_fd,), name="signal-watch", daemon=True).start()
+    _installed = True
+
+
+def after_native_import() -> None:
+    """Undo the handlers a native library installed on import (main thread only)."""
+    if threading.current_thread() is not threading.main_thread():
+        return
+    for crash in CRASH_SIGNALS:
+        signal.signal(crash, signal.SIG_DFL)
+    signal.signal(signal.SIGTERM, _raise_interrupted if _installed else signal.SIG_DFL)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+__all__ = ["Interrupted", "after_native_import", "install"]
