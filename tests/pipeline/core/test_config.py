@@ -21,7 +21,8 @@ SCHEMA = schema(make_stages())
         (["ingest.scale='big'"], "ingest.scale = 'big' has the wrong type: expected a number"),
         (
             ["ingest.fail=maybe"],
-            "ingest.fail = 'maybe' is not allowed: use one of 'no', 'raise', 'user', 'sigkill', 'diskfull', 'sleep', 'stubborn'",
+            "ingest.fail = 'maybe' is not allowed: use one of 'no', 'raise', 'user', 'sigkill', 'diskfull', "
+            "'sleep', 'stubborn'",
         ),
         (["mesh.voxels=3"], "unknown section [mesh]"),
         (["board.marker_mm=40"], "board.marker_mm = 40.0 must be smaller than board.square_mm = 30.0"),
