@@ -143,6 +143,10 @@ PAPER_MM = {"A4": (210.0, 297.0), "A3": (297.0, 420.0), "letter": (215.9, 279.4)
 PAGE_MARGIN_MM = 12.0
 
 
+MAX_PRINT_PIXELS = 100e6
+"""Largest printable pattern written: an A3 page at 600 dpi is about 70 megapixels."""
+
+
 def board_size_mm(board: BoardSection) -> tuple[float, float]:
     return board.squares_x * board.square_mm, board.squares_y * board.square_mm
 
@@ -157,7 +161,8 @@ def page_layout(board: BoardSection, paper: str) -> tuple[tuple[float, float], t
             return page, ((page[0] - width) / 2, (page[1] - height) / 2 + 5)
     raise ValueError(
         f"a board of {board.squares_x} x {board.squares_y} squares of {board.square_mm} mm "
-        f"({width:.0f} x {height:.0f} mm) does not fit on {paper} paper with {PAGE_MARGIN_MM:.0f} mm margins"
+        f"({width:.0f} x {height:.0f} mm) does not fit on {paper} paper with {PAGE_MARGIN_MM:.0f} mm margins: "
+        "choose a larger --paper or a smaller board.square_mm"
     )
 
 
@@ -173,6 +178,13 @@ def write_printable(board: BoardSection, stem: Path, paper: str = "A4", dpi: int
 
     (page_w, page_h), (left, bottom) = page_layout(board, paper)
     pixels_per_square = round(board.square_mm / 25.4 * dpi)
+    pixels = board.squares_x * board.squares_y * pixels_per_square**2
+    if pixels > MAX_PRINT_PIXELS:
+        most = int(dpi * (MAX_PRINT_PIXELS / pixels) ** 0.5)
+        raise ValueError(
+            f"the board would be {pixels / 1e6:.0f} megapixels at {dpi} dpi, more than any printer resolves: "
+            f"choose --dpi {most} or less"
+        )
     pattern = board_image(board, pixels_per_square)
     png = write_image(
         stem.with_suffix(".png"),

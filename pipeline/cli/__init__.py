@@ -21,6 +21,7 @@ from pipeline.cli.options import add_options, parse_options
 from pipeline.cli.registry import COMMANDS
 from pipeline.core import interrupts, progress
 from pipeline.core.errors import PipelineError
+from pipeline.core.fsutil import disk_full_error
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -58,6 +59,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.debug:
             raise
         return _fail(str(e), e.exit_code, args)
+    except OSError as e:
+        if args.debug or not disk_full_error(e):
+            raise
+        message = f"no space left on the disk holding {e.filename or 'the capture'}: free some space and run again"
+        return _fail(message + "; finished stages are kept", 1, args)
     except (KeyboardInterrupt, interrupts.Interrupted) as e:
         if args.debug:
             raise

@@ -25,6 +25,7 @@ from pipeline.cli.registry import ConfigLayers, capture_dir, command
 from pipeline.core import progress
 from pipeline.core.config import Range
 from pipeline.core.errors import PipelineError
+from pipeline.core.fsutil import atomic_write_text
 from pipeline.core.runner import Selection, summary
 
 
@@ -124,7 +125,7 @@ def batch(options: BatchOptions) -> int:
     succeeded = sum(r["status"] == "ok" for r in records)
     result = {"captures": records, "succeeded": succeeded, "failed": len(records) - succeeded}
     result["seconds"] = time.time() - started
-    Path(options.report).write_text(json.dumps(result, indent=2))
+    atomic_write_text(Path(options.report), json.dumps(result, indent=2))
     logger.info(
         "%d of %d capture(s) succeeded in %.1f s; summary in %s",
         succeeded,

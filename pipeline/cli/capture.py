@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Literal
@@ -74,10 +75,18 @@ def board(options: BoardOptions) -> int:
     config = load_config(schema(registry.registered_stages()), capture, options.config.preset, options.config.set)
     if config["board"].kind == "none":
         raise ConfigError("board.kind = 'none': set it to 'charuco' or 'checkerboard' to print a board")
+    folder = Path(options.out).parent
+    try:
+        tempfile.TemporaryFile(dir=folder).close()
+    except OSError as error:
+        raise ConfigError(
+            f"--out {options.out}: cannot write into {folder} ({error.strerror}): "
+            "name a file in a folder you can write to"
+        ) from None
     try:
         png, pdf = write_printable(config["board"], Path(options.out), options.paper, options.dpi)
     except ValueError as e:
-        raise ConfigError(f"{e}: choose a larger --paper or a smaller board.square_mm") from None
+        raise ConfigError(f"{e}") from None
     print(f"wrote {pdf} (print at 100 %) and {png} ({options.dpi} dpi)")
     return 0
 

@@ -13,6 +13,8 @@ from rich.table import Table
 from pipeline.cli.options import Arg
 from pipeline.cli.registry import capture_dir, command
 from pipeline.core import progress
+from pipeline.core.fsutil import atomic_write_text
+from pipeline.core.lock import CaptureLock
 from pipeline.synthetic.options import SynthOptions
 
 
@@ -51,7 +53,8 @@ def score(options: ScoreOptions) -> int:
     capture = capture_dir(options.capture)
     report = score_capture(capture)
     (capture / "output").mkdir(exist_ok=True)
-    (capture / "output" / "score.json").write_text(json.dumps(report, indent=2))
+    with CaptureLock(capture, "pipeline score"):
+        atomic_write_text(capture / "output" / "score.json", json.dumps(report, indent=2))
     if options.json:
         print(json.dumps(report, indent=2))
         return 0

@@ -9,6 +9,7 @@ they, and only they, enter its cache key.
 from __future__ import annotations
 
 import dataclasses
+import typing
 from dataclasses import dataclass
 from typing import Annotated, Literal, Sequence
 
@@ -63,6 +64,15 @@ class BoardSection:
         if self.kind == "charuco" and self.marker_mm >= self.square_mm:
             raise ConfigError(
                 f"{name}.marker_mm = {self.marker_mm} must be smaller than {name}.square_mm = {self.square_mm}"
+            )
+        markers = self.squares_x * self.squares_y // 2
+        available = int(self.dictionary.rsplit("_", 1)[-1])
+        if self.kind == "charuco" and markers > available:
+            larger = [d for d in typing.get_args(ArucoDictionary) if int(d.rsplit("_", 1)[-1]) >= markers]
+            fix = f"set {name}.dictionary = {larger[0]!r}" if larger else "use fewer squares"
+            raise ConfigError(
+                f"{name}: {self.squares_x} x {self.squares_y} squares hold {markers} markers, but "
+                f"{name}.dictionary = {self.dictionary!r} has {available}: {fix}"
             )
 
 

@@ -35,8 +35,6 @@ import tempfile
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
-import numpy as np
-
 from pipeline import logger
 from pipeline.core import jsonio
 from pipeline.core.errors import ConfigError, PipelineError
@@ -140,12 +138,6 @@ def _views(
     views = []
     for index, (path, sensor, size) in enumerate(zip(files, sensors, full_sizes)):
         pixels = read_photo(path, "linear" if path.suffix.lower() in EXR_SUFFIXES else "srgb").pixels
-        bad = int(np.count_nonzero(~np.isfinite(pixels).all(axis=-1)))
-        if bad:
-            raise PipelineError(
-                f"{path}: {bad} pixel(s) are NaN or infinite, which no render can match: "
-                "fix them in the reference (e.g. replace them by their neighbours) and fit again"
-            )
         if pixels.shape[:2] != size[::-1]:
             raise PipelineError(
                 f"{path} is {pixels.shape[1]}x{pixels.shape[0]} but sensor {index} renders "

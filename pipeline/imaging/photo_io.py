@@ -7,6 +7,9 @@ unless their metadata says linear; EXR and float TIFF are linear.
 
 from __future__ import annotations
 
+import errno
+import os
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -16,6 +19,8 @@ import OpenImageIO as oiio
 
 from pipeline.core.errors import PipelineError
 
+FREE_MARGIN_BYTES = 16 << 20
+"""Free space below which a failed image write is put down to a full disk."""
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr")
 Encoding = Literal["auto", "srgb", "linear"]
 
@@ -138,6 +143,13 @@ def read_photo(path: Path, encoding: Encoding = "auto", reduce: int = 1) -> Phot
                 "as the photo's mask in masks/ (same name, .png)"
             )
         strip = strip[..., :channels]
+        if is_float and not np.isfinite(strip).all():
+            bad = int(np.count_nonzero(~np.isfinite(strip).all(axis=-1)))
+            image.close()
+            raise PipelineError(
+                f"{path}: {bad} pixel(s) in rows {y}-{y + rows - 1} are NaN or infinite, which no render can match: "
+                "fix them in the file (e.g. replace them by their neighbours) or leave the file out"
+            )
         if encoding == "srgb":
             strip = srgb_decode(np.clip(strip, np.float32(0.0), np.float32(1.0)))
         if reduce > 1:
@@ -163,7 +175,11 @@ def write_image(path: Path, pixels: np.ndarray, attributes: dict[str, object] | 
         spec.attribute(name, value)
     out = oiio.ImageOutput.create(str(path))
     if out is None or not out.open(str(path), spec) or not out.write_image(pixels) or not out.close():
-        raise OSError(f"could not write {path}: {oiio.geterror()}")
+        reason = oiio.geterror() or (out.geterror() if out is not None else "")
+        # OpenImageIO does not pass on errno; a full disk is what leaves its reason empty.
+        if shutil.disk_usage(path.parent).free < pixels.nbytes + FREE_MARGIN_BYTES:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+        raise OSError(errno.EIO, f"could not write {path}: {reason or 'no reason given'}", str(path))
     return path
 
 

@@ -49,3 +49,35 @@ def test_page_layout_centres_the_board_and_refuses_what_does_not_fit():
 def test_a_board_too_large_for_the_paper_is_a_config_error(tmp_path, capsys):
     assert main(["board", "--out", str(tmp_path / "board"), "-s", "board.squares_x=12", "-s", "board.squares_y=9"]) == 2
     assert "larger --paper" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["-s", "board.squares_x=20", "-s", "board.squares_y=20"], "hold 200 markers, but board.dictionary"),
+        (
+            [
+                "--paper",
+                "A3",
+                "--dpi",
+                "2400",
+                "-s",
+                "board.squares_x=5",
+                "-s",
+                "board.squares_y=3",
+                "-s",
+                "board.square_mm=75",
+            ],
+            "megapixels at 2400 dpi, more than any printer resolves: choose --dpi",
+        ),
+        (["--out", "FILE/board"], "cannot write into"),
+    ],
+    ids=["too-many-markers", "too-many-pixels", "out-inside-a-file"],
+)
+def test_a_board_that_cannot_be_made_is_refused_with_the_fix(tmp_path, capsys, argv, message):
+    (tmp_path / "FILE").write_text("x")
+    argv = [str(tmp_path / a) if a.startswith("FILE") else a for a in argv]
+    out = [] if "--out" in argv else ["--out", str(tmp_path / "board")]
+    assert main(["board", *out, *argv]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err and not (tmp_path / "board.png").exists()

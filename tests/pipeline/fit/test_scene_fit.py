@@ -233,7 +233,11 @@ def test_non_finite_reference_pixels_are_refused_by_file_and_count(mi, reference
     write_image(first, pixels)
     assert _fit(scene, spoilt, tmp_path / "out", "roughness") == 1
     err = capsys.readouterr().err
-    assert f"{first}: 3 pixel(s) are NaN or infinite" in err and not (tmp_path / "out" / "params.json").exists()
+    assert (
+        f"{first}: 3 pixel(s) in rows 0-" in err
+        and "are NaN or infinite" in err
+        and not (tmp_path / "out" / "params.json").exists()
+    )
 
 
 def test_results_stay_json_when_the_fit_ends_non_finite(tmp_path):
