@@ -280,8 +280,11 @@ def load_config(
     if not preset_file.is_file():
         raise ConfigError(f"unknown preset {preset!r}: choose one of " + ", ".join(preset_names(presets_dir)))
     layers: list[tuple[str, dict[str, Any]]] = [(str(preset_file), _read_toml(preset_file))]
-    if capture_dir is not None and (capture_dir / "capture.toml").is_file():
-        capture_file = capture_dir / "capture.toml"
+    capture_file = capture_dir / "capture.toml" if capture_dir is not None else None
+    if capture_file is not None and (capture_file.exists() or capture_file.is_symlink()):
+        if not capture_file.is_file():
+            kind = special_kind(capture_file) if capture_file.exists() else "a broken link"
+            raise ConfigError(f"{capture_file} is {kind or 'a folder'}, not a file: make it a TOML file or remove it")
         layers.append((str(capture_file), _read_toml(capture_file)))
     override_layer: dict[str, dict[str, Any]] = {}
     for text in overrides:

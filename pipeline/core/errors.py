@@ -26,7 +26,7 @@ class DiskFull(PipelineError):
 
     def __init__(self, folder: Path, what: str, kept: str, needed_bytes: int | None = None):
         free = shutil.disk_usage(folder).free if folder.exists() else 0
-        need = f"at least {needed_bytes / 1e6:.0f} MB more are needed; " if needed_bytes else ""
+        need = f"it needs at least {needed_bytes / 1e6:.1f} MB; " if needed_bytes else ""
         super().__init__(
             f"the disk holding {folder} is full ({free / 1e6:.0f} MB free) while {what}: {need}"
             f"{kept}; free some space and run again"

@@ -30,6 +30,9 @@ class FileHasher:
     def __init__(self, memo_path: Path):
         self.memo_path = memo_path
         self._memo: dict[str, dict] = {}
+        self._usable = memo_path.is_file() or not memo_path.exists()
+        if not self._usable:
+            logger.warning("%s is not a file; hashing the capture files without a memo (remove it)", memo_path)
         if memo_path.is_file():
             try:
                 self._memo = json.loads(memo_path.read_text())
@@ -62,7 +65,7 @@ class FileHasher:
         return hashlib.sha256(listing.encode()).hexdigest()
 
     def save(self) -> None:
-        if self._dirty:
+        if self._dirty and self._usable:
             self.memo_path.parent.mkdir(parents=True, exist_ok=True)
             atomic_write_text(self.memo_path, json.dumps(self._memo, indent=0, sort_keys=True))
             self._dirty = False

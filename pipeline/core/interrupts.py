@@ -1,9 +1,10 @@
-"""Ctrl-C and SIGTERM end a command in good order: the running stage's partial folder is
-removed, the lock released, and the CLI prints one line and exits 128 + the signal.
+"""Ctrl-C, SIGTERM and SIGHUP end a command in good order: the running stage's partial
+folder is removed, the lock released, and the CLI prints one line and exits 128 + the
+signal.
 
-Python raises KeyboardInterrupt for SIGINT; SIGTERM is turned into ``Interrupted`` the
-same way. Both only reach Python code once a native call (a render, a COLMAP step)
-returns, so a second signal of either kind while the first is pending ends the process
+Python raises KeyboardInterrupt for SIGINT; SIGTERM and SIGHUP are turned into
+``Interrupted`` the same way. They only reach Python code once a native call (a render,
+a COLMAP step) returns, so a second signal while the first is pending ends the process
 at once; the next run removes the unfinished folder it leaves.
 
 Native libraries install their own handlers when they load: glog's (through pycolmap)
@@ -18,12 +19,14 @@ import signal
 import sys
 import threading
 
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
+"""Ask the process to end: handled as Ctrl-C is (SIGHUP: the terminal was closed)."""
 CRASH_SIGNALS = (signal.SIGSEGV, signal.SIGILL, signal.SIGFPE, signal.SIGABRT, signal.SIGBUS)
 _installed = False
 
 
 class Interrupted(BaseException):
-    """SIGTERM (or SIGINT) received; a BaseException so that no ``except Exception`` keeps running."""
+    """SIGTERM or SIGHUP received; a BaseException so that no ``except Exception`` keeps running."""
 
     def __init__(self, signum: int):
         super().__init__(signal.Signals(signum).name)
@@ -55,7 +58,8 @@ def install() -> None:
     global _installed
     if threading.current_thread() is not threading.main_thread() or _installed:
         return
-    signal.signal(signal.SIGTERM, _raise_interrupted)
+    for stop in STOP_SIGNALS:
+        signal.signal(stop, _raise_interrupted)
     signal.signal(signal.SIGINT, signal.default_int_handler)
     read_fd, write_fd = os.pipe()
     os.set_blocking(write_fd, False)
@@ -70,7 +74,8 @@ def after_native_import() -> None:
         return
     for crash in CRASH_SIGNALS:
         signal.signal(crash, signal.SIG_DFL)
-    signal.signal(signal.SIGTERM, _raise_interrupted if _installed else signal.SIG_DFL)
+    for stop in STOP_SIGNALS:
+        signal.signal(stop, _raise_interrupted if _installed else signal.SIG_DFL)
     signal.signal(signal.SIGINT, signal.default_int_handler)
 
 

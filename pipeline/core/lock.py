@@ -56,6 +56,8 @@ class CaptureLock:
                 f"cannot write to {self.path.parent}: the capture folder must be writable to run stages "
                 "(copy it somewhere writable, or fix its permissions)"
             ) from error
+        except IsADirectoryError as error:
+            raise PipelineError(f"{self.path} is a folder, not the pipeline's lock file: remove it") from error
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:

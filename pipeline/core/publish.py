@@ -179,10 +179,12 @@ def publish(capture_dir: Path, files: dict[str, tuple[Path, dict[str, Any]]]) ->
     except OSError as error:
         shutil.rmtree(staging)
         if disk_full_error(error):
+            size = sum(entry[0] for record in manifest.values() for entry in record.get("contents", {}).values())
             raise DiskFull(
                 capture_dir,
                 f"publishing {len(files)} file(s) to {output}",
                 "the previous output/ and every cached result were kept",
+                needed_bytes=size,
             ) from error
         raise
     was_link = output.is_symlink()

@@ -219,6 +219,12 @@ class Runner:
         if not capture_dir.is_dir():
             raise ConfigError(f"capture folder {capture_dir} does not exist")
         check_output_path(capture_dir)
+        state_dir = capture_dir / ".pipeline"
+        if state_dir.exists() and not state_dir.is_dir():
+            raise ConfigError(
+                f"{state_dir} is a file, but the pipeline keeps its cache in a folder of that name: "
+                "move or delete the file"
+            )
         self.capture_dir = capture_dir
         self.stages = topological_order(stages)
         self.by_name = {s.name: s for s in self.stages}

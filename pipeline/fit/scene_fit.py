@@ -150,12 +150,17 @@ def _views(
     return views
 
 
-def check_out_dir(out_dir: Path, scene_path: Path) -> None:
+def check_out_dir(out_dir: Path, scene_path: Path, references: Path) -> None:
     """Make ``out_dir`` and prove it writable before the fit, which may take long."""
     if out_dir.exists() and not out_dir.is_dir():
         raise ConfigError(f"--out {out_dir} is a file: name a folder")
     if (out_dir / scene_path.name).resolve() == scene_path.resolve():
         raise ConfigError(f"--out {out_dir} would overwrite the scene being fitted ({scene_path}): name another folder")
+    if out_dir.resolve().is_relative_to(references.resolve()):
+        raise ConfigError(
+            f"--out {out_dir} is inside --references {references}: the fit's images would count as references "
+            "next time; name another folder"
+        )
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
         tempfile.TemporaryFile(dir=out_dir).close()
@@ -178,7 +183,7 @@ def fit_scene(
 ) -> Path:
     """Fit (films reduced to ``max_size`` px, 0: as they are) and write the results
     into ``out_dir``; returns its params.json."""
-    check_out_dir(out_dir, scene_path)
+    check_out_dir(out_dir, scene_path, references)
     _check_patterns(patterns)
     mitsuba_variant.activate(variant)
     import mitsuba as mi

@@ -83,7 +83,7 @@ def test_stereo_carves_the_hull_and_keeps_it_closed(run_stages, synth_capture, t
     assert mesh.is_watertight and score_mesh(mesh, truth)["chamfer_pct_of_diagonal"] <= 1.5
 
 
-@pytest.mark.parametrize("damage", ["nan", "inf", "flat"])
+@pytest.mark.parametrize("damage", ["inf", "flat"])
 def test_a_given_mesh_no_step_can_use_is_refused_at_once(run_stages, tiny_capture, tmp_path, damage):
     import numpy as np
     import trimesh
@@ -103,4 +103,4 @@ def test_a_given_mesh_no_step_can_use_is_refused_at_once(run_stages, tiny_captur
     started = time.time()
     with pytest.raises(PipelineError, match=rf"mesh.source = 'bad.ply': .*bad.ply: .*{message}; repair or re-export"):
         run_stages(capture, "mesh", "cameras.source='external'", "mesh.source='bad.ply'")
-    assert time.time() - started < 60  # a watchdog: it spun for over 11 minutes once
+    assert time.time() - started < 60  # it spun for over 11 minutes once (NaN: test_hostile_inputs.py)

@@ -235,13 +235,6 @@ def test_a_second_signal_stops_a_run_stuck_after_the_first(ran_capture, presets_
     assert again.returncode == 0 and "removed 1 unfinished result folder" in err, err
 
 
-def test_a_fifo_named_by_a_setting_is_refused_without_blocking(ran_capture, toy_cli, capsys):
-    os.mkfifo(ran_capture / "extra.fifo")
-    assert toy_cli(["run", str(ran_capture), "-s", "ingest.extra='extra.fifo'"]) == 2
-    err = capsys.readouterr().err
-    assert "ingest.extra = 'extra.fifo' is a FIFO, not a file: name a regular file" in err
-
-
 def test_a_full_disk_in_a_stage_ends_in_one_message(ran_capture, toy_cli, capsys):
     assert toy_cli(["run", str(ran_capture), "-s", "ingest.fail='diskfull'"]) == 1
     err = capsys.readouterr().err

@@ -1,0 +1,859 @@
+"""Hostile inputs, faults and signals, each run by the real CLI in a process of its own
+under a watchdog: the cases of issue 53 and further ones of the same kinds.
+
+    .venv/bin/python bench/hostile_inputs.py [--work /tmp/hostile] [--only NAME ...] [--write]
+
+A tiny synthetic capture (6 views of 96x72 px) is rendered once and run to masks. Each
+case copies it with its cache and output/, spoils the copy, runs a command and records
+the exit code, the seconds, the message (the last line of stderr), whether a traceback
+or a stack dump appeared, and whether the good run's output/ survived. A case passes when
+the exit code and message are the expected ones, nothing was dumped, the output survived,
+and the watchdog (120 s) did not fire. Disk-full cases run on a small tmpfs (root only;
+they are skipped where mounting fails). ``--write`` regenerates docs/benchmarks.md's
+section.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+from report import ROOT as REPOSITORY
+from report import write_section
+
+WATCHDOG_S = 120
+SECTION = "## Hostile inputs, faults and signals (issue 53)"
+CLI = "import sys; from pipeline.cli import main; sys.exit(main(sys.argv[1:]))"
+HOLD_LOCK = textwrap.dedent(
+    """
+    import sys, time
+    from pathlib import Path
+    from pipeline.core.lock import CaptureLock
+    with CaptureLock(Path(sys.argv[1]), "bench holder"):
+        print("held", flush=True)
+        time.sleep(float(sys.argv[2]))
+    """
+)
+SCENE = """<scene version="3.0.0">
+  <integrator type="path" id="integrator"><integer name="max_depth" value="3"/></integrator>
+  <emitter type="constant" id="sky"><rgb name="radiance" value="1, 1, 1"/></emitter>
+  <shape type="sphere" id="ball"><bsdf type="diffuse" id="paint"><rgb name="reflectance" value="0.5, 0.5, 0.5"/></bsdf></shape>
+  <sensor type="perspective" id="camera">
+    <transform name="to_world"><lookat origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/></transform>
+    <film type="hdrfilm" id="film"><integer name="width" value="16"/><integer name="height" value="16"/></film>
+    <sampler type="independent" id="sampler"><integer name="sample_count" value="4"/></sampler>
+  </sensor>
+</scene>
+"""
+
+
+@dataclass
+class Case:
+    name: str
+    kind: str
+    """hang, silently wrong, lost, traceback, message, signal, disk full"""
+    origin: str
+    """"issue" (one of issue 53's cases) or "new" (one of ours)"""
+    spoil: Callable[[Path], None]
+    argv: list[str]
+    """After `pipeline`; CAPTURE stands for the spoilt copy."""
+    code: int
+    message: str
+    """Expected in stdout or stderr."""
+    signal_after: tuple[int, str] | None = None
+    """(signal, what to wait for: "lock" held by another process, or a number of seconds)."""
+    check: Callable[[Path], str | None] | None = None
+    """Returns what is wrong with the capture afterwards, or None."""
+    on_tmpfs_kb: int = 0
+    """Run on a tmpfs this much larger than the capture (disk-full cases)."""
+    result: dict = field(default_factory=dict)
+
+
+# --- spoilers ---------------------------------------------------------------------------
+
+
+def nothing(capture: Path) -> None:
+    pass
+
+
+def first_photo(capture: Path) -> Path:
+    return sorted((capture / "images").glob("*.jpg"))[0]
+
+
+def replace_photo(capture: Path, name: str, pixels: np.ndarray, channels_alpha: int = -1) -> None:
+    import OpenImageIO as oiio
+
+    first_photo(capture).unlink()
+    spec = oiio.ImageSpec(
+        pixels.shape[1], pixels.shape[0], pixels.shape[2], oiio.FLOAT if pixels.dtype.kind == "f" else oiio.UINT8
+    )
+    if channels_alpha >= 0:
+        spec.alpha_channel = channels_alpha
+    out = oiio.ImageOutput.create(str(capture / "images" / name))
+    assert out.open(str(capture / "images" / name), spec) and out.write_image(pixels) and out.close()
+
+
+def alpha_photo(capture: Path, channels: int = 4) -> None:
+    pixels = np.full((72, 96, channels), 200, np.uint8)
+    pixels[..., -1] = 128
+    replace_photo(capture, "view_000.png", pixels, channels - 1)
+
+
+def exr_photo(value: float) -> Callable[[Path], None]:
+    def spoil(capture: Path) -> None:
+        pixels = np.full((72, 96, 3), 0.25, np.float32)
+        pixels[10, 10:13] = value
+        replace_photo(capture, "view_000.exr", pixels)
+
+    return spoil
+
+
+def same_size_and_mtime(capture: Path) -> None:
+    """`cp -p` of another photo of the same size: here the same bytes with two swapped."""
+    photo = first_photo(capture)
+    stamp = photo.stat()
+    data = bytearray(photo.read_bytes())
+    middle = len(data) // 2
+    data[middle], data[middle + 1] = data[middle + 1], data[middle] ^ 0x10
+    photo.write_bytes(bytes(data))
+    os.utime(photo, ns=(stamp.st_atime_ns, stamp.st_mtime_ns))
+
+
+def edit_output(capture: Path) -> None:
+    manifest = json.loads((capture / "output" / "manifest.json").read_text())
+    name = sorted(manifest)[0]
+    path = capture / "output" / name
+    path.write_bytes(path.read_bytes() + b" ")
+
+
+def fifo(relative: str) -> Callable[[Path], None]:
+    def spoil(capture: Path) -> None:
+        path = capture / relative
+        if path.exists():
+            path.unlink()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        os.mkfifo(path)
+
+    return spoil
+
+
+def add_file(relative: str, data: bytes = b"not a photo") -> Callable[[Path], None]:
+    return lambda capture: (
+        (capture / relative).parent.mkdir(parents=True, exist_ok=True) or (capture / relative).write_bytes(data)
+    )
+
+
+def rename_photos(*names: str) -> Callable[[Path], None]:
+    def spoil(capture: Path) -> None:
+        for photo, name in zip(sorted((capture / "images").glob("*.jpg")), names):
+            photo.rename(photo.with_name(name))
+
+    return spoil
+
+
+def byo(mesh_damage: str) -> Callable[[Path], None]:
+    """Cameras and mesh "from another tool" (tests/support/byo_capture.py), the mesh damaged."""
+
+    def spoil(capture: Path) -> None:
+        import trimesh
+
+        sys.path.insert(0, str(REPOSITORY))
+        from tests.support.byo_capture import byo_capture
+
+        shutil.rmtree(capture / "external", ignore_errors=True)
+        staging = capture.with_name(capture.name + "-byo")
+        byo_capture(capture, staging)
+        shutil.move(staging / "external", capture / "external")
+        shutil.rmtree(staging)
+        mesh = trimesh.load(capture / "ground_truth" / "mesh.ply", process=False)
+        vertices, faces = np.array(mesh.vertices), np.array(mesh.faces)
+        if mesh_damage == "nan":
+            vertices[::7] = np.nan
+        elif mesh_damage == "far":
+            vertices = vertices * 1e30
+        elif mesh_damage == "faces":
+            faces[0, 0] = len(vertices) + 10
+        if mesh_damage == "empty":
+            (capture / "bad.ply").write_bytes(b"")
+        elif mesh_damage == "faces":
+            lines = [
+                "ply",
+                "format ascii 1.0",
+                f"element vertex {len(vertices)}",
+                "property float x",
+                "property float y",
+                "property float z",
+                f"element face {len(faces)}",
+                "property list uchar int vertex_indices",
+                "end_header",
+            ]
+            lines += [" ".join(map(str, v)) for v in vertices] + ["3 " + " ".join(map(str, f)) for f in faces]
+            (capture / "bad.ply").write_text("\n".join(lines) + "\n")
+        else:
+            trimesh.Trimesh(vertices, faces, process=False).export(capture / "bad.ply")
+
+    return spoil
+
+
+def scene_folder(reference_value: float | None) -> Callable[[Path], None]:
+    """A scene for `pipeline fit` and one reference image (with a spoilt pixel)."""
+
+    def spoil(capture: Path) -> None:
+        from pipeline.imaging.photo_io import write_image
+
+        (capture / "fit").mkdir()
+        (capture / "fit" / "scene.xml").write_text(SCENE)
+        (capture / "fit" / "refs").mkdir()
+        pixels = np.full((16, 16, 3), 0.3, np.float32)
+        if reference_value is not None:
+            pixels[3, 3] = reference_value
+        write_image(capture / "fit" / "refs" / "ref.exr", pixels)
+
+    return spoil
+
+
+def output_link_elsewhere(capture: Path) -> None:
+    target = capture.parent / f"{capture.name}-elsewhere"
+    target.mkdir()
+    (target / "mine.txt").write_text("keep")
+    shutil.rmtree(capture / "output")
+    (capture / "output").symlink_to(target)
+
+
+def target_kept(capture: Path) -> str | None:
+    mine = capture.parent / f"{capture.name}-elsewhere" / "mine.txt"
+    return None if mine.is_file() and mine.read_text() == "keep" else "the link's target was changed"
+
+
+def output_complete(capture: Path) -> str | None:
+    manifest = json.loads((capture / "output" / "manifest.json").read_text())
+    for record in manifest.values():
+        for rel, (size, digest) in record["contents"].items():
+            path = capture / "output" / rel
+            if not path.is_file() or hashlib.sha256(path.read_bytes()).hexdigest() != digest:
+                return f"output/{rel} is not what the manifest says"
+    return None
+
+
+def fill_disk(leave_kb: int) -> Callable[[Path], None]:
+    def spoil(capture: Path) -> None:
+        free = shutil.disk_usage(capture).free
+        with (capture / "filler.bin").open("wb") as filler:
+            filler.write(b"\0" * max(free - leave_kb * 1024, 0))
+
+    return spoil
+
+
+def cases() -> list[Case]:
+    until_undistort = ["run", "CAPTURE", "--until", "undistort"]
+    until_masks = ["run", "CAPTURE", "--until", "masks"]
+    byo_mesh = ["run", "CAPTURE", "--until", "mesh", "-s", "cameras.source='external'", "-s", "mesh.source='bad.ply'"]
+    fit = [
+        "fit",
+        "CAPTURE/fit/scene.xml",
+        "--references",
+        "CAPTURE/fit/refs",
+        "--params",
+        "reflectance",
+        "--bound",
+        "reflectance=0:1",
+        "--iterations",
+        "3",
+        "--spp",
+        "2",
+    ]
+    return [
+        # issue 53's cases
+        Case("mesh-non-finite", "hang", "issue", byo("nan"), byo_mesh, 1, "vertices are NaN or infinite"),
+        Case(
+            "envmap-fifo",
+            "hang",
+            "issue",
+            fifo("room.exr"),
+            [*until_masks, "-s", "light.environment_map='room.exr'"],
+            2,
+            "is a FIFO, not a file",
+        ),
+        Case("alpha-photo", "silently wrong", "issue", alpha_photo, until_undistort, 1, "is partly transparent"),
+        Case(
+            "negative-radiance",
+            "silently wrong",
+            "issue",
+            nothing,
+            [*until_masks, "-s", "light.area_radiance=[6, -1, 6]"],
+            2,
+            "is out of range",
+        ),
+        Case(
+            "cp-p-photo",
+            "silently wrong",
+            "issue",
+            same_size_and_mtime,
+            until_undistort,
+            0,
+            "input changed: images/view_000.jpg",
+        ),
+        Case(
+            "edited-output",
+            "silently wrong",
+            "issue",
+            edit_output,
+            until_masks,
+            0,
+            "was edited after it was published",
+            check=output_complete,
+        ),
+        Case(
+            "heic-photo",
+            "silently wrong",
+            "issue",
+            add_file("images/IMG_0001.HEIC"),
+            ["check", "CAPTURE", "--no-features"],
+            0,
+            "IMG_0001.HEIC: not a photo the pipeline reads",
+        ),
+        Case(
+            "fit-nan-reference",
+            "silently wrong",
+            "issue",
+            scene_folder(float("nan")),
+            [*fit, "--out", "CAPTURE/fitted"],
+            1,
+            "NaN or infinite",
+        ),
+        Case(
+            "rm-cache-then-report",
+            "lost",
+            "issue",
+            lambda c: shutil.rmtree(c / ".pipeline"),
+            ["report", "CAPTURE"],
+            0,
+            "report.html",
+            check=output_complete,
+        ),
+        Case(
+            "fit-out-inside-a-file",
+            "lost",
+            "issue",
+            lambda c: (scene_folder(None)(c), (c / "afile").write_text("x")),
+            [*fit, "--out", "CAPTURE/afile/out"],
+            2,
+            "cannot be written (Not a directory)",
+        ),
+        Case(
+            "ctrl-c-waiting-for-lock",
+            "traceback",
+            "issue",
+            nothing,
+            until_masks,
+            130,
+            "interrupted;",
+            signal_after=(signal.SIGINT, "lock"),
+        ),
+        Case(
+            "sigterm-waiting-for-lock",
+            "traceback",
+            "issue",
+            nothing,
+            until_masks,
+            143,
+            "interrupted;",
+            signal_after=(signal.SIGTERM, "lock"),
+        ),
+        Case(
+            "huge-charuco",
+            "traceback",
+            "issue",
+            nothing,
+            [
+                "board",
+                "--out",
+                "CAPTURE/board",
+                "-s",
+                "board.squares_x=40",
+                "-s",
+                "board.squares_y=40",
+                "-s",
+                "board.square_mm=5",
+                "-s",
+                "board.marker_mm=3",
+                "--paper",
+                "A3",
+            ],
+            2,
+            "markers, but board.dictionary",
+        ),
+        Case(
+            "board-out-inside-a-file",
+            "traceback",
+            "issue",
+            add_file("afile"),
+            ["board", "--out", "CAPTURE/afile/board"],
+            2,
+            "cannot write into",
+        ),
+        Case(
+            "photo-ids-collide",
+            "message",
+            "issue",
+            rename_photos("a b.jpg", "a_b.jpg"),
+            until_undistort,
+            1,
+            "would get the same camera id",
+        ),
+        Case(
+            "batch-workers-exit",
+            "traceback",
+            "issue",
+            nothing,
+            ["batch", "CAPTURE", "--until", "masks", "--report", "CAPTURE/batch.json"],
+            0,
+            "1 of 1 capture(s) succeeded",
+        ),
+        Case(
+            "disk-full-undistort",
+            "disk full",
+            "issue",
+            lambda c: shutil.rmtree(c / ".pipeline" / "cache" / "undistort"),
+            until_undistort,
+            1,
+            "is full",
+            on_tmpfs_kb=96,
+        ),
+        Case(
+            "disk-full-report",
+            "disk full",
+            "issue",
+            fill_disk(8),
+            ["report", "CAPTURE"],
+            1,
+            "the previous report was kept",
+            on_tmpfs_kb=4096,
+        ),
+        # further cases of the same kinds
+        Case(
+            "fifo-photo",
+            "hang",
+            "new",
+            fifo("images/view_fifo.jpg"),
+            until_undistort,
+            0,
+            "view_fifo.jpg is not a photo the pipeline reads",
+        ),
+        Case(
+            "fifo-capture-toml",
+            "hang",
+            "new",
+            fifo("capture.toml"),
+            until_masks,
+            2,
+            "capture.toml is a FIFO, not a file",
+        ),
+        Case(
+            "fifo-camera-file",
+            "hang",
+            "new",
+            fifo("cams.txt"),
+            [*until_masks, "-s", "cameras.source='cams.txt'"],
+            2,
+            "is a FIFO, not a file",
+        ),
+        Case("fifo-mesh-source", "hang", "new", fifo("bad.ply"), byo_mesh, 2, "is a FIFO, not a file"),
+        Case(
+            "fifo-background-plate",
+            "hang",
+            "new",
+            fifo("background/plate.jpg"),
+            until_undistort,
+            0,
+            "plate.jpg is not a photo the pipeline reads",
+        ),
+        Case("mesh-far-away", "hang", "new", byo("far"), byo_mesh, 1, "its outline overlaps the masks by 0.00"),
+        Case("mesh-bad-face-index", "traceback", "new", byo("faces"), byo_mesh, 1, "mesh.source = 'bad.ply'"),
+        Case("mesh-empty-file", "message", "new", byo("empty"), byo_mesh, 1, "mesh.source = 'bad.ply'"),
+        Case(
+            "dangling-photo-link",
+            "silently wrong",
+            "new",
+            lambda c: (c / "images" / "gone.jpg").symlink_to(c / "nowhere.jpg"),
+            until_undistort,
+            0,
+            "gone.jpg is not a photo the pipeline reads",
+        ),
+        Case(
+            "empty-photo",
+            "message",
+            "new",
+            lambda c: first_photo(c).write_bytes(b""),
+            until_undistort,
+            1,
+            "cannot read this image",
+        ),
+        Case(
+            "grey-alpha-photo",
+            "silently wrong",
+            "new",
+            lambda c: alpha_photo(c, 2),
+            until_undistort,
+            1,
+            "is partly transparent",
+        ),
+        Case("exr-nan-photo", "silently wrong", "new", exr_photo(float("nan")), until_undistort, 1, "NaN or infinite"),
+        Case("exr-inf-photo", "silently wrong", "new", exr_photo(float("inf")), until_undistort, 1, "NaN or infinite"),
+        Case(
+            "unicode-ids-collide",
+            "message",
+            "new",
+            rename_photos("é.jpg", "è.jpg"),
+            until_undistort,
+            1,
+            "would get the same camera id",
+        ),
+        Case("dollar-photo-name", "message", "new", rename_photos("$HOME.jpg"), until_undistort, 0, "ran"),
+        Case(
+            "capture-toml-folder",
+            "traceback",
+            "new",
+            lambda c: (c / "capture.toml").unlink() or (c / "capture.toml").mkdir(),
+            until_masks,
+            2,
+            "capture.toml is a folder, not a file",
+        ),
+        Case(
+            "capture-toml-utf16",
+            "message",
+            "new",
+            lambda c: (c / "capture.toml").write_bytes((c / "capture.toml").read_text().encode("utf-16")),
+            until_masks,
+            2,
+            "capture.toml: invalid TOML",
+        ),
+        Case(
+            "cache-folder-is-a-file",
+            "traceback",
+            "new",
+            lambda c: shutil.rmtree(c / ".pipeline") or (c / ".pipeline").write_text("x"),
+            until_masks,
+            2,
+            ".pipeline is a file",
+        ),
+        Case(
+            "lock-is-a-folder",
+            "traceback",
+            "new",
+            lambda c: (c / ".pipeline" / "lock").unlink() or (c / ".pipeline" / "lock").mkdir(),
+            until_masks,
+            1,
+            "is a folder, not the pipeline's lock file",
+        ),
+        Case(
+            "hash-memo-is-a-folder",
+            "traceback",
+            "new",
+            lambda c: (c / ".pipeline" / "file_hashes.json").unlink() or (c / ".pipeline" / "file_hashes.json").mkdir(),
+            until_masks,
+            0,
+            "file_hashes.json is not a file",
+        ),
+        Case(
+            "output-links-elsewhere",
+            "lost",
+            "new",
+            output_link_elsewhere,
+            until_masks,
+            0,
+            "published",
+            check=target_kept,
+        ),
+        Case(
+            "removed-output-file",
+            "lost",
+            "new",
+            lambda c: (c / "output" / sorted(json.loads((c / "output" / "manifest.json").read_text()))[0]).unlink(),
+            until_masks,
+            0,
+            "was removed after it was published",
+            check=output_complete,
+        ),
+        Case(
+            "user-notes-in-output",
+            "lost",
+            "new",
+            add_file("output/notes.txt", b"mine"),
+            [*until_masks, "-s", "masks.max_hole_fraction=0.5"],
+            0,
+            "published",
+            check=lambda c: None if (c / "output" / "notes.txt").read_bytes() == b"mine" else "notes.txt lost",
+        ),
+        Case(
+            "radiance-beyond-float32",
+            "silently wrong",
+            "new",
+            nothing,
+            [*until_masks, "-s", "light.area_radiance=[1e39, 1, 1]"],
+            2,
+            "is out of range",
+        ),
+        Case(
+            "radiance-nan",
+            "silently wrong",
+            "new",
+            nothing,
+            [*until_masks, "-s", "light.environment_radiance=[1, nan, 1]"],
+            2,
+            "is not a finite number",
+        ),
+        Case(
+            "preset-path",
+            "message",
+            "new",
+            nothing,
+            [*until_masks, "--preset", "../../etc/passwd"],
+            2,
+            "unknown preset",
+        ),
+        Case(
+            "fit-out-is-references",
+            "lost",
+            "new",
+            scene_folder(None),
+            [*fit, "--out", "CAPTURE/fit/refs"],
+            2,
+            "is inside --references",
+        ),
+        Case(
+            "fit-out-overwrites-scene",
+            "lost",
+            "new",
+            scene_folder(None),
+            [*fit, "--out", "CAPTURE/fit"],
+            2,
+            "would overwrite the scene being fitted",
+        ),
+        Case(
+            "fit-empty-references",
+            "message",
+            "new",
+            lambda c: (scene_folder(None)(c), (c / "fit" / "refs" / "ref.exr").unlink()),
+            [*fit, "--out", "CAPTURE/fitted"],
+            1,
+            "holds 0 reference images",
+        ),
+        Case(
+            "fit-broken-xml",
+            "message",
+            "new",
+            lambda c: (scene_folder(None)(c), (c / "fit" / "scene.xml").write_text("<scene version='3.0.0'><shape")),
+            [*fit, "--out", "CAPTURE/fitted"],
+            1,
+            "scene.xml",
+        ),
+        Case(
+            "fit-sigterm",
+            "signal",
+            "new",
+            scene_folder(None),
+            [*fit[:-4], "--iterations", "100000", "--spp", "2", "--tolerance", "0", "--out", "CAPTURE/fitted"],
+            143,
+            "interrupted;",
+            signal_after=(signal.SIGTERM, "12"),
+        ),
+        Case(
+            "sighup-waiting-for-lock",
+            "signal",
+            "new",
+            nothing,
+            until_masks,
+            129,
+            "interrupted;",
+            signal_after=(signal.SIGHUP, "lock"),
+        ),
+        Case(
+            "ctrl-c-json",
+            "signal",
+            "new",
+            nothing,
+            [*until_masks, "--json"],
+            130,
+            '"exit_code": 130',
+            signal_after=(signal.SIGINT, "lock"),
+        ),
+        Case(
+            "ctrl-c-during-check",
+            "signal",
+            "new",
+            nothing,
+            ["check", "CAPTURE"],
+            130,
+            "interrupted;",
+            signal_after=(signal.SIGINT, "3"),
+        ),
+        Case(
+            "disk-full-publish",
+            "disk full",
+            "new",
+            fill_disk(2),
+            [*until_masks, "-s", "masks.max_hole_fraction=0.5"],
+            1,
+            "is full",
+            on_tmpfs_kb=8192,
+        ),
+    ]
+
+
+# --- running ------------------------------------------------------------------------------
+
+
+def base_capture(work: Path) -> Path:
+    base = work / "base"
+    if (base / "output" / "manifest.json").is_file():
+        return base
+    shutil.rmtree(base, ignore_errors=True)
+    synth = [sys.executable, "-c", CLI, "-q", "synth", str(base), "--views", "6", "--width", "96", "--height", "72"]
+    subprocess.run([*synth, "--spp", "4", "--calibration-shots", "3", "--seed", "3"], check=True, cwd=REPOSITORY)
+    subprocess.run([sys.executable, "-c", CLI, "-q", "run", str(base), "--until", "masks"], check=True, cwd=REPOSITORY)
+    return base
+
+
+def _mount_tmpfs(folder: Path, kilobytes: int) -> bool:
+    folder.mkdir(parents=True, exist_ok=True)
+    done = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", f"size={kilobytes}k", "tmpfs", str(folder)], capture_output=True
+    )
+    return done.returncode == 0
+
+
+def _size_kb(folder: Path) -> int:
+    return sum(p.stat().st_size for p in folder.rglob("*") if p.is_file() and not p.is_symlink()) // 1024 + 64
+
+
+def _wait_for_lock_message(process: subprocess.Popen, lines: list[str]) -> None:
+    while process.poll() is None:
+        line = process.stderr.readline()
+        lines.append(line)
+        if "waiting for it to finish" in line:
+            return
+
+
+def run_case(case: Case, base: Path, work: Path) -> dict:
+    folder = work / case.name
+    subprocess.run(["umount", str(folder)], capture_output=True)
+    shutil.rmtree(folder, ignore_errors=True)
+    if case.on_tmpfs_kb and not _mount_tmpfs(folder, _size_kb(base) + case.on_tmpfs_kb):
+        return {"skipped": "no tmpfs (mount needs root)"}
+    folder.mkdir(parents=True, exist_ok=True)
+    capture = folder / "capture"
+    shutil.copytree(base, capture, symlinks=True)
+    case.spoil(capture)
+    argv = [a.replace("CAPTURE", str(capture)) for a in case.argv]
+    holder = None
+    if case.signal_after and case.signal_after[1] == "lock":
+        holder = subprocess.Popen(
+            [sys.executable, "-c", HOLD_LOCK, str(capture), "60"], stdout=subprocess.PIPE, text=True, cwd=REPOSITORY
+        )
+        holder.stdout.readline()
+    started = time.time()
+    process = subprocess.Popen(
+        [sys.executable, "-c", CLI, *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPOSITORY
+    )
+    early: list[str] = []
+    if case.signal_after:
+        signum, when = case.signal_after
+        if when == "lock":
+            _wait_for_lock_message(process, early)
+        else:
+            time.sleep(float(when))
+        process.send_signal(signum)
+    try:
+        out, err = process.communicate(timeout=WATCHDOG_S)
+        hung = False
+    except subprocess.TimeoutExpired:
+        process.kill()
+        out, err = process.communicate()
+        hung = True
+    seconds = time.time() - started
+    if holder is not None:
+        holder.kill()
+    err = "".join(early) + err
+    text = out + err
+    lines = [line for line in text.splitlines() if line.strip()]
+    dumped = any(word in text for word in ("Traceback", "stack trace", "*** Aborted", "malloc"))
+    survived = case.check(capture) if case.check else None
+    if case.check is None and (capture / "output" / "manifest.json").is_file() and not case.on_tmpfs_kb:
+        survived = output_complete(capture)
+    message = next((line for line in reversed(lines) if case.message in line), lines[-1] if lines else "")
+    passed = not hung and process.returncode == case.code and case.message in text and not dumped and survived is None
+    if case.on_tmpfs_kb:
+        subprocess.run(["umount", str(folder)], capture_output=True)
+    return {
+        "code": process.returncode,
+        "seconds": round(seconds, 1),
+        "message": message.strip()[:160],
+        "dumped": dumped,
+        "hung": hung,
+        "survived": survived or "yes",
+        "passed": passed,
+    }
+
+
+def write_table(rows: list[Case], command: str) -> None:
+    lines = [
+        SECTION,
+        "",
+        f"Machine: the 2-core development VM (no GPU). Command: `.venv/bin/python {command}`. Each case runs the",
+        "real CLI in its own process under a 120 s watchdog on a copy of a 6-view 96x72 px synthetic",
+        "capture run to masks; disk-full cases on a tmpfs a little larger than the capture.",
+        "\"output kept\" is whether the good run's output/ still matches its manifest (or the case's own check).",
+        "",
+        "| case | kind | from | exit | s | message | dump | output kept | pass |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for case in rows:
+        r = case.result
+        if "skipped" in r:
+            lines.append(f"| {case.name} | {case.kind} | {case.origin} | - | - | skipped: {r['skipped']} | - | - | - |")
+            continue
+        message = r["message"].replace("|", "\\|")
+        lines.append(
+            f"| {case.name} | {case.kind} | {case.origin} | {r['code']} | {r['seconds']} | {message} | "
+            f"{'yes' if r['dumped'] else 'no'} | {r['survived']} | {'yes' if r['passed'] else '**no**'} |"
+        )
+    ran = [c for c in rows if "passed" in c.result]
+    passed = sum(c.result["passed"] for c in ran)
+    new = sum(c.origin == "new" for c in ran)
+    lines += ["", f"{passed} of {len(ran)} cases pass ({new} of them beyond the issue's).", ""]
+    write_section("hostile-inputs", lines)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--work", default="/tmp/hostile")
+    parser.add_argument("--only", nargs="*", default=[])
+    parser.add_argument("--write", action="store_true", help="rewrite docs/benchmarks.md's section")
+    args = parser.parse_args()
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+    base = base_capture(work)
+    chosen = [c for c in cases() if not args.only or c.name in args.only]
+    for case in chosen:
+        case.result = run_case(case, base, work)
+        print(case.name, json.dumps(case.result), flush=True)
+    if args.write:
+        write_table(chosen, "bench/hostile_inputs.py " + " ".join(sys.argv[1:]).replace(" --write", ""))
+    return 0 if all(c.result.get("passed", True) for c in chosen) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
