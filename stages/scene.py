@@ -69,7 +69,6 @@ from pipeline.formats.cameras import read_frame, read_views
 from pipeline.formats.masks import read_masks
 from pipeline.formats.pinhole import linear_photos
 from pipeline.formats.scene_folder import DESCRIPTION_JSON, MESH_PLY, SCENE_XML, SPECIMEN_XML, write_json
-from pipeline.imaging.photo_io import read_photo
 from pipeline.render import light as estimated_light
 from pipeline.render import materials, mitsuba_variant
 from pipeline.render.capture_scene import (
@@ -120,15 +119,8 @@ def _environment_file(light: LightSection, capture_dir: Path, out_dir: Path) -> 
     """The environment map copied into the scene folder, its name there; None for none."""
     if not light.environment_map:
         return None
-    # Config validation checked that the file exists and where it may be; its pixels
-    # are radiance, so they must be numbers and not negative.
-    source = input_file_path(capture_dir, light.environment_map)
-    negative = int(np.count_nonzero((read_photo(source).pixels < 0).any(axis=-1)))
-    if negative:
-        raise PipelineError(
-            f"light.environment_map = {light.environment_map!r}: {negative} pixel(s) of {source} are negative, "
-            "which is no radiance: clamp them to 0 in the file"
-        )
+    source = input_file_path(capture_dir, light.environment_map)  # checked by the config: exists, may be read
+    estimated_light.check_environment_map(source, f"light.environment_map = {light.environment_map!r}")
     environment = "environment" + source.suffix
     shutil.copy2(source, out_dir / environment)
     return environment

@@ -49,6 +49,7 @@ from typing import Literal
 import numpy as np
 
 from pipeline.camera.model import Pose
+from pipeline.core.errors import PipelineError
 from pipeline.core.sections import LightSection
 from pipeline.fit.variables import FitParameter, Layout
 from pipeline.formats.scene_folder import SPECIMEN_XML
@@ -187,6 +188,16 @@ def fitted(light: EstimatedLight, values: dict[str, np.ndarray]) -> EstimatedLig
     if area is not None:
         area = replace(area, radiance=tuple(float(v) for v in values["light_area_radiance"]))
     return replace(light, environment=environment, area=area)
+
+
+def check_environment_map(path: Path, setting: str) -> None:
+    """Refuse an environment map whose pixels are no radiance: unreadable, NaN or
+    infinite (read_photo says which), or negative."""
+    negative = int(np.count_nonzero((read_photo(path).pixels < 0).any(axis=-1)))
+    if negative:
+        raise PipelineError(
+            f"{setting}: {negative} pixel(s) of {path} are negative, which is no radiance: clamp them to 0 in the file"
+        )
 
 
 def from_section(section: LightSection, environment: np.ndarray | None = None) -> EstimatedLight:

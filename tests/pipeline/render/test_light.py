@@ -233,3 +233,16 @@ def test_a_raised_level_in_the_files_renders_as_the_raised_scenes_and_keeps_the_
     from_files = np.array(mi.render(written, sensor=sensor, integrator=path, spp=16, seed=1))
     assert from_files.mean() > 0.05  # the table and the sky are in view
     assert np.abs(in_memory - from_files).max() < 1e-3 * from_files.max()  # the map is half floats
+
+
+@pytest.mark.parametrize("value, message", [(-0.5, r"1 pixel\(s\) of .* are negative"), (np.nan, "NaN or infinite")])
+def test_an_environment_map_that_is_no_radiance_is_refused(tmp_path, value, message):
+    from pipeline.core.errors import PipelineError
+    from pipeline.imaging.photo_io import write_image
+
+    pixels = np.full((8, 16, 3), 0.5, np.float32)
+    pixels[2, 3] = value
+    path = write_image(tmp_path / "room.exr", pixels)
+    with pytest.raises(PipelineError, match=message):
+        light.check_environment_map(path, "light.environment_map = 'room.exr'")
+    light.check_environment_map(write_image(tmp_path / "fine.exr", np.abs(np.nan_to_num(pixels))), "fine")
