@@ -59,17 +59,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.debug:
             raise
         return _fail(str(e), e.exit_code, args)
-    except OSError as e:
-        if args.debug or not disk_full_error(e):
+    except (Exception, KeyboardInterrupt, interrupts.Interrupted) as e:
+        interruption = interrupts.interruption(e)
+        if args.debug or (interruption is None and not disk_full_error(e)):
             raise
-        message = f"no space left on the disk holding {e.filename or 'the capture'}: free some space and run again"
-        return _fail(message + "; finished stages are kept", 1, args)
-    except (KeyboardInterrupt, interrupts.Interrupted) as e:
-        if args.debug:
-            raise
-        code = e.exit_code if isinstance(e, interrupts.Interrupted) else 130
-        message = "interrupted; finished stages and fit checkpoints are kept, and the next run resumes from them"
-        return _fail(message, code, args)
+        if interruption is not None:
+            kept = "; finished stages and fit checkpoints are kept, and the next run resumes from them"
+            message = "interrupted" + (kept if args.command in ("run", "batch") else "")
+            return _fail(message, interrupts.exit_code(interruption), args)
+        where = getattr(e, "filename", None) or "the capture"
+        return _fail(f"no space left on the disk holding {where}: free some space and run again", 1, args)
 
 
 def _fail(message: str, code: int, args: argparse.Namespace) -> int:

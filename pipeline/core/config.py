@@ -237,6 +237,10 @@ def _read_toml(path: Path) -> dict[str, Any]:
             return tomllib.load(f)
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{path}: invalid TOML: {e}") from e
+    except UnicodeDecodeError as e:
+        raise ConfigError(
+            f"{path}: invalid TOML: not UTF-8 text ({e.reason} at byte {e.start}); save it as UTF-8"
+        ) from e
 
 
 def preset_names(presets_dir: Path | None = None) -> list[str]:

@@ -18,8 +18,13 @@ def atomic_write_text(path: Path, text: str) -> None:
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
+    except OSError as error:
+        os.unlink(tmp)  # a full disk leaves no partial file, and the error names the file
+        if error.filename is None:
+            raise OSError(error.errno, error.strerror, str(path)) from error
+        raise
     except BaseException:
-        os.unlink(tmp)  # a full disk or an interruption leaves no partial file
+        os.unlink(tmp)  # nor does an interruption
         raise
 
 

@@ -66,8 +66,13 @@ class FileHasher:
 
     def save(self) -> None:
         if self._dirty and self._usable:
-            self.memo_path.parent.mkdir(parents=True, exist_ok=True)
-            atomic_write_text(self.memo_path, json.dumps(self._memo, indent=0, sort_keys=True))
+            try:
+                self.memo_path.parent.mkdir(parents=True, exist_ok=True)
+                atomic_write_text(self.memo_path, json.dumps(self._memo, indent=0, sort_keys=True))
+            except OSError as error:  # a memo only: the hashes are taken again next time
+                logger.warning(
+                    "could not save %s (%s); the capture's files will be hashed again", self.memo_path, error
+                )
             self._dirty = False
 
 

@@ -37,6 +37,21 @@ class Interrupted(BaseException):
         return 128 + self.signum
 
 
+def interruption(error: BaseException | None) -> BaseException | None:
+    """The KeyboardInterrupt or Interrupted behind ``error``, or None. Dr.Jit wraps an
+    exception raised inside a frozen function in RuntimeErrors, each caused by the last."""
+    while error is not None:
+        if isinstance(error, (KeyboardInterrupt, Interrupted)):
+            return error
+        error = error.__cause__ or error.__context__
+    return None
+
+
+def exit_code(error: BaseException) -> int:
+    """128 + the signal of an interruption (KeyboardInterrupt: SIGINT)."""
+    return error.exit_code if isinstance(error, Interrupted) else 128 + signal.SIGINT
+
+
 def _raise_interrupted(signum, frame) -> None:
     raise Interrupted(signum)
 
@@ -79,4 +94,4 @@ def after_native_import() -> None:
     signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
-__all__ = ["Interrupted", "after_native_import", "install"]
+__all__ = ["Interrupted", "after_native_import", "exit_code", "install", "interruption"]

@@ -76,8 +76,11 @@ class CaptureLock:
             # that holder died without releasing (killed), and we took over.
             logger.warning("took over the lock of %s, which ended without releasing it", _holder_text(previous))
         record = {"pid": os.getpid(), "host": socket.gethostname(), "command": self.command, "started": time.time()}
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, json.dumps(record).encode(), 0)
+        try:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, json.dumps(record).encode(), 0)
+        except OSError as error:  # a full disk: the lock holds without its record, which only names us
+            logger.debug("could not write the lock's holder record: %s", error)
         self._fd = fd
         return self
 

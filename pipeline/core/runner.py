@@ -28,6 +28,7 @@ from pipeline.core.config import Config, input_file_path, input_file_settings, s
 from pipeline.core.errors import ConfigError, DiskFull, PipelineError
 from pipeline.core.fsutil import atomic_write_text, disk_full_error
 from pipeline.core.hashing import FileHasher, glob_capture_files, tree_size
+from pipeline.core.interrupts import interruption
 from pipeline.core.lock import CaptureLock
 from pipeline.core.publish import check_output_path, publish, remove_leftovers
 from pipeline.core.stage import Stage, StageInputs
@@ -212,6 +213,20 @@ class _FinalPaths(logging.Filter):
         return True
 
 
+class _StageLog(logging.FileHandler):
+    """A stage's log.txt. A record it cannot write (a full disk) is dropped without the
+    traceback logging prints by default: the stage's own error says what happened."""
+
+    def handleError(self, record: logging.LogRecord) -> None:
+        pass
+
+    def close(self) -> None:
+        try:
+            super().close()
+        except OSError:
+            pass  # the last lines could not be flushed: the same full disk
+
+
 class Runner:
     """Plans and executes ``stages`` on one capture with one validated config."""
 
@@ -366,7 +381,7 @@ class Runner:
             checkpoint_dir=self.cache.checkpoint_dir(stage.name, item.key),
         )
         tmp = self.cache.begin(stage.name, item.key)
-        handler = logging.FileHandler(tmp / LOG_FILE)
+        handler = _StageLog(tmp / LOG_FILE)
         handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
         handler.setLevel(logging.DEBUG)
         logger.addHandler(handler)
@@ -425,8 +440,9 @@ class Runner:
         """Keep a failed run's log in failed/; the partial results too, unless the disk
         is full or the user stopped the run (then they are in the way)."""
         full = disk_full_error(error)
+        stopped = interruption(error) is not None
         written = tree_size(tmp)
-        kept = self.cache.keep_failed(tmp, stage, log_only=full or not isinstance(error, Exception))
+        kept = self.cache.keep_failed(tmp, stage, log_only=full or stopped)
         if full:
             raise DiskFull(
                 tmp.parent,
@@ -435,7 +451,7 @@ class Runner:
                 f"(its log: {kept / LOG_FILE})",
                 needed_bytes=written,
             ) from error
-        if isinstance(error, Exception):
+        if not stopped:
             logger.error("stage %s failed; its log is in %s", stage, kept / LOG_FILE)
 
     @staticmethod

@@ -17,10 +17,11 @@ from pipeline.core.config import InputFile, Range
 from pipeline.core.stage import Stage
 
 Vec3 = tuple[float, float, float]
-NonNegative = Annotated[float, Range(0.0, None)]
-Radiance = tuple[NonNegative, NonNegative, NonNegative]
+RadianceChannel = Annotated[float, Range(0.0, 3e38)]
+Radiance = tuple[RadianceChannel, RadianceChannel, RadianceChannel]
 """Linear RGB radiance: no channel below zero (a negative one has no physical meaning,
-and the fits would bend the material to make up for it)."""
+and the fits would bend the material to make up for it) nor beyond float32, in which
+Mitsuba renders."""
 ArucoDictionary = Literal["DICT_4X4_50", "DICT_4X4_100", "DICT_5X5_100", "DICT_6X6_250"]
 
 

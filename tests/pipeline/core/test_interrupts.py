@@ -1,0 +1,28 @@
+"""What counts as an interruption, however deep a library wrapped it."""
+
+import signal
+
+from pipeline.core.interrupts import Interrupted, exit_code, interruption
+
+
+def _wrapped(error: BaseException) -> RuntimeError:
+    """As Dr.Jit wraps an exception raised inside a frozen function: RuntimeErrors, each
+    caused by the one before."""
+    try:
+        try:
+            raise error
+        except BaseException as inner:
+            raise RuntimeError("FlatVariables::traverse(): error encountered") from inner
+    except RuntimeError as outer:
+        try:
+            raise RuntimeError("FlatVariables::assign(): error encountered") from outer
+        except RuntimeError as outermost:
+            return outermost
+
+
+def test_an_interruption_is_found_behind_a_library_s_wrapping_and_gives_its_exit_code():
+    term = _wrapped(Interrupted(signal.SIGTERM))
+    assert isinstance(interruption(term), Interrupted) and exit_code(interruption(term)) == 143
+    assert exit_code(interruption(_wrapped(KeyboardInterrupt()))) == 130
+    assert exit_code(Interrupted(signal.SIGHUP)) == 129
+    assert interruption(_wrapped(ValueError("a bug"))) is None
