@@ -16,7 +16,6 @@ import sys
 from typing import Sequence
 
 from pipeline import logger
-from pipeline.cli import batch, capture, fit, stages, synthetic  # noqa: F401  (each registers its commands)
 from pipeline.cli.options import add_options, parse_options
 from pipeline.cli.registry import COMMANDS
 from pipeline.core import interrupts, progress
@@ -25,6 +24,9 @@ from pipeline.core.fsutil import disk_full_error
 
 
 def build_parser() -> argparse.ArgumentParser:
+    # Loaded here, not on import: loading them takes a second, which Ctrl-C may interrupt.
+    from pipeline.cli import batch, capture, fit, stages, synthetic  # noqa: F401  (each registers its commands)
+
     parser = argparse.ArgumentParser(
         prog="pipeline", description="Photogrammetry-to-material pipeline: photos in, a Mitsuba 3 scene out."
     )
@@ -48,13 +50,23 @@ def configure_logging(quiet: bool, verbose: bool) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    configure_logging(args.quiet, args.verbose)
-    entry = COMMANDS[args.command]
     interrupts.install()
     try:
+        parser = build_parser()
+    except (Exception, KeyboardInterrupt, interrupts.Interrupted) as e:
+        if interrupts.interruption(e) is None:
+            raise
+        sys.stderr.write("E interrupted\n")
+        return interrupts.exit_code(interrupts.interruption(e))
+    args = parser.parse_args(argv)
+    configure_logging(args.quiet, args.verbose)
+    entry = COMMANDS[args.command]
+    try:
         options = parse_options(entry.options, args, args.command)
-        return entry.run(options)
+        code = entry.run(options)
+        if interrupts.interruption(None) is None:
+            return code
+        raise interrupts.interruption(None)  # a library swallowed it, and the command went on
     except PipelineError as e:
         if args.debug:
             raise

@@ -23,10 +23,14 @@ STOP_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
 """Ask the process to end: handled as Ctrl-C is (SIGHUP: the terminal was closed)."""
 CRASH_SIGNALS = (signal.SIGSEGV, signal.SIGILL, signal.SIGFPE, signal.SIGABRT, signal.SIGBUS)
 _installed = False
+_received: list[int] = []
+"""Signals the handlers raised for: a library may swallow the exception (an import cut
+short by Ctrl-C fails later with another error), so the CLI asks here too."""
 
 
 class Interrupted(BaseException):
-    """SIGTERM or SIGHUP received; a BaseException so that no ``except Exception`` keeps running."""
+    """A signal asking the process to stop (SIGTERM, SIGHUP; SIGINT where its
+    KeyboardInterrupt was swallowed); a BaseException so that no ``except Exception`` keeps running."""
 
     def __init__(self, signum: int):
         super().__init__(signal.Signals(signum).name)
@@ -38,13 +42,14 @@ class Interrupted(BaseException):
 
 
 def interruption(error: BaseException | None) -> BaseException | None:
-    """The KeyboardInterrupt or Interrupted behind ``error``, or None. Dr.Jit wraps an
-    exception raised inside a frozen function in RuntimeErrors, each caused by the last."""
+    """The KeyboardInterrupt or Interrupted behind ``error`` (Dr.Jit wraps an exception
+    raised inside a frozen function in RuntimeErrors, each caused by the last), or the
+    signal received since install() when something swallowed it; None when neither."""
     while error is not None:
         if isinstance(error, (KeyboardInterrupt, Interrupted)):
             return error
         error = error.__cause__ or error.__context__
-    return None
+    return Interrupted(_received[0]) if _received else None
 
 
 def exit_code(error: BaseException) -> int:
@@ -53,7 +58,13 @@ def exit_code(error: BaseException) -> int:
 
 
 def _raise_interrupted(signum, frame) -> None:
+    _received.append(signum)
     raise Interrupted(signum)
+
+
+def _raise_keyboard_interrupt(signum, frame) -> None:
+    _received.append(signum)
+    raise KeyboardInterrupt
 
 
 def _watch(read_fd: int) -> None:
@@ -75,7 +86,7 @@ def install() -> None:
         return
     for stop in STOP_SIGNALS:
         signal.signal(stop, _raise_interrupted)
-    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGINT, _raise_keyboard_interrupt)
     read_fd, write_fd = os.pipe()
     os.set_blocking(write_fd, False)
     signal.set_wakeup_fd(write_fd, warn_on_full_buffer=False)
@@ -91,7 +102,7 @@ def after_native_import() -> None:
         signal.signal(crash, signal.SIG_DFL)
     for stop in STOP_SIGNALS:
         signal.signal(stop, _raise_interrupted if _installed else signal.SIG_DFL)
-    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGINT, _raise_keyboard_interrupt)
 
 
 __all__ = ["Interrupted", "after_native_import", "exit_code", "install", "interruption"]
