@@ -26,3 +26,23 @@ def test_an_interruption_is_found_behind_a_library_s_wrapping_and_gives_its_exit
     assert exit_code(interruption(_wrapped(KeyboardInterrupt()))) == 130
     assert exit_code(Interrupted(signal.SIGHUP)) == 129
     assert interruption(_wrapped(ValueError("a bug"))) is None
+
+
+SIGTERM_AFTER_PYCOLMAP = """
+import os, signal, sys, time
+from pipeline.core import interrupts
+interrupts.install()
+import pipeline.colmap  # pycolmap loads glog, whose handler printed a stack dump for SIGTERM
+try:
+    os.kill(os.getpid(), signal.SIGTERM)
+    time.sleep(10)
+except interrupts.Interrupted as stopped:
+    sys.exit(stopped.exit_code)
+"""
+
+
+def test_sigterm_after_pycolmap_loads_reaches_python_without_a_stack_dump():
+    from tests.support.toy_stages import run_python
+
+    done = run_python(SIGTERM_AFTER_PYCOLMAP)
+    assert done.returncode == 143 and "stack trace" not in done.stderr and "Aborted" not in done.stderr
