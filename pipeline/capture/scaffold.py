@@ -12,6 +12,7 @@ from pathlib import Path
 
 from pipeline.core.config import load_config, toml_section
 from pipeline.core.errors import ConfigError
+from pipeline.core.fsutil import atomic_write_text
 from pipeline.core.sections import SHARED_SECTIONS, CaptureSection, schema
 from pipeline.core.stage import Stage
 
@@ -94,10 +95,11 @@ def create_capture(path: Path, description: str, rig: str, stages: tuple[Stage, 
         raise ConfigError(f"{path} already exists and is not empty: choose a new folder for the capture")
     for folder in FOLDERS:
         (path / folder).mkdir(parents=True, exist_ok=True)
-    (path / "capture.toml").write_text(_capture_toml(description, rig, stages))
+    atomic_write_text(path / "capture.toml", _capture_toml(description, rig, stages))
     folders = "; ".join(f"`{folder}/`: {what}" for folder, what in FOLDERS.items())
-    (path / "README.md").write_text(
-        CHECKLIST.format(name=path.name, description=description or "(no description)", folders=folders, path=path)
+    atomic_write_text(
+        path / "README.md",
+        CHECKLIST.format(name=path.name, description=description or "(no description)", folders=folders, path=path),
     )
     load_config(schema(stages), path)  # the template must load as it is
     return path

@@ -30,6 +30,7 @@ back (a value given by a texture, say) keeps them and says what failed.
 from __future__ import annotations
 
 import copy
+import os
 import re
 import tempfile
 import xml.etree.ElementTree as ET
@@ -202,30 +203,33 @@ def fit_scene(
     logger.info("fitting %s on %d views", ", ".join(p.key for p in parameters), len(views))
     result = engine.fit(parameters, views, [], settings)
 
-    # 3. What was found first, then the scene with it written in.
+    # 3. What was found first, then the scene with it written in; each file written beside
+    # its place and renamed into it, so that a kill or a full disk leaves no half file.
     params_json = out_dir / "params.json"
-    atomic_write_text(
-        params_json,
-        jsonio.dumps(
-            {
-                "scene": str(scene_path),
-                "params": result.values,
-                "bounds": {p.key: [p.lower, p.upper] for p in parameters},
-                "iterations": len(result.log),
-                "final_loss": result.log[-1]["loss"] if result.log else None,
-                "stopped": result.stopped,
-            },
-            indent=1,
-        ),
-    )
-    write_fit_log(out_dir, result.log)
+    summary = {
+        "scene": str(scene_path),
+        "params": result.values,
+        "bounds": {p.key: [p.lower, p.upper] for p in parameters},
+        "iterations": len(result.log),
+        "final_loss": result.log[-1]["loss"] if result.log else None,
+        "stopped": result.stopped,
+    }
     out_scene = out_dir / scene_path.name
     user_scene.relative_filenames(tree, out_dir)
-    try:
-        scene_xml.write_values(tree, out_scene, result.values, out_scene)
-    except (PipelineError, OSError) as error:
-        raise PipelineError(
-            f"the fit is in {params_json} and {out_dir / 'log.jsonl'}, but the fitted scene could not be "
-            f"written: {error}"
-        ) from error
+    with tempfile.TemporaryDirectory(dir=out_dir, prefix=".fit.tmp-") as folder:
+        staging = Path(folder)
+        atomic_write_text(params_json, jsonio.dumps(summary, indent=1))
+        write_fit_log(staging, result.log)
+        for written in sorted(staging.iterdir()):
+            os.replace(written, out_dir / written.name)
+        written_scene = staging.with_suffix(".xml")  # in out_dir, so that its relative file names hold
+        try:
+            scene_xml.write_values(tree, out_scene, result.values, written_scene)
+            os.replace(written_scene, out_scene)
+        except (PipelineError, OSError) as error:
+            written_scene.unlink(missing_ok=True)
+            raise PipelineError(
+                f"the fit is in {params_json} and {out_dir / 'log.jsonl'}, but the fitted scene could not be "
+                f"written: {error}"
+            ) from error
     return params_json
