@@ -19,7 +19,6 @@ deleted or edited, status.json truncated) is recomputed with a warning.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import shutil
@@ -29,22 +28,17 @@ from pathlib import Path
 from typing import Any
 
 from pipeline import logger
-from pipeline.core.fsutil import atomic_write_text
+from pipeline.core.fsutil import atomic_write_text, sha256_of
 
 STATUS_FILE = "status.json"
 LOG_FILE = "log.txt"
 REQUIRED_KEYS = {"outputs", "contents", "finished", "seconds", "components"}
 
 
-def _sha256(path: Path) -> str:
-    with path.open("rb") as f:
-        return hashlib.file_digest(f, "sha256").hexdigest()
-
-
 def contents(folder: Path) -> dict[str, list]:
     """Every file under ``folder`` but status.json: relative path -> [size, sha256]."""
     return {
-        p.relative_to(folder).as_posix(): [p.stat().st_size, _sha256(p)]
+        p.relative_to(folder).as_posix(): [p.stat().st_size, sha256_of(p)]
         for p in sorted(folder.rglob("*"))
         if p.is_file() and p.name != STATUS_FILE
     }
@@ -56,7 +50,7 @@ def damage(entry: "Entry") -> str | None:
         path = entry.path / rel
         if not path.is_file():
             return f"{rel} is missing"
-        if path.stat().st_size != size or _sha256(path) != digest:
+        if path.stat().st_size != size or sha256_of(path) != digest:
             return f"{rel} has changed"
     return None
 

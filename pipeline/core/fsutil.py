@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import hashlib
 import os
 import stat
 import tempfile
@@ -45,3 +46,9 @@ def special_kind(path: Path) -> str | None:
         if test(mode):
             return kind
     return "a device" if stat.S_ISBLK(mode) else None
+
+
+def sha256_of(path: Path) -> str:
+    """The SHA-256 of a file's bytes, as hex."""
+    with path.open("rb") as f:
+        return hashlib.file_digest(f, "sha256").hexdigest()

@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 
 from pipeline import logger
-from pipeline.core.fsutil import atomic_write_text
+from pipeline.core.fsutil import atomic_write_text, sha256_of
 
 RACY_NS = 2_000_000_000
 """The coarsest timestamp resolution of the file systems captures live on (FAT: 2 s)."""
@@ -49,8 +49,7 @@ class FileHasher:
         if known and known.get("stat") == seen and stat.st_ctime_ns < known["hashed_ns"] - RACY_NS:
             return known["sha256"]
         hashed_ns = time.time_ns()
-        with path.open("rb") as f:
-            digest = hashlib.file_digest(f, "sha256").hexdigest()
+        digest = sha256_of(path)
         self.files_read += 1
         self._memo[key] = {"stat": seen, "hashed_ns": hashed_ns, "sha256": digest}
         self._dirty = True

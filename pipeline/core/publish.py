@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import ctypes
 import errno
-import hashlib
 import json
 import os
 import shutil
@@ -29,7 +28,7 @@ from typing import Any
 
 from pipeline import logger
 from pipeline.core.errors import ConfigError, DiskFull
-from pipeline.core.fsutil import atomic_write_text, disk_full_error
+from pipeline.core.fsutil import atomic_write_text, disk_full_error, sha256_of
 
 OUTPUT = "output"
 MANIFEST = "manifest.json"
@@ -61,11 +60,6 @@ def current_manifest(capture_dir: Path) -> dict[str, Any] | None:
     return manifest if isinstance(manifest, dict) else None
 
 
-def _sha256(path: Path) -> str:
-    with path.open("rb") as f:
-        return hashlib.file_digest(f, "sha256").hexdigest()
-
-
 def _changed(output: Path, manifest: dict[str, Any]) -> dict[str, str]:
     """Published files that are no longer what the manifest says: path -> 'removed' or 'edited'."""
     changed = {}
@@ -74,7 +68,7 @@ def _changed(output: Path, manifest: dict[str, Any]) -> dict[str, str]:
             path = output / rel
             if not path.is_file() or path.is_symlink():
                 changed[rel] = "removed"
-            elif path.stat().st_size != size or _sha256(path) != digest:
+            elif path.stat().st_size != size or sha256_of(path) != digest:
                 changed[rel] = "edited"
     return changed
 

@@ -293,3 +293,15 @@ def test_warnings_name_the_folder_a_result_ends_in(tmp_path, presets_dir, caplog
     (message,) = [r.getMessage() for r in caplog.records if r.getMessage().startswith("meta wrote")]
     assert message == f"meta wrote {plan['meta'].entry.path / 'meta.txt'}" and ".tmp-" not in message
     assert (plan["meta"].entry.path / "meta.txt").is_file()
+
+
+def test_a_file_system_without_exchange_publishes_by_two_renames(tmp_path, presets_dir, monkeypatch):
+    capture = make_capture(tmp_path)
+    run_toy(capture, presets_dir)
+
+    def unsupported(a, b):
+        raise OSError(errno.EINVAL, "Invalid argument")
+
+    monkeypatch.setattr(publish, "_exchange", unsupported)
+    run_toy(capture, presets_dir, "double.factor=3")
+    assert published(capture)[0] == "result 18.0\n" and not list(capture.glob(".output.tmp-*"))
