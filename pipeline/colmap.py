@@ -11,6 +11,7 @@ this package at (0, 0): ``COLMAP_PIXEL_OFFSET`` converts.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal
@@ -27,6 +28,9 @@ from pipeline.core.config import Range
 from pipeline.core.interrupts import after_native_import
 
 after_native_import()  # glog's handlers, installed as pycolmap loads, print stack dumps
+# COLMAP logs every step of every photo at INFO, hundreds of lines a run: only its
+# warnings are shown, unless GLOG_minloglevel says otherwise (`pipeline -v` sets it to 0).
+pycolmap.logging.minloglevel = int(os.environ.get("GLOG_minloglevel", pycolmap.logging.WARNING.value))
 
 COLMAP_PIXEL_OFFSET = 0.5
 

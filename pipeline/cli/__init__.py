@@ -12,10 +12,11 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 from typing import Sequence
 
-from pipeline import logger
+from pipeline import __version__, logger
 from pipeline.cli.options import add_options, parse_options
 from pipeline.cli.registry import COMMANDS
 from pipeline.core import interrupts, progress
@@ -33,6 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug messages")
     parser.add_argument("--debug", action="store_true", help="show the traceback of every error")
+    parser.add_argument("--version", action="version", version=f"pipeline {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, entry in COMMANDS.items():
         add_options(sub.add_parser(name, help=entry.help, description=entry.options.__doc__), entry.options)
@@ -47,6 +49,8 @@ def configure_logging(quiet: bool, verbose: bool) -> None:
     logger.handlers[:] = [handler]
     logger.propagate = False
     progress.set_enabled(not quiet)
+    if verbose:  # COLMAP's own log too (read where pipeline.colmap loads)
+        os.environ["GLOG_minloglevel"] = "0"
 
 
 def main(argv: Sequence[str] | None = None) -> int:

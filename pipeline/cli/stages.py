@@ -111,10 +111,11 @@ def run(options: RunOptions) -> int:
     selection = Selection(start=options.start, until=options.until, only=options.only, force=options.force)
     if options.dry_run:
         plan = runner.plan(selection)
+        if options.json:  # JSON alone, so that it parses
+            print(json.dumps({"dry_run": True, "stages": [summary(p) for p in plan]}, indent=2))
+            return 0
         for item in plan:
             print(_describe(item))
-        if options.json:
-            print(json.dumps({"dry_run": True, "stages": [summary(p) for p in plan]}, indent=2))
         return 0
     started = time.time()
 

@@ -26,6 +26,17 @@ def test_json_summary(tmp_path, toy_cli, capsys):
     summary = json.loads(capsys.readouterr().out)
     assert [s["action"] for s in summary["stages"]] == ["run"] * 4
     assert summary["stages"][0]["metrics"] == {"files": 3}
+    assert toy_cli(["run", str(capture), "--dry-run", "--json"]) == 0
+    dry = json.loads(capsys.readouterr().out)  # the JSON alone: it parses
+    assert dry["dry_run"] and [s["action"] for s in dry["stages"]] == ["cached"] * 4
+
+
+def test_version(toy_cli, capsys):
+    from pipeline import __version__
+
+    with pytest.raises(SystemExit) as done:
+        toy_cli(["--version"])
+    assert done.value.code == 0 and capsys.readouterr().out.strip() == f"pipeline {__version__}"
 
 
 def test_run_and_report_write_a_page_of_every_stage_and_its_state(tmp_path, toy_cli, capsys):
