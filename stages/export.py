@@ -1,8 +1,8 @@
 """Stage export: the fitted specimen as glTF 2.0 (binary .glb) for Blender and three.js.
 
-The mesh is fit_geometry's (with its UVs), turned from the pipeline's world
-(metres, z up) to glTF's (metres, y up). The material is a glTF metallic-roughness
-material (metallic 0) with these extensions:
+The mesh is fit_geometry's (with its UVs and the vertex normals Mitsuba shades it
+with), turned from the pipeline's world (metres, z up) to glTF's (metres, y up). The
+material is a glTF metallic-roughness material (metallic 0) with these extensions:
 
 ===========  ===============================================================================
 model        glTF material
@@ -97,6 +97,8 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     fitted = read_json(inputs.upstream["fit_geometry"]["params"])
     model, values = fitted["model"], dict(fitted["params"])
 
+    # The PLY's vertex normals are the ones Mitsuba shades with: the glb carries them
+    # (turned with the mesh), so that viewers shade it smooth as the renders are.
     mesh = trimesh.load(scene_dir / MESH_PLY, force="mesh", process=False)
     watertight = trimesh.Trimesh(mesh.vertices, mesh.faces)
     watertight.merge_vertices()
@@ -131,7 +133,9 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     folder.mkdir()
     glb = folder / "specimen.glb"
     glb.write_bytes(
-        trimesh.exchange.gltf.export_glb(trimesh.Scene({"specimen": mesh}), tree_postprocessor=add_extensions)
+        trimesh.exchange.gltf.export_glb(
+            trimesh.Scene({"specimen": mesh}), include_normals=True, tree_postprocessor=add_extensions
+        )
     )
     logger.info("glTF: %s, %d triangles, extensions %s", glb.name, len(mesh.faces), ", ".join(sorted(extensions)))
     return StageResult({"glb": glb}, {"triangles": len(mesh.faces), "textured": image_path is not None})
@@ -139,7 +143,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="export",
-    version=3,
+    version=4,
     config=Config,
     main=main,
     needs=("fit_geometry.geometry_dir", "fit_geometry.params"),

@@ -14,7 +14,7 @@ cleaned mesh but the same surface.
 output              content
 ==================  =============================================================
 mesh.ply            mesh with per-vertex UVs (texture_u, texture_v)
-mesh.obj            the same with mesh.mtl, textured with checker.png
+mesh.obj, mesh.mtl   the same for other tools, textured with checker.png (all three published)
 checker.png         a checker texture of texture_size, 16 texels per square
 uv_layout.png       the charts drawn in UV space
 preview.png         the checker-textured mesh rendered by Mitsuba from the first
@@ -197,6 +197,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     outputs = {
         "mesh": mesh_ply,
         "obj": obj,
+        "mtl": out_dir / "mesh.mtl",
         "checker": checker_png,
         "preview": out_dir / "preview.png",
         "report": uv_json,
@@ -206,11 +207,11 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="uv",
-    version=3,
+    version=4,
     config=Config,
     main=main,
     needs=("cleanup.mesh", "sfm.cameras"),
-    outputs=("mesh", "obj", "checker", "preview", "report"),
+    outputs=("mesh", "obj", "mtl", "checker", "preview", "report"),
     shared=("mitsuba",),
-    exports=("mesh", "obj"),
+    exports=("mesh", "obj", "mtl", "checker"),
 )

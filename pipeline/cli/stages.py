@@ -15,11 +15,12 @@ from pipeline import report as html_report
 from pipeline.cli import registry
 from pipeline.cli.options import Arg
 from pipeline.cli.registry import ConfigLayers, capture_dir, command
-from pipeline.core import progress
+from pipeline.core import jsonio, progress
 from pipeline.core.cache import StageCache
 from pipeline.core.config import describe_schema, load_config
 from pipeline.core.hashing import tree_size
 from pipeline.core.lock import CaptureLock
+from pipeline.core.publish import current_manifest
 from pipeline.core.runner import PlannedStage, Runner, Selection, summary
 from pipeline.core.sections import schema
 
@@ -136,7 +137,15 @@ def run(options: RunOptions) -> int:
         runner.capture_dir / "output",
     )
     if options.json:
-        print(json.dumps({"stages": [summary(p) for p in plan]}, indent=2))
+        output = runner.capture_dir / "output"
+        result = {
+            "seconds": time.time() - started,
+            "outputs": {name: str(output / name) for name in sorted(current_manifest(runner.capture_dir) or {})},
+            "report": str(output / html_report.REPORT_HTML),
+            "figures": {p.stage.name: p.metrics for p in plan if p.metrics},
+            "stages": [summary(p) for p in plan],
+        }
+        print(jsonio.dumps(result, indent=2))
     return 0
 
 

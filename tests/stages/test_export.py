@@ -6,6 +6,7 @@ import struct
 
 import numpy as np
 import pytest
+import trimesh
 
 from stages.export import gltf_material
 from tests.support.tiny_fits import TINY_FIT, TINY_TEXTURE
@@ -42,8 +43,14 @@ def test_export_writes_gltf_with_the_models_extensions(run_stages, bird_capture)
     assert extensions["KHR_materials_ior"]["ior"] == pytest.approx(fitted["eta"][0])
     assert set(tree["extensionsUsed"]) == {"KHR_materials_transmission", "KHR_materials_ior"}
     # y up: the bird stands on y = 0.
-    positions = tree["accessors"][tree["meshes"][0]["primitives"][0]["attributes"]["POSITION"]]
+    attributes = tree["meshes"][0]["primitives"][0]["attributes"]
+    positions = tree["accessors"][attributes["POSITION"]]
     assert positions["min"][1] > -0.005 and positions["max"][1] > 0.05
+    # The normals Mitsuba shades with, turned to y up (three.js and Blender shade smooth).
+    glb = trimesh.load(outputs["export"]["glb"], force="mesh", process=False)
+    ply = trimesh.load(outputs["fit_geometry"]["geometry_dir"] / "mesh.ply", force="mesh", process=False)
+    assert "NORMAL" in attributes and len(glb.vertex_normals) == len(ply.vertices)
+    np.testing.assert_allclose(glb.vertex_normals, ply.vertex_normals[:, [0, 2, 1]] * [1, 1, -1], atol=1e-5)
 
 
 @pytest.mark.slow

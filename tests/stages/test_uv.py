@@ -52,3 +52,15 @@ def test_uv_covers_the_mesh_with_little_area_distortion(bird_until_uv):
         assert mesh.visual.uv.min() >= 0 and mesh.visual.uv.max() <= 1
     cleaned = trimesh.load(outputs["cleanup"]["mesh"], force="mesh")
     assert abs(ply.area - cleaned.area) < 1e-9 * max(1.0, cleaned.area) + 1e-12
+
+
+@pytest.mark.slow
+def test_the_published_obj_comes_with_its_material_and_texture(bird_until_uv):
+    capture, _ = bird_until_uv
+    output = capture / "output"
+    (library,) = [
+        line.split()[1] for line in (output / "mesh.obj").read_text().splitlines() if line.startswith("mtllib")
+    ]
+    (texture,) = [line.split()[1] for line in (output / library).read_text().splitlines() if line.startswith("map_Kd")]
+    assert (output / texture).is_file()
+    assert len(trimesh.load(output / "mesh.obj", force="mesh").visual.material.image.size) == 2

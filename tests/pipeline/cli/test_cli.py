@@ -26,6 +26,8 @@ def test_json_summary(tmp_path, toy_cli, capsys):
     summary = json.loads(capsys.readouterr().out)
     assert [s["action"] for s in summary["stages"]] == ["run"] * 4
     assert summary["stages"][0]["metrics"] == {"files": 3}
+    assert summary["outputs"] == {"report.txt": str(capture / "output" / "report.txt")}
+    assert summary["figures"] == {"ingest": {"files": 3}} and summary["seconds"] > 0
     assert toy_cli(["run", str(capture), "--dry-run", "--json"]) == 0
     dry = json.loads(capsys.readouterr().out)  # the JSON alone: it parses
     assert dry["dry_run"] and [s["action"] for s in dry["stages"]] == ["cached"] * 4
