@@ -33,8 +33,11 @@ import copy
 import os
 import re
 import tempfile
+import time
 import xml.etree.ElementTree as ET
 from pathlib import Path
+
+import numpy as np
 
 from pipeline import logger
 from pipeline.core import jsonio
@@ -195,24 +198,31 @@ def fit_scene(
     full_sizes = user_scene.reduce_films(reduced, max_size)
     scene = _load(scene_path, reduced)
     views = _views(scene, scene_path, references, user_scene.differentiable_integrator(tree), full_sizes)
+    traversed = mi.traverse(scene)
     parameters = select_parameters(
-        mi.traverse(scene), patterns, engine.parse_bounds(bound_entries, "--bound"), learning_rate, tree
+        traversed, patterns, engine.parse_bounds(bound_entries, "--bound"), learning_rate, tree
     )
+    start = {p.key: np.ravel(np.asarray(traversed[p.key])).tolist() for p in parameters}
 
     # 2. The fit.
     logger.info("fitting %s on %d views", ", ".join(p.key for p in parameters), len(views))
+    started = time.perf_counter()
     result = engine.fit(parameters, views, [], settings)
+    seconds = time.perf_counter() - started
 
     # 3. What was found first, then the scene with it written in; each file written beside
     # its place and renamed into it, so that a kill or a full disk leaves no half file.
     params_json = out_dir / "params.json"
     summary = {
         "scene": str(scene_path),
+        "references": {view.sensor.id(): str(path) for view, path in zip(views, list_photos(references))},
+        "start": start,
         "params": result.values,
         "bounds": {p.key: [p.lower, p.upper] for p in parameters},
         "iterations": len(result.log),
         "final_loss": result.log[-1]["loss"] if result.log else None,
         "stopped": result.stopped,
+        "seconds": seconds,
     }
     out_scene = out_dir / scene_path.name
     user_scene.relative_filenames(tree, out_dir)

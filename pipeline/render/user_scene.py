@@ -64,7 +64,8 @@ def _inlined(path: Path, chain: tuple[Path, ...] = ()) -> ET.Element:
     if not path.is_file():
         raise PipelineError(f"{chain[-1] if chain else path}: the scene file {path} does not exist")
     try:
-        root = ET.parse(path).getroot()
+        # Comments kept: the fitted scene is written back from this tree.
+        root = ET.parse(path, parser=ET.XMLParser(target=ET.TreeBuilder(insert_comments=True))).getroot()
     except ET.ParseError as error:
         raise PipelineError(f"{path} is not valid XML: {error}") from error
     for element in root.iter():

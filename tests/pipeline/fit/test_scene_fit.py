@@ -31,6 +31,7 @@ SENSOR = """  <sensor type="perspective">
 SCENE = """<scene version="3.0.0">
   <default name="spp" value="8"/>
   <default name="rough" value="{rough}"/>
+  <!-- lit by hand in Blender -->
   <integrator type="path"><integer name="max_depth" value="4"/></integrator>
   <include filename="parts/sensors.xml"/>
   <bsdf type="principled" id="mat">
@@ -114,6 +115,10 @@ def test_refs_defaults_includes_and_unnamed_objects_fit_and_write_back(mi, refer
         assert np.ravel(written[key]) == pytest.approx(value, rel=1e-5), key
     assert written["mat.metallic.value"][0] == 0.0
     assert (out / "log.jsonl").read_text().count("\n") == 20
+    assert "<!-- lit by hand in Blender -->" in (out / "scene.xml").read_text()  # the user's comments stay
+    record = json.loads((out / "params.json").read_text())
+    assert record["start"]["mat.roughness.value"] == pytest.approx([0.7]) and record["seconds"] > 0
+    assert sorted(Path(p).name for p in record["references"].values()) == ["ref_0.exr", "ref_1.exr", "ref_2.exr"]
 
 
 def test_a_named_ior_is_fitted_and_written_as_a_number(mi, references, tmp_path):
