@@ -44,7 +44,14 @@ from pipeline.core.errors import PipelineError
 from pipeline.core.sections import BoardSection, CamerasSection
 from pipeline.core.stage import Stage, StageInputs, StageResult
 from pipeline.formats.external_cameras import read_external_cameras
-from pipeline.imaging.photo_io import PHOTO_SUFFIXES, camera_setting, gray_uint8, read_metadata, read_photo
+from pipeline.imaging.photo_io import (
+    PHOTO_SUFFIXES,
+    camera_setting,
+    gray_uint8,
+    read_metadata,
+    read_photo,
+    unsupported_files,
+)
 
 COLMAP_FOCAL_PRIOR = 1.2
 """COLMAP's default focal length guess, as a multiple of the longer image side."""
@@ -271,6 +278,8 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     files = [p for p in inputs.files if p.suffix.lower() in PHOTO_SUFFIXES]
     photos = [p for p in files if _folder(p, inputs.capture_dir) == "images"]
     shots = [p for p in files if _folder(p, inputs.capture_dir) == "calibration"]
+    for path in unsupported_files(inputs.capture_dir / "calibration"):
+        logger.warning("%s is not a photo the pipeline reads: left out of the board shots", path)
     if not photos:
         raise PipelineError(
             f"{inputs.capture_dir / 'images'} has no photos ({', '.join(PHOTO_SUFFIXES)}): "
