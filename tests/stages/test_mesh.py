@@ -33,7 +33,7 @@ def test_rerun_gives_the_same_poses_and_mesh(run_stages, bird_until_uv):
     Threaded OpenCV calibration varied the intrinsics in the 11th digit."""
     capture, outputs = bird_until_uv
     first_cameras, first_mesh = outputs["sfm"]["cameras"].read_bytes(), outputs["uv"]["mesh"].read_bytes()
-    rerun = run_stages(capture, "uv", force=("calibrate",))
+    rerun = run_stages(capture, "uv", force=("sfm",))  # calibrate's rerun: tests/stages/test_calibrate.py
     assert rerun["sfm"]["cameras"].read_bytes() == first_cameras
     assert rerun["uv"]["mesh"].read_bytes() == first_mesh
 
