@@ -388,6 +388,7 @@ class Runner:
         final_paths = _FinalPaths(tmp, self.cache.root / stage.name / item.key)
         logger.addFilter(final_paths)
         started = time.time()
+        committed = False
         try:
             logger.info("stage %s (key %s): %s", stage.name, item.key, item.reason)
             result = stage.main(conf, inputs, tmp)
@@ -423,13 +424,15 @@ class Runner:
                 "metrics": result.metrics,
             }
             entry = self.cache.commit(tmp, stage.name, item.key, status)
+            committed = True
             if inputs.checkpoint_dir.exists():
                 shutil.rmtree(inputs.checkpoint_dir)
             return entry
         except BaseException as error:
             logger.removeHandler(handler)  # its file moves with the failed folder
             handler.close()
-            self._keep_failed(stage.name, tmp, error)
+            if not committed:
+                self._keep_failed(stage.name, tmp, error)
             raise
         finally:
             logger.removeFilter(final_paths)
