@@ -119,15 +119,20 @@ def _assemble(
         return
     ours = set(old or {}) | {MANIFEST}
     for path in sorted(output.iterdir()):
-        if path.name in ours or path.name in files:
+        if path.name in ours:
             continue
-        # Not published by the pipeline's stages: the report, score.json, a user's notes.
+        # Not published by the pipeline's stages: the report, score.json, a user's notes;
+        # one that a stage's result now takes the name of is kept under another.
+        target = staging / path.name
+        if path.name in files:
+            target = staging / f"{Path(path.name).stem}.yours{Path(path.name).suffix}"
+            logger.warning("output/%s was not the pipeline's: kept as %s beside its result", path.name, target.name)
         if path.is_dir() and not path.is_symlink():
-            shutil.copytree(path, staging / path.name, copy_function=_link_or_copy, symlinks=True)
+            shutil.copytree(path, target, copy_function=_link_or_copy, symlinks=True)
         elif path.is_symlink():
-            os.symlink(os.readlink(path), staging / path.name)
+            os.symlink(os.readlink(path), target)
         else:
-            _link_or_copy(str(path), str(staging / path.name))
+            _link_or_copy(str(path), str(target))
     for rel, how in _changed(output, old or {}).items():
         if how == "edited" and (staging / rel).parent.is_dir():
             kept = staging / rel

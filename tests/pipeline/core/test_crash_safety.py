@@ -120,13 +120,16 @@ def test_an_edited_or_removed_output_file_is_restored_and_the_edit_kept(tmp_path
     assert (capture / "output" / "report.edited.txt").is_file()  # a user's file, kept
 
 
-def test_files_a_user_puts_in_output_are_kept(tmp_path, presets_dir):
+def test_files_a_user_puts_in_output_are_kept(tmp_path, presets_dir, caplog):
     capture = make_capture(tmp_path)
     (capture / "output" / "notes").mkdir(parents=True)
     (capture / "output" / "notes" / "my-notes.txt").write_text("keep me")
+    (capture / "output" / "report.txt").write_text("my own report")  # the name a stage's result takes
     run_toy(capture, presets_dir)
     run_toy(capture, presets_dir, "double.factor=3")
     assert (capture / "output" / "notes" / "my-notes.txt").read_text() == "keep me"
+    assert (capture / "output" / "report.yours.txt").read_text() == "my own report"
+    assert "output/report.txt was not the pipeline's: kept as report.yours.txt" in caplog.text
     assert published(capture)[0] == "result 18.0\n"
 
 
