@@ -12,7 +12,8 @@ leaves are removed by the next one.
 The manifest holds every published file's size and SHA-256. A published file that was
 edited or removed since is restored from the cache, and an edited one is kept beside it
 as ``<name>.edited<suffix>``. Files the pipeline did not publish (notes a user put
-there, the report, score.json) are carried into every new version.
+there, the report, score.json) are carried into every new version, as
+``<name>.yours<suffix>`` when a result takes their name.
 """
 
 from __future__ import annotations
