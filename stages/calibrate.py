@@ -50,7 +50,7 @@ from pipeline.imaging.photo_io import (
     gray_uint8,
     read_metadata,
     read_photo,
-    unsupported_files,
+    warn_unread,
 )
 
 COLMAP_FOCAL_PRIOR = 1.2
@@ -278,8 +278,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     files = [p for p in inputs.files if p.suffix.lower() in PHOTO_SUFFIXES]
     photos = [p for p in files if _folder(p, inputs.capture_dir) == "images"]
     shots = [p for p in files if _folder(p, inputs.capture_dir) == "calibration"]
-    for path in unsupported_files(inputs.capture_dir / "calibration"):
-        logger.warning("%s is not a photo the pipeline reads: left out of the board shots", path)
+    warn_unread(inputs.capture_dir / "calibration")
     if not photos:
         raise PipelineError(
             f"{inputs.capture_dir / 'images'} has no photos ({', '.join(PHOTO_SUFFIXES)}): "

@@ -52,7 +52,7 @@ from pipeline.core.errors import PipelineError
 from pipeline.core.stage import Stage, StageInputs, StageResult
 from pipeline.formats.masks import write_masks
 from pipeline.formats.pinhole import read_camera_settings, read_photos
-from pipeline.imaging.photo_io import read_photo, unsupported_files
+from pipeline.imaging.photo_io import read_photo, warn_unread
 from pipeline.imaging.segmentation import chroma, clean, read_user_mask, segment, segment_plate_difference
 
 
@@ -198,8 +198,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     pinhole_json = inputs.upstream["undistort"]["pinhole"]
     photos, plates = read_photos(pinhole_json, "images"), read_photos(pinhole_json, "background")
     cameras = read_camera_settings(pinhole_json)
-    for path in unsupported_files(inputs.capture_dir / "masks"):
-        logger.warning("%s is not a mask the pipeline reads (PNG, one per photo): left out", path)
+    warn_unread(inputs.capture_dir / "masks", "mask")
     has_user_masks = any(p.parent == inputs.capture_dir / "masks" for p in inputs.files)
     source = _choose_source(conf, has_user_masks, bool(plates))
     user_masks = _user_masks(inputs.capture_dir, inputs.files, photos) if source == "user" else {}

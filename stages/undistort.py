@@ -45,7 +45,7 @@ from pipeline.imaging.photo_io import (
     read_metadata,
     read_photo,
     to_uint8,
-    unsupported_files,
+    warn_unread,
     write_image,
 )
 from pipeline.render.scene_xml import sensor_id
@@ -146,12 +146,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
             folders[path.relative_to(inputs.capture_dir).parts[0]].append(path)
     _check_sensor_ids(folders["images"])
     for folder in folders:
-        for path in unsupported_files(inputs.capture_dir / folder):
-            logger.warning(
-                "%s is not a photo the pipeline reads (it reads %s): left out; convert it or move it away",
-                path,
-                ", ".join(PHOTO_SUFFIXES),
-            )
+        warn_unread(inputs.capture_dir / folder)
     (out_dir / "undistorted").mkdir()
     (out_dir / "linear").mkdir()
     listing: dict[str, dict[str, dict]] = {"images": {}, "background": {}}

@@ -109,7 +109,11 @@ def _swap_in(staging: Path, output: Path) -> None:
 
 
 def _assemble(
-    staging: Path, output: Path, files: dict[str, tuple[Path, dict[str, Any]]], old: dict[str, Any] | None
+    staging: Path,
+    output: Path,
+    files: dict[str, tuple[Path, dict[str, Any]]],
+    old: dict[str, Any] | None,
+    changed: dict[str, str],
 ) -> None:
     for name, (source, _) in files.items():
         if source.is_dir():
@@ -134,7 +138,7 @@ def _assemble(
             os.symlink(os.readlink(path), target)
         else:
             _link_or_copy(str(path), str(target))
-    for rel, how in _changed(output, old or {}).items():
+    for rel, how in changed.items():
         if how == "edited" and (staging / rel).parent.is_dir():
             kept = staging / rel
             kept = kept.with_name(f"{kept.stem}.edited{kept.suffix}")
@@ -168,13 +172,14 @@ def publish(capture_dir: Path, files: dict[str, tuple[Path, dict[str, Any]]]) ->
     output = capture_dir / OUTPUT
     manifest = {name: record for name, (_, record) in files.items()}
     old = current_manifest(capture_dir)
-    if old == manifest and not output.is_symlink() and not _changed(output, manifest):
+    changed = _changed(output, old or {})  # hashed once: the check and the restore both use it
+    if old == manifest and not output.is_symlink() and not changed:
         return False
     version = time.strftime("%Y%m%d-%H%M%S") + f"-{time.time_ns() % 1_000_000_000:09d}"
     staging = capture_dir / f"{STAGING}{version}"
     staging.mkdir()
     try:
-        _assemble(staging, output, files, old)
+        _assemble(staging, output, files, old, changed)
         atomic_write_text(staging / MANIFEST, json.dumps(manifest, indent=2, sort_keys=True))
     except OSError as error:
         shutil.rmtree(staging)

@@ -17,6 +17,7 @@ from typing import Literal
 import numpy as np
 import OpenImageIO as oiio
 
+from pipeline import logger
 from pipeline.core.errors import PipelineError
 
 FREE_MARGIN_BYTES = 16 << 20
@@ -60,6 +61,18 @@ def unsupported_files(folder: Path) -> list[Path]:
         for p in folder.iterdir()
         if not p.name.startswith(".") and not p.is_dir() and not (p.is_file() and p.suffix.lower() in PHOTO_SUFFIXES)
     )
+
+
+def warn_unread(folder: Path, what: str = "photo") -> None:
+    """Warn about each of ``unsupported_files(folder)``: the stage reading ``folder``
+    leaves it out, and the user should know why."""
+    for path in unsupported_files(folder):
+        logger.warning(
+            "%s is not a %s the pipeline reads (it reads %s): left out; convert it or move it away",
+            path,
+            what,
+            ", ".join(PHOTO_SUFFIXES),
+        )
 
 
 @dataclass
