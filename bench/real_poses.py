@@ -281,8 +281,8 @@ def run_case(case: Case, captures: Path, work: Path) -> dict:
         row["error"] = lines[-1].split(". Unregistered")[0].removeprefix("E ")[:160] if lines else "failed"
         return row
     output = capture / "output"
-    poses = read_cameras(output / "cameras.json")[1]
-    key = json.loads((output / "manifest.json").read_text())["cameras.json"]["key"]
+    poses = read_cameras(output / "stages" / "sfm" / "cameras.json")[1]
+    key = json.loads((output / "manifest.json").read_text())["stages/sfm/cameras.json"]["key"]
     report = json.loads((capture / ".pipeline" / "cache" / "sfm" / key / "sfm.json").read_text())
     circular = report.get("circular", {})
     row |= {

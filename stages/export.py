@@ -149,4 +149,5 @@ STAGE = Stage(
     needs=("fit_geometry.geometry_dir", "fit_geometry.params"),
     outputs=("glb",),
     exports=("glb",),
+    result=("model", "glb"),
 )

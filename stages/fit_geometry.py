@@ -37,7 +37,8 @@ specimen as fit_texture measures it; otherwise its scene is passed through
 (params.json: ``kept``, ``specimen_validation_mse``). The measurements behind these
 choices: docs/fit_geometry.md.
 
-Outputs, in geometry/ (exported to CAPTURE/output/geometry/), a scene folder
+Outputs, in geometry/ (exported to CAPTURE/output/stages/fit_geometry/ and, as the
+final scene, to the top of CAPTURE/output/), a scene folder
 (pipeline.formats.scene_folder): the scene with the refined mesh.ply (UVs kept)
 and material; params.json (loss, start, per round each pass's held-out error
 before and after, best iteration, non-finite gradient entries dropped
@@ -320,4 +321,5 @@ STAGE = Stage(
     outputs=("geometry_dir", "params", "heldout"),
     shared=("mitsuba",),
     exports=("geometry_dir",),
+    result=("scene", "geometry_dir"),
 )

@@ -32,8 +32,8 @@ Then the path depth: the held-out photos are rendered at twice the chosen model'
 only when that changes their error by more than the margin is the model refitted deeper.
 fit_texture and fit_geometry take the model and integrator from params.json.
 
-All in one folder, fitted/ (exported to CAPTURE/output/fitted/, with params.json
-and heldout/ also exported on their own for ``pipeline score``):
+All in one folder, fitted/ (exported to CAPTURE/output/stages/fit_material/, and to
+the top of CAPTURE/output/ when no later fit stage has run):
 
 ==================  =============================================================
 file                content
@@ -326,4 +326,5 @@ STAGE = Stage(
     outputs=("fitted_dir", "params", "heldout", "scene"),
     shared=("mitsuba", "light"),
     exports=("fitted_dir", "params", "heldout"),
+    result=("scene", "fitted_dir"),
 )

@@ -36,7 +36,7 @@ only when it lowers the held-out error by at least ``min_improvement``
 (relative) below that of the refitted constants; otherwise the scene keeps the
 constant colour, with the refitted constants, and says why.
 
-Outputs, all in textured/ (exported to CAPTURE/output/textured/):
+Outputs, all in textured/ (exported to CAPTURE/output/stages/fit_texture/):
 
 ===================  ==========================================================
 file                 content
@@ -327,4 +327,5 @@ STAGE = Stage(
     outputs=("textured_dir", "params", "heldout"),
     shared=("mitsuba",),
     exports=("textured_dir",),
+    result=("scene", "textured_dir"),
 )

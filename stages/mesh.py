@@ -112,7 +112,7 @@ class Config:
     """A PLY or OBJ of the specimen made by another tool, used instead of the visual
     hull (the settings above then do nothing), relative to the capture folder. It is
     in the frame of `[cameras] source` when that is set, else in the world frame of
-    the sfm stage's cameras.json (output/cameras.json)."""
+    the sfm stage's cameras.json (output/stages/sfm/cameras.json)."""
     min_silhouette_iou: Annotated[float, Range(0.0, 1.0)] = 0.5
     """A given mesh whose outline overlaps the masks less than this (median over the
     photos, intersection over union) is refused: it is not in the cameras' frame."""
@@ -218,7 +218,7 @@ def _given_mesh(conf: Config, capture_dir: Path, cameras_json: Path, views: list
     overlaps = [iou(mesh_coverage(mesh.vertices, mesh.faces, v.intrinsics, v.pose, 1) >= 0.5, v.mask) for v in views]
     median = float(np.median(overlaps))
     if median < conf.min_silhouette_iou:
-        frame = "[cameras] source" if from_source is not None else "the cameras in output/cameras.json"
+        frame = "[cameras] source" if from_source is not None else "the cameras in output/stages/sfm/cameras.json"
         raise PipelineError(
             f"mesh.source = {conf.source!r}: its outline overlaps the masks by {median:.2f} (median IoU over "
             f"{len(views)} photos; mesh.min_silhouette_iou = {conf.min_silhouette_iou}): it is not in the frame of "

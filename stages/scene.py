@@ -10,7 +10,7 @@ frame is the board's, the printed board under the specimen, and the table
 around it (they light the specimen from below and show through a translucent
 one).
 
-All in one folder, scene/ (exported to CAPTURE/output/scene/):
+All in one folder, scene/ (exported to CAPTURE/output/stages/scene/):
 
 ==================  =============================================================
 file                content
@@ -327,4 +327,5 @@ STAGE = Stage(
     outputs=("scene_dir", "scene", "description", "preview"),
     shared=("capture.material", "light", "board", "mitsuba"),
     exports=("scene_dir",),
+    result=("scene", "scene_dir"),
 )

@@ -10,7 +10,7 @@ from typing import Annotated
 
 from rich.table import Table
 
-from pipeline import logger
+from pipeline import logger, output_guide
 from pipeline import report as html_report
 from pipeline.cli import registry
 from pipeline.cli.options import Arg
@@ -20,7 +20,7 @@ from pipeline.core.cache import StageCache
 from pipeline.core.config import describe_schema, load_config
 from pipeline.core.hashing import tree_size
 from pipeline.core.lock import CaptureLock
-from pipeline.core.publish import current_manifest
+from pipeline.core.publish import STAGES, current_manifest
 from pipeline.core.runner import PlannedStage, Runner, Selection, summary
 from pipeline.core.sections import schema
 
@@ -127,6 +127,7 @@ def run(options: RunOptions) -> int:
     def write_report(plan: list[PlannedStage]) -> None:
         ran = {p.stage.name for p in plan if p.action == "run"}
         html_report.write(runner.capture_dir, html_report.records(runner.plan(), ran))
+        output_guide.write(runner.capture_dir)
 
     plan = runner.run(selection, on_stage_done=report, on_published=write_report)
     logger.info(
@@ -138,9 +139,14 @@ def run(options: RunOptions) -> int:
     )
     if options.json:
         output = runner.capture_dir / "output"
+        published = current_manifest(runner.capture_dir) or {}
         result = {
             "seconds": time.time() - started,
-            "outputs": {name: str(output / name) for name in sorted(current_manifest(runner.capture_dir) or {})},
+            "outputs": {name: str(output / name) for name in sorted(published) if "/" not in name},
+            "stage_outputs": {
+                stage: str(output / STAGES / stage)
+                for stage in sorted({name.split("/")[1] for name in published if name.startswith(STAGES + "/")})
+            },
             "report": str(output / html_report.REPORT_HTML),
             "figures": {p.stage.name: p.metrics for p in plan if p.metrics},
             "stages": [summary(p) for p in plan],
@@ -154,6 +160,7 @@ def report(options: ReportOptions) -> int:
     runner = make_runner(options.capture, options.config)
     with CaptureLock(runner.capture_dir, "pipeline report"):
         path = html_report.write(runner.capture_dir, html_report.records(runner.plan()))
+        output_guide.write(runner.capture_dir)
     print(path)
     return 0
 

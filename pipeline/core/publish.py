@@ -1,10 +1,10 @@
 """Publishing results to ``CAPTURE/output/`` as a whole, atomically.
 
 ``output/`` is a real folder of copies: deleting ``.pipeline/`` (the cache) or copying
-``output/`` elsewhere keeps every result. A new version is assembled beside it in
-``.output.tmp-<version>/`` (one file per name: when several stages export a file of
-the same name, as mesh, cleanup and uv do with mesh.ply, the last stage in DAG order
-wins), gets its manifest.json, and trades places with ``output/`` in one
+``output/`` elsewhere keeps every result. Each stage's exports sit in
+``output/stages/<stage>/``; the final result of each role (the scene, the model) is
+also at the top. A new version is assembled beside it in ``.output.tmp-<version>/``,
+gets its manifest.json, and trades places with ``output/`` in one
 ``renameat2(RENAME_EXCHANGE)``. A reader, or a run killed at any moment, therefore sees
 either the old output or the new one, never a mixture; the folders a killed publish
 leaves are removed by the next one.
@@ -33,6 +33,8 @@ from pipeline.core.fsutil import atomic_write_text, disk_full_error, sha256_of
 
 OUTPUT = "output"
 MANIFEST = "manifest.json"
+STAGES = "stages"
+"""The folder of output/ that holds each stage's exports, by stage name."""
 STAGING = f".{OUTPUT}.tmp-"
 """Prefix of a version being assembled (or one a killed publish left)."""
 OLD_LAYOUT = Path(".pipeline") / "published"
@@ -116,20 +118,22 @@ def _assemble(
     changed: dict[str, str],
 ) -> None:
     for name, (source, _) in files.items():
+        (staging / name).parent.mkdir(parents=True, exist_ok=True)
         if source.is_dir():
             shutil.copytree(source, staging / name)
         else:
             shutil.copy2(source, staging / name)
     if not output.is_dir():
         return
-    ours = set(old or {}) | {MANIFEST}
+    ours = {_top(name) for name in old or {}} | {MANIFEST}
+    taken = {_top(name) for name in files}
     for path in sorted(output.iterdir()):
         if path.name in ours:
             continue
         # Not published by the pipeline's stages: the report, score.json, a user's notes;
         # one that a stage's result now takes the name of is kept under another.
         target = staging / path.name
-        if path.name in files:
+        if path.name in taken:
             target = staging / f"{Path(path.name).stem}.yours{Path(path.name).suffix}"
             logger.warning("output/%s was not the pipeline's: kept as %s beside its result", path.name, target.name)
         if path.is_dir() and not path.is_symlink():
@@ -150,6 +154,11 @@ def _assemble(
             logger.warning("output/%s was removed after it was published: restored from the cache", rel)
 
 
+def _top(name: str) -> str:
+    """The entry of output/ that a published path is in."""
+    return name.split("/", 1)[0]
+
+
 def remove_leftovers(capture_dir: Path) -> None:
     """Delete what a killed publish left and an older pipeline's version folders; the
     caller holds the capture's lock."""
@@ -163,8 +172,8 @@ def remove_leftovers(capture_dir: Path) -> None:
 
 
 def publish(capture_dir: Path, files: dict[str, tuple[Path, dict[str, Any]]]) -> bool:
-    """Make ``output/`` hold exactly ``files`` (name -> (source, manifest record with
-    "contents": {path in output/: [size, sha256]})), besides files it did not publish.
+    """Make ``output/`` hold exactly ``files`` (path in output/ -> (source, manifest record
+    with "contents": {path in output/: [size, sha256]})), besides files it did not publish.
     The caller holds the capture's lock and has called ``remove_leftovers``.
 
     Returns False when the published output already is that (nothing written).
@@ -203,4 +212,4 @@ def publish(capture_dir: Path, files: dict[str, tuple[Path, dict[str, Any]]]) ->
     return True
 
 
-__all__ = ["MANIFEST", "OUTPUT", "check_output_path", "current_manifest", "publish", "remove_leftovers"]
+__all__ = ["MANIFEST", "OUTPUT", "STAGES", "check_output_path", "current_manifest", "publish", "remove_leftovers"]

@@ -30,7 +30,7 @@ from pipeline.core.fsutil import atomic_write_text, disk_full_error
 from pipeline.core.hashing import FileHasher, glob_capture_files, tree_size
 from pipeline.core.interrupts import interruption
 from pipeline.core.lock import CaptureLock
-from pipeline.core.publish import check_output_path, publish, remove_leftovers
+from pipeline.core.publish import STAGES, check_output_path, publish, remove_leftovers
 from pipeline.core.stage import Stage, StageInputs
 
 Action = Literal["run", "cached", "disabled"]
@@ -89,6 +89,8 @@ def check_contract(stages: Sequence[Stage]) -> None:
         undeclared = set(s.exports) - set(s.outputs)
         if undeclared:
             raise ValueError(f"stage {s.name} exports {', '.join(sorted(undeclared))}, which it does not declare")
+        if s.result is not None and s.result[1] not in s.exports:
+            raise ValueError(f"stage {s.name}'s result {s.result[1]} is not one of its exports")
 
 
 def shared_inputs(config: Config, stage: Stage) -> dict[str, Any]:
@@ -470,30 +472,21 @@ class Runner:
     def _publish(self, results: dict[str, Entry]) -> None:
         """Publish to CAPTURE/output/ the exports of every stage whose result is valid
         for the current config: this run's, or cached ones outside its selection (so
-        ``--until cleanup`` after a full run keeps uv's mesh)."""
+        ``--until cleanup`` after a full run keeps uv's mesh). Each stage's go to
+        output/stages/<stage>/; the last result of each role also goes on top."""
         files: dict[str, tuple[Path, dict[str, Any]]] = {}
+        on_top: dict[str, tuple[Stage, Entry, str]] = {}
         for stage in self.stages:
             if not stage.exports or stage.enabled is not None and not stage.enabled(self.config[stage.name]):
                 continue
             entry = results.get(stage.name) or self.cache.lookup(stage.name, self.keys[stage.name])
             if entry is None:
                 continue
-            for name in stage.exports:
-                source = entry.outputs[name]
-                rel = source.relative_to(entry.path).as_posix()
-                contents = {
-                    source.name + path[len(rel) :]: size_and_hash
-                    for path, size_and_hash in entry.status["contents"].items()
-                    if path == rel or path.startswith(rel + "/")
-                }
-                record = {
-                    "stage": stage.name,
-                    "output": name,
-                    "key": entry.key,
-                    "finished": entry.finished,
-                    "contents": contents,
-                }
-                files[source.name] = (source, record)
+            files.update(_published(stage, entry, stage.exports, f"{STAGES}/{stage.name}/"))
+            if stage.result is not None:
+                on_top[stage.result[0]] = (stage, entry, stage.result[1])
+        for stage, entry, name in on_top.values():
+            files.update(_published(stage, entry, (name,), ""))
         if publish(self.capture_dir, files):
             logger.info("published %d file(s) to %s", len(files), self.capture_dir / "output")
 
@@ -507,6 +500,33 @@ class Runner:
         }
         name = time.strftime("%Y%m%d-%H%M%S") + f"-{time.time_ns() % 1_000_000:06d}.json"
         atomic_write_text(runs / name, json.dumps(record, indent=2))
+
+
+def _published(stage: Stage, entry: Entry, names: Sequence[str], prefix: str) -> dict[str, tuple[Path, dict[str, Any]]]:
+    """The files to publish for exports ``names`` of ``stage``'s cached ``entry``, by
+    their path in output/ under ``prefix``: a folder's children, or the file. An export
+    inside another one (fit_material's params.json in its folder) comes with that one."""
+    paths = {name: entry.outputs[name] for name in names}
+    files = {}
+    for name, source in paths.items():
+        if any(other != source and other in source.parents for other in paths.values()):
+            continue
+        for piece in sorted(source.iterdir()) if source.is_dir() else [source]:
+            rel = piece.relative_to(entry.path).as_posix()
+            contents = {
+                prefix + piece.name + path[len(rel) :]: size_and_hash
+                for path, size_and_hash in entry.status["contents"].items()
+                if path == rel or path.startswith(rel + "/")
+            }
+            record = {
+                "stage": stage.name,
+                "output": name,
+                "key": entry.key,
+                "finished": entry.finished,
+                "contents": contents,
+            }
+            files[prefix + piece.name] = (piece, record)
+    return files
 
 
 def summary(item: PlannedStage) -> dict[str, Any]:

@@ -70,7 +70,13 @@ class Stage:
     """Shared config sections (``"board"``) or single settings of one (``"capture.rig"``)
     whose values change its results: only these enter its cache key and ``inputs.shared``."""
     exports: tuple[str, ...] = ()
-    """Outputs (a subset of ``outputs``) copied to ``CAPTURE/output/`` after a successful run."""
+    """Outputs (a subset of ``outputs``) copied to ``CAPTURE/output/stages/<name>/`` after a
+    successful run (a folder's contents, or the file)."""
+    result: tuple[str, str] | None = None
+    """``(role, export)``: the export that is the capture's result of that role (``"scene"``,
+    ``"model"``) unless a later stage in DAG order with a valid result declares the same
+    role; it is also published at the top of ``output/`` (a folder's contents, or the
+    file), so that the final scene, its params.json and the model are found first."""
     enabled: Callable[[Any], bool] | None = None
     """Optional predicate on the stage's config; a disabled stage is skipped."""
 

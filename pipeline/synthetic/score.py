@@ -1,39 +1,41 @@
 """``pipeline score``: compare a capture's latest outputs with its ground_truth/.
 
-Each metric is computed from the file a stage exports to ``CAPTURE/output/``;
+Each metric is computed from the file a stage exports to ``CAPTURE/output/stages/``;
 a missing file means that stage has not run, and the score says so instead of
 failing. The files and their producers:
 
 =========================  ===============  ==============================================
-file in output/            stage            scored as
+file in output/stages/     stage            scored as
 =========================  ===============  ==============================================
-intrinsics.json            calibrate        focal and principal point error, distortion
-cameras.json               sfm              registered fraction; rotation and centre error
+calibrate/intrinsics.json  calibrate        focal and principal point error, distortion
+sfm/cameras.json           sfm              registered fraction; rotation and centre error
                                             after a similarity alignment to the truth
-mesh.ply                   mesh/cleanup/uv  Chamfer distance (% of the true bounding-box
-                                            diagonal), normal consistency and the shading
+STAGE/mesh.ply             uv (or cleanup,  Chamfer distance (% of the true bounding-box
+                           mesh)            diagonal), normal consistency and the shading
                                             normals' mean angle from the truth's, in the
                                             aligned frame
-params.json                fit_material     absolute error per parameter (relative for
+fit_material/params.json   fit_material     absolute error per parameter (relative for
                                             sigma_t)
-textured/params.json       fit_texture      the same for the constants fit_texture
+fit_texture/params.json    fit_texture      the same for the constants fit_texture
                                             refitted (a kept texture's mean for it)
-heldout/NAME.render.exr    fit_material     PSNR against NAME.reference.exr on views
-                                            held out from fitting
-fitted/environment.exr     fit_material     an estimated light (params.json's light, a
+fit_material/heldout/      fit_material     PSNR of NAME.render.exr against
+                                            NAME.reference.exr on views held out from
+                                            fitting
+fit_material/              fit_material     environment.exr, an estimated light (params.json's light, a
                                             world-fixed one) against the true rig:
                                             irradiance at the specimen's centre on the
                                             true surface's normals, from above the table
-textured/base_color.exr    fit_texture      a kept base-colour texture against the true
+fit_texture/base_color.exr fit_texture      a kept base-colour texture against the true
                                             mesh's vertex colours: mean and 90th percentile
                                             absolute error per channel at points on the
                                             true surface; for scale, the constant's and
                                             the truth baked into the same atlas; and all
                                             over the surface the training photos see
-geometry/base_color.exr    fit_geometry     the same, after its material passes
-textured/heldout/          fit_texture      the same, with the texture (or the constant
+fit_geometry/              fit_geometry     base_color.exr: the same, after its material
+                                            passes
+fit_texture/heldout/       fit_texture      the same, with the texture (or the constant
                                             when fit_texture did not keep one)
-geometry/heldout/          fit_geometry     the same, for the scene the pipeline ends with
+fit_geometry/heldout/      fit_geometry     the same, for the scene the pipeline ends with
 =========================  ===============  ==============================================
 """
 
@@ -53,6 +55,7 @@ from scipy.spatial import cKDTree
 
 from pipeline.camera.model import Intrinsics, Pose, Similarity, project, rotation_angle_deg, similarity_umeyama
 from pipeline.core.errors import PipelineError
+from pipeline.core.publish import OUTPUT, STAGES
 from pipeline.fit.loop import matched_gain
 from pipeline.formats.cameras import read_cameras
 from pipeline.formats.scene_folder import heldout_files, heldout_names
@@ -66,7 +69,7 @@ RELATIVE_PARAMETERS = {"sigma_t"}
 def score_intrinsics(estimate: Intrinsics, truth: Intrinsics) -> dict[str, float]:
     if (estimate.width, estimate.height) != (truth.width, truth.height):
         raise PipelineError(
-            f"output/intrinsics.json is for {estimate.width}x{estimate.height} images but the "
+            f"output/stages/calibrate/intrinsics.json is for {estimate.width}x{estimate.height} images but the "
             f"photos are {truth.width}x{truth.height}: score intrinsics at the photos' resolution"
         )
     return {
@@ -405,7 +408,7 @@ def score_light(capture: Path, chosen: dict, fitted_dir: Path, similarity: Simil
 
 def score_capture(capture: Path) -> dict[str, Any]:
     """Score whatever the capture's output/ holds; missing parts are listed, not fatal."""
-    truth_dir, out_dir = capture / "ground_truth", capture / "output"
+    truth_dir, out_dir = capture / "ground_truth", capture / OUTPUT / STAGES
     if not (truth_dir / "cameras.json").is_file():
         raise PipelineError(
             f"{capture} has no ground_truth/cameras.json: only synthetic captures "
@@ -414,33 +417,34 @@ def score_capture(capture: Path) -> dict[str, Any]:
     true_intrinsics, true_poses = read_cameras(truth_dir / "cameras.json")
     report: dict[str, Any] = {"missing": []}
 
-    def present(name: str, stage: str) -> Path | None:
-        path = out_dir / name
-        if path.exists():
-            return path
-        report["missing"].append(f"{name} ({stage} has not run)")
+    def present(*names: str) -> Path | None:
+        """The first of ``names`` (paths in output/stages/) that exists."""
+        for name in names:
+            if (out_dir / name).exists():
+                return out_dir / name
+        report["missing"].append(f"{names[0]} ({names[0].split('/')[0]} has not run)")
         return None
 
-    if path := present("intrinsics.json", "calibrate"):
+    if path := present("calibrate/intrinsics.json"):
         report["intrinsics"] = score_intrinsics(Intrinsics.from_json(json.loads(path.read_text())), true_intrinsics)
     similarity = Similarity.identity()
-    if path := present("cameras.json", "sfm"):
+    if path := present("sfm/cameras.json"):
         _, poses = read_cameras(path)
         report["cameras"], similarity = score_cameras(poses, true_poses)
-    if path := present("mesh.ply", "mesh"):
+    if path := present("uv/mesh.ply", "cleanup/mesh.ply", "mesh/mesh.ply"):
         estimate = trimesh.load(path, force="mesh")
         # uv's mesh splits vertices along chart seams; watertightness is about the surface.
         estimate.merge_vertices(merge_tex=True, merge_norm=True)
         estimate.apply_transform(similarity.matrix())
         report["mesh"] = score_mesh(estimate, trimesh.load(truth_dir / "mesh.ply", force="mesh"))
-    if path := present("params.json", "fit_material"):
+    if path := present("fit_material/params.json"):
         truth = json.loads((truth_dir / "material.json").read_text())
         report["material"] = score_material(json.loads(path.read_text()), truth)
-        texture = out_dir / "textured" / "params.json"
+        texture = out_dir / "fit_texture" / "params.json"
         kept = json.loads(texture.read_text()) if texture.is_file() else {}
         if "params" in kept:
             report["material_fit_texture"] = score_material(kept, truth)
-        refined = out_dir / "geometry" / "params.json"
+        refined = out_dir / "fit_geometry" / "params.json"
         if refined.is_file() and "params" in (final := json.loads(refined.read_text())):
             report["material_fit_geometry"] = score_material(final, truth)
         if truth.get("texture") and kept.get("kept") and kept["kind"] == "bitmap":
@@ -452,22 +456,23 @@ def score_capture(capture: Path) -> dict[str, Any]:
                 (true_intrinsics, pose) for name, pose in sorted(true_poses.items()) if name not in fitted["held_out"]
             ]
             surface = true_surface(trimesh.load(truth_dir / "mesh.ply", process=False), training)
-            for folder, part in (("textured", "texture"), ("geometry", "texture_fit_geometry")):
+            for folder, part in (("fit_texture", "texture"), ("fit_geometry", "texture_fit_geometry")):
                 if (out_dir / folder / "base_color.exr").is_file():
                     textured = trimesh.load(out_dir / folder / "mesh.ply", process=False)
                     textured.apply_transform(similarity.matrix())
                     report[part] = score_texture(
                         textured, read_linear_image(out_dir / folder / "base_color.exr"), constant, surface
                     )
-    fitted = json.loads(out_dir.joinpath("params.json").read_text()) if (out_dir / "params.json").is_file() else {}
+    material = out_dir / "fit_material" / "params.json"
+    fitted = json.loads(material.read_text()) if material.is_file() else {}
     if fitted.get("light", {}).get("chosen", {}).get("model", "given") != "given":
-        report["light"] = score_light(capture, fitted["light"]["chosen"], out_dir / "fitted", similarity)
-    for folder, stage, part in (
-        ("heldout", "fit_material", "heldout"),
-        ("textured/heldout", "fit_texture", "heldout_textured"),
-        ("geometry/heldout", "fit_geometry", "heldout_geometry"),
+        report["light"] = score_light(capture, fitted["light"]["chosen"], out_dir / "fit_material", similarity)
+    for folder, part in (
+        ("fit_material/heldout", "heldout"),
+        ("fit_texture/heldout", "heldout_textured"),
+        ("fit_geometry/heldout", "heldout_geometry"),
     ):
-        if path := present(folder, stage):
+        if path := present(folder):
             report[part] = score_heldout(path)
     return report
 

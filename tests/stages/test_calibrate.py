@@ -88,7 +88,9 @@ def test_without_usable_board_shots_exif_gives_the_focal_length(run_stages, tiny
     truth, _ = read_cameras(capture / "ground_truth" / "cameras.json")
     assert group["source"] == "exif" and group["refine_in_sfm"]
     assert group["intrinsics"]["fx"] == pytest.approx(truth.fx, rel=1e-3)
-    assert json.loads((capture / "output" / "intrinsics.json").read_text()) == group["intrinsics"]
+    assert (
+        json.loads((capture / "output" / "stages" / "calibrate" / "intrinsics.json").read_text()) == group["intrinsics"]
+    )
 
 
 def test_each_zoom_setting_gets_its_own_intrinsics(run_stages, tiny_capture, tmp_path):

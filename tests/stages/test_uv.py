@@ -57,7 +57,7 @@ def test_uv_covers_the_mesh_with_little_area_distortion(bird_until_uv):
 @pytest.mark.slow
 def test_the_published_obj_comes_with_its_material_and_texture(bird_until_uv):
     capture, _ = bird_until_uv
-    output = capture / "output"
+    output = capture / "output" / "stages" / "uv"
     (library,) = [
         line.split()[1] for line in (output / "mesh.obj").read_text().splitlines() if line.startswith("mtllib")
     ]

@@ -109,7 +109,16 @@ def make_stages(ingest_version: int = 1) -> tuple[Stage, ...]:
         Stage("ingest", ingest_version, IngestConfig, ingest, outputs=("total",), reads=("images/*.txt",)),
         Stage("double", 1, DoubleConfig, double, needs=("ingest.total",), outputs=("doubled",)),
         Stage("meta", 1, EmptyConfig, meta, needs=("ingest.total",), outputs=("meta",)),
-        Stage("report", 1, EmptyConfig, report, needs=("double.doubled",), outputs=("report",), exports=("report",)),
+        Stage(
+            "report",
+            1,
+            EmptyConfig,
+            report,
+            needs=("double.doubled",),
+            outputs=("report",),
+            exports=("report",),
+            result=("report", "report"),
+        ),
     )
 
 

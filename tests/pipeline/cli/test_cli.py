@@ -26,7 +26,9 @@ def test_json_summary(tmp_path, toy_cli, capsys):
     summary = json.loads(capsys.readouterr().out)
     assert [s["action"] for s in summary["stages"]] == ["run"] * 4
     assert summary["stages"][0]["metrics"] == {"files": 3}
-    assert summary["outputs"] == {"report.txt": str(capture / "output" / "report.txt")}
+    assert summary["outputs"] == {"report.txt": str(capture / "output" / "report.txt")}  # the result on top
+    assert summary["stage_outputs"] == {"report": str(capture / "output" / "stages" / "report")}
+    assert (capture / "output" / "stages" / "report" / "report.txt").read_text() == "result 12.0\n"
     assert summary["figures"] == {"ingest": {"files": 3}} and summary["seconds"] > 0
     assert toy_cli(["run", str(capture), "--dry-run", "--json"]) == 0
     dry = json.loads(capsys.readouterr().out)  # the JSON alone: it parses

@@ -166,7 +166,7 @@ def test_a_full_disk_while_publishing_keeps_the_old_output(tmp_path, presets_dir
         raise OSError(errno.ENOSPC, "No space left on device")
 
     monkeypatch.setattr(publish.shutil, "copy2", full)
-    with pytest.raises(DiskFull, match="publishing 1 file.*the previous output/ and every cached result were kept"):
+    with pytest.raises(DiskFull, match="publishing 2 file.*the previous output/ and every cached result were kept"):
         run_toy(capture, presets_dir, "double.factor=3")
     assert published(capture) == before and not list(capture.glob(".output.tmp-*"))
 

@@ -19,10 +19,10 @@ SIMILARITY = (2.3, Rotation.from_euler("xyz", [20, -35, 60], degrees=True).as_ma
 
 @pytest.fixture
 def capture(tiny_capture, tmp_path):
-    """A private copy of the tiny synthetic capture, with an empty output/."""
+    """A private copy of the tiny synthetic capture, with an empty output/stages/."""
     copy = tmp_path / "capture"
     shutil.copytree(tiny_capture, copy)
-    (copy / "output").mkdir()
+    (copy / "output" / "stages").mkdir(parents=True)
     return copy
 
 
@@ -34,8 +34,10 @@ def write_exr(path, pixels):
 
 
 def perfect_outputs(capture, transform=None):
-    """Write output/ as a perfect pipeline would, optionally in a similarity-transformed frame."""
-    truth = capture / "ground_truth"
+    """Write output/stages/ as a perfect pipeline would, optionally in a similarity-transformed frame."""
+    truth, out = capture / "ground_truth", capture / "output" / "stages"
+    for stage in ("calibrate", "sfm", "uv", "fit_material", "fit_texture", "fit_geometry"):
+        (out / stage).mkdir()
     intrinsics, poses = read_cameras(truth / "cameras.json")
     mesh = trimesh.load(truth / "mesh.ply")
     if transform is not None:
@@ -45,21 +47,19 @@ def perfect_outputs(capture, transform=None):
         M = np.eye(4)
         M[:3, :3], M[:3, 3] = s * R, t
         mesh.apply_transform(M)
-    write_cameras(capture / "output" / "cameras.json", intrinsics, poses)
-    (capture / "output" / "intrinsics.json").write_text(json.dumps(intrinsics.to_json()))
-    mesh.export(capture / "output" / "mesh.ply")
+    write_cameras(out / "sfm" / "cameras.json", intrinsics, poses)
+    (out / "calibrate" / "intrinsics.json").write_text(json.dumps(intrinsics.to_json()))
+    mesh.export(out / "uv" / "mesh.ply")
     material = json.loads((truth / "material.json").read_text())
     params = {k: material[k] for k in ("base_color_mean", "roughness", "spec_trans", "eta")}
     params["base_color"] = params.pop("base_color_mean")
-    (capture / "output" / "params.json").write_text(json.dumps({"model": material["model"], "params": params}))
+    (out / "fit_material" / "params.json").write_text(json.dumps({"model": material["model"], "params": params}))
     image = np.random.default_rng(0).uniform(0, 1, (8, 8, 3))
-    for folder in ("heldout", "textured/heldout", "geometry/heldout"):
-        (capture / "output" / folder).mkdir(parents=True)
-        write_exr(capture / "output" / folder / "view_005.render.exr", image)
-        write_exr(capture / "output" / folder / "view_005.reference.exr", image)
-    (capture / "output" / "geometry" / "params.json").write_text(
-        json.dumps({"model": material["model"], "params": params})
-    )
+    for stage in ("fit_material", "fit_texture", "fit_geometry"):
+        (out / stage / "heldout").mkdir()
+        write_exr(out / stage / "heldout" / "view_005.render.exr", image)
+        write_exr(out / stage / "heldout" / "view_005.reference.exr", image)
+    (out / "fit_geometry" / "params.json").write_text(json.dumps({"model": material["model"], "params": params}))
 
 
 def test_perfect_outputs_score_zero_error(capture):
@@ -158,7 +158,7 @@ def test_shading_normal_error_is_the_tilt_of_the_vertex_normals():
 
 def test_offset_parameters_give_their_errors(capture):
     perfect_outputs(capture)
-    params_file = capture / "output" / "params.json"
+    params_file = capture / "output" / "stages" / "fit_material" / "params.json"
     params = json.loads(params_file.read_text())
     params["params"]["roughness"] += 0.1
     params["params"]["base_color"][1] -= 0.04
@@ -180,7 +180,7 @@ def test_sigma_t_error_is_relative():
 
 def test_heldout_psnr_of_a_known_error(capture):
     perfect_outputs(capture)
-    folder = capture / "output" / "heldout"
+    folder = capture / "output" / "stages" / "fit_material" / "heldout"
     reference = np.full((8, 8, 3), 0.5)
     write_exr(folder / "view_005.reference.exr", reference)
     write_exr(folder / "view_005.render.exr", reference + 0.01)  # MSE 1e-4 -> 40 dB
@@ -190,10 +190,11 @@ def test_heldout_psnr_of_a_known_error(capture):
 def test_cli_scores_what_exists_and_lists_what_is_missing(capture, capsys):
     intrinsics, _ = read_cameras(capture / "ground_truth" / "cameras.json")
     wrong = Intrinsics(**{**intrinsics.to_json(), "fx": intrinsics.fx * 1.02, "fy": intrinsics.fy * 1.02})
-    (capture / "output" / "intrinsics.json").write_text(json.dumps(wrong.to_json()))
+    (capture / "output" / "stages" / "calibrate").mkdir()
+    (capture / "output" / "stages" / "calibrate" / "intrinsics.json").write_text(json.dumps(wrong.to_json()))
     assert cli.main(["score", str(capture)]) == 0
     err = capsys.readouterr().err
-    assert "not scored: cameras.json (sfm has not run)" in err
+    assert "not scored: sfm/cameras.json (sfm has not run)" in err
     report = json.loads((capture / "output" / "score.json").read_text())
     assert report["intrinsics"]["focal_error_pct"] == pytest.approx(2.0)
     assert len(report["missing"]) == 6  # cameras, mesh, params and three heldout folders
