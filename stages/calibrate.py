@@ -48,6 +48,7 @@ from pipeline.imaging.photo_io import (
     PHOTO_SUFFIXES,
     camera_setting,
     gray_uint8,
+    photo_files,
     read_metadata,
     read_photo,
     warn_unread,
@@ -275,7 +276,7 @@ def _external_groups(
 
 
 def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
-    files = [p for p in inputs.files if p.suffix.lower() in PHOTO_SUFFIXES]
+    files = photo_files(list(inputs.files))
     photos = [p for p in files if _folder(p, inputs.capture_dir) == "images"]
     shots = [p for p in files if _folder(p, inputs.capture_dir) == "calibration"]
     warn_unread(inputs.capture_dir / "calibration")

@@ -39,9 +39,9 @@ from pipeline.core.stage import Stage, StageInputs, StageResult
 from pipeline.formats.calibration import read_camera_groups
 from pipeline.formats.pinhole import write_pinhole
 from pipeline.imaging.photo_io import (
-    PHOTO_SUFFIXES,
     Encoding,
     camera_setting,
+    photo_files,
     read_metadata,
     read_photo,
     to_uint8,
@@ -62,7 +62,7 @@ class Config:
     """0: crop to pixels the photo covers (no black borders); 1: keep every photo pixel."""
     input_encoding: Encoding = "auto"
     """How 8- and 16-bit values map to radiance. auto: sRGB unless the file's metadata
-    names a linear colour space; float files (EXR) are always linear."""
+    names a linear colour space; float files (EXR) and RAW files are always linear."""
 
 
 def _output_names(paths: list[Path]) -> dict[Path, str]:
@@ -141,9 +141,8 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         )
 
     folders = {"images": [], "background": []}
-    for path in inputs.files:
-        if path.suffix.lower() in PHOTO_SUFFIXES:
-            folders[path.relative_to(inputs.capture_dir).parts[0]].append(path)
+    for path in photo_files(list(inputs.files)):
+        folders[path.relative_to(inputs.capture_dir).parts[0]].append(path)
     _check_sensor_ids(folders["images"])
     for folder in folders:
         warn_unread(inputs.capture_dir / folder)

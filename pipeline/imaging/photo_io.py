@@ -1,8 +1,14 @@
-"""Reading photos the way the pipeline needs them, through OpenImageIO.
+"""Reading photos the way the pipeline needs them, through OpenImageIO and LibRaw.
 
 Every reader returns linear-radiance float32 RGB, upright (EXIF orientation
 applied), whatever the file: 8-bit JPEG or PNG and 16-bit TIFF are sRGB-encoded
-unless their metadata says linear; EXR and float TIFF are linear.
+unless their metadata says linear; EXR and float TIFF are linear. Camera RAW files
+(DNG, CR2, CR3, NEF, ARW, ...) are developed by LibRaw (rawpy) straight to linear
+sRGB primaries: black level subtracted, scaled by the white level, the camera's
+as-shot white balance applied, no tone curve, no brightening, so a value of 1 is the
+sensor's clipping point. The white balance, levels and exposure are recorded in the
+photo's metadata (``raw:*`` and the EXIF names). Where a RAW file and a JPEG share a
+name (RAW+JPEG shooting), the RAW is read and the JPEG left out.
 """
 
 from __future__ import annotations
@@ -10,19 +16,24 @@ from __future__ import annotations
 import errno
 import os
 import shutil
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 import OpenImageIO as oiio
+import rawpy
 
 from pipeline import logger
 from pipeline.core.errors import PipelineError
 
 FREE_MARGIN_BYTES = 16 << 20
 """Free space below which a failed image write is put down to a full disk."""
-PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr")
+RAW_SUFFIXES = (".dng", ".cr2", ".cr3", ".crw", ".nef", ".nrw", ".arw", ".orf", ".rw2", ".raf", ".pef", ".srw", ".3fr")
+"""Camera RAW formats, read through LibRaw."""
+PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr", *RAW_SUFFIXES)
 Encoding = Literal["auto", "srgb", "linear"]
 
 
@@ -44,11 +55,26 @@ def gray_uint8(linear: np.ndarray) -> np.ndarray:
     return np.round(srgb_encode(linear.mean(axis=-1)) * 255).astype(np.uint8)
 
 
+def is_raw(path: Path) -> bool:
+    return path.suffix.lower() in RAW_SUFFIXES
+
+
+def photo_files(paths: list[Path]) -> list[Path]:
+    """The photos among ``paths``, sorted: files with a photo suffix, less each one that
+    has a RAW twin (same folder and name, RAW+JPEG shooting): the RAW is the photo."""
+    photos = sorted(p for p in paths if p.is_file() and p.suffix.lower() in PHOTO_SUFFIXES)
+    raw = {p.with_suffix("") for p in photos if is_raw(p)}
+    twins = [p for p in photos if not is_raw(p) and p.with_suffix("") in raw]
+    if twins:
+        logger.info("%d photo(s) have a RAW twin, which is read instead (%s, ...)", len(twins), twins[0].name)
+    return [p for p in photos if p not in twins]
+
+
 def list_photos(folder: Path) -> list[Path]:
-    """Image files directly in ``folder``, sorted by name; [] when it does not exist."""
+    """The photos directly in ``folder`` (``photo_files``); [] when it does not exist."""
     if not folder.is_dir():
         return []
-    return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in PHOTO_SUFFIXES)
+    return photo_files(list(folder.iterdir()))
 
 
 def unsupported_files(folder: Path) -> list[Path]:
@@ -91,8 +117,55 @@ class Photo:
         return self.pixels.shape[1], self.pixels.shape[0]
 
 
+def _raw_metadata(path: Path, raw: rawpy.RawPy) -> dict[str, object]:
+    """EXIF read by OpenImageIO from the RAW's TIFF structure where it has one (DNG, CR2,
+    NEF...), completed by LibRaw's own reading and the development's levels."""
+    image = oiio.ImageInput.open(str(path))
+    metadata: dict[str, object] = {}
+    if image is not None:  # the attributes of the first image: often the preview's size, not kept
+        metadata = {a.name: a.value for a in image.spec().extra_attribs if not a.name.startswith(("oiio:", "tiff:"))}
+        image.close()
+    metadata.pop("Orientation", None)  # LibRaw turns the pixels upright itself
+    other = raw.other
+    for name, value in (
+        ("Exif:FocalLength", other.focal_length),
+        ("ExposureTime", other.shutter_speed),  # seconds
+        ("Exif:ISOSpeedRatings", other.iso_speed),
+        ("FNumber", other.aperture),
+    ):
+        if value and name not in metadata:
+            metadata[name] = float(value)
+    balance = np.asarray(raw.camera_whitebalance[:3], dtype=float)
+    if balance[1] > 0:
+        metadata["raw:WhiteBalance"] = [float(v) for v in balance / balance[1]]
+    metadata["raw:BlackLevel"] = [float(v) for v in raw.black_level_per_channel]
+    metadata["raw:WhiteLevel"] = float(raw.white_level)
+    return metadata
+
+
+def _raw_size(raw: rawpy.RawPy) -> tuple[int, int]:
+    """The developed image's upright (width, height)."""
+    sizes = raw.sizes
+    return (sizes.height, sizes.width) if sizes.flip in (5, 6) else (sizes.width, sizes.height)
+
+
+@contextmanager
+def _open_raw(path: Path) -> Iterator[rawpy.RawPy]:
+    """The RAW file opened by LibRaw; its errors (here or while unpacking) are the user's."""
+    try:
+        with rawpy.imread(str(path)) as raw:
+            yield raw
+    except (rawpy.LibRawError, OSError) as error:
+        raise PipelineError(
+            f"{path}: cannot read this RAW file ({error}); remove it, or replace it by a TIFF from your RAW converter"
+        ) from error
+
+
 def read_metadata(path: Path) -> tuple[dict[str, object], tuple[int, int]]:
     """(attributes, upright (width, height)) without decoding the pixels."""
+    if is_raw(path):
+        with _open_raw(path) as raw:
+            return _raw_metadata(path, raw), _raw_size(raw)
     image = oiio.ImageInput.open(str(path))
     if image is None:
         raise PipelineError(f"{path}: cannot read this image ({oiio.geterror()}); remove or replace it")
@@ -123,6 +196,8 @@ def read_photo(path: Path, encoding: Encoding = "auto", reduce: int = 1) -> Phot
     """Decode ``path`` to upright linear RGB, box-filtered down by the integer factor
     ``reduce`` while decoding: scanlines are read a strip at a time, so a huge photo is
     never held whole at full size. A file OpenImageIO cannot read is a user error."""
+    if is_raw(path):
+        return _read_raw(path, reduce)
     unassociated = oiio.ImageSpec()
     unassociated.attribute("oiio:UnassociatedAlpha", 1)  # colour as stored, not multiplied by alpha
     image = oiio.ImageInput.open(str(path), unassociated)
@@ -172,6 +247,31 @@ def read_photo(path: Path, encoding: Encoding = "auto", reduce: int = 1) -> Phot
     pixels = _orient(np.concatenate(strips), int(metadata.get("Orientation", 1)))
     pixels = np.repeat(pixels[..., :1], 3, axis=2) if channels < 3 else pixels
     return Photo(np.ascontiguousarray(pixels), metadata, encoding, spec.format.size() * 8)
+
+
+def _read_raw(path: Path, reduce: int) -> Photo:
+    """Develop a RAW file to linear sRGB primaries (see the module docstring)."""
+    with _open_raw(path) as raw:
+        metadata = _raw_metadata(path, raw)
+        width, height = _raw_size(raw)
+        # Half size takes each 2x2 Bayer block as one pixel: no demosaicing where the
+        # caller reduces by an even factor anyway.
+        half = reduce % 2 == 0
+        developed = raw.postprocess(
+            gamma=(1, 1),
+            no_auto_bright=True,
+            output_bps=16,
+            use_camera_wb=True,
+            output_color=rawpy.ColorSpace.sRGB,
+            half_size=half,
+            highlight_mode=rawpy.HighlightMode.Clip,
+            adjust_maximum_thr=0.0,  # LibRaw would take a bright photo's maximum as white
+        )
+    pixels = developed.astype(np.float32) / np.float32(65535)
+    step = reduce // 2 if half else reduce
+    height, width = height // reduce, width // reduce
+    pixels = pixels[: height * step, : width * step].reshape(height, step, width, step, 3).mean(axis=(1, 3))
+    return Photo(np.ascontiguousarray(pixels), metadata, "linear", 16)
 
 
 def write_image(path: Path, pixels: np.ndarray, attributes: dict[str, object] | None = None) -> Path:

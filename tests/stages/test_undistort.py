@@ -129,3 +129,22 @@ def test_files_that_are_not_photos_are_warned_about_and_left_out(run_stages, tin
     outputs = run_stages(capture, "undistort")
     assert "IMG_0001.HEIC is not a photo the pipeline reads" in caplog.text
     assert len(read_photos(outputs["undistort"]["pinhole"])) == 6
+
+
+def test_raw_photos_give_the_linear_copies_their_jpegs_do(run_stages, tiny_capture, tmp_path):
+    from tests.support.raw_photos import write_dng
+
+    jpeg = _copy_capture(tiny_capture, tmp_path / "jpeg")
+    raw = _copy_capture(tiny_capture, tmp_path / "raw")
+    for photo in sorted((raw / "images").glob("*.jpg")):
+        # RAW+JPEG shooting: the DNG beside its JPEG is the one read.
+        write_dng(photo.with_suffix(".DNG"), read_photo(photo).pixels, neutral=(0.45, 1.0, 0.62))
+    outputs = {name: run_stages(capture, "undistort")["undistort"] for name, capture in (("jpeg", jpeg), ("raw", raw))}
+    from_jpeg, from_raw = (read_photos(outputs[name]["pinhole"]) for name in ("jpeg", "raw"))
+    assert sorted(from_raw) == [name.replace(".jpg", ".DNG") for name in sorted(from_jpeg)]
+    for name, entry in from_jpeg.items():
+        expected = read_photo(entry["linear"]).pixels
+        developed = read_photo(from_raw[name.replace(".jpg", ".DNG")]["linear"]).pixels
+        # Demosaicing blurs edges a little; the colours (the white balance undone) are the same.
+        np.testing.assert_allclose(developed.mean(axis=(0, 1)), expected.mean(axis=(0, 1)), rtol=0.02, atol=2e-3)
+        assert np.median(np.abs(developed - expected)) < 0.01

@@ -66,8 +66,66 @@ def test_files_that_are_not_photos_are_listed(tmp_path):
 
     from pipeline.imaging.photo_io import unsupported_files
 
-    for name in ("a.jpg", "b.HEIC", "c.dng", ".DS_Store"):
+    for name in ("a.jpg", "b.HEIC", "c.dng", "e.psd", ".DS_Store"):
         (tmp_path / name).write_bytes(b"x")
     os.mkfifo(tmp_path / "d.jpg")
     (tmp_path / "sub").mkdir()
-    assert [p.name for p in unsupported_files(tmp_path)] == ["b.HEIC", "c.dng", "d.jpg"]
+    assert [p.name for p in unsupported_files(tmp_path)] == ["b.HEIC", "d.jpg", "e.psd"]
+
+
+def _patches(height=48, width=64):
+    """Four flat patches of known linear sRGB colour."""
+    colours = np.array([[0.2, 0.4, 0.6], [0.6, 0.3, 0.1], [0.05, 0.05, 0.05], [0.9, 0.8, 0.7]])
+    pixels = np.empty((height, width, 3))
+    for i, colour in enumerate(colours):
+        pixels[(i // 2) * height // 2 : (i // 2 + 1) * height // 2, (i % 2) * width // 2 : (i % 2 + 1) * width // 2] = (
+            colour
+        )
+    return pixels, colours
+
+
+def _patch_means(pixels, margin):
+    height, width = pixels.shape[:2]
+    return np.array(
+        [
+            pixels[
+                (i // 2) * height // 2 + margin : (i // 2 + 1) * height // 2 - margin,
+                (i % 2) * width // 2 + margin : (i % 2 + 1) * width // 2 - margin,
+            ].mean(axis=(0, 1))
+            for i in range(4)
+        ]
+    )
+
+
+@pytest.mark.parametrize("reduce", [1, 2, 3])
+def test_a_raw_photo_develops_to_the_linear_colours_it_recorded(tmp_path, reduce):
+    from pipeline.imaging.photo_io import read_metadata
+    from tests.support.raw_photos import write_dng
+
+    pixels, colours = _patches()
+    path = write_dng(tmp_path / "IMG_0001.DNG", pixels, neutral=(0.5, 1.0, 0.7))
+    photo = read_photo(path, reduce=reduce)
+    assert photo.encoding == "linear" and photo.size == (64 // reduce, 48 // reduce)
+    # No tone curve, no brightening, the as-shot white balance applied: the scene's values.
+    np.testing.assert_allclose(_patch_means(photo.pixels, 4 // reduce + 1), colours, atol=0.004)
+    metadata, size = read_metadata(path)
+    assert size == (64, 48) and (metadata["Make"], metadata["Model"]) == ("TestMake", "TestModel")
+    np.testing.assert_allclose(metadata["raw:WhiteBalance"], [2.0, 1.0, 1 / 0.7], rtol=1e-3)
+    assert metadata["raw:BlackLevel"] == [256.0] * 4 and metadata["raw:WhiteLevel"] == 16383
+
+
+def test_raw_and_jpeg_twins_are_one_photo_and_a_damaged_raw_is_named(tmp_path):
+    from pipeline.core.errors import PipelineError
+    from pipeline.imaging.photo_io import list_photos, unsupported_files
+    from tests.support.raw_photos import write_dng
+
+    pixels, _ = _patches()
+    write_dng(tmp_path / "IMG_0001.DNG", pixels)
+    write_image(tmp_path / "IMG_0001.JPG", np.zeros((48, 64, 3), np.uint8))
+    write_image(tmp_path / "IMG_0002.JPG", np.zeros((48, 64, 3), np.uint8))
+    assert [p.name for p in list_photos(tmp_path)] == ["IMG_0001.DNG", "IMG_0002.JPG"]
+    assert unsupported_files(tmp_path) == []
+    damaged = tmp_path / "IMG_0003.NEF"
+    damaged.write_bytes((tmp_path / "IMG_0001.DNG").read_bytes()[:300])
+    with pytest.raises(PipelineError, match="IMG_0003.NEF: cannot read this RAW file"):
+        read_photo(damaged)
