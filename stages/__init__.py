@@ -8,6 +8,7 @@ from pipeline.core.stage import Stage
 from stages import (
     calibrate,
     cleanup,
+    colour,
     export,
     fit_geometry,
     fit_material,
@@ -22,6 +23,7 @@ from stages import (
 
 STAGES: tuple[Stage, ...] = (
     calibrate.STAGE,
+    colour.STAGE,
     undistort.STAGE,
     masks.STAGE,
     sfm.STAGE,

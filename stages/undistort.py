@@ -2,8 +2,10 @@
 
 Every photo in ``images/`` (and every background plate in ``background/``) is read
 through OpenImageIO (JPEG, PNG, 8- or 16-bit TIFF, EXR; EXIF orientation applied),
-decoded to linear radiance, remapped to the distortion-free camera of its camera
-setting, optionally reduced to a working resolution, and written twice:
+decoded to linear radiance, colour-corrected when the colour stage found a chart
+(scaled by the exposure difference to the chart's shot where EXIF records both),
+remapped to the distortion-free camera of its camera setting, optionally reduced to a
+working resolution, and written twice:
 
 ==================  =============================================================
 output              content
@@ -37,7 +39,9 @@ from pipeline.core.config import Range
 from pipeline.core.errors import PipelineError
 from pipeline.core.stage import Stage, StageInputs, StageResult
 from pipeline.formats.calibration import read_camera_groups
+from pipeline.formats.colour import ColourRecord, read_colour
 from pipeline.formats.pinhole import write_pinhole
+from pipeline.imaging.colour_chart import exposure
 from pipeline.imaging.photo_io import (
     Encoding,
     camera_setting,
@@ -123,8 +127,19 @@ def _check_distinct(copies: list[list[str]]) -> None:
         )
 
 
+def _colour_corrected(pixels: np.ndarray, metadata: dict[str, object], colour: ColourRecord) -> np.ndarray:
+    """The chart's correction, times the exposure ratio to the chart's shot when EXIF
+    gives both (a photo shot one stop brighter is halved)."""
+    if colour.correction is None:
+        return pixels
+    own = exposure(metadata)
+    scale = colour.exposure / own if colour.exposure is not None and own is not None else 1.0
+    return np.maximum(colour.correction.apply(pixels) * np.float32(scale), np.float32(0.0))
+
+
 def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     groups = read_camera_groups(inputs.upstream["calibrate"]["calibration"])
+    colour = read_colour(inputs.upstream["colour"]["colour"])
     setting_index = {group["camera"]: i for i, group in enumerate(groups)}
     image_group = {name: i for i, group in enumerate(groups) for name in group["images"]}
     cameras = []
@@ -168,7 +183,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
             photo = read_photo(path, conf.input_encoding, reduce)
             source = decoded_camera(Intrinsics.from_json(cameras[index]["source"]), reduce, photo.size)
             target = Intrinsics.from_json(cameras[index]["intrinsics"])
-            linear = undistort(photo.pixels, source, target)
+            linear = undistort(_colour_corrected(photo.pixels, metadata, colour), source, target)
             prefix = "" if folder == "images" else "background_"
             srgb_path = write_image(out_dir / "undistorted" / f"{prefix}{names[path]}.png", to_uint8(linear))
             linear_path = write_image(out_dir / "linear" / f"{prefix}{names[path]}.exr", linear.astype(np.float32))
@@ -204,10 +219,10 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="undistort",
-    version=4,
+    version=5,
     config=Config,
     main=main,
-    needs=("calibrate.calibration",),
+    needs=("calibrate.calibration", "colour.colour"),
     outputs=("pinhole", "undistorted", "linear"),
     reads=("images/*", "background/*"),
 )

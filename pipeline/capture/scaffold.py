@@ -45,6 +45,9 @@ Folders: {folders}
 - [ ] 10-20 photos of the flat board alone, filling half the frame or more, from varied
       angles (up to 45 degrees) and positions, the board reaching the frame's corners in some.
 - [ ] Sharp: no motion blur, the whole board in focus.
+- [ ] Colour (optional): one shot of a ColorChecker 24 (Classic, 24 patches) where the
+      specimen stands, under the session's lights and camera settings, filling a third of
+      the frame or more: every photo is then colour-corrected to the chart's references.
 
 ## Specimen photos (images/)
 - [ ] 30-80 photos on two or three rings around the specimen (low, middle, high), plus a

@@ -78,7 +78,7 @@ def list_photos(folder: Path) -> list[Path]:
 
 
 def unsupported_files(folder: Path) -> list[Path]:
-    """What sits directly in ``folder`` and is not a photo the pipeline reads (HEIC, RAW,
+    """What sits directly in ``folder`` and is not a photo the pipeline reads (HEIC, PSD,
     a FIFO named .jpg...), sorted; hidden files are left out."""
     if not folder.is_dir():
         return []
