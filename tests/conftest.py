@@ -145,3 +145,12 @@ def orbit_capture(tmp_path_factory) -> Path:
     return _synth_capture(
         tmp_path_factory, "orbit", views=12, rings=(30.0,), width=192, height=144, spp=4, calibration_shots=0, seed=6
     )
+
+
+def pytest_collection_modifyitems(items):
+    """Under pytest-xdist (``-n 2 --dist loadgroup``, as bin/test runs), the tests of the
+    shared bundled bird run on one worker, whose cache lets each run only the stages it
+    adds; the rest spread over the workers."""
+    for item in items:
+        if "bird_capture" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.xdist_group("bird"))
