@@ -5,12 +5,18 @@ opens offline, mailed or copied alone.
 =======================  ==================================================================
 section                  from
 =======================  ==================================================================
+summary                  the total time, the preset and settings, the library versions,
+                         and links to the final files beside the page (output/)
+3D view                  export's glb in a three.js viewer (pipeline.viewer), with the
+                         texture map of the last fit stage that kept one
+score                    score.json's figures, when a synthetic capture was scored
 stages                   each stage's state for the current settings (cached, ran, to run,
                          disabled), seconds, cache key and key figures (its metrics)
 cameras and mesh         sfm's cameras.json and the last mesh (fit_geometry's, else uv's),
                          drawn from above and from the side
 held-out photos          per fit stage, per photo it held out: the photo, the render and
-                         their difference (the PNGs of heldout/), PSNR over the mask
+                         their difference (the PNGs of heldout/; a scale gives the
+                         difference's values), PSNR over the mask; a click enlarges
 trajectories             per fit stage, log.jsonl: training loss, held-out error and every
                          parameter (a texture's or map's channel means) against the step
 parameters               the last fit stage's values, fit_material's bounds and units
@@ -34,10 +40,12 @@ import io
 import json
 import time
 from dataclasses import dataclass, field
+from importlib import metadata
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from PIL import Image
 
 from pipeline.core.cache import LOG_FILE
 from pipeline.core.errors import DiskFull
@@ -45,9 +53,13 @@ from pipeline.core.fsutil import atomic_write_text, disk_full_error
 from pipeline.core.runner import PlannedStage
 from pipeline.formats.cameras import read_views
 from pipeline.formats.scene_folder import heldout_names
-from pipeline.synthetic.score import score_heldout
+from pipeline.imaging.photo_io import srgb_encode
+from pipeline.synthetic.score import score_heldout, summary_rows
+from pipeline.viewer import viewer_fragment
 
 REPORT_HTML = "report.html"
+FINAL_FILES = ("scene.xml", "params.json", "specimen.glb", "heldout", "README.txt")
+"""The files at the top of output/ the summary links to."""
 FIT_STAGES = (("fit_material", "fitted_dir"), ("fit_texture", "textured_dir"), ("fit_geometry", "geometry_dir"))
 STYLE = """
 body { font-family: sans-serif; margin: 2em; max-width: 1200px; color: #222; }
@@ -58,6 +70,10 @@ figure { display: inline-block; margin: 0 0.5em 0.5em 0; }
 figure img { max-width: 260px; image-rendering: pixelated; border: 1px solid #ccc; }
 figure.plot img { max-width: 100%; image-rendering: auto; }
 figcaption { font-size: 0.8em; color: #555; }
+figure img.enlarged { max-width: 95vw; width: 95vw; cursor: zoom-out; }
+figure img { cursor: zoom-in; }
+.note { font-size: 0.8em; color: #555; margin: 0; }
+.viewer { border: 1px solid #ccc; margin-bottom: 0.5em; }
 .warning { color: #a40; font-family: monospace; font-size: 0.85em; }
 """
 # After load, the page records how many of its images decoded: a headless browser
@@ -68,6 +84,16 @@ window.addEventListener('load', function () {
   var loaded = images.filter(function (i) { return i.complete && i.naturalWidth > 0; });
   document.body.setAttribute('data-images', images.length);
   document.body.setAttribute('data-images-loaded', loaded.length);
+});
+"""
+
+
+# A thumbnail clicked grows to the window's width; clicked again, back.
+ENLARGE = """
+document.addEventListener('click', function (event) {
+  if (event.target.tagName === 'IMG' && event.target.closest('figure')) {
+    event.target.classList.toggle('enlarged');
+  }
 });
 """
 
@@ -116,12 +142,15 @@ def records(plan: list[PlannedStage], ran: set[str] = frozenset()) -> list[Stage
     return result
 
 
-def write(capture_dir: Path, stages: list[StageRecord]) -> Path:
+def write(capture_dir: Path, stages: list[StageRecord], settings: RunSettings | None = None) -> Path:
     """Write CAPTURE/output/report.html from ``stages``; returns its path."""
     by_name = {s.name: s for s in stages}
     parts = [
         f"<h1>{_text(capture_dir.name)}</h1>",
         f"<p>{_text(str(capture_dir.resolve()))}; written {time.strftime('%Y-%m-%d %H:%M')}</p>",
+        _summary_section(capture_dir, stages, settings),
+        _view_section(by_name),
+        _score_section(capture_dir),
         _stages_section(stages),
         _cameras_section(by_name),
         _choices_section(by_name),
@@ -133,7 +162,9 @@ def write(capture_dir: Path, stages: list[StageRecord]) -> Path:
     page = (
         "<!DOCTYPE html>\n<html><head><meta charset='utf-8'>"
         f"<title>{_text(capture_dir.name)}: pipeline report</title><style>{STYLE}</style>"
-        f"<script>{CHECK_IMAGES}</script></head><body>\n" + "\n".join(p for p in parts if p) + "\n</body></html>\n"
+        f"<script>{CHECK_IMAGES}{ENLARGE}</script></head><body>\n"
+        + "\n".join(p for p in parts if p)
+        + "\n</body></html>\n"
     )
     path = capture_dir / "output" / REPORT_HTML
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -144,6 +175,89 @@ def write(capture_dir: Path, stages: list[StageRecord]) -> Path:
             raise DiskFull(path.parent, f"writing {path.name}", "the previous report was kept") from error
         raise
     return path
+
+
+@dataclass(frozen=True)
+class RunSettings:
+    """What the run was asked for, as the report's summary shows it."""
+
+    preset: str
+    overrides: tuple[str, ...]
+    """The ``-s`` settings, as given."""
+    sources: tuple[str, ...]
+    """The config files read, in order."""
+
+
+LIBRARIES = ("specimen-pipeline", "mitsuba", "drjit", "pycolmap", "numpy", "opencv-contrib-python-headless", "trimesh")
+
+
+def _versions() -> list[list[str]]:
+    rows = []
+    for name in LIBRARIES:
+        try:
+            rows.append([name, metadata.version(name)])
+        except metadata.PackageNotFoundError:
+            rows.append([name, "not installed"])
+    return rows
+
+
+def _summary_section(capture_dir: Path, stages: list[StageRecord], settings: RunSettings | None) -> str:
+    total = sum(s.seconds or 0.0 for s in stages)
+    parts = [f"<h2>Summary</h2><p>Total stage time {total:.1f} s (each stage's own run, cached ones included)."]
+    if settings is not None:
+        overrides = ", ".join(settings.overrides) or "none"
+        parts.append(f" Preset {_text(settings.preset)}; settings given: {_text(overrides)}; config files: ")
+        parts.append(_text(", ".join(settings.sources) or "none") + ".")
+    parts.append("</p>")
+    output = capture_dir / "output"
+    finals = [name for name in FINAL_FILES if (output / name).exists()]
+    if finals:
+        links = ", ".join(f"<a href='{_text(name)}'>{_text(name)}</a>" for name in finals)
+        parts.append(f"<p>Final files (beside this page; README.txt says what each is): {links}.</p>")
+    parts.append(_table(["library", "version"], _versions()))
+    return "".join(parts)
+
+
+def _view_section(by_name: dict[str, StageRecord]) -> str:
+    export = by_name.get("export")
+    if export is None or "glb" not in export.outputs:
+        return ""
+    parts = ["<h2>3D view</h2><p>export's specimen.glb: drag to turn, scroll to zoom.</p>"]
+    parts.append(viewer_fragment(export.outputs["glb"].read_bytes(), element_id="specimen-view"))
+    for stage, folder_output in reversed(FIT_STAGES):
+        record = by_name.get(stage)
+        texture = None if record is None or folder_output not in record.outputs else record.outputs[folder_output]
+        if texture is not None and (texture / "base_color.png").is_file():
+            parts.append(_image((texture / "base_color.png").read_bytes(), f"{stage}: base colour texture (UV atlas)"))
+            break
+    return "".join(parts)
+
+
+def _score_section(capture_dir: Path) -> str:
+    path = capture_dir / "output" / "score.json"
+    if not path.is_file():
+        return ""
+    rows = [list(row) for row in summary_rows(json.loads(path.read_text()))]
+    return "<h2>Score against the ground truth</h2>" + _table(["part", "metric", "value"], rows)
+
+
+def _difference_scale() -> str:
+    """A bar from black to white labelled with the linear difference each shade shows:
+    the PNGs hold 4 |render - photo|, sRGB-encoded."""
+    ramp = np.tile(np.linspace(0.0, 1.0, 256), (12, 1))
+    bar = io.BytesIO()
+    Image.fromarray(np.round(ramp * 255).astype(np.uint8)).save(bar, format="PNG")
+    labels = "".join(
+        f"<span style='position:absolute;left:{encoded * 256:.0f}px'>{value:g}</span>"
+        for value in (0.0, 0.005, 0.02, 0.08, 0.25)
+        for encoded in [float(srgb_encode(np.array(4 * value)))]
+    )
+    source = "data:image/png;base64," + base64.b64encode(bar.getvalue()).decode("ascii")
+    return (
+        "<div class='scale'><img src='" + source + "' alt='difference scale' width='256' height='12'>"
+        f"<div style='position:relative;height:1.2em;font-size:0.75em'>{labels}</div>"
+        "<p class='note'>difference: |render - photo| in linear radiance</p></div>"
+    )
 
 
 def _text(value: Any) -> str:
@@ -300,6 +414,8 @@ def _heldout_section(by_name: dict[str, StageRecord]) -> str:
         scores = score_heldout(folder)
         if not scores["views"]:
             continue
+        if not parts:
+            parts.append(_difference_scale())
         parts.append(f"<h3>{_text(stage)}: mean PSNR {scores['psnr_db_mean']:.1f} dB</h3>")
         for name in heldout_names(folder):
             figures = [

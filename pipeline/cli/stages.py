@@ -101,6 +101,10 @@ def make_runner(capture: str, layers: ConfigLayers, wait: bool = True) -> Runner
     return Runner(folder, stages, load_config(schema(stages), folder, layers.preset, layers.set), wait=wait)
 
 
+def _settings(runner: Runner, layers: ConfigLayers) -> html_report.RunSettings:
+    return html_report.RunSettings(layers.preset, tuple(layers.set), tuple(map(str, runner.config.sources)))
+
+
 def _describe(item: PlannedStage) -> str:
     took = f"{item.seconds:7.1f} s" if item.seconds is not None else " " * 9
     return f"  {item.action:8s} {item.stage.name:14s} {took}  {item.key[:10]}  {item.reason}"
@@ -126,7 +130,9 @@ def run(options: RunOptions) -> int:
 
     def write_report(plan: list[PlannedStage]) -> None:
         ran = {p.stage.name for p in plan if p.action == "run"}
-        html_report.write(runner.capture_dir, html_report.records(runner.plan(), ran))
+        html_report.write(
+            runner.capture_dir, html_report.records(runner.plan(), ran), _settings(runner, options.config)
+        )
         output_guide.write(runner.capture_dir)
 
     plan = runner.run(selection, on_stage_done=report, on_published=write_report)
@@ -159,7 +165,9 @@ def run(options: RunOptions) -> int:
 def report(options: ReportOptions) -> int:
     runner = make_runner(options.capture, options.config)
     with CaptureLock(runner.capture_dir, "pipeline report"):
-        path = html_report.write(runner.capture_dir, html_report.records(runner.plan()))
+        path = html_report.write(
+            runner.capture_dir, html_report.records(runner.plan()), _settings(runner, options.config)
+        )
         output_guide.write(runner.capture_dir)
     print(path)
     return 0

@@ -58,13 +58,17 @@ def exit_code(error: BaseException) -> int:
 
 
 def _raise_interrupted(signum, frame) -> None:
+    first = not _received
     _received.append(signum)
-    raise Interrupted(signum)
+    if first:  # a second signal is the watcher's: it ends the process at once
+        raise Interrupted(signum)
 
 
 def _raise_keyboard_interrupt(signum, frame) -> None:
+    first = not _received
     _received.append(signum)
-    raise KeyboardInterrupt
+    if first:
+        raise KeyboardInterrupt
 
 
 def _watch(read_fd: int) -> None:

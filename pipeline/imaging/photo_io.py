@@ -8,7 +8,10 @@ sRGB primaries: black level subtracted, scaled by the white level, the camera's
 as-shot white balance applied, no tone curve, no brightening, so a value of 1 is the
 sensor's clipping point. The white balance, levels and exposure are recorded in the
 photo's metadata (``raw:*`` and the EXIF names). Where a RAW file and a JPEG share a
-name (RAW+JPEG shooting), the RAW is read and the JPEG left out.
+name (RAW+JPEG shooting), the RAW is read and the JPEG left out. HEIC/HEIF (phones)
+is decoded by libheif (pillow-heif), its 8 or 10 bits taken through the sRGB curve
+and from the primaries its colour profile names (Display P3 on most phones) to linear
+sRGB primaries; libheif turns the pixels upright.
 """
 
 from __future__ import annotations
@@ -33,7 +36,23 @@ FREE_MARGIN_BYTES = 16 << 20
 """Free space below which a failed image write is put down to a full disk."""
 RAW_SUFFIXES = (".dng", ".cr2", ".cr3", ".crw", ".nef", ".nrw", ".arw", ".orf", ".rw2", ".raf", ".pef", ".srw", ".3fr")
 """Camera RAW formats, read through LibRaw."""
-PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr", *RAW_SUFFIXES)
+HEIF_SUFFIXES = (".heic", ".heif", ".hif")
+"""High-efficiency image files (phones), read through libheif."""
+PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr", *RAW_SUFFIXES, *HEIF_SUFFIXES)
+EXIF_NAMES = {
+    "Make": "Make",
+    "Model": "Model",
+    "FocalLength": "Exif:FocalLength",
+    "FocalLengthIn35mmFilm": "Exif:FocalLengthIn35mmFilm",
+    "FocalPlaneXResolution": "Exif:FocalPlaneXResolution",
+    "FocalPlaneYResolution": "Exif:FocalPlaneYResolution",
+    "FocalPlaneResolutionUnit": "Exif:FocalPlaneResolutionUnit",
+    "ExposureTime": "ExposureTime",
+    "FNumber": "FNumber",
+    "ISOSpeedRatings": "Exif:ISOSpeedRatings",
+}
+"""EXIF tags a HEIF file's metadata is read for, by PIL's name -> OpenImageIO's."""
+SRGB_PRIMARIES = ((0.64, 0.33), (0.30, 0.60), (0.15, 0.06), (0.3127, 0.3290))
 Encoding = Literal["auto", "srgb", "linear"]
 
 
@@ -78,8 +97,8 @@ def list_photos(folder: Path) -> list[Path]:
 
 
 def unsupported_files(folder: Path) -> list[Path]:
-    """What sits directly in ``folder`` and is not a photo the pipeline reads (HEIC, PSD,
-    a FIFO named .jpg...), sorted; hidden files are left out."""
+    """What sits directly in ``folder`` and is not a photo the pipeline reads (PSD, XMP
+    sidecars, a FIFO named .jpg...), sorted; hidden files are left out."""
     if not folder.is_dir():
         return []
     return sorted(
@@ -161,8 +180,96 @@ def _open_raw(path: Path) -> Iterator[rawpy.RawPy]:
         ) from error
 
 
+def _rgb_to_xyz(primaries) -> np.ndarray:
+    """The linear RGB -> XYZ matrix of red, green, blue and white chromaticities (x, y)."""
+    columns = np.array([[x / y, 1.0, (1 - x - y) / y] for x, y in primaries[:3]]).T
+    x, y = primaries[3]
+    white = np.array([x / y, 1.0, (1 - x - y) / y])
+    return columns * np.linalg.solve(columns, white)
+
+
+def _open_heif(path: Path):
+    import pillow_heif
+
+    try:
+        return pillow_heif.open_heif(str(path), convert_hdr_to_8bit=False)
+    except (ValueError, RuntimeError, OSError) as error:
+        raise PipelineError(f"{path}: cannot read this HEIF file ({error}); remove it or export it as JPEG") from error
+
+
+def _heif_metadata(heif) -> dict[str, object]:
+    from PIL import Image
+
+    exif = Image.Exif()
+    if heif.info.get("exif"):
+        exif.load(heif.info["exif"])
+    tags = {**dict(exif.items()), **dict(exif.get_ifd(0x8769).items())}  # IFD0 and the Exif IFD
+    names = {Image.ExifTags.TAGS.get(tag, ""): value for tag, value in tags.items()}
+    metadata: dict[str, object] = {}
+    for name, attribute in EXIF_NAMES.items():
+        if name in names and names[name] not in (None, ""):
+            value = names[name]
+            metadata[attribute] = str(value).strip("\x00 ") if isinstance(value, str) else float(value)
+    return metadata
+
+
+def _heif_to_srgb_primaries(heif) -> np.ndarray | None:
+    """The matrix from the file's linear primaries to sRGB's, None when they are sRGB's."""
+    nclx = heif.info.get("nclx_profile") or {}
+    if "color_primary_red_x" in nclx:
+        primaries = tuple(
+            (nclx[f"color_primary_{c}_x"], nclx[f"color_primary_{c}_y"]) for c in ("red", "green", "blue", "white")
+        )
+        if np.allclose(primaries, SRGB_PRIMARIES, atol=2e-3):
+            return None
+        return np.linalg.solve(_rgb_to_xyz(SRGB_PRIMARIES), _rgb_to_xyz(primaries))
+    if heif.info.get("icc_profile"):
+        return _icc_to_srgb_primaries(heif.info["icc_profile"])
+    return None
+
+
+def _icc_to_srgb_primaries(icc: bytes) -> np.ndarray | None:
+    """The matrix of a matrix-shaper ICC profile (its rXYZ, gXYZ, bXYZ, D50-adapted) to
+    linear sRGB; None for sRGB itself or a profile without those tags."""
+    import struct
+
+    count = struct.unpack(">I", icc[128:132])[0]
+    tags = {}
+    for index in range(count):
+        signature, offset, size = struct.unpack(">4sII", icc[132 + 12 * index : 144 + 12 * index])
+        tags[signature] = icc[offset : offset + size]
+    if not all(t in tags for t in (b"rXYZ", b"gXYZ", b"bXYZ")):
+        return None
+    columns = np.array(
+        [[v / 65536 for v in struct.unpack(">3i", tags[t][8:20])] for t in (b"rXYZ", b"gXYZ", b"bXYZ")]
+    ).T
+    # Bradford-adapted sRGB in the profile connection space (D50), as ICC's sRGB profile holds it.
+    srgb_d50 = np.array(
+        [[0.4360747, 0.3850649, 0.1430804], [0.2225045, 0.7168786, 0.0606169], [0.0139322, 0.0971045, 0.7141733]]
+    )
+    if np.allclose(columns, srgb_d50, atol=2e-3):
+        return None
+    return np.linalg.solve(srgb_d50, columns)
+
+
+def _read_heif(path: Path, reduce: int) -> Photo:
+    heif = _open_heif(path)
+    bits = int(heif.info.get("bit_depth", 8))
+    pixels = np.asarray(heif, dtype=np.float32)[..., :3] / np.float32(2**bits - 1 if bits <= 8 else 65535)
+    pixels = srgb_decode(np.clip(pixels, np.float32(0.0), np.float32(1.0)))
+    to_srgb = _heif_to_srgb_primaries(heif)
+    if to_srgb is not None:
+        pixels = np.maximum(pixels @ to_srgb.T.astype(np.float32), np.float32(0.0))
+    height, width = pixels.shape[0] // reduce, pixels.shape[1] // reduce
+    pixels = pixels[: height * reduce, : width * reduce].reshape(height, reduce, width, reduce, 3).mean(axis=(1, 3))
+    return Photo(np.ascontiguousarray(pixels, dtype=np.float32), _heif_metadata(heif), "srgb", bits)
+
+
 def read_metadata(path: Path) -> tuple[dict[str, object], tuple[int, int]]:
     """(attributes, upright (width, height)) without decoding the pixels."""
+    if path.suffix.lower() in HEIF_SUFFIXES:
+        heif = _open_heif(path)
+        return _heif_metadata(heif), heif.size
     if is_raw(path):
         with _open_raw(path) as raw:
             return _raw_metadata(path, raw), _raw_size(raw)
@@ -198,6 +305,8 @@ def read_photo(path: Path, encoding: Encoding = "auto", reduce: int = 1) -> Phot
     never held whole at full size. A file OpenImageIO cannot read is a user error."""
     if is_raw(path):
         return _read_raw(path, reduce)
+    if path.suffix.lower() in HEIF_SUFFIXES:
+        return _read_heif(path, reduce)
     unassociated = oiio.ImageSpec()
     unassociated.attribute("oiio:UnassociatedAlpha", 1)  # colour as stored, not multiplied by alpha
     image = oiio.ImageInput.open(str(path), unassociated)

@@ -9,6 +9,7 @@ import subprocess
 import pytest
 
 from pipeline.cli import main as cli_main
+from tests.support.gltf_viewers import CHROMIUM_FLAGS
 from tests.support.tiny_fits import TINY_FIT, TINY_TEXTURE
 
 pytestmark = pytest.mark.slow
@@ -19,14 +20,20 @@ def test_the_report_opens_offline_in_chromium_with_every_image_loaded(run_stages
     run_stages(bird_capture, "export", *OVERRIDES)
     assert cli_main(["--quiet", "report", str(bird_capture), *(a for o in OVERRIDES for a in ("-s", o))]) == 0
     text = (bird_capture / "output" / "report.html").read_text()
-    for heading in ("Stages", "Cameras and mesh", "Choices", "Parameters (fit_geometry)", "Held-out photos"):
+    for heading in ("Summary", "3D view", "Stages", "Cameras and mesh", "Choices", "Parameters (fit_geometry)"):
         assert f"<h2>{heading}</h2>" in text, heading
-    assert "<h2>Trajectories</h2>" in text and "<h2>Warnings</h2>" in text
+    assert "<h2>Held-out photos</h2>" in text and "<h2>Trajectories</h2>" in text and "<h2>Warnings</h2>" in text
+    assert "Preset standard; settings given: fit_material.iterations=8" in text and "<td>mitsuba</td>" in text
     # Held-out reference, render and difference of 2 photos after each of the three fit
-    # stages; the cameras; the trajectories of fit_material and fit_texture.
+    # stages, the difference's scale; the cameras; the trajectories of fit_material and
+    # fit_texture; the texture map when one was kept.
     images = text.count("<img ")
-    assert images == 3 * 2 * 3 + 1 + 2
-    assert not re.search(r"""(src|href)=['"](?!data:)""", text)  # nothing fetched: self-contained
+    textured = "base colour texture (UV atlas)" in text
+    assert images == 3 * 2 * 3 + 1 + 1 + 2 + textured
+    # Nothing fetched: every image embedded; links only to the final files beside the page.
+    assert not re.search(r"""src=['"](?!data:)""", text)
+    links = re.findall(r"""href=['"]([^'"]+)""", text)
+    assert set(links) == {"scene.xml", "params.json", "specimen.glb", "heldout", "README.txt"}
     alone = tmp_path / "report.html"  # a copy alone in a folder: opens offline
     shutil.copy2(bird_capture / "output" / "report.html", alone)
 
@@ -34,8 +41,7 @@ def test_the_report_opens_offline_in_chromium_with_every_image_loaded(run_stages
     if chromium is None:
         pytest.skip("chromium is not installed (bin/test installs Debian's package)")
     dom = subprocess.run(
-        [chromium, "--headless", "--no-sandbox", "--disable-gpu", "--virtual-time-budget=10000", "--dump-dom"]
-        + [alone.as_uri()],
+        [chromium, *CHROMIUM_FLAGS, "--virtual-time-budget=10000", "--dump-dom", alone.as_uri()],
         capture_output=True,
         text=True,
         timeout=180,
@@ -44,3 +50,7 @@ def test_the_report_opens_offline_in_chromium_with_every_image_loaded(run_stages
     counted = re.search(r'data-images="(\d+)" data-images-loaded="(\d+)"', dom)
     assert counted is not None, dom[:500]
     assert int(counted.group(1)) == images and int(counted.group(2)) == images
+    # The 3D view drew the glb (WebGL in software), offline.
+    assert re.search(r'id="specimen-view"[^>]*data-rendered="1"', dom), re.findall(
+        r'<div id="specimen-view"[^>]*>', dom
+    )

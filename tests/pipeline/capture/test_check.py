@@ -117,9 +117,9 @@ def test_photos_cut_out_on_white_are_neither_overexposed_nor_duplicates(synth_ca
 
 def test_files_that_are_not_photos_are_listed_as_warnings(orbit_capture, tmp_path):
     capture = Path(shutil.copytree(orbit_capture, tmp_path / "orbit"))
-    for name in ("IMG_0001.HEIC", "IMG_0002.PSD", "IMG_0003.DNG"):
+    for name in ("IMG_0001.HEIC", "IMG_0002.PSD", "IMG_0003.DNG", "IMG_0003.xmp"):
         (capture / "images" / name).write_bytes(b"x")
     problems = check_capture(capture, _config(capture), features=False)
-    assert _flagged(problems, "unsupported") == {"IMG_0001.HEIC": "warning", "IMG_0002.PSD": "warning"}
-    # RAW is read: a damaged one is named as unreadable.
-    assert _flagged(problems, "readable") == {"IMG_0003.DNG": "error"}
+    assert _flagged(problems, "unsupported") == {"IMG_0002.PSD": "warning", "IMG_0003.xmp": "warning"}
+    # RAW and HEIC are read: damaged ones are named as unreadable.
+    assert _flagged(problems, "readable") == {"IMG_0001.HEIC": "error", "IMG_0003.DNG": "error"}

@@ -66,11 +66,11 @@ def test_files_that_are_not_photos_are_listed(tmp_path):
 
     from pipeline.imaging.photo_io import unsupported_files
 
-    for name in ("a.jpg", "b.HEIC", "c.dng", "e.psd", ".DS_Store"):
+    for name in ("a.jpg", "b.HEIC", "c.dng", "e.psd", "f.CRW.xmp", ".DS_Store"):
         (tmp_path / name).write_bytes(b"x")
     os.mkfifo(tmp_path / "d.jpg")
     (tmp_path / "sub").mkdir()
-    assert [p.name for p in unsupported_files(tmp_path)] == ["b.HEIC", "d.jpg", "e.psd"]
+    assert [p.name for p in unsupported_files(tmp_path)] == ["d.jpg", "e.psd", "f.CRW.xmp"]
 
 
 def _patches(height=48, width=64):
@@ -129,3 +129,29 @@ def test_raw_and_jpeg_twins_are_one_photo_and_a_damaged_raw_is_named(tmp_path):
     damaged.write_bytes((tmp_path / "IMG_0001.DNG").read_bytes()[:300])
     with pytest.raises(PipelineError, match="IMG_0003.NEF: cannot read this RAW file"):
         read_photo(damaged)
+
+
+@pytest.mark.parametrize("primaries", ["srgb", "display-p3"])
+def test_a_phone_heic_reads_as_the_linear_srgb_colours_it_shows(tmp_path, primaries):
+    import pillow_heif
+    from PIL import Image
+
+    from pipeline.imaging.photo_io import SRGB_PRIMARIES, _rgb_to_xyz, read_metadata, srgb_encode
+
+    pixels, colours = _patches()
+    stored = pixels
+    if primaries == "display-p3":  # the same colours as a phone stores them: P3 primaries, sRGB curve
+        p3 = ((0.680, 0.320), (0.265, 0.690), (0.150, 0.060), (0.3127, 0.3290))
+        stored = pixels @ np.linalg.solve(_rgb_to_xyz(p3), _rgb_to_xyz(SRGB_PRIMARIES)).T
+    encoded = np.round(srgb_encode(stored) * 255).astype(np.uint8)
+    exif = Image.Exif()
+    exif[0x010F], exif[0x0110] = "PhoneMake", "PhoneModel"
+    exif.get_ifd(0x8769)[0x920A] = 4.25  # FocalLength, in the Exif IFD
+    heif = pillow_heif.from_bytes("RGB", (64, 48), encoded.tobytes())
+    path = tmp_path / "IMG_0001.HEIC"
+    heif.save(path, quality=-1, exif=exif.tobytes(), color_primaries=12 if primaries == "display-p3" else 1)
+    photo = read_photo(path)
+    assert photo.size == (64, 48) and photo.bits == 8
+    np.testing.assert_allclose(_patch_means(photo.pixels, 4), colours, atol=0.01)
+    metadata, size = read_metadata(path)
+    assert size == (64, 48) and metadata["Make"] == "PhoneMake" and metadata["Exif:FocalLength"] == 4.25
