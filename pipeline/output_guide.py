@@ -71,7 +71,8 @@ def text(capture_dir: Path) -> str:
         for stage, files in stages.items():
             lines.append(f"  {STAGES}/{stage + '/':24s} {', '.join(files[:4])}{', ...' if len(files) > 4 else ''}")
         lines.append("")
-    beside = [name for name in BESIDE if (capture_dir / OUTPUT / name).is_file()]
+    # The report and the manifest are always written with the guide; score.json by `pipeline score`.
+    beside = [name for name in BESIDE if name != "score.json" or (capture_dir / OUTPUT / name).is_file()]
     lines += ["Beside them:", ""] + [f"  {name:32s} {BESIDE[name]}" for name in beside]
     lines += ["", "Files the pipeline did not write are kept; an edited result is restored and your copy kept"]
     lines += ["beside it as NAME.edited.EXT."]

@@ -102,7 +102,8 @@ def make_runner(capture: str, layers: ConfigLayers, wait: bool = True) -> Runner
 
 
 def _settings(runner: Runner, layers: ConfigLayers) -> html_report.RunSettings:
-    return html_report.RunSettings(layers.preset, tuple(layers.set), tuple(map(str, runner.config.sources)))
+    files = tuple(str(source) for source in runner.config.sources if not str(source).startswith("-s "))
+    return html_report.RunSettings(layers.preset, tuple(layers.set), files)
 
 
 def _describe(item: PlannedStage) -> str:
@@ -130,10 +131,10 @@ def run(options: RunOptions) -> int:
 
     def write_report(plan: list[PlannedStage]) -> None:
         ran = {p.stage.name for p in plan if p.action == "run"}
+        output_guide.write(runner.capture_dir)  # first: the report links to it
         html_report.write(
             runner.capture_dir, html_report.records(runner.plan(), ran), _settings(runner, options.config)
         )
-        output_guide.write(runner.capture_dir)
 
     plan = runner.run(selection, on_stage_done=report, on_published=write_report)
     logger.info(
@@ -165,10 +166,10 @@ def run(options: RunOptions) -> int:
 def report(options: ReportOptions) -> int:
     runner = make_runner(options.capture, options.config)
     with CaptureLock(runner.capture_dir, "pipeline report"):
+        output_guide.write(runner.capture_dir)  # first: the report links to it
         path = html_report.write(
             runner.capture_dir, html_report.records(runner.plan()), _settings(runner, options.config)
         )
-        output_guide.write(runner.capture_dir)
     print(path)
     return 0
 

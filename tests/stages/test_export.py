@@ -42,7 +42,8 @@ def test_export_writes_gltf_with_the_models_extensions(run_stages, bird_capture)
     extensions = material["extensions"]
     assert extensions["KHR_materials_transmission"]["transmissionFactor"] == pytest.approx(fitted["spec_trans"][0])
     assert extensions["KHR_materials_ior"]["ior"] == pytest.approx(fitted["eta"][0])
-    assert set(tree["extensionsUsed"]) == {"KHR_materials_transmission", "KHR_materials_ior"}
+    assert set(tree["extensionsUsed"]) == {"KHR_materials_transmission", "KHR_materials_ior", "KHR_materials_volume"}
+    assert fitted["spec_trans"][0] > 0  # the bird is translucent: a clear solid, not a thin wall
     # y up: the bird stands on y = 0.
     attributes = tree["meshes"][0]["primitives"][0]["attributes"]
     positions = tree["accessors"][attributes["POSITION"]]
@@ -134,7 +135,7 @@ def test_three_js_shows_the_glb_as_mitsuba_renders_the_scene(run_stages, bird_ca
     issues = validator_issues(glb)
     assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, issues["messages"]
     scene_dir = outputs["fit_geometry"]["geometry_dir"]
-    name = json.loads(outputs["fit_geometry"]["params"].read_text())["held_out"][0]
+    name = json.loads(outputs["fit_material"]["params"].read_text())["held_out"][0]
     intrinsics, pose = read_views(outputs["sfm"]["cameras"])[name]
     view = (scaled(intrinsics, 160 / intrinsics.width), pose)
     outline, colour = three_js_renders(glb.read_bytes(), view, ("#ff00ff", "#808080"), tmp_path)
