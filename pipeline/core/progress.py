@@ -1,4 +1,4 @@
-"""Progress of long steps: bars on a terminal, a line every 30 s elsewhere; silenced by ``--quiet``."""
+"""Progress of long steps: bars on a terminal, a line every 10 s elsewhere; silenced by ``--quiet``."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from pipeline import logger
 
 T = TypeVar("T")
-LINE_EVERY_S = 30.0
+LINE_EVERY_S = 10.0
 """Off a terminal, how often a long step says how far it is."""
 
 console = Console(stderr=True, soft_wrap=True)

@@ -17,21 +17,21 @@ class _Lines(logging.Handler):
 
 
 def test_off_a_terminal_long_work_says_how_far_it_is(monkeypatch):
-    clock = iter(range(0, 1000, 7))  # each step takes 7 s
+    clock = iter(range(0, 1000, 4))  # each step takes 4 s
     monkeypatch.setattr(progress.time, "monotonic", lambda: float(next(clock)))
     monkeypatch.setattr(progress, "_enabled", True)  # an earlier --quiet CLI call may have turned it off
     monkeypatch.setattr(logger, "handlers", [seen := _Lines()])
     assert not progress.console.is_terminal  # pytest captures stderr
-    assert list(progress.track(range(20), "rendering views")) == list(range(20))
-    # 140 s of work: a line at 35 s, 70 s, 105 s (every 30 s or more) and at the end
+    assert list(progress.track(range(10), "rendering views")) == list(range(10))
+    # 40 s of work: a line at 12 s, 24 s, 36 s (every 10 s or more) and at the end
     assert seen.lines == [
-        "rendering views: 5/20 in 35 s, about 105 s left",
-        "rendering views: 10/20 in 70 s, about 70 s left",
-        "rendering views: 15/20 in 105 s, about 35 s left",
-        "rendering views: 20/20 in 140 s, about 0 s left",
+        "rendering views: 3/10 in 12 s, about 28 s left",
+        "rendering views: 6/10 in 24 s, about 16 s left",
+        "rendering views: 9/10 in 36 s, about 4 s left",
+        "rendering views: 10/10 in 40 s, about 0 s left",
     ]
     seen.lines.clear()
     with progress.steps(3, "fit") as advance:
         for loss in (0.3, 0.2, 0.1):
             advance(f"loss {loss}")
-    assert seen.lines == ["fit: 3/3 in 21 s, about 0 s left (loss 0.1)"]
+    assert seen.lines == ["fit: 3/3 in 12 s, about 0 s left (loss 0.1)"]
