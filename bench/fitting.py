@@ -3,7 +3,7 @@ at the extremes.
 
 Parts (``--parts``, all by default; each rewrites its own section of docs/benchmarks.md):
 
-extremes   pipeline.render.stability on a sphere 64 px wide: every model parameter at each
+extremes   pipeline.fit.stability on a sphere 64 px wide: every model parameter at each
            bound, the degenerate edges the bounds keep away from (eta = 1, albedo =
            0), and the issue's alpha 0.001 and sigma_t 1e4 /m
 accuracy   ``pipeline run`` end to end on the standard preset on copies of
@@ -42,8 +42,9 @@ from pipeline.core.errors import PipelineError
 from pipeline.core.runner import shared_inputs
 from pipeline.core.sections import schema
 from pipeline.core.stage import StageInputs
+from pipeline.fit import stability
 from pipeline.formats.cameras import read_cameras
-from pipeline.render import mitsuba_variant, stability
+from pipeline.render import mitsuba_variant
 from pipeline.synthetic.score import (
     read_linear_image,
     score_capture,
@@ -139,7 +140,7 @@ def extremes_part() -> None:
             [
                 "### Numerical stability at the extremes",
                 "",
-                "`pipeline.render.stability` on a sphere 10 cm across (64x48 px, 16 spp, the model's own",
+                "`pipeline.fit.stability` on a sphere 10 cm across (64x48 px, 16 spp, the model's own",
                 "integrator): one parameter at the value shown, the others at their initial values;",
                 "the gradient of an L2 loss against a render at the initial values; then 10 Adam",
                 "steps of `pipeline.fit.engine` with every parameter free. Reproduce:",

@@ -51,10 +51,10 @@ import numpy as np
 from pipeline.camera.model import Pose
 from pipeline.core.errors import PipelineError
 from pipeline.core.sections import LightSection
-from pipeline.fit.variables import FitParameter, Layout
 from pipeline.formats.scene_folder import SPECIMEN_XML
 from pipeline.imaging.photo_io import read_photo, write_image
 from pipeline.render import capture_scene, scene_xml
+from pipeline.render.parameters import FitParameter, Layout
 
 LightModel = Literal["constant", "envmap", "envmap+area"]
 LIGHT_MODELS: tuple[LightModel, ...] = ("constant", "envmap", "envmap+area")

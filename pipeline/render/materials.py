@@ -20,7 +20,7 @@ and albedo in [0.001, 1], specular and spec_trans in [0, 1]; roughness and alpha
 in [0.001, 1] (a perfectly smooth surface is a different plugin); eta in
 [1.001, 3]; sigma_t in [0.1, 1e5] per metre. Three lower bounds sit a hair above
 the physical edge, because the plugins degenerate there (measured by
-pipeline.render.stability, docs/benchmarks.md, and on the bird): at eta = 1 exactly the
+pipeline.fit.stability, docs/benchmarks.md, and on the bird): at eta = 1 exactly the
 dielectric interface vanishes and roughdielectric's gradients are NaN; at
 albedo = 0 prbvolpath's gradient with respect to the albedo is exactly 0, so a
 channel clamped there could never come back; a base_color texel at exactly 0
@@ -37,7 +37,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal, Mapping
 
-from pipeline.fit.engine import FitParameter
+from pipeline.render.parameters import FitParameter
 
 MaterialModel = Literal["opaque", "principled", "volumetric"]
 

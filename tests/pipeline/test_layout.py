@@ -1,5 +1,6 @@
-"""The architecture, enforced: the library never imports the stages, a stage never
-imports another stage, and every stage reads only outputs its upstream stages declare."""
+"""The architecture, enforced: the library never imports the stages, rendering never
+imports fitting, a stage never imports another stage, and every stage reads only
+outputs its upstream stages declare."""
 
 import ast
 from pathlib import Path
@@ -27,6 +28,14 @@ def _imported_modules(path: Path) -> set[str]:
 @pytest.mark.parametrize("path", sorted((ROOT / "pipeline").rglob("*.py")), ids=lambda p: str(p.relative_to(ROOT)))
 def test_the_library_never_imports_the_stages(path):
     assert not {m for m in _imported_modules(path) if m == "stages" or m.startswith("stages.")}
+
+
+@pytest.mark.parametrize(
+    "path", sorted((ROOT / "pipeline" / "render").rglob("*.py")), ids=lambda p: str(p.relative_to(ROOT))
+)
+def test_rendering_never_imports_fitting(path):
+    """fit/ builds on render/ (scenes, materials, lights), never the other way round."""
+    assert not {m for m in _imported_modules(path) if m == "pipeline.fit" or m.startswith("pipeline.fit.")}
 
 
 @pytest.mark.parametrize("path", sorted((ROOT / "stages").glob("*.py")), ids=lambda p: p.name)

@@ -228,14 +228,15 @@ def test_neighbour_pairs_link_each_texel_to_its_right_and_lower_neighbour_per_ch
 
 
 def test_volumetric_fit_moves_every_parameter_toward_the_truth_within_bounds(mi, tmp_path):
-    """The medium model on pipeline.render.stability's sphere: references at the model's initial
+    """The medium model on pipeline.fit.stability's sphere: references at the model's initial
     values (the truth here), the fit started away from them on every parameter.
     Started on the other side (alpha 0.5, eta 1.3) the fit slides away along a valley
     where a rougher interface and a lower eta look alike (alpha 0.65, eta 1.25 after 60
     iterations at 32 px), which is why this start is below alpha and above eta. 64 px,
     not 32: at 32 px alpha drifts back to its start once eta settles, and whether it
     ends nearer the truth depends on the order of Dr.Jit's threads."""
-    from pipeline.render import materials, stability
+    from pipeline.fit import stability
+    from pipeline.render import materials
 
     scene_file = stability.sphere_scene(tmp_path, "volumetric", 64, 8)
     reference = stability.references(scene_file, 128)
@@ -272,7 +273,7 @@ def test_vertices_differentiate_through_the_medium_with_evaluated_loops(mi, tmp_
     with finite gradients that move the vertices."""
     import trimesh
 
-    from pipeline.render import stability
+    from pipeline.fit import stability
 
     sphere = trimesh.creation.icosphere(subdivisions=2, radius=stability.RADIUS)
     sphere.export(tmp_path / "truth.ply")
@@ -294,7 +295,7 @@ def test_shape_validation_does_not_count_the_renders_noise(mi, tmp_path):
     would look better."""
     import trimesh
 
-    from pipeline.render import stability
+    from pipeline.fit import stability
 
     trimesh.creation.icosphere(subdivisions=2, radius=stability.RADIUS).export(tmp_path / "sphere.ply")
     scene_file = stability.sphere_scene(tmp_path, "principled", 24, 2, mesh="sphere.ply")
@@ -382,8 +383,8 @@ def test_a_checkpoint_restores_adam_state_exactly(mi, tmp_path):
 def test_an_interrupted_shape_fit_resumes_from_its_checkpoint(mi, tmp_path, monkeypatch, caplog):
     import trimesh
 
+    from pipeline.fit import stability
     from pipeline.fit.checkpoint import Checkpoint, resumable
-    from pipeline.render import stability
 
     sphere = trimesh.creation.icosphere(subdivisions=2, radius=stability.RADIUS)
     sphere.export(tmp_path / "truth.ply")

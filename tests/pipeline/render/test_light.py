@@ -6,9 +6,10 @@ import pytest
 import trimesh
 
 from pipeline.camera.model import Intrinsics, Pose
-from pipeline.fit.variables import FitParameter, MaterialVariables
+from pipeline.fit.variables import MaterialVariables
 from pipeline.formats.scene_folder import SPECIMEN_XML
 from pipeline.render import capture_scene, light, scene_xml
+from pipeline.render.parameters import FitParameter
 
 K_SMALL = Intrinsics(24, 24, 30.0, 30.0, 11.5, 11.5)
 

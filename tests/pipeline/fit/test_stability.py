@@ -1,11 +1,12 @@
-"""pipeline.render.stability: each material model at the edges of its bounds, on a tiny
+"""pipeline.fit.stability: each material model at the edges of its bounds, on a tiny
 sphere (32x24 px, 4 spp): finite renders and gradients, Adam steps that stay finite
 and inside the bounds."""
 
 import numpy as np
 import pytest
 
-from pipeline.render import materials, stability
+from pipeline.fit import stability
+from pipeline.render import materials
 from pipeline.render.mitsuba_variant import activate
 
 pytestmark = pytest.mark.slow
