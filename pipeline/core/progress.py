@@ -21,11 +21,24 @@ if not console.is_terminal:
     # and cut a table's names short.
     console.width = 10_000
 _enabled = True
+_stage = ""
+"""The stage running now, named in the lines off a terminal (a batch log interleaves)."""
 
 
 def set_enabled(enabled: bool) -> None:
     global _enabled
     _enabled = enabled
+
+
+@contextlib.contextmanager
+def in_stage(name: str) -> Iterator[None]:
+    """Name ``name`` in the progress lines of the work inside."""
+    global _stage
+    previous, _stage = _stage, name
+    try:
+        yield
+    finally:
+        _stage = previous
 
 
 def is_enabled() -> bool:
@@ -56,8 +69,16 @@ class _Lines:
         elapsed = now - self.started
         of = f"/{self.total}" if self.total else ""
         left = f", about {elapsed / self.done * (self.total - self.done):.0f} s left" if self.total else ""
+        where = f"{_stage}: " if _stage else ""
         logger.info(
-            "%s: %d%s in %.0f s%s%s", self.description, self.done, of, elapsed, left, f" ({status})" if status else ""
+            "%s%s: %d%s in %.0f s%s%s",
+            where,
+            self.description,
+            self.done,
+            of,
+            elapsed,
+            left,
+            f" ({status})" if status else "",
         )
 
 

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any, Literal, Sequence
 
 from pipeline import logger
+from pipeline.core import progress
 from pipeline.core.cache import LOG_FILE, Entry, StageCache
 from pipeline.core.config import Config, input_file_path, input_file_settings, section_dict
 from pipeline.core.errors import ConfigError, DiskFull, PipelineError
@@ -393,7 +394,8 @@ class Runner:
         committed = False
         try:
             logger.info("stage %s (key %s): %s", stage.name, item.key, item.reason)
-            result = stage.main(conf, inputs, tmp)
+            with progress.in_stage(stage.name):
+                result = stage.main(conf, inputs, tmp)
             item.seconds = time.time() - started
             item.metrics = result.metrics
             if set(result.outputs) != set(stage.outputs):

@@ -144,7 +144,7 @@ def heldout_error(validation: list[FitView], spp: int, integrator) -> float:
 
     views = sorted(_with_pixels(validation), key=lambda v: v.name)  # in the order a fit validates them
     targets = {v.name: loop.Target.of(v, mi, dr) for v in views}
-    return loop.heldout_error(views, targets, spp, integrator, mi, dr)
+    return loop.validation_error(views, targets, spp, integrator, mi, dr)
 
 
 def parse_bounds(entries: tuple[str, ...] | list[str], where: str) -> dict[str, tuple[float, float]]:

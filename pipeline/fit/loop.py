@@ -142,7 +142,7 @@ class Target:
         denominator = 2 * dr.sum(self.weight * image * second, axis=axis)
         return dr.select(denominator > 0, numerator / denominator, 1.0)
 
-    def heldout_error(self, view: FitView, index: int, spp: int, mi, dr, integrator=None, fitted_range=None) -> float:
+    def view_error(self, view: FitView, index: int, spp: int, mi, dr, integrator=None, fitted_range=None) -> float:
         """The dual estimator's error of ``view`` (this target's) rendered with fixed
         seeds (2 * index and 2 * index + 1); ``integrator`` None renders with the view's;
         ``fitted_range``: the range of the training photos' gains as they stand."""
@@ -362,19 +362,17 @@ class _Loop:
         spp = self.settings.validation_spp
         fitted = self.variables.gains()
         fitted_range = gain_range(fitted) if fitted else None
-        return heldout_error(self.validation, self.targets, spp, self.integrator, self.mi, self.dr, fitted_range)
+        return validation_error(self.validation, self.targets, spp, self.integrator, self.mi, self.dr, fitted_range)
 
 
-def heldout_error(
+def validation_error(
     views: list[FitView], targets: dict[str, Target], spp: int, integrator, mi, dr, fitted_range=None
 ) -> float:
     """The mean of the views' held-out errors (the i-th view with seeds 2i and 2i + 1),
     their scenes as they stand; ``integrator`` None renders each with its own;
-    ``fitted_range``: the range of the gains fitted alongside (Target.heldout_error)."""
+    ``fitted_range``: the range of the gains fitted alongside (Target.view_error)."""
     with dr.suspend_grad():
-        errors = [
-            targets[v.name].heldout_error(v, i, spp, mi, dr, integrator, fitted_range) for i, v in enumerate(views)
-        ]
+        errors = [targets[v.name].view_error(v, i, spp, mi, dr, integrator, fitted_range) for i, v in enumerate(views)]
     return float(np.mean(errors))
 
 
@@ -423,6 +421,7 @@ def run(
         checkpoint.save_loop(variables.optimizer, record, iteration, started, why, best | {"arrays": best["values"]})
 
     last = settings.iterations if stopped is None else record["iteration"]
+    last_validation = None
     with progress.steps(last - record["iteration"], label) as advance:
         for iteration in range(record["iteration"] + 1, last + 1):
             step_losses = loop.step(iteration)
@@ -459,7 +458,9 @@ def run(
             elif not loop.validation:
                 best = _best(variables, iteration, None)
             log.append(entry)
-            advance(_status(entry, best))
+            if "validation_error" in entry:
+                last_validation = entry["validation_error"]
+            advance(_status(entry, last_validation, best))
             if on_iteration is not None:
                 on_iteration(entry)
             stopped = _stop_reason(settings, losses, entry)
@@ -510,6 +511,7 @@ def _best(variables, iteration: int, error: float | None) -> dict:
     return {"values": variables.snapshot(), "iteration": iteration, "error": error}
 
 
-def _status(entry: dict, best: dict) -> str:
-    heldout = f", held-out {_number(entry['validation_error'])}" if "validation_error" in entry else ""
-    return f"loss {entry['loss']:.4g}{heldout} (best {_number(best['error'])})"
+def _status(entry: dict, validation: float | None, best: dict) -> str:
+    """The progress line's: this step's loss, the last held-out error and the best."""
+    heldout = f", held-out {_number(validation)} (best {_number(best['error'])})" if validation is not None else ""
+    return f"loss {entry['loss']:.4g}{heldout}"

@@ -31,7 +31,7 @@ def test_off_a_terminal_long_work_says_how_far_it_is(monkeypatch):
         "rendering views: 10/10 in 40 s, about 0 s left",
     ]
     seen.lines.clear()
-    with progress.steps(3, "fit") as advance:
+    with progress.in_stage("fit_material"), progress.steps(3, "fit") as advance:
         for loss in (0.3, 0.2, 0.1):
             advance(f"loss {loss}")
-    assert seen.lines == ["fit: 3/3 in 12 s, about 0 s left (loss 0.1)"]
+    assert seen.lines == ["fit_material: fit: 3/3 in 12 s, about 0 s left (loss 0.1)"]
