@@ -53,8 +53,9 @@ import trimesh
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from pipeline import colmap, logger
+from pipeline import logger
 from pipeline.camera.model import Similarity, mesh_coverage
+from pipeline.colmap import meshing, model_io
 from pipeline.core.config import InputFile, Range, input_file_path
 from pipeline.core.errors import PipelineError
 from pipeline.core.stage import Stage, StageInputs, StageResult
@@ -168,7 +169,7 @@ def _refine_with_points(
     # The smallest-eigenvalue eigenvector of each neighbourhood's scatter, all at once.
     point_normals = np.linalg.eigh(np.einsum("nki,nkj->nij", local, local))[1][:, :, 0]
     point_normals *= np.where(np.sum(point_normals * towards, axis=1) >= 0, 1.0, -1.0)[:, None]
-    mesh = colmap.screened_poisson(
+    mesh = meshing.screened_poisson(
         cloud, np.vstack([normals, point_normals]), conf.poisson_depth, conf.poisson_point_weight, work_dir
     )
     parts = mesh.split(only_watertight=False)
@@ -274,7 +275,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         "ground_clipped": ground is not None,
     }
     if conf.refine == "poisson":
-        points, towards = colmap.trusted_points(
+        points, towards = model_io.trusted_points(
             inputs.upstream["sfm"]["sparse"], conf.min_track_length, conf.max_point_error_px
         )
         if len(points) >= 10:

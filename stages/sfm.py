@@ -1,6 +1,6 @@
 """Stage sfm: camera poses of the undistorted photos, in a metric, upright world frame.
 
-1. **Features and matches** (pipeline.colmap.features_and_matches): SIFT on
+1. **Features and matches** (pipeline.features.features_and_matches): SIFT on
    undistort's 8-bit photos, upsampled and DSP-SIFT on small photos; for a
    turntable only from what changes between photos (the still room masked out) and
    matched with ring neighbours, else exhaustively (sequentially past 150 photos).
@@ -63,10 +63,11 @@ from typing import Annotated, Literal
 
 import numpy as np
 
-from pipeline import colmap, logger
+from pipeline import logger
 from pipeline.camera.board import board_poses
 from pipeline.camera.model import Intrinsics, Similarity
 from pipeline.camera.self_calibration import SelfCalibrationSettings, outline_shift_px
+from pipeline.colmap import COLMAP_PIXEL_OFFSET, features, mapping, model_io
 from pipeline.core.config import Range, input_file_path
 from pipeline.core.errors import PipelineError
 from pipeline.core.sections import BoardSection, CamerasSection
@@ -81,7 +82,7 @@ from pipeline.geometry.turntable_placement import PlacementSettings, RigSettings
 
 
 @dataclass(frozen=True)
-class Config(colmap.FeatureSettings, RigSettings, SelfCalibrationSettings):
+class Config(features.FeatureSettings, RigSettings, SelfCalibrationSettings):
     """Structure from motion with pycolmap (or the rig's circular motion), and the world frame."""
 
     min_pose_inliers: Annotated[int, Range(6, None)] = 15
@@ -141,8 +142,8 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         poses, causes = external_poses(input_file_path(inputs.capture_dir, external.source), external.source, order)
         report["poses_from"] = f"[cameras] source = {external.source}"
     elif circular:
-        database = colmap.features_and_matches(conf, rig, photos, cameras, masks, work)
-        keypoints, matches = colmap.verified_matches(database, order, stem_of)
+        database = features.features_and_matches(conf, rig, photos, cameras, masks, work)
+        keypoints, matches = features.verified_matches(database, order, stem_of)
         settings = PlacementSettings.of(conf, conf, rig == "turntable", conf.min_pose_inliers, refine_focal)
         table, poses, solution, report["circular"] = circular_poses(
             settings, order, intrinsics, masks, keypoints, matches, board_found
@@ -156,17 +157,17 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
             (solution.intrinsics.fx, solution.intrinsics.cx, solution.intrinsics.cy, solution.intrinsics.dist[0])
         ]
     else:
-        database = colmap.features_and_matches(conf, rig, photos, cameras, masks, work)
+        database = features.features_and_matches(conf, rig, photos, cameras, masks, work)
         image_dir = next(iter(photos.values()))["srgb"].parent
-        model = colmap.incremental_map(database, image_dir, work / "models", refine_focal, conf.min_pose_inliers)
+        model = mapping.incremental_map(database, image_dir, work / "models", refine_focal, conf.min_pose_inliers)
         if model is not None and refine_focal and conf.self_calibrate:
-            report["self_calibration"] = colmap.self_calibrate(model, conf)
-        poses = colmap.registered_poses(model, {s: n for n, s in stem_of.items()}, intrinsics, refine_focal)
+            report["self_calibration"] = mapping.self_calibrate(model, conf)
+        poses = mapping.registered_poses(model, {s: n for n, s in stem_of.items()}, intrinsics, refine_focal)
         unregistered = [n for n in order if n not in poses]
-        causes = colmap.unregistered_causes(database, unregistered, stem_of) if unregistered else {}
+        causes = features.unregistered_causes(database, unregistered, stem_of) if unregistered else {}
         points = np.array([p.xyz for p in model.points3D.values()]).reshape(-1, 3) if model else points
-        report |= {"poses_from": "SfM", "points": len(points), **colmap.model_metrics(model)}
-        offset = colmap.COLMAP_PIXEL_OFFSET
+        report |= {"poses_from": "SfM", "points": len(points), **mapping.model_metrics(model)}
+        offset = COLMAP_PIXEL_OFFSET
         cameras_params = [c.params for c in model.cameras.values()] if model else []
         residual_k1 = [(f, cx - offset, cy - offset, k1) for f, cx, cy, k1 in cameras_params]
     # A board pose is as good as a registration (in the board frame), and SfM may
@@ -212,11 +213,11 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     if database is None:
         # Where a mesh from the same tool ([mesh] source) must be moved to.
         report["frame"]["from_source"] = to_world.to_json()
-        colmap.model_from_poses(intrinsics, poses, stem_of, sparse)
+        model_io.model_from_poses(intrinsics, poses, stem_of, sparse)
     elif solution is not None:
-        colmap.model_from_tracks(database, solution.intrinsics, poses, points, solution.tracks, stem_of, sparse)
+        model_io.model_from_tracks(database, solution.intrinsics, poses, points, solution.tracks, stem_of, sparse)
     else:
-        colmap.write_model(model, database, to_world, poses, stem_of, sparse)
+        model_io.write_model(model, database, to_world, poses, stem_of, sparse)
     cameras_json = out_dir / "cameras.json"
     write_cameras(cameras_json, {n: intrinsics[n] for n in poses}, poses, frame=report["frame"])
     report["board_reprojection_px"] = board_errors

@@ -1,5 +1,5 @@
 """Self-calibration without a board: which intrinsics the photos constrain, decided the
-same way for COLMAP's incremental model (pipeline.colmap.self_calibrate) and for a
+same way for COLMAP's incremental model (pipeline.colmap.mapping.self_calibrate) and for a
 circular motion (pipeline.geometry.circular_motion).
 
 A parameter is adjusted only when the observations cover enough of the frame and

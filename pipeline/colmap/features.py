@@ -1,0 +1,276 @@
+"""Features and matches: SIFT on masked photos, matching (exhaustive, sequential or
+along a ring), the database's verified matches and why a photo stayed unregistered."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Literal
+
+import cv2
+import numpy as np
+import pycolmap
+
+from pipeline import logger
+from pipeline.camera.model import Intrinsics
+from pipeline.colmap import COLMAP_PIXEL_OFFSET
+from pipeline.core.config import Range
+
+
+def feature_masks(
+    mode: str, mask_dilation: float, photos: dict[str, dict], masks: dict[str, Path], out_dir: Path
+) -> Path | None:
+    """Where features may come from, as masks in COLMAP's convention (IMAGE.png.png,
+    0 = no features), or None for everywhere. ``mode``: everywhere; specimen (the
+    specimen mask dilated by ``mask_dilation`` of the image diagonal); moving (that
+    plus whatever changes between the photos of one camera setting: a turntable)."""
+    if mode == "everywhere":
+        return None
+    folder = out_dir / "feature_masks"
+    folder.mkdir()
+    moving: dict[str, np.ndarray] = {}
+    if mode == "moving":
+        for camera in {photo["camera"] for photo in photos.values()}:
+            names = [n for n, p in photos.items() if p["camera"] == camera]
+            stack = np.stack([cv2.imread(str(photos[n]["srgb"]), cv2.IMREAD_GRAYSCALE) for n in names]).astype(
+                np.float32
+            )
+            still = np.median(stack, axis=0)
+            difference = np.abs(stack - still)
+            noise = max(1.4826 * float(np.median(difference)), 1.0)
+            for name, diff in zip(names, difference):
+                moving[name] = cv2.GaussianBlur(diff, (0, 0), 2.0) > 4 * noise
+    for name, photo in photos.items():
+        specimen = cv2.imread(str(masks[name]), cv2.IMREAD_GRAYSCALE) > 127
+        h, w = specimen.shape
+        radius = max(int(mask_dilation * np.hypot(w, h)), 1)
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1,) * 2)
+        allowed = cv2.dilate(specimen.astype(np.uint8), kernel) > 0
+        if name in moving:
+            allowed |= cv2.dilate(moving[name].astype(np.uint8), kernel) > 0
+        cv2.imwrite(str(folder / f"{Path(photo['srgb']).name}.png"), allowed.astype(np.uint8) * 255)
+    return folder
+
+
+@dataclass(frozen=True)
+class FeatureSettings:
+    """Where features come from, how they are described, and which photos are matched."""
+
+    max_features: Annotated[int, Range(256, 65536)] = 8192
+    """Most SIFT features kept per photo."""
+    upsample: Literal["auto", "yes", "no"] = "auto"
+    """Extract SIFT from twice the photo's resolution (COLMAP's first_octave of -1): two
+    to three times the features on small photos. auto: yes below small_photo_px."""
+    dsp_sift: Literal["auto", "yes", "no"] = "auto"
+    """Domain-size pooled SIFT descriptors: more matches across a change of viewpoint, about
+    four times the extraction time. auto: yes below small_photo_px."""
+    small_photo_px: Annotated[int, Range(0, None)] = 1000
+    """Photos whose longer side is below this are small for upsample and dsp_sift."""
+    feature_mask: Literal["auto", "everywhere", "specimen", "moving"] = "auto"
+    """Where features are extracted. everywhere: the whole photo (a handheld capture,
+    where the set is as still as the specimen); specimen: the dilated specimen mask;
+    moving: the specimen plus whatever changes between photos of a fixed camera (the
+    turning table and board), not the still room. auto: moving for a turntable, else
+    everywhere."""
+    mask_dilation: Annotated[float, Range(0.0, 0.5)] = 0.03
+    """Margin added around the specimen mask, as a fraction of the image diagonal:
+    features on the silhouette's edge are among the best."""
+    matcher: Literal["auto", "exhaustive", "sequential", "ring"] = "auto"
+    """exhaustive: every pair; sequential: each photo with the next sequential_overlap in
+    file order; ring: with the next ring_neighbours, wrapping round (a turntable's
+    revolution). auto: ring for a turntable, else exhaustive up to exhaustive_max_images
+    photos and sequential beyond (a ring rig's photos need not be in order). Exhaustive
+    matching of a turntable finds false pairs between opposite sides of a repetitive set
+    (a checkerboard from 180 degrees away)."""
+    exhaustive_max_images: Annotated[int, Range(2, None)] = 150
+    """Largest capture matched exhaustively (pairs grow with the square of the count)."""
+    sequential_overlap: Annotated[int, Range(1, None)] = 20
+    """Sequential matching: each photo is matched with this many following ones."""
+    ring_neighbours: Annotated[int, Range(1, None)] = 6
+    """Ring matching: each photo is matched with this many following ones, cyclically."""
+
+
+def features_and_matches(
+    settings: FeatureSettings,
+    rig: str,
+    photos: dict[str, dict],
+    cameras: list[dict],
+    masks: dict[str, Path],
+    work: Path,
+) -> Path:
+    """SIFT features and verified matches of every photo (undistort's ``{"srgb": PNG}``)
+    in a new COLMAP database in ``work``, the settings' "auto" choices made for ``rig``."""
+    mode = settings.feature_mask
+    if mode == "auto":
+        mode = "moving" if rig == "turntable" else "everywhere"
+    matcher = settings.matcher
+    if matcher == "auto":
+        exhaustive = len(photos) <= settings.exhaustive_max_images
+        matcher = "ring" if rig == "turntable" else "exhaustive" if exhaustive else "sequential"
+    longest = max(max(c["intrinsics"]["width"], c["intrinsics"]["height"]) for c in cameras)
+    small = longest < settings.small_photo_px
+    database = work / "database.db"
+    _extract_and_match(
+        photos,
+        cameras,
+        feature_masks(mode, settings.mask_dilation, photos, masks, work),
+        next(iter(photos.values()))["srgb"].parent,
+        database,
+        settings.max_features,
+        upsample=settings.upsample == "yes" or (settings.upsample == "auto" and small),
+        domain_size_pooling=settings.dsp_sift == "yes" or (settings.dsp_sift == "auto" and small),
+        matcher=matcher,
+        sequential_overlap=settings.sequential_overlap,
+        ring_neighbours=settings.ring_neighbours,
+        still_camera=rig == "turntable",
+    )
+    return database
+
+
+def _extract_and_match(
+    photos: dict[str, dict],
+    cameras: list[dict],
+    mask_dir: Path | None,
+    image_dir: Path,
+    database: Path,
+    max_features: int,
+    upsample: bool,
+    domain_size_pooling: bool,
+    matcher: str,
+    sequential_overlap: int,
+    ring_neighbours: int,
+    still_camera: bool,
+) -> None:
+    """SIFT features of every photo (one SIMPLE_RADIAL COLMAP camera per camera
+    setting, its distortion 0 until self-calibration; ``upsample``: from twice the
+    resolution; ``domain_size_pooling``: DSP-SIFT descriptors), matched
+    ``matcher``-wise (exhaustive, sequential or ring) and verified with seeded RANSAC;
+    ``still_camera`` drops matches that do not move (a turntable's room)."""
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.sift.max_num_features = max_features
+    extraction.sift.first_octave = -1 if upsample else 0
+    extraction.sift.domain_size_pooling = domain_size_pooling
+    extraction.num_threads = -1
+    pycolmap.Database.open(database).close()  # import_images needs the file to exist
+    for index, camera in enumerate(cameras):
+        names = [Path(p["srgb"]).name for p in photos.values() if p["camera"] == index]
+        if not names:
+            continue
+        K = Intrinsics.from_json(camera["intrinsics"])
+        reader = pycolmap.ImageReaderOptions()
+        # One focal length: undistort makes square pixels, and refining keeps them. The
+        # radial term is what self-calibration may find left in the undistorted photos.
+        reader.camera_model = "SIMPLE_RADIAL"
+        # COLMAP puts the first pixel's centre at (0.5, 0.5), OpenCV and we at (0, 0).
+        reader.camera_params = f"{K.fx},{K.cx + COLMAP_PIXEL_OFFSET},{K.cy + COLMAP_PIXEL_OFFSET},0"
+        if mask_dir is not None:
+            reader.mask_path = str(mask_dir)
+        # Extraction numbers photos in the order its threads finish, and matching
+        # and mapping follow those numbers: importing them first, sorted, makes a
+        # rerun give the same model (it gave rotation errors of 0.7 to 164 degrees).
+        pycolmap.import_images(
+            database, image_dir, camera_mode=pycolmap.CameraMode.SINGLE, image_names=sorted(names), options=reader
+        )
+        pycolmap.extract_features(
+            database,
+            image_dir,
+            image_names=names,
+            camera_mode=pycolmap.CameraMode.SINGLE,
+            reader_options=reader,
+            extraction_options=extraction,
+            device=pycolmap.Device.cpu,
+        )
+    _match(photos, database, matcher, sequential_overlap, ring_neighbours, still_camera)
+
+
+def _match(
+    photos: dict[str, dict],
+    database: Path,
+    matcher: str,
+    sequential_overlap: int,
+    ring_neighbours: int,
+    still_camera: bool,
+) -> None:
+    logger.info("%s matching of %d photos", matcher, len(photos))
+    verification = pycolmap.TwoViewGeometryOptions()
+    # A fixed camera sees the still room at the same pixels in every photo: matches
+    # that do not move say nothing about the turning object.
+    verification.filter_stationary_matches = still_camera
+    # COLMAP seeds RANSAC from the clock by default: the same photos then give
+    # different verified matches, and a different model, on every run.
+    verification.ransac.random_seed = 0
+    matching = pycolmap.FeatureMatchingOptions()
+    # The CPU matcher's approximate nearest-neighbour search gives other matches when
+    # its threads interleave differently (seen on a loaded machine): one thread keeps
+    # reruns identical for about twice the matching time (3 s for the bird's 30 photos).
+    matching.num_threads = 1
+    device = pycolmap.Device.cpu
+    if matcher == "exhaustive":
+        pycolmap.match_exhaustive(database, matching, verification_options=verification, device=device)
+    elif matcher == "sequential":
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = sequential_overlap
+        pycolmap.match_sequential(
+            database, matching, pairing_options=pairing, verification_options=verification, device=device
+        )
+    else:
+        names = sorted(Path(p["srgb"]).name for p in photos.values())
+        neighbours = min(ring_neighbours, len(names) // 2)
+        pairs = {
+            tuple(sorted((names[i], names[(i + k) % len(names)])))
+            for i in range(len(names))
+            for k in range(1, neighbours + 1)
+        }
+        pairs_file = database.with_name("pairs.txt")
+        pairs_file.write_text("".join(f"{a} {b}\n" for a, b in sorted(pairs)))
+        pairing = pycolmap.ImportedPairingOptions()
+        pairing.match_list_path = pairs_file
+        pycolmap.match_image_pairs(
+            database, matching, pairing_options=pairing, verification_options=verification, device=device
+        )
+
+
+def unregistered_causes(database: Path, unregistered: list[str], stem_of: dict[str, str]) -> dict[str, str]:
+    """Why each photo may have failed: few features, or few verified matches."""
+    with pycolmap.Database.open(database) as db:
+        images = {image.name: image.image_id for image in db.read_all_images()}
+        best: dict[int, int] = {}
+        for pair_id, geometry in zip(*db.read_two_view_geometries()):
+            i, j = pycolmap.pair_id_to_image_pair(pair_id)
+            inliers = len(geometry.inlier_matches)
+            best[i], best[j] = max(best.get(i, 0), inliers), max(best.get(j, 0), inliers)
+        causes = {}
+        for name in unregistered:
+            image_id = images[stem_of[name]]
+            keypoints = db.num_keypoints_for_image(image_id)
+            matches = best.get(image_id, 0)
+            if keypoints < 300:
+                causes[name] = f"{keypoints} features: blurred, low-texture or masked out"
+            elif matches < 30:
+                causes[name] = (
+                    f"{keypoints} features but at most {matches} verified matches with any photo: "
+                    "too little overlap, another scene, or a background that moved"
+                )
+            else:
+                causes[name] = f"{matches} verified matches but no consistent pose: a repeated or moving pattern"
+    return causes
+
+
+def verified_matches(database: Path, order: list[str], stem_of: dict[str, str]):
+    """Keypoints per photo (our pixel convention) and the verified inlier matches per
+    ordered photo pair, as {(a, b): {keypoint in a: keypoint in b}}."""
+    keypoints, matches = {}, {}
+    with pycolmap.Database.open(database) as db:
+        name_of = {}
+        for name in order:
+            image_id = db.read_image_with_name(stem_of[name]).image_id
+            name_of[image_id] = name
+            keypoints[name] = db.read_keypoints(image_id)[:, :2] - COLMAP_PIXEL_OFFSET
+        for pair_id, geometry in zip(*db.read_two_view_geometries()):
+            pairs = np.asarray(geometry.inlier_matches)
+            if len(pairs) == 0:
+                continue
+            a, b = (name_of[i] for i in pycolmap.pair_id_to_image_pair(pair_id))
+            matches[a, b] = dict(zip(pairs[:, 0].tolist(), pairs[:, 1].tolist()))
+            matches[b, a] = dict(zip(pairs[:, 1].tolist(), pairs[:, 0].tolist()))
+    return keypoints, matches
