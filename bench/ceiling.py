@@ -62,10 +62,7 @@ from report import write_section
 
 from pipeline.fit.bake import bake_bitmap, fill_unseen, pixel_rays, render_view, texels_hit
 from pipeline.fit.outputs import write_heldout
-from pipeline.fit.views import PhotoGains, load_views
-from pipeline.formats.cameras import read_views
-from pipeline.formats.masks import read_masks
-from pipeline.formats.pinhole import linear_photos
+from pipeline.fit.views import PhotoGains, Windowing, load_views, read_capture_photos
 from pipeline.formats.scene_folder import fitted_description, read_json
 from pipeline.render import materials, mitsuba_variant
 from pipeline.render.materials import SPECIMEN
@@ -231,29 +228,27 @@ def ceiling(
     mitsuba_variant.activate("auto")
     shape = np.array(mi.Bitmap(str(bitmap))).shape[:2]
     key = materials.TEXTURE_SLOTS[description["model"]].key
-    photos = (
-        read_views(outputs["sfm"]["cameras"]),
-        linear_photos(outputs["undistort"]["pinhole"]),
-        read_masks(outputs["masks"]["masks_json"]),
+    photos = read_capture_photos(
+        outputs["sfm"]["cameras"],
+        outputs["undistort"]["pinhole"],
+        outputs["masks"]["masks_json"],
+        PhotoGains.of(material),
     )
-    gains = PhotoGains.of(material)
     held = set(material["held_out"])
-    scenes = photographer_scenes(textured, description, photos[0], *photographer) if photographer else None
+    scenes = photographer_scenes(textured, description, photos.cameras, *photographer) if photographer else None
     baked = texture_conf.get("baked", {})
     rounds = rounds or baked.get("rounds", 1)
     # the bake's windows and samples as fit_texture's; the scored windows as heldout/'s
     bake_views = [
         v
         for v, _ in load_views(
-            textured, description, *photos, baked.get("max_size", 512), 2, 32, gains=gains, scenes=scenes
+            textured, description, photos, Windowing(baked.get("max_size", 512), 2, 32), scenes=scenes
         )
     ]
     for view in bake_views:
         if view.gain is not None:  # a held-out photo in the scene's units
             view.reference = view.reference / view.gain.astype(np.float32)
-    scored = [
-        v for v, _ in load_views(textured, description, *photos, 128, 2, 64, names=held, gains=gains, scenes=scenes)
-    ]
+    scored = [v for v, _ in load_views(textured, description, photos, Windowing(128, 2, 64), names=held, scenes=scenes)]
     rows = []
     with tempfile.TemporaryDirectory() as temporary:
         folder = keep or temporary

@@ -19,9 +19,7 @@ from ceiling import cached_outputs
 from report import write_section
 
 from pipeline.fit.exposure import NEAREST, table_gains
-from pipeline.formats.cameras import read_views
-from pipeline.formats.masks import read_masks
-from pipeline.formats.pinhole import linear_photos
+from pipeline.fit.views import read_capture_photos
 from pipeline.formats.scene_folder import read_json
 
 COUNTS = (2, 3, 4, 6, 10)
@@ -38,10 +36,8 @@ def main() -> None:
     params = read_json(outputs["fit_material"]["params"])
     if not params.get("photo_gains"):
         raise SystemExit(f"{args.capture}: fit_material fitted no photo gains (fit_material.exposure, white_balance)")
-    photos = (
-        read_views(outputs["sfm"]["cameras"]),
-        linear_photos(outputs["undistort"]["pinhole"]),
-        read_masks(outputs["masks"]["masks_json"]),
+    photos = read_capture_photos(
+        outputs["sfm"]["cameras"], outputs["undistort"]["pinhole"], outputs["masks"]["masks_json"]
     )
     description = read_json(outputs["scene"]["description"])
     held = params["held_out"]

@@ -42,10 +42,7 @@ from report import write_section
 
 from pipeline.fit.bake import pixel_rays
 from pipeline.fit.loop import matched_gain
-from pipeline.fit.views import PhotoGains, load_views
-from pipeline.formats.cameras import read_views
-from pipeline.formats.masks import read_masks
-from pipeline.formats.pinhole import linear_photos
+from pipeline.fit.views import PhotoGains, Windowing, load_views, read_capture_photos
 from pipeline.formats.scene_folder import fitted_description, read_json
 from pipeline.render import mitsuba_variant
 
@@ -67,15 +64,16 @@ def rendered_views(capture: Path, overrides: list[str], names: str = "training")
     material = read_json(outputs["fit_material"]["params"])
     textured = outputs["fit_texture"]["textured_dir"]
     description = fitted_description(read_json(outputs["scene"]["description"]), material)
-    photos = (
-        read_views(outputs["sfm"]["cameras"]),
-        linear_photos(outputs["undistort"]["pinhole"]),
-        read_masks(outputs["masks"]["masks_json"]),
+    photos = read_capture_photos(
+        outputs["sfm"]["cameras"],
+        outputs["undistort"]["pinhole"],
+        outputs["masks"]["masks_json"],
+        PhotoGains.of(material),
     )
     mitsuba_variant.activate("auto")
     held = set(material["held_out"])
     chosen = held if names == "held_out" else set(description["views"]) - held
-    views = load_views(textured, description, *photos, 128, 2, 64, names=chosen, gains=PhotoGains.of(material))
+    views = load_views(textured, description, photos, Windowing(128, 2, 64), names=chosen)
     rendered = []
     for view, _ in views:
         render = np.asarray(mi.render(view.scene, sensor=view.sensor, integrator=view.integrator, spp=64, seed=1))

@@ -74,10 +74,7 @@ from pipeline.fit import engine
 from pipeline.fit.checkpoint import resumable_stage
 from pipeline.fit.outputs import write_fit_log, write_heldout
 from pipeline.fit.passes import material_pass, pass_summary, shape_pass, specimen_error, sphere_in_box
-from pipeline.fit.views import PhotoGains, load_views
-from pipeline.formats.cameras import read_views
-from pipeline.formats.masks import read_masks
-from pipeline.formats.pinhole import linear_photos
+from pipeline.fit.views import CapturePhotos, PhotoGains, Windowing, load_views, read_capture_photos
 from pipeline.formats.scene_folder import (
     HELDOUT,
     MESH_PLY,
@@ -171,7 +168,7 @@ def _rounds(
     geometry: Path,
     description: dict,
     loss: str,
-    views_inputs: tuple,
+    photos: CapturePhotos,
     held: set[str],
     parameters: list[engine.FitParameter],
     diagonal: float,
@@ -203,16 +200,20 @@ def _rounds(
         seed = conf.seed + round_index
         threshold = conf.geometry_min_improvement
         shape_settings = _shape_settings(conf, diagonal, seed)
-        shape, moved = shape_pass(
-            geometry, description, loss, views_inputs, held, conf.max_size, shape_settings, threshold
-        )
+        shape, moved = shape_pass(geometry, description, loss, photos, held, conf.max_size, shape_settings, threshold)
         rounds.append({"geometry": record(shape, round_index, "geometry", moved, threshold)})
         if conf.material_iterations:
             threshold = conf.material_min_improvement
             settings = _material_settings(conf, seed)
-            window = (conf.material_max_size, conf.erode_px)
             refit, kept = material_pass(
-                geometry, description, views_inputs, held, parameters, *window, settings, threshold
+                geometry,
+                description,
+                photos,
+                held,
+                parameters,
+                Windowing(conf.material_max_size, conf.erode_px, settings.spp),
+                settings,
+                threshold,
             )
             rounds[-1]["material"] = record(refit, round_index, "material", kept, threshold)
             if kept:
@@ -245,10 +246,10 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
     # 2. The rounds of geometry and material passes.
     mitsuba_variant.activate(inputs.shared["mitsuba"].variant)
-    views_inputs = (
-        read_views(inputs.upstream["sfm"]["cameras"]),
-        linear_photos(inputs.upstream["undistort"]["pinhole"]),
-        read_masks(inputs.upstream["masks"]["masks_json"]),
+    photos = read_capture_photos(
+        inputs.upstream["sfm"]["cameras"],
+        inputs.upstream["undistort"]["pinhole"],
+        inputs.upstream["masks"]["masks_json"],
         PhotoGains.of(material),
     )
     held = set(material["held_out"])
@@ -257,11 +258,11 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     texture = (source_params["learning_rate"], source_params["smoothness"]) if source_params.get("kept") else None
     parameters = materials.refit_parameters(model, bounds, texture)
     started = time.perf_counter()
-    measure = (geometry, description, views_inputs, held, conf.material_max_size, conf.erode_px, conf.validation_spp)
-    specimen = {"start": specimen_error(*measure), "start_values": dict(values)}
-    rounds, log = _rounds(conf, geometry, description, loss, views_inputs, held, parameters, diagonal, values)
+    measured = Windowing(conf.material_max_size, conf.erode_px, conf.validation_spp)
+    specimen = {"start": specimen_error(geometry, description, photos, held, measured), "start_values": dict(values)}
+    rounds, log = _rounds(conf, geometry, description, loss, photos, held, parameters, diagonal, values)
     # Kept only when the specimen's error ends lower (not the sphere: no result to keep).
-    specimen["end"] = specimen_error(*measure)
+    specimen["end"] = specimen_error(geometry, description, photos, held, measured)
     specimen["kept"] = conf.start == "sphere" or specimen["end"] < specimen["start"]
     if not specimen["kept"]:
         logger.info("specimen's held-out error %.4g -> %.4g: the start scene kept", specimen["start"], specimen["end"])
@@ -270,12 +271,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         values = specimen["start_values"]
 
     # 3. Held-out renders of the final scene, the log and params.json.
-    cameras, linear, masks, _ = views_inputs
-    final = load_views(
-        *(geometry, description, cameras, linear, masks, conf.material_max_size, conf.erode_px, conf.validation_spp),
-        names=held,
-        gains=PhotoGains.of(material),
-    )
+    final = load_views(geometry, description, photos, measured, names=held)
     write_heldout([v for v, _ in final], geometry / HELDOUT)
     write_fit_log(geometry, log)
     positions = trimesh.load(geometry / MESH_PLY, force="mesh", process=False).vertices

@@ -66,7 +66,7 @@ from __future__ import annotations
 
 import shutil
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from functools import partial
 from pathlib import Path
 from typing import Annotated
@@ -85,10 +85,7 @@ from pipeline.fit.checkpoint import resumable_stage
 from pipeline.fit.exposure import table_gains
 from pipeline.fit.outputs import write_fit_log, write_heldout
 from pipeline.fit.settings import FitSettings
-from pipeline.fit.views import BoardPixels, PhotoGains, held_out_names, load_views
-from pipeline.formats.cameras import read_views
-from pipeline.formats.masks import read_masks
-from pipeline.formats.pinhole import linear_photos
+from pipeline.fit.views import BoardPixels, PhotoGains, Windowing, held_out_names, load_views, read_capture_photos
 from pipeline.formats.scene_folder import HELDOUT, MESH_PLY, PARAMS_JSON, SCENE_XML, SPECIMEN_XML, read_json, write_json
 from pipeline.render import light as estimated_light
 from pipeline.render import materials, mitsuba_variant
@@ -151,9 +148,11 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     light: LightSection = inputs.shared["light"]
 
     # 2. Every photo as a view in its mask's window; a few held out for validation.
-    cameras = read_views(inputs.upstream["sfm"]["cameras"])
     upstream = inputs.upstream
-    photos = (cameras, linear_photos(upstream["undistort"]["pinhole"]), read_masks(upstream["masks"]["masks_json"]))
+    photos = read_capture_photos(
+        upstream["sfm"]["cameras"], upstream["undistort"]["pinhole"], upstream["masks"]["masks_json"]
+    )
+    cameras = photos.cameras
 
     initial = {name: entry["value"] for name, entry in description["parameters"].items()}
     poses = {name: pose for name, (_, pose) in cameras.items()}
@@ -178,9 +177,8 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         seen = description | {"model": model, "integrator": integrator}
         board = BoardPixels(tuple(board_print), count_board) if board_print else None
         gains = PhotoGains(fitted_gains or {}, gain_channels, measured or {})
-        windowed = load_views(
-            *(fitted, seen, *photos, conf.max_size, conf.erode_px, conf.spp), names=names, gains=gains, board=board
-        )
+        windowing = Windowing(conf.max_size, conf.erode_px, conf.spp)
+        windowed = load_views(fitted, seen, replace(photos, gains=gains), windowing, names=names, board=board)
         return [v for v, _ in windowed]
 
     def fit(model: str, start_light, start_values: dict = initial, integrator: dict | None = None) -> Candidate:

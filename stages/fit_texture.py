@@ -84,10 +84,7 @@ from pipeline.fit.checkpoint import resumable_stage
 from pipeline.fit.outputs import write_fit_log, write_heldout
 from pipeline.fit.settings import FitSettings, LoopSettings
 from pipeline.fit.texture import TextureFit, fit_constants_then_levels, level_shapes, write_texture
-from pipeline.fit.views import PhotoGains, load_views
-from pipeline.formats.cameras import read_views
-from pipeline.formats.masks import read_masks
-from pipeline.formats.pinhole import linear_photos
+from pipeline.fit.views import CapturePhotos, PhotoGains, Windowing, load_views, read_capture_photos
 from pipeline.formats.scene_folder import (
     HELDOUT,
     MESH_PLY,
@@ -181,18 +178,27 @@ def _texture_fit(conf: Config, model: str, bounds: dict, views: list[engine.FitV
     return TextureFit(training=training, validation=validation, parameters=parameters, settings=settings)
 
 
-def _baker(conf: Config, slot, shape: tuple[int, ...], fit: TextureFit, material: dict, where: tuple, report: dict):
+def _baker(
+    conf: Config,
+    slot,
+    shape: tuple[int, ...],
+    fit: TextureFit,
+    material: dict,
+    scene: tuple[Path, dict],
+    photos: CapturePhotos,
+    report: dict,
+):
     """With ``start = photos`` and a bitmap: what bakes the texture from the training
-    photos (``where``: the scene folder, its description, cameras, photos and masks)
-    into the training views' scenes, as the constants' refit leaves them, and notes it
-    in ``report``; None otherwise."""
+    ``photos`` (``scene``: the scene folder and its description) into the training
+    views' scenes, as the constants' refit leaves them, and notes it in ``report``;
+    None otherwise."""
     if conf.start != "photos" or slot.kind != "bitmap":
         return None
 
     def bake() -> np.ndarray:
         scenes = {v.name: v.scene for v in fit.training}
-        window_and_samples = (conf.bake_max_size, conf.erode_px, conf.bake_spp)
-        views = load_views(*where, *window_and_samples, names=set(scenes), gains=PhotoGains.of(material), scenes=scenes)
+        windowing = Windowing(conf.bake_max_size, conf.erode_px, conf.bake_spp)
+        views = load_views(*scene, photos, windowing, names=set(scenes), scenes=scenes)
         free = material["light"].get("level_from") == estimated_light.SPECIMEN_LEVEL  # a guessed level may rise
         relit = [v.scene for v in (*fit.training, *fit.validation)] if free else []
         bounds = material["bounds"][slot.parameter]
@@ -207,9 +213,10 @@ def _baker(conf: Config, slot, shape: tuple[int, ...], fit: TextureFit, material
     return bake
 
 
-def _render_heldout(conf: Config, textured: Path, description: dict, photos: tuple, held: set[str], gains) -> None:
+def _render_heldout(conf: Config, textured: Path, description: dict, photos: CapturePhotos, held: set[str]) -> None:
     # the photos' gains: a held-out photo's measured one scales its render
-    views = load_views(textured, description, *photos, conf.max_size, conf.erode_px, conf.spp, names=held, gains=gains)
+    windowing = Windowing(conf.max_size, conf.erode_px, conf.spp)
+    views = load_views(textured, description, photos, windowing, names=held)
     write_heldout([view for view, _ in views], textured / HELDOUT)
 
 
@@ -250,19 +257,17 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
     # 3. The views, fit_material's held-out photos, and the fit: constants, then levels.
     mitsuba_variant.activate(inputs.shared["mitsuba"].variant)
-    cameras = read_views(inputs.upstream["sfm"]["cameras"])
-    linear = linear_photos(inputs.upstream["undistort"]["pinhole"])
-    masks = read_masks(inputs.upstream["masks"]["masks_json"])
-    views = [
-        view
-        for view, _ in load_views(
-            *(textured, description, cameras, linear, masks, conf.max_size, conf.erode_px, conf.spp),
-            gains=PhotoGains.of(material),
-        )
-    ]
+    photos = read_capture_photos(
+        inputs.upstream["sfm"]["cameras"],
+        inputs.upstream["undistort"]["pinhole"],
+        inputs.upstream["masks"]["masks_json"],
+        PhotoGains.of(material),
+    )
+    windowing = Windowing(conf.max_size, conf.erode_px, conf.spp)
+    views = [view for view, _ in load_views(textured, description, photos, windowing)]
     held = set(material["held_out"])
     fit = _texture_fit(conf, model, material["bounds"], views, held)
-    bake = _baker(conf, slot, shapes[-1], fit, material, (textured, description, cameras, linear, masks), report)
+    bake = _baker(conf, slot, shapes[-1], fit, material, (textured, description), photos, report)
     fitted = fit_constants_then_levels(slot, texture, shapes, fit, report, bake)
     result, texture, constants = fitted["result"], fitted["texture"], fitted["constants"]
     constant_error, texture_error = fitted["constant_error"], report["levels"][-1]["validation_mse"]
@@ -275,7 +280,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         write_texture(textured, slot, texture, box)
         constant_values = {n: result.values[n] for n in constants}
         if (scale := report.get("baked", {}).get("light_scale", 1.0)) != 1.0:
-            poses = {name: pose for name, (_, pose) in cameras.items()}
+            poses = {name: pose for name, (_, pose) in photos.cameras.items()}
             report["light"] = estimated_light.rescale_files(textured, material["light"], scale, description, poses)
     else:
         # fit_material's constant scene, with the refitted constants.
@@ -287,8 +292,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
     # 5. Held-out renders of the scene kept, and params.json.
     if kept or fitted["refitted"]:
-        photos = (cameras, linear, masks)
-        _render_heldout(conf, textured, description, photos, held, PhotoGains.of(material))
+        _render_heldout(conf, textured, description, photos, held)
     else:
         shutil.copytree(inputs.upstream["fit_material"]["heldout"], textured / HELDOUT)
     _finish_report(report, material, constant_values, result.values[slot.parameter] if kept else None)

@@ -27,6 +27,7 @@ import numpy as np
 
 from pipeline.camera.model import Intrinsics, Pose, ground_hits, project
 from pipeline.core import progress
+from pipeline.fit.views import CapturePhotos
 from pipeline.render.capture_scene import photo_at_most, table_region
 
 CLIPPED = 0.9
@@ -108,24 +109,23 @@ def predicted_gain(
 
 def table_gains(
     description: dict,
-    photos: tuple[dict, dict, dict],
+    photos: CapturePhotos,
     fitted: dict[str, list[float]],
     names: list[str],
     channels: int,
     nearest: int = NEAREST,
 ) -> dict:
     """The RGB gains of the photos ``names`` (held out: no fit saw them), from the table
-    they share with the training photos (predicted_gain). ``photos``: cameras, linear
-    photos and masks; ``fitted``: the training photos' gains. Returns {"gains": by name
-    (photos that share too little table left out), "training_error": the median, 90th
-    percentile and largest relative error of each training photo's gain predicted from
-    the others};
+    they share with the training photos (predicted_gain); ``fitted``: the training
+    photos' gains. Returns {"gains": by name (photos that share too little table left
+    out), "training_error": the median, 90th percentile and largest relative error of
+    each training photo's gain predicted from the others};
     empty without a table in the scene or fitted gains. ``channels`` 1: one gain, the
     channels' mean; ``nearest``: predicted_gain's."""
     ground = description.get("ground")
     if not ground or not fitted or not names:
         return {}
-    cameras, linear, masks = photos
+    cameras, linear, masks = photos.cameras, photos.linear, photos.masks
     region = table_region(ground["radius"], description.get("board_print"))
     pixels = {
         name: table_pixels(*cameras[name], linear[name], masks[name], region)

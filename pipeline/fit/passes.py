@@ -15,7 +15,7 @@ import trimesh
 from pipeline.camera.model import Intrinsics, Pose, ground_hits
 from pipeline.fit import engine
 from pipeline.fit.outputs import write_texture_files
-from pipeline.fit.views import Window, load_views
+from pipeline.fit.views import CapturePhotos, Window, Windowing, load_views
 from pipeline.formats.scene_folder import MESH_PLY, SPECIMEN_XML
 from pipeline.render import materials, scene_xml
 
@@ -112,7 +112,7 @@ def shape_pass(
     geometry: Path,
     description: dict,
     loss: str,
-    photos: tuple,
+    photos: CapturePhotos,
     held: set[str],
     max_size: int,
     settings: engine.ShapeSettings,
@@ -121,20 +121,16 @@ def shape_pass(
     """Vertices of the scene folder's mesh.ply refined with the scene's material
     frozen, compared by ``loss`` (photometric or silhouette) in windows of at most
     ``max_size`` px; the mesh written back when the held-out error drops by
-    ``min_improvement`` (relative). ``photos``: (cameras, linear photos, masks,
-    fit_material's PhotoGains). Returns the fit and whether its mesh was kept."""
+    ``min_improvement`` (relative). Returns the fit and whether its mesh was kept."""
     import mitsuba as mi
 
-    cameras, linear, masks, gains = photos
-    windowed = load_views(
-        *(geometry, description, cameras, linear, masks, max_size, 0, settings.spp), sample_border=True, gains=gains
-    )
+    windowed = load_views(geometry, description, photos, Windowing(max_size, 0, settings.spp, sample_border=True))
     if loss == "silhouette":
-        views = silhouette_views(windowed, geometry / MESH_PLY, masks)
+        views = silhouette_views(windowed, geometry / MESH_PLY, photos.masks)
         integrator = {"type": "direct_projective", "sppi": 0}
     else:
         # The silhouette and its surroundings carry the shape: every window pixel counts.
-        views = backdrop_views(windowed, masks, cameras, description)
+        views = backdrop_views(windowed, photos.masks, photos.cameras, description)
         kind, depth = description["integrator"]["differentiable"], description["integrator"]["max_depth"]
         integrator = (
             {"type": "prb_projective", "max_depth": depth, "sppi": 0}
@@ -163,11 +159,10 @@ def improved(result, min_improvement: float) -> bool:
 def material_pass(
     geometry: Path,
     description: dict,
-    photos: tuple,
+    photos: CapturePhotos,
     held: set[str],
     parameters: list[engine.FitParameter],
-    max_size: int,
-    erode_px: int,
+    windowing: Windowing,
     settings: engine.FitSettings,
     min_improvement: float,
 ) -> tuple[engine.FitResult, bool]:
@@ -175,9 +170,7 @@ def material_pass(
     geometry frozen; written back into specimen.xml (and the texture's files) when the
     held-out error drops by ``min_improvement`` (relative). Returns the fit and
     whether it was kept."""
-    cameras, linear, masks, gains = photos
-    windowed = load_views(geometry, description, cameras, linear, masks, max_size, erode_px, settings.spp, gains=gains)
-    views = [v for v, _ in windowed]
+    views = [v for v, _ in load_views(geometry, description, photos, windowing)]
     result = engine.fit(
         parameters, [v for v in views if v.name not in held], [v for v in views if v.name in held], settings
     )
@@ -201,16 +194,13 @@ def sphere_in_box(bounds: np.ndarray, subdivisions: int) -> trimesh.Trimesh:
 
 
 def specimen_error(
-    geometry: Path, description: dict, photos: tuple, held: set[str], max_size: int, erode_px: int, spp: int
+    geometry: Path, description: dict, photos: CapturePhotos, held: set[str], windowing: Windowing
 ) -> float:
     """The held-out error of the scene folder as it stands, as fit_material and
-    fit_texture measure it: the held-out photos' eroded specimen masks in windows of
-    ``max_size`` pixels, their matched gains, each view's own integrator."""
-    cameras, linear, masks, gains = photos
-    windowed = load_views(
-        geometry, description, cameras, linear, masks, max_size, erode_px, spp, names=held, gains=gains
-    )
-    return engine.heldout_error([v for v, _ in windowed], spp, None)
+    fit_texture measure it: the held-out photos' eroded specimen masks in their
+    windows, their matched gains, each view's own integrator."""
+    windowed = load_views(geometry, description, photos, windowing, names=held)
+    return engine.heldout_error([v for v, _ in windowed], windowing.spp, None)
 
 
 def pass_summary(result: engine.ShapeResult | engine.FitResult) -> dict:

@@ -29,6 +29,9 @@ import trimesh
 from pipeline import logger
 from pipeline.camera.model import Intrinsics, Pose, ground_hits, mesh_coverage, resize_exact, scaled
 from pipeline.fit.loop import FitView, gain_range
+from pipeline.formats.cameras import read_views
+from pipeline.formats.masks import read_masks
+from pipeline.formats.pinhole import linear_photos
 from pipeline.formats.scene_folder import MESH_PLY, SCENE_XML
 from pipeline.imaging.photo_io import read_photo
 from pipeline.render import scene_xml
@@ -160,6 +163,41 @@ class PhotoGains:
         return PhotoGains(params.get("photo_gains") or {}, params.get("gain_channels", 0), measured)
 
 
+@dataclass(frozen=True)
+class CapturePhotos:
+    """The capture's photos as the fits read them, by photo name."""
+
+    cameras: dict[str, tuple[Intrinsics, Pose]]
+    """Each photo's intrinsics and pose (sfm's cameras.json)."""
+    linear: dict[str, Path]
+    """Each photo's linear EXR (undistort)."""
+    masks: dict[str, Path]
+    """Each photo's mask (masks)."""
+    gains: PhotoGains | None = None
+    """What fit_material found of the photos' exposure; None in fit_material itself."""
+
+
+def read_capture_photos(
+    cameras_json: Path, pinhole_json: Path, masks_json: Path, gains: PhotoGains | None = None
+) -> CapturePhotos:
+    """The photos of sfm's cameras.json, undistort's pinhole.json and masks' masks.json."""
+    return CapturePhotos(read_views(cameras_json), linear_photos(pinhole_json), read_masks(masks_json), gains)
+
+
+@dataclass(frozen=True)
+class Windowing:
+    """How each photo is cut and sampled for a fit."""
+
+    max_size: int
+    """Longer side of a view's window, pixels (the photo reduced to fit)."""
+    erode_px: int
+    """Pixels the mask is eroded by before it weights the loss."""
+    spp: int
+    """Samples per pixel of the view's renders."""
+    sample_border: bool = False
+    """Sample the film's border too (geometry passes: the silhouette reaches it)."""
+
+
 BOARD_MARGIN = 0.3
 """With the board in the fit, windows reach this fraction of the mask's box further on
 each side: the specimen's shadow and the print's shading beside it."""
@@ -177,24 +215,19 @@ def board_weight(window: Window, intrinsics: Intrinsics, pose: Pose, board: Boar
 def load_views(
     scene_dir: Path,
     description: dict,
-    cameras: dict[str, tuple[Intrinsics, Pose]],
-    linear: dict[str, Path],
-    masks: dict[str, Path],
-    max_size: int,
-    erode_px: int,
-    spp: int,
-    sample_border: bool = False,
+    photos: CapturePhotos,
+    windowing: Windowing,
     names: set[str] | None = None,
-    gains: PhotoGains | None = None,
     board: BoardPixels | None = None,
     scenes: dict[str, Any] | None = None,
 ) -> list[tuple[FitView, Window]]:
     """Every photo (or those in ``names``) as a FitView in its window (mask_windows over
     every photo of the scene, so a view's window does not depend on ``names``); weights
-    are the mask eroded by ``erode_px``. ``gains``: what fit_material found of the
-    photos' exposure (PhotoGains). ``board``: windows wider by BOARD_MARGIN, and the print's pixels
-    weighted too when it says so. ``scenes``: each view's scene already loaded (another
-    fit's views', so that what that fit changed holds), instead of the files'."""
+    are the mask eroded by ``windowing.erode_px``; ``photos.gains`` divide the training
+    photos and match the held-out ones. ``board``: windows wider by BOARD_MARGIN, and the
+    print's pixels weighted too when it says so. ``scenes``: each view's scene already
+    loaded (another fit's views', so that what that fit changed holds), instead of the
+    files'."""
     import mitsuba as mi
 
     shared_scene = None
@@ -205,8 +238,9 @@ def load_views(
     integrator = mi.load_dict(
         {"type": description["integrator"]["differentiable"], "max_depth": description["integrator"]["max_depth"]}
     )
-    every = specimen_masks(scene_dir / MESH_PLY, cameras, {n: masks[n] for n in sorted(description["views"])})
-    windows = mask_windows(every, max_size, board_margin=BOARD_MARGIN if board else 0.0)
+    cameras, linear, gains = photos.cameras, photos.linear, photos.gains
+    every = specimen_masks(scene_dir / MESH_PLY, cameras, {n: photos.masks[n] for n in sorted(description["views"])})
+    windows = mask_windows(every, windowing.max_size, board_margin=BOARD_MARGIN if board else 0.0)
     # one filter for every window (Dr.Jit bakes it into the kernels), at their median scale
     rfilter = pixel_filter(float(np.median([w.scale for w in windows.values()]))) if windows else None
     # held out, a render is matched to its photo by a gain (FitView.heldout_gain)
@@ -221,8 +255,9 @@ def load_views(
         reference = window.cut(read_photo(linear[name]).pixels)
         if gains and name in gains.fitted:
             reference = reference / np.asarray(gains.fitted[name], np.float32)
-        if erode_px:
-            mask = cv2.erode(mask.astype(np.uint8), np.ones((2 * erode_px + 1,) * 2, np.uint8)) > 0
+        if windowing.erode_px:
+            size = 2 * windowing.erode_px + 1
+            mask = cv2.erode(mask.astype(np.uint8), np.ones((size, size), np.uint8)) > 0
         weight = window.inside() * (window.cut(mask.astype(np.float32)) > 0.999)
         if board is not None and board.count:
             weight = np.maximum(weight, window.inside() * board_weight(window, intrinsics, pose, board, every[name]))
@@ -234,9 +269,9 @@ def load_views(
             scene_xml.sensor_properties(
                 window.intrinsics(intrinsics),
                 pose,
-                spp,
+                windowing.spp,
                 description["near_clip"],
-                sample_border=sample_border,
+                sample_border=windowing.sample_border,
                 rfilter=rfilter,
             )
         )

@@ -37,11 +37,10 @@ def test_fit_material_moves_base_colour_toward_the_truth_within_bounds(run_stage
 def test_white_balance_writes_centred_gains_by_which_the_views_divide_their_photos(run_stages, bird_capture, mi):
     """With the light estimated, the gains' mean is moved into it: the gains are centred
     and the scene as written, times a photo's gain, renders like the photo."""
+    from dataclasses import replace
+
     from pipeline.fit.loop import matched_gain
-    from pipeline.fit.views import BoardPixels, PhotoGains, load_views
-    from pipeline.formats.cameras import read_views
-    from pipeline.formats.masks import read_masks
-    from pipeline.formats.pinhole import linear_photos
+    from pipeline.fit.views import BoardPixels, PhotoGains, Windowing, load_views, read_capture_photos
 
     overrides = (*TINY_FIT, "fit_material.white_balance=true", "light.model=constant")
     outputs = run_stages(bird_capture, "fit_material", *overrides)
@@ -52,15 +51,13 @@ def test_white_balance_writes_centred_gains_by_which_the_views_divide_their_phot
     assert logarithms.shape[1] == 3 and np.all(np.isfinite(logarithms))
     np.testing.assert_allclose(logarithms.mean(axis=0), 0.0, atol=1e-5)  # centred: the light took the level
     name = sorted(gains)[0]
-    photos = (
-        read_views(outputs["sfm"]["cameras"]),
-        linear_photos(outputs["undistort"]["pinhole"]),
-        read_masks(outputs["masks"]["masks_json"]),
+    photos = read_capture_photos(
+        outputs["sfm"]["cameras"], outputs["undistort"]["pinhole"], outputs["masks"]["masks_json"]
     )
     description = json.loads(outputs["scene"]["description"].read_text())
     folder = outputs["fit_material"]["fitted_dir"]
     plain, divided = (
-        load_views(folder, description, *photos, 32, 0, 4, names={name}, gains=given)[0][0]
+        load_views(folder, description, replace(photos, gains=given), Windowing(32, 0, 4), names={name})[0][0]
         for given in (None, PhotoGains({name: [2.0, 4.0, 0.5]}, params["gain_channels"]))
     )
     np.testing.assert_allclose(divided.reference * [2.0, 4.0, 0.5], plain.reference, rtol=1e-5)
@@ -71,9 +68,8 @@ def test_white_balance_writes_centred_gains_by_which_the_views_divide_their_phot
     # the scene as written renders a training photo divided by its gain (on the pixels
     # its gain was matched on: the specimen and the board's print beside it)
     board = BoardPixels(tuple(description["board_print"]), True)
-    fitted = load_views(folder, description, *photos, 48, 2, 4, names={name}, gains=PhotoGains.of(params), board=board)[
-        0
-    ][0]
+    with_gains = replace(photos, gains=PhotoGains.of(params))
+    fitted = load_views(folder, description, with_gains, Windowing(48, 2, 4), names={name}, board=board)[0][0]
     render = np.asarray(mi.render(fitted.scene, sensor=fitted.sensor, integrator=fitted.integrator, spp=64))
     matched = matched_gain(render, render, fitted.reference, fitted.weight[..., None], 3)
     np.testing.assert_allclose(matched, 1.0, rtol=0.1)

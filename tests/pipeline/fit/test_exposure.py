@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from pipeline.fit.exposure import table_gains
+from pipeline.fit.views import CapturePhotos
 from pipeline.render import scene_xml
 from tests.support.sphere_views import RADIUS, K, ring_poses, sphere_mask
 
@@ -17,7 +18,7 @@ def _table_photos(folder, exposures: dict[str, float]):
     """A grey sphere on a table disk with a checker of reflectance 0.2 and 0.8 under a sky
     and a sun (the sphere shades and shadows the table), seen by ring cameras; each photo
     the render times its exposure and WHITE_BALANCE. Returns the description's ground and
-    (cameras, linear photos, masks)."""
+    (CapturePhotos)."""
     import mitsuba as mi
 
     from pipeline.imaging.photo_io import write_image
@@ -49,7 +50,7 @@ def _table_photos(folder, exposures: dict[str, float]):
         cameras[name], linear[name] = (K, pose), write_image(folder / f"{name}.exr", photo)
         masks[name] = folder / f"{name}.png"
         cv2.imwrite(str(masks[name]), sphere_mask(pose).astype(np.uint8) * 255)
-    return {"ground": {"radius": 0.5}}, (cameras, linear, masks)
+    return {"ground": {"radius": 0.5}}, CapturePhotos(cameras, linear, masks)
 
 
 @pytest.mark.slow
@@ -70,7 +71,7 @@ def test_a_held_out_photos_exposure_is_read_off_the_table_it_shares(mi, tmp_path
     assert single["gains"]["held"] == pytest.approx([0.45] * 3, rel=0.03)
     # a photo that shows no table (its mask covers the frame) gets no gain; no table in the
     # scene, or no fitted gains: nothing measured
-    cv2.imwrite(str(photos[2]["held"]), np.full((K.height, K.width), 255, np.uint8))
+    cv2.imwrite(str(photos.masks["held"]), np.full((K.height, K.width), 255, np.uint8))
     assert "held" not in table_gains(description, photos, fitted, ["held"], 3)["gains"]
     assert table_gains({"ground": None}, photos, fitted, ["held"], 3) == {}
     assert table_gains(description, photos, {}, ["held"], 3) == {}
