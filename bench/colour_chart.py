@@ -1,6 +1,6 @@
 """Colour correction from a ColorChecker 24: error before and after, and false finds.
 
-    .venv/bin/python bench/colour_chart.py [--captures ../shared/captures] [--write]
+    .venv/bin/python -m bench.colour_chart [--captures ../shared/captures] [--write]
 
 Part 1 renders the chart (tests/support/colour_chart_scene.py) under lights of
 several colours and sensors with several channel mixings, with sensor noise, and
@@ -19,15 +19,11 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from report import write_section  # noqa: E402
-
-from pipeline.imaging.colour_chart import delta_e, find_chart, fit_correction, patch_means, reference_linear  # noqa: E402
-from pipeline.imaging.photo_io import photo_files, read_metadata, read_photo  # noqa: E402
-from stages.colour import DETECTION_SIZE, Config  # noqa: E402
-from tests.support import colour_chart_scene  # noqa: E402
+from bench.common import ROOT, write_section
+from pipeline.imaging.colour_chart import delta_e, find_chart, fit_correction, patch_means, reference_linear
+from pipeline.imaging.photo_io import photo_files, read_metadata, read_photo
+from stages.colour import DETECTION_SIZE, Config
+from tests.support import colour_chart_scene
 
 LIGHTS = {"white": (1.0, 1.0, 1.0), "tungsten": (1.0, 0.78, 0.5), "shade": (0.7, 0.85, 1.0)}
 MIXES = {
@@ -88,7 +84,7 @@ def main() -> int:
     lines = [
         "## Colour correction from a chart (issue 54)",
         "",
-        "Machine: the 2-core development VM. Command: `.venv/bin/python bench/colour_chart.py --write`.",
+        "Machine: the 2-core development VM. Command: `.venv/bin/python -m bench.colour_chart --write`.",
         "",
         f"A rendered ColorChecker 24 (320x240, sensor noise {args.noise} linear): CIEDE2000 of its 24 patches from",
         "their references, before (the best exposure gain alone) and after the fitted 3x3 matrix.",

@@ -1,6 +1,6 @@
 """Time to target of `pipeline fit` against the original tool's loop, in one run.
 
-    .venv/bin/python bench/fit_speed.py [--materials principled volumetric] [--budget 900]
+    .venv/bin/python -m bench.fit_speed [--materials principled volumetric] [--budget 900]
                                         [--configs NAME ...] [--repeat 2]
 
 The kit, built like the original tool's synthetic test scenes: a blob (a sphere with

@@ -19,7 +19,7 @@ texture-oracle
            texture's error is the mesh's or the fit's
 (The speed/accuracy trade has a benchmark of its own: bench/trade.py.)
 
-Usage: ``.venv/bin/python bench/fitting.py [--parts extremes,accuracy,oracle,texture-oracle]
+Usage: ``.venv/bin/python -m bench.fitting [--parts extremes,accuracy,oracle,texture-oracle]
 [--workdir DIR] [--samples bird,bird_volumetric]`` (after bin/bootstrap). About 50
 minutes on 2 cores (the oracles about 20 more); a ``--workdir`` keeps the stage caches, so an interrupted run
 resumes where it stopped. A sample whose pipeline run fails is reported as failed.
@@ -35,8 +35,8 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
-from report import ROOT, run_stages, truth_in_reconstruction, write_section
 
+from bench.common import ROOT, run_stages, truth_in_reconstruction, write_section
 from pipeline.core.config import load_config
 from pipeline.core.errors import PipelineError
 from pipeline.core.runner import shared_inputs
@@ -144,7 +144,7 @@ def extremes_part() -> None:
                 "integrator): one parameter at the value shown, the others at their initial values;",
                 "the gradient of an L2 loss against a render at the initial values; then 10 Adam",
                 "steps of `pipeline.fit.engine` with every parameter free. Reproduce:",
-                "`.venv/bin/python bench/fitting.py --parts extremes`.",
+                "`.venv/bin/python -m bench.fitting --parts extremes`.",
                 "",
                 "| model | start | render finite | gradient | value after 10 steps | steps finite | in bounds "
                 "| moved toward the reference | time per step |",
@@ -232,7 +232,7 @@ def accuracy_part(work: Path, samples: list[str]) -> None:
                 "constants, alone and then along with the texture; fit_geometry alternates a",
                 "geometry pass (material frozen) with a material pass (constants and texture refitted",
                 "on the refined mesh), twice. Held-out PSNR is over the",
-                "specimen's (eroded) mask on the photos fit_material holds out. Reproduce: `.venv/bin/python bench/fitting.py --parts accuracy`.",
+                "specimen's (eroded) mask on the photos fit_material holds out. Reproduce: `.venv/bin/python -m bench.fitting --parts accuracy`.",
                 "",
                 "A texture is read as Mitsuba reads it (bilinear) at the point of the fitted mesh",
                 "nearest each point sampled on the true surface; for scale the score also gives the",
@@ -335,7 +335,7 @@ def oracle_part(work: Path) -> None:
                 "true mesh. Normal error: `pipeline score`'s shading normal error, the mean angle",
                 "between the normal Mitsuba shades with and the true surface's. The truth is moved into the reconstruction's frame by the camera",
                 "alignment; same photos, poses, masks, held-out views and settings. Reproduce:",
-                "`.venv/bin/python bench/fitting.py --parts accuracy,oracle` (the oracle reuses the",
+                "`.venv/bin/python -m bench.fitting --parts accuracy,oracle` (the oracle reuses the",
                 "accuracy part's stages).",
                 "",
                 "| mesh | normal error | alpha error | eta error | albedo error | sigma_t error | held-out PSNR | iterations |",
@@ -407,7 +407,7 @@ def texture_oracle_part(work: Path) -> None:
                 "camera alignment (unwrapped by the uv stage like the hull; same photos, poses, masks,",
                 "held-out views and settings). Texture errors as in the accuracy table (largest",
                 "channel), then the constants fit_texture refitted. Reproduce:",
-                "`.venv/bin/python bench/fitting.py --parts texture-oracle`.",
+                "`.venv/bin/python -m bench.fitting --parts texture-oracle`.",
                 "",
                 "| mesh | texture error (p90) | over the seen surface | over the surface a third of the training photos see | truth baked into the atlas | roughness | spec_trans | eta | held-out PSNR |",
                 "|---|---|---|---|---|---|---|---|---|",

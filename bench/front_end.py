@@ -2,7 +2,7 @@
 
 Runs the real stages on copies of the bundled samples (and on ../shared/captures/
 porous-cube when present) and rewrites the "Capture front end" section of
-docs/benchmarks.md. Usage: ``.venv/bin/python bench/front_end.py`` (after bin/bootstrap).
+docs/benchmarks.md. Usage: ``.venv/bin/python -m bench.front_end`` (after bin/bootstrap).
 """
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ import time
 from pathlib import Path
 
 import numpy as np
-from report import ROOT, run_stages, write_section
 
+from bench.common import ROOT, run_stages, write_section
 from pipeline.camera.board import BoardDetector, homography_residual_px, straightness_px
 from pipeline.camera.model import Intrinsics, undistort
 from pipeline.capture.check import check_capture
@@ -100,7 +100,7 @@ def main() -> None:
             "## Capture front end (issue 4)",
             "",
             "Stages calibrate, undistort and masks on the standard preset, scored against the",
-            "ground truth. Reproduce: `.venv/bin/python bench/front_end.py` (rewrites this section).",
+            "ground truth. Reproduce: `.venv/bin/python -m bench.front_end` (rewrites this section).",
             "",
             "| measurement | result |",
             "|---|---|",

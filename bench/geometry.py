@@ -4,7 +4,7 @@ Runs the real stages on a copy of sample_captures/bird, on a synthetic turntable
 capture rendered here (a plain bird, uneven steps), and on ../shared/captures/
 porous-cube when present; measures the mesh resolution's trade of time against
 accuracy; rewrites the "Geometry" section of docs/benchmarks.md.
-Usage: ``.venv/bin/python bench/geometry.py`` (after bin/bootstrap; about 15 minutes
+Usage: ``.venv/bin/python -m bench.geometry`` (after bin/bootstrap; about 15 minutes
 on 2 cores with the porous cube, 3 without).
 """
 
@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
-from report import ROOT, run_stages, write_section
 
+from bench.common import ROOT, run_stages, write_section
 from pipeline.formats.cameras import read_cameras, read_views
 from pipeline.synthetic.score import score_cameras, score_mesh
 from pipeline.synthetic.synth import SynthOptions, synthesize
@@ -189,7 +189,7 @@ def main() -> None:
             "ground truth after a similarity alignment (the bird's frame is also metric without it).",
             "The turntable capture: `pipeline synth --rig turntable --turn-jitter 0.4 --texture plain",
             "--views 24 --width 384 --height 288 --spp 16 --rings 25`. Reproduce:",
-            "`.venv/bin/python bench/geometry.py` (rewrites this section).",
+            "`.venv/bin/python -m bench.geometry` (rewrites this section).",
             "",
             "| measurement | result |",
             "|---|---|",

@@ -1,6 +1,6 @@
 """What the hash memo's stricter trust costs on 1,000 photos (pipeline.core.hashing).
 
-    .venv/bin/python bench/hash_memo.py [--photos 1000] [--megabytes 4] [--work /tmp/hash-memo] [--write]
+    .venv/bin/python -m bench.hash_memo [--photos 1000] [--megabytes 4] [--work /tmp/hash-memo] [--write]
 
 Writes ``--photos`` files of random bytes (photo-sized), then times: the first pass,
 which hashes every file; a pass right after, where files whose ctime lies within
@@ -18,7 +18,7 @@ import sys
 import time
 from pathlib import Path
 
-from report import write_section
+from bench.common import write_section
 
 SECTION = "## The hash memo's cost (issue 53)"
 
@@ -66,7 +66,7 @@ def main() -> int:
     lines = [
         SECTION,
         "",
-        f"Machine: the 2-core development VM. Command: `.venv/bin/python bench/hash_memo.py --photos {args.photos} "
+        f"Machine: the 2-core development VM. Command: `.venv/bin/python -m bench.hash_memo --photos {args.photos} "
         f"--megabytes {args.megabytes:g}`; files in the page cache.",
         "",
         "| pass | seconds | files read |",

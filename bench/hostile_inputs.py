@@ -1,7 +1,7 @@
 """Hostile inputs, faults and signals, each run by the real CLI in a process of its own
 under a watchdog: the cases of issue 53 and further ones of the same kinds.
 
-    .venv/bin/python bench/hostile_inputs.py [--work /tmp/hostile] [--only NAME ...] [--write]
+    .venv/bin/python -m bench.hostile_inputs [--work /tmp/hostile] [--only NAME ...] [--write]
 
 A tiny synthetic capture (6 views of 96x72 px) is rendered once and run to masks. Each
 case copies it with its cache and output/, spoils the copy, runs a command and records
@@ -30,8 +30,9 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
-from report import ROOT as REPOSITORY
-from report import write_section
+
+from bench.common import ROOT as REPOSITORY
+from bench.common import write_section
 
 WATCHDOG_S = 120
 SECTION = "## Hostile inputs, faults and signals (issue 53)"

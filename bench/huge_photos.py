@@ -1,6 +1,6 @@
 """Memory and time to decode a huge photo whole and reduced while decoding.
 
-    .venv/bin/python bench/huge_photos.py [--width 12000 --height 9000]
+    .venv/bin/python -m bench.huge_photos [--width 12000 --height 9000]
 
 Writes a JPEG of the given size (a smooth gradient plus noise), then decodes it in
 fresh processes with pipeline.imaging.photo_io.read_photo at reduce = 1 (whole),

@@ -22,7 +22,7 @@ real       ../shared/captures/temple-ring and porous-cube as `pipeline new` capt
            eroded mask after each fit stage, the light chosen, the material, wall time per
            stage
 
-Usage: ``.venv/bin/python bench/light.py [--parts synthetic,real] [--workdir DIR]
+Usage: ``.venv/bin/python -m bench.light [--parts synthetic,real] [--workdir DIR]
 [--captures ../shared/captures] [--materials glossy_paint,principled]`` (after
 bin/bootstrap). A ``--workdir`` keeps the captures and their stage caches, so a run
 resumes where it stopped. The real part takes about an hour on 2 cores, each synthetic
@@ -40,9 +40,9 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-from fitting import _error_cells, _met, _target_text
-from report import run_stages, write_section
 
+from bench.common import run_stages, write_section
+from bench.fitting import _error_cells, _met, _target_text
 from pipeline.formats.cameras import read_cameras, read_views
 from pipeline.synthetic.options import SynthOptions
 from pipeline.synthetic.score import score_cameras, score_heldout, score_light, score_masks, score_material
@@ -136,7 +136,7 @@ def synthetic_part(work: Path, materials: list[str]) -> None:
                 f"principled by held-out error; opaque: spec_trans below {OPAQUE_SPEC_TRANS}). Irradiance error: mean absolute",
                 "luminance difference over the true surface's normals at the specimen's centre,",
                 "light from above the table (pipeline.synthetic.score.score_light).",
-                "Reproduce: `.venv/bin/python bench/light.py --parts synthetic`.",
+                "Reproduce: `.venv/bin/python -m bench.light --parts synthetic`.",
                 "",
                 "| specimen | light | light estimated | material errors | held-out PSNR | fit_material |",
                 "|---|---|---|---|---|---|",
@@ -209,7 +209,7 @@ def _real_capture(work: Path, captures: Path, name: str, overrides: tuple[str, .
                 "In brackets: the same after each render is scaled by the RGB gain that matches it to",
                 "its photo on the specimen itself (least squares): what is left once no exposure or",
                 "white balance error remains.",
-                f"Reproduce: `.venv/bin/python bench/light.py --parts real --real {name}`.",
+                f"Reproduce: `.venv/bin/python -m bench.light --parts real --real {name}`.",
                 "",
                 "| capture | template light: after fit_material | estimated: after fit_material, fit_texture,"
                 " fit_geometry | light chosen | final material |",

@@ -9,7 +9,7 @@ Captures: copies of sample_captures/bird (principled) and bird_volumetric
 held-out error and seconds, the model chosen and why, the path-depth check, the
 chosen model's parameter errors and fit_material's wall time.
 
-Usage: ``.venv/bin/python bench/model_choice.py [--captures bird,bird_volumetric,glossy_paint]
+Usage: ``.venv/bin/python -m bench.model_choice [--captures bird,bird_volumetric,glossy_paint]
 [--workdir DIR] [--margin FRACTION]`` (after bin/bootstrap); about 40 minutes on 2 cores. A ``--workdir``
 keeps the captures and their stage caches.
 """
@@ -21,9 +21,8 @@ import json
 import tempfile
 from pathlib import Path
 
-from fitting import _copy_sample, _error_cells
-from report import run_stages, write_section
-
+from bench.common import run_stages, write_section
+from bench.fitting import _copy_sample, _error_cells
 from pipeline.synthetic.options import SynthOptions
 from pipeline.synthetic.score import score_heldout, score_material
 from pipeline.synthetic.synth import synthesize
@@ -83,7 +82,7 @@ def main() -> None:
                 "light) first, then opaque from it, volumetric only when principled beat opaque by more",
                 f"than `fit_material.model_margin` ({args.margin:.0%}); the simplest within the margin of the best",
                 "held-out MSE kept; then the held-out photos rendered at twice the path depth.",
-                f"Reproduce: `.venv/bin/python bench/model_choice.py --captures {args.captures} --margin {args.margin}`.",
+                f"Reproduce: `.venv/bin/python -m bench.model_choice --captures {args.captures} --margin {args.margin}`.",
                 "",
                 "| capture | true model | candidates: held-out MSE (time) | chosen (right?) | why | depth |"
                 " errors | held-out PSNR | fit_material |",

@@ -2,7 +2,7 @@
 placed, how many within a degree, stacked photos, errors against a reference, the
 reported uncertainty, self-calibration, time.
 
-    .venv/bin/python bench/real_poses.py [--captures ../shared/captures] [--work /tmp/real-poses]
+    .venv/bin/python -m bench.real_poses [--captures ../shared/captures] [--work /tmp/real-poses]
                                          [--suite 12] [--only NAME ...] [--write]
 
 Cases (``--only`` picks some by name):

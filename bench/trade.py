@@ -34,7 +34,7 @@ Outputs: docs/trade.png (held-out PSNR and the worst parameter error against tim
 log time axis, the Pareto front drawn, presets marked) and the ``trade`` section of
 docs/benchmarks.md.
 
-Usage: ``.venv/bin/python bench/trade.py [--samples bird,bird_volumetric,temple-ring]
+Usage: ``.venv/bin/python -m bench.trade [--samples bird,bird_volumetric,temple-ring]
 [--groups material,mesh,texture,geometry,presets,scaling] [--presets draft,standard,final]
 [--only fit_material.spp=4,...] [--workdir DIR] [--captures ../shared/captures]`` (after
 bin/bootstrap). temple-ring runs with the template light (``light.model = given``), as
@@ -64,10 +64,10 @@ from pathlib import Path
 
 import numpy as np
 import psutil
-from fitting import TARGETS, _copy_sample, _error_cells
-from light import _prepare_real
-from report import ROOT, run_stages, write_section
 
+from bench.common import ROOT, run_stages, write_section
+from bench.fitting import TARGETS, _copy_sample, _error_cells
+from bench.light import _prepare_real
 from pipeline.synthetic.score import score_heldout, score_material
 
 PLOT = ROOT / "docs" / "trade.png"
@@ -428,7 +428,7 @@ def main() -> None:
             [
                 "### The speed/accuracy trade (issue 27, point 1)",
                 "",
-                "Reproduce: `.venv/bin/python bench/trade.py --workdir DIR --samples CAPTURE --groups ... "
+                "Reproduce: `.venv/bin/python -m bench.trade --workdir DIR --samples CAPTURE --groups ... "
                 "[--only ...]`, the commands listed after this section; the section shows every point",
                 "kept in DIR, each with the commit that measured it.",
                 "Machine: the 2-core, 24 GiB VM, no GPU (llvm_ad_rgb). Time: the sum of the wall times of",

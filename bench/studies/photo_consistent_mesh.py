@@ -17,7 +17,7 @@ The moved mesh is written as a PLY; run the capture with it as a given mesh
 (``-s mesh.source=FILE``: it goes through cleanup, uv, scene and the fits like the
 stage's own) and score fit_texture's heldout/ against the run without it.
 
-Usage: ``.venv/bin/python bench/photo_consistent_mesh.py CAPTURE OUT.ply [-s KEY=VALUE ...]
+Usage: ``.venv/bin/python -m bench.studies.photo_consistent_mesh CAPTURE OUT.ply [-s KEY=VALUE ...]
 [--rounds 2] [--span 0.01]``, then
 ``.venv/bin/pipeline run CAPTURE -s mesh.source=OUT.ply [-s ...] --until fit_texture``.
 """
@@ -31,8 +31,8 @@ import cv2
 import numpy as np
 import scipy.sparse as sparse
 import trimesh
-from ceiling import cached_outputs
 
+from bench.studies.ceiling import cached_outputs
 from pipeline.camera.model import project, scaled
 from pipeline.core import progress
 from pipeline.formats.cameras import read_views

@@ -14,7 +14,7 @@ shading-normal error:
    sample's capture design and denser ones: what more photos would give.
 
 Rewrites the "hull-normals" section of docs/benchmarks.md. Usage:
-``.venv/bin/python bench/hull_normals.py [--workdir DIR]`` (after bin/bootstrap; about
+``.venv/bin/python -m bench.studies.hull_normals [--workdir DIR]`` (after bin/bootstrap; about
 5 minutes on 2 cores alone, 10 when it shared them with two other runs).
 """
 
@@ -30,8 +30,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import trimesh
-from report import ROOT, run_stages, truth_in_reconstruction, write_section
 
+from bench.common import ROOT, run_stages, truth_in_reconstruction, write_section
 from pipeline.camera.model import Intrinsics, Pose, mesh_coverage, undistort
 from pipeline.core.config import load_config
 from pipeline.core.sections import schema
@@ -178,7 +178,7 @@ def main() -> None:
                 "(mean and median angle between the normal Mitsuba shades with and the true",
                 "surface's) and Chamfer distance. Rows 3 on: the true mesh rasterised from the true",
                 "cameras (undistorted, the sample's size and lens), for the sample's 20 views and",
-                "denser captures. Reproduce: `.venv/bin/python bench/hull_normals.py`.",
+                "denser captures. Reproduce: `.venv/bin/python -m bench.studies.hull_normals`.",
                 "",
                 "| hull from | shading-normal error, mean | median | Chamfer distance |",
                 "|---|---|---|---|",

@@ -41,7 +41,7 @@ the specimen's centre, DISTANCE times that distance behind the camera, facing th
 specimen: an occluder that moves with the camera (the photographer's body, a gantry's
 arm), which shades the side of the specimen the camera faces.
 
-Usage: ``.venv/bin/python bench/ceiling.py CAPTURE [-s KEY=VALUE ...] [--nearest 2,4,8]
+Usage: ``.venv/bin/python -m bench.studies.ceiling CAPTURE [-s KEY=VALUE ...] [--nearest 2,4,8]
 [--photographer 1:0.5] [--view-dependent 0.1,1]`` with the
 overrides its runs used (bench/light.py's REAL), after bin/bootstrap and a
 ``pipeline run CAPTURE --until fit_texture`` with them. Prints a
@@ -58,8 +58,8 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-from report import write_section
 
+from bench.common import write_section
 from pipeline.fit.bake import bake_bitmap, fill_unseen, pixel_rays, render_view, texels_hit
 from pipeline.fit.outputs import write_heldout
 from pipeline.fit.views import PhotoGains, Windowing, load_views, read_capture_photos

@@ -24,7 +24,7 @@ exponential of that polynomial, and its PSNR after an RGB gain matched on the sp
 is printed before and after, with the share of the training log-ratio's variance the
 polynomial explains.
 
-Usage: ``.venv/bin/python bench/view_dependence.py CAPTURE [-s KEY=VALUE ...] [--camera-frame 3]`` with
+Usage: ``.venv/bin/python -m bench.studies.view_dependence CAPTURE [-s KEY=VALUE ...] [--camera-frame 3]`` with
 the overrides its runs used (bench/light.py's REAL), after bin/bootstrap and a
 ``pipeline run CAPTURE --until fit_texture`` with them. Prints a Markdown table;
 rewrites the section ``view-dependence-NAME`` of docs/benchmarks.md with ``--write``.
@@ -37,9 +37,9 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from ceiling import cached_outputs
-from report import write_section
 
+from bench.common import write_section
+from bench.studies.ceiling import cached_outputs
 from pipeline.fit.bake import pixel_rays
 from pipeline.fit.loop import matched_gain
 from pipeline.fit.views import PhotoGains, Windowing, load_views, read_capture_photos

@@ -6,7 +6,7 @@ that hold wall times, else how far apart the numbers are.
 For refactors that must not change results: run the old code on one copy of a
 capture and the new code on another, then
 
-    .venv/bin/python bench/same_outputs.py OLD_CAPTURE NEW_CAPTURE [--section NAME]
+    .venv/bin/python -m bench.tools.same_outputs OLD_CAPTURE NEW_CAPTURE [--section NAME]
 
 prints one row per stage; with ``--section`` the table is written into
 docs/benchmarks.md under that name.
@@ -19,7 +19,7 @@ import json
 import math
 from pathlib import Path
 
-from report import write_section
+from bench.common import write_section
 
 
 def is_timing(key: str) -> bool:

@@ -3,7 +3,7 @@ photos (pipeline.fit.exposure), for several numbers of nearest cameras: each tra
 photo's gain predicted from the others (leave one out) against the gain fit_material
 fitted to it, and the held-out photos' predicted gains.
 
-Usage: ``.venv/bin/python bench/exposure.py CAPTURE [-s KEY=VALUE ...]`` with the
+Usage: ``.venv/bin/python -m bench.studies.exposure CAPTURE [-s KEY=VALUE ...]`` with the
 overrides its runs used (bench/light.py's REAL), after bin/bootstrap and a
 ``pipeline run CAPTURE --until fit_material`` with them, on a capture whose photos'
 gains are fitted (``fit_material.exposure`` or ``white_balance``). Prints a Markdown
@@ -15,9 +15,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ceiling import cached_outputs
-from report import write_section
-
+from bench.common import write_section
+from bench.studies.ceiling import cached_outputs
 from pipeline.fit.exposure import NEAREST, table_gains
 from pipeline.fit.views import read_capture_photos
 from pipeline.formats.scene_folder import read_json

@@ -9,7 +9,7 @@ milliseconds. Part 2 calls one frozen render function alternately with two senso
 (or one sensor whose parameters are updated between calls) six times and reports how
 often dr.freeze recorded and how many recordings it kept.
 
-Usage: ``.venv/bin/python bench/kernel_literals.py`` (after bin/bootstrap; seconds).
+Usage: ``.venv/bin/python -m bench.studies.kernel_literals`` (after bin/bootstrap; seconds).
 Run it with a Dr.Jit kernel cache that has not seen these kernels (``HOME`` pointing
 at an empty folder) for part 1's compile times.
 """

@@ -1,0 +1,1 @@
+"""One-off investigations behind a decision: rerun them when the decision is revisited."""

@@ -1,0 +1,1 @@
+"""Helpers a change is checked with."""
