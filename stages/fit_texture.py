@@ -268,14 +268,16 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     held = set(material["held_out"])
     fit = _texture_fit(conf, model, material["bounds"], views, held)
     bake = _baker(conf, slot, shapes[-1], fit, material, (textured, description), photos, report)
-    fitted = fit_constants_then_levels(slot, texture, shapes, fit, report, bake)
-    result, texture, constants = fitted["result"], fitted["texture"], fitted["constants"]
-    constant_error, texture_error = fitted["constant_error"], report["levels"][-1]["validation_mse"]
+    fitted = fit_constants_then_levels(slot, texture, shapes, fit, bake)
+    result, texture, constants = fitted.result, fitted.texture, fitted.constants
+    constant_error, texture_error = fitted.constant_error, fitted.levels[-1]["validation_mse"]
+    if fitted.constants_fit is not None:
+        report["constants_fit"] = fitted.constants_fit
 
     # 4. Keep the texture only if it earns its place.
     kept, reason = _keep_texture(conf, constant_error, texture_error)
     logger.info("texture %s: %s", "kept" if kept else "not kept", reason)
-    write_fit_log(textured, fitted["log"])
+    write_fit_log(textured, fitted.log)
     if kept:
         write_texture(textured, slot, texture, box)
         constant_values = {n: result.values[n] for n in constants}
@@ -287,16 +289,15 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         shutil.copy2(material_dir / SPECIMEN_XML, specimen)
         for leftover in textured.glob(f"{slot.parameter}.*"):
             leftover.unlink()
-        constant_values = fitted["refitted"]
+        constant_values = fitted.refitted
     scene_xml.set_values(specimen, {materials.PARAMETERS[n].key: v for n, v in constant_values.items()}, specimen)
 
     # 5. Held-out renders of the scene kept, and params.json.
-    if kept or fitted["refitted"]:
+    if kept or fitted.refitted:
         _render_heldout(conf, textured, description, photos, held)
     else:
         shutil.copytree(inputs.upstream["fit_material"]["heldout"], textured / HELDOUT)
     _finish_report(report, material, constant_values, result.values[slot.parameter] if kept else None)
-    levels = report.pop("levels")
     report |= {
         "kept": kept,
         "reason": reason,
@@ -304,7 +305,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         "learning_rate": conf.learning_rate,
         "validation_mse_constant": constant_error,
         "validation_mse_texture": texture_error,
-        "levels": levels,
+        "levels": fitted.levels,
         "texture_mean": [float(v) for v in texture.reshape(-1, 3).mean(axis=0)],
         "files": sorted(p.name for p in textured.glob(f"{slot.parameter}.*")),
     }

@@ -114,6 +114,11 @@ class Config(features.FeatureSettings, RigSettings, SelfCalibrationSettings):
     """Voxels along the hull's longest side of the silhouette check."""
 
 
+def _note(report: dict, **entries) -> None:
+    """Record in sfm.json the entries a step found (None: the step had nothing to say)."""
+    report.update({name: value for name, value in entries.items() if value is not None})
+
+
 def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     # Longer than 60 lines on purpose: the stage's steps in their order, each a few
     # calls into pipeline.colmap and pipeline.geometry; split further, the order would hide.
@@ -180,16 +185,16 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
     # 3. The world frame: the board's when the poses agree with it, else the turntable's,
     # the ground's or the cameras'.
-    frame, poses, points, dropped = world_frame.tie_to_board(
-        conf.frame, conf.board_max_disagreement, board_found, poses, points, report, circular
-    )
-    model = None if dropped else model
+    tie = world_frame.tie_to_board(conf.frame, conf.board_max_disagreement, board_found, poses, points, circular)
+    frame, poses, points = tie.frame, tie.poses, tie.points
+    model = None if tie.dropped else model
+    _note(report, frame=tie.record, replaced_by_board=tie.replaced_by_board)
     to_world = frame or Similarity.identity()
     if frame is not None and not circular:
         report["posed_by_board"] = sorted(set(board_found) - set(poses))
         poses |= {n: board_found[n] for n in report["posed_by_board"]}
     if frame is None:
-        level = world_frame.frame_without_board(conf.frame, poses, points, table, report)
+        level, report["frame"] = world_frame.frame_without_board(conf.frame, poses, points, table)
         poses = {n: level.pose(p) for n, p in poses.items()}
         points = level.points(points) if len(points) else points
         to_world = to_world.then(level)
@@ -197,7 +202,11 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     # 4. Poses the silhouettes or the table contradict are left out (the circular
     # placement checked its photos against the silhouettes already).
     check = (conf.min_silhouette_iou, conf.silhouette_resolution, conf.min_mask_agreement)
-    drop_inconsistent(poses, intrinsics, masks, *check, report, not circular)
+    consistent = drop_inconsistent(
+        poses, intrinsics, masks, *check, report["frame"].get("ground_plane") is not None, not circular
+    )
+    poses = consistent.kept
+    _note(report, silhouette_iou=consistent.silhouette_iou, below_ground=consistent.below_ground)
     if len(poses) < conf.min_registered_fraction * len(order):
         _too_few(conf, set(poses), order, causes)
     if len(poses) < len(order):

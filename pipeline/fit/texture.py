@@ -72,19 +72,39 @@ class TextureFit:
     settings: engine.FitSettings
 
 
+@dataclass
+class LevelsFit:
+    """The constants' refit and the texture's levels, as fit_constants_then_levels left them."""
+
+    result: engine.FitResult
+    """The last level's fit."""
+    texture: np.ndarray
+    """The texture after the last level."""
+    constants: list[str]
+    """The model's other parameters, fitted along with the texture."""
+    refitted: dict[str, list[float]]
+    """The constants' values from their refit alone (empty without constants)."""
+    constant_error: float | None
+    """The constant model's held-out error, which the texture must beat."""
+    log: list[dict]
+    """Every fit's steps, joined, each with its level and resolution."""
+    levels: list[dict]
+    """Per level: resolution, iterations, best step, held-out error before and after."""
+    constants_fit: dict | None
+    """The same for the constants' refit; None without constants."""
+
+
 def fit_constants_then_levels(
     slot: materials.TextureSlot,
     texture: np.ndarray,
     shapes: list[tuple[int, ...]],
     fit: TextureFit,
-    report: dict,
     start: Callable[[], np.ndarray] | None = None,
-) -> dict:
-    """The constants alone (texture constant), then the texture level by level; fills
-    ``report`` and returns the last level's result with the texture, the refitted
-    constants, the constant model's held-out error and the joined log. ``start``: the
-    finest level's starting texture, made once the constants are refitted (a bake from
-    the photos, pipeline.fit.bake); only that level is then fitted."""
+) -> LevelsFit:
+    """The constants alone (texture constant), then the texture level by level.
+    ``start``: the finest level's starting texture, made once the constants are
+    refitted (a bake from the photos, pipeline.fit.bake); only that level is then
+    fitted."""
     import mitsuba as mi
 
     log, levels = [], []
@@ -106,7 +126,7 @@ def fit_constants_then_levels(
         }
 
     constants = [p.name for p in fit.parameters[1:]]
-    refitted, constant_error = {}, None
+    refitted, constant_error, constants_fit = {}, None, None
     if constants:
         # The constants alone first, the colour still constant: the texture must then
         # earn its place against the refitted constant model, not against
@@ -114,7 +134,7 @@ def fit_constants_then_levels(
         # constants alone gained).
         result = engine.fit(fit.parameters[1:], fit.training, fit.validation, fit.settings)
         refitted, constant_error = {n: result.values[n] for n in constants}, result.validation_error
-        report["constants_fit"] = record(result, "constants", None)
+        constants_fit = record(result, "constants", None)
         logger.info("constants refitted: held-out MSE %s", result.validation_error)
     scenes = {id(v.scene): v.scene for v in fit.training + fit.validation}
     if start is not None:
@@ -137,12 +157,4 @@ def fit_constants_then_levels(
             constant_error = result.start_validation_error
         levels.append(record(result, level, shape))
         logger.info("level %d (%s texels): held-out MSE %s", level, "x".join(map(str, shape)), result.validation_error)
-    report["levels"] = levels
-    return {
-        "result": result,
-        "texture": texture,
-        "constants": constants,
-        "refitted": refitted,
-        "constant_error": constant_error,
-        "log": log,
-    }
+    return LevelsFit(result, texture, constants, refitted, constant_error, log, levels, constants_fit)

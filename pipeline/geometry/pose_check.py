@@ -3,6 +3,7 @@ wrong shows the specimen where it is not."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -104,6 +105,17 @@ def silhouette_check(
     return scores, [n for n in names if scores[n] < min_iou]
 
 
+@dataclass(frozen=True)
+class Consistency:
+    """The poses that agree with the silhouettes and the table, and what was checked."""
+
+    kept: dict[str, Pose]
+    silhouette_iou: dict[str, float] | None
+    """Each photo's silhouette IoU against the others' hull; None when not checked."""
+    below_ground: list[str] | None
+    """Photos whose camera SfM put under the table; None without a table."""
+
+
 def drop_inconsistent(
     poses: dict[str, Pose],
     intrinsics: dict[str, Intrinsics],
@@ -111,31 +123,35 @@ def drop_inconsistent(
     min_iou: float,
     resolution: int,
     min_agreement: float,
-    report: dict,
+    has_ground: bool,
     check_silhouettes: bool = True,
-) -> None:
-    """Leave out (from ``poses``) photos whose silhouettes contradict the hull of the
-    others (``silhouette_check``, when ``check_silhouettes``), and cameras under the
-    table when ``report``'s frame has a ground plane; ``report`` records both."""
-    if check_silhouettes and len(poses) >= 3:
-        mask_of = {n: cv2.imread(str(masks[n]), cv2.IMREAD_GRAYSCALE) > 127 for n in poses}
-        report["silhouette_iou"], off = silhouette_check(poses, intrinsics, mask_of, min_iou, resolution, min_agreement)
+) -> Consistency:
+    """``poses`` less the photos whose silhouettes contradict the hull of the others
+    (``silhouette_check``, when ``check_silhouettes``), and the cameras under the table
+    when the world frame has one (``has_ground``)."""
+    kept = dict(poses)
+    ious = None
+    if check_silhouettes and len(kept) >= 3:
+        mask_of = {n: cv2.imread(str(masks[n]), cv2.IMREAD_GRAYSCALE) > 127 for n in kept}
+        ious, off = silhouette_check(kept, intrinsics, mask_of, min_iou, resolution, min_agreement)
         for name in off:
             logger.warning(
                 "%s: its silhouette does not match the hull of the other photos at SfM's pose (IoU %.2f "
                 "< sfm.min_silhouette_iou = %.2f); leaving the photo out",
                 name,
-                report["silhouette_iou"][name],
+                ious[name],
                 min_iou,
             )
-            del poses[name]
-    if report["frame"].get("ground_plane") is not None:
+            del kept[name]
+    below = None
+    if has_ground:
         # The world's z = 0 is the table: a camera below it cannot see the specimen on
         # it. SfM does this to a view of a plain, symmetric specimen it mirrors.
-        report["below_ground"] = sorted(n for n, p in poses.items() if p.center[2] < 0)
-        for name in report["below_ground"]:
+        below = sorted(n for n, p in kept.items() if p.center[2] < 0)
+        for name in below:
             logger.warning(
                 "%s: SfM put the camera below the table (z = %.3f); leaving the photo out",
                 name,
-                poses.pop(name).center[2],
+                kept.pop(name).center[2],
             )
+    return Consistency(kept, ious, below)

@@ -4,6 +4,8 @@ and the checks that tie SfM's poses to the board's."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from pipeline import logger
@@ -103,11 +105,11 @@ def level_frame(origin: np.ndarray, up: np.ndarray, poses: dict[str, Pose]) -> S
 
 
 def frame_from_board(
-    source: str, max_disagreement: float, board_poses: dict[str, Pose], poses: dict[str, Pose], report: dict
-) -> Similarity | None:
-    """The similarity taking SfM's frame to the board's, when ``source`` allows the board
-    and SfM's camera centres agree with three or more board poses to ``max_disagreement``
-    of their distance; records the frame in ``report``."""
+    source: str, max_disagreement: float, board_poses: dict[str, Pose], poses: dict[str, Pose]
+) -> tuple[Similarity, dict] | None:
+    """The similarity taking SfM's frame to the board's, with the frame's record, when
+    ``source`` allows the board and SfM's camera centres agree with three or more board
+    poses to ``max_disagreement`` of their distance."""
     common = set(board_poses) & set(poses)
     if source not in ("auto", "board") or len(common) < 3:
         return None
@@ -123,13 +125,28 @@ def frame_from_board(
             1000 * distance,
         )
         return None
-    report["frame"] = board_frame(**fit)
     logger.info(
         "world frame from the board in %d photos (centres agree to %.2f mm)",
         fit["photos"],
         fit["centre_residual_mm_median"],
     )
-    return frame
+    return frame, board_frame(**fit)
+
+
+@dataclass(frozen=True)
+class BoardTie:
+    """What tying SfM's poses to the board gave."""
+
+    frame: Similarity | None
+    """SfM's frame to the board's; None when the board gave no frame."""
+    poses: dict[str, Pose]
+    points: np.ndarray
+    dropped: bool
+    """SfM's poses were dropped for the board poses alone."""
+    record: dict | None
+    """The world frame's description (cameras.json's frame), when the board gave it."""
+    replaced_by_board: list[str] | None = None
+    """Photos whose SfM pose contradicted their board pose and took the latter."""
 
 
 def tie_to_board(
@@ -138,27 +155,23 @@ def tie_to_board(
     board_poses: dict[str, Pose],
     poses: dict[str, Pose],
     points: np.ndarray,
-    report: dict,
     model_is_circle: bool,
-):
+) -> BoardTie:
     """The poses and points moved into the board's frame when they agree with the board
     (``frame_from_board``); when they do not but the board is seen in three photos, the
     board poses alone (the poses, not tied to them, are dropped; not for a circular
-    motion, whose circle is the model); else unchanged. Returns (frame or None, poses,
-    points, whether the poses were dropped); ``report`` records the frame and the
-    photos whose own poses contradicted their board poses (replaced by those)."""
-    frame = frame_from_board(source, max_disagreement, board_poses, poses, report)
-    if frame is not None:
+    motion, whose circle is the model); else unchanged."""
+    found = frame_from_board(source, max_disagreement, board_poses, poses)
+    if found is not None:
+        frame, record = found
         poses = {n: frame.pose(p) for n, p in poses.items()}
         points = frame.points(points) if len(points) else points
-        if not model_is_circle:
-            report["replaced_by_board"] = replace_by_board(max_disagreement, poses, board_poses)
-        return frame, poses, points, False
+        replaced = None if model_is_circle else replace_by_board(max_disagreement, poses, board_poses)
+        return BoardTie(frame, poses, points, False, record, replaced)
     if len(board_poses) >= 3 and source in ("auto", "board") and not model_is_circle:
         logger.warning("SfM's %d photos could not be tied to the board: using the board poses alone", len(poses))
-        report["frame"] = board_frame(photos=len(board_poses))
-        return Similarity.identity(), {}, np.zeros((0, 3)), True
-    return None, poses, points, False
+        return BoardTie(Similarity.identity(), {}, np.zeros((0, 3)), True, board_frame(photos=len(board_poses)))
+    return BoardTie(None, poses, points, False, None)
 
 
 def replace_by_board(max_disagreement: float, poses: dict[str, Pose], board_poses: dict[str, Pose]) -> list[str]:
@@ -183,11 +196,11 @@ def replace_by_board(max_disagreement: float, poses: dict[str, Pose], board_pose
 
 
 def frame_without_board(
-    requested: str, poses: dict[str, Pose], points: np.ndarray, table: turntable.Turntable | None, report: dict
-) -> Similarity:
+    requested: str, poses: dict[str, Pose], points: np.ndarray, table: turntable.Turntable | None
+) -> tuple[Similarity, dict]:
     """The world frame when the board gives none: the turntable's axis (and the table
     plane), else the ground plane, else the cameras alone, as ``requested`` allows
-    (sfm.frame); scaled to a median camera distance of 1. Records it in ``report``."""
+    (sfm.frame); scaled to a median camera distance of 1. Returns it and its record."""
     if requested == "board":
         raise PipelineError(
             "sfm.frame = 'board' but the board was not found in three registered photos, or SfM "
@@ -224,12 +237,12 @@ def frame_without_board(
     level = level_frame(origin, up, poses)
     # The origin was put on the table plane when there is one: it becomes z = 0.
     ground = [0.0, 0.0, 1.0, 0.0] if plane is not None else None
-    report["frame"] = {
+    logger.warning("no board seen: world frame from %s, scale normalised (not metric)", source.replace("_", " "))
+    record = {
         "source": source,
         "metric": False,
         "units": "median camera distance = 1",
         "up": "+z",
         "ground_plane": ground,
     }
-    logger.warning("no board seen: world frame from %s, scale normalised (not metric)", source.replace("_", " "))
-    return level
+    return level, record
