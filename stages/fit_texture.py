@@ -16,8 +16,7 @@ With ``refit_constants`` the model's other constants (roughness, spec_trans and
 eta; alpha, eta and sigma_t) are fitted again, from fit_material's values and
 within its bounds: first alone (``iterations`` steps, the colour still
 constant), then along with the texture at every level. Fitted next to a
-constant colour they absorb some of the colour's variation (on the sample bird
-roughness ended 0.15 off the truth). The texture is fitted by pipeline.fit.engine
+constant colour they absorb some of the colour's variation (roughness, most of all). The texture is fitted by pipeline.fit.engine
 (the same loop, loss, views and held-out photos as fit_material). A bitmap starts
 (``start = photos``) baked from the training photos under the fitted light and
 constants (pipeline.fit.bake: per texel, the least-squares colour of the photos'

@@ -17,9 +17,9 @@ Where the masks come from, first match wins (``masks.source = "auto"``):
 
 Every mask is then cleaned: components smaller than a fraction of the largest are
 removed, and holes smaller than ``max_hole_fraction`` of the silhouette filled (specimen
-pixels taken for backdrop). By default every hole is: opened at 1 %, temple-ring's
-colonnade carved the hull between its columns but re-rendered 1 dB worse end to end
-(docs/benchmarks.md); a ring-shaped specimen needs its hole open.
+pixels taken for backdrop). By default every hole is: holes opened at 1 % let a
+colonnade carve the hull between its columns but re-rendered worse end to end; a
+ring-shaped specimen needs its hole open.
 
 ==================  ============================================================
 output              content

@@ -17,8 +17,8 @@
    naming it (pipeline.geometry.turntable_placement). Fewer than ``min_registered_fraction``
    posed photos is an error naming the others and the likely cause for each. A
    rerun gives the same model: photos are numbered in sorted order, RANSAC and
-   the mapper are seeded, and bundle adjustment runs on one thread (COLMAP's
-   defaults gave bird_volumetric rotation errors from 0.7 to 164 degrees).
+   the mapper are seeded, and bundle adjustment runs on one thread (with COLMAP's
+   threaded defaults, reruns gave different poses).
 3. **World frame** (``frame``): from the ChArUco board when it is seen in at least
    three registered photos whose SfM centres agree with it (PnP per photo,
    similarity to the SfM centres; metres, z up, origin at the board's centre as
@@ -104,8 +104,8 @@ class Config(features.FeatureSettings, RigSettings, SelfCalibrationSettings):
     min_silhouette_iou: Annotated[float, Range(0.0, 1.0)] = 0.2
     """A registered photo whose mask overlaps the visual hull of the consistent photos,
     seen from its pose, by less than this (IoU) is left out: SfM posed it wrongly. Wrong poses
-    score near 0 (0.00-0.04 on bird_volumetric); right poses with masks that take in
-    some of the table score 0.37-0.48 (porous cube), so the default sits between."""
+    score near 0; right poses with masks that take in some of the table score about 0.4,
+    so the default sits between."""
     min_mask_agreement: Annotated[float, Range(0.0, 1.0)] = 0.5
     """The silhouette check leaves photos out only when the masks agree with the visual hull
     at least this well (median IoU of the photos it is made of): poor masks would drop right

@@ -7,8 +7,8 @@ table looks the same from nearby cameras (a still light, a matte table), so a he
 photo's pixel over a training photo's pixel at the same table point is the ratio of
 their exposures, and the training photo's fitted gain turns it into the held-out photo's
 gain. Nothing is rendered: the table's radiance, which the fitted scene models only as
-far as the light fit needed, cancels out (a render-based estimate predicted porous-cube's
-training photos' gains twice as far off: docs/benchmarks.md, fourteenth session).
+far as the light fit needed, cancels out (a render-based estimate predicted the
+training photos' own gains about twice as far off: docs/decisions.md).
 
 Limitations: the table is the plane z = 0 inside the scene's ground disk, off the board's
 print; points the specimen hides in either photo, and pixels clipped or too dark in
@@ -41,9 +41,8 @@ PHOTO_PX = 200
 smooth, and a pose or table-plane error of a few full-resolution pixels stays under one."""
 NEAREST = 4
 """A photo's gain is the median of the estimates from this many training photos, the
-nearest cameras: on porous-cube 2 to 4 predict the training photos' gains within each
-other's noise, more reach views whose table looks different; 4 keeps one bad pair from
-deciding."""
+nearest cameras: 2 to 4 predict the training photos' gains within each other's noise,
+more reach views whose table looks different; 4 keeps one bad pair from deciding."""
 MIN_PIXELS = 50
 """Table points two photos must share for their ratio to count."""
 

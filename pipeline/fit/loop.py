@@ -24,8 +24,8 @@ so that a batch of bright views does not look like a setback.
 What the loop costs, and why it is written this way (docs/benchmarks.md, "Fitting
 speed"): render seeds are passed as opaque Dr.Jit variables, so the kernels
 compiled for the first step serve every later one (a Python integer seed is baked
-into the kernel as a literal: every step compiled its kernels again, 2.5 s of a
-3.3 s step on the sample bird); one render per view suffices for an unbiased
+into the kernel as a literal: every step compiled its kernels again, most of a
+step's time); one render per view suffices for an unbiased
 gradient, since Mitsuba renders the adjoint with independent samples; the losses
 are read from the device once per step, not once per view.
 
@@ -195,8 +195,8 @@ LEVEL_PULL = 1e-2
 its gradient) beside its loss, which the matched gain makes blind to the renders'
 overall level and colour: over the photos it pulls the level to where their gains
 average 1 in logarithm, the average photo's, and keeps the albedo off the flat valley
-along which Adam's noise would walk it (porous-cube's base colour reached its bound
-of 1 without it). The gain is the rendered photo's own, so the pull has no delay."""
+along which Adam's noise would walk it (without it a phone capture's base colour
+walked to its bound of 1). The gain is the rendered photo's own, so the pull has no delay."""
 
 
 def view_loss(scene, params, sensor, integrator, spp: int, seeds, gain_channels: int, target: Target, dual, share):
@@ -277,8 +277,8 @@ class _Loop:
         Dr.Jit 1.5's dr.freeze keys a recording on the sensor object and on its values
         (measured: two sensors of identical settings, or one sensor whose parameters were
         updated between calls, each record anew), and a film size or crop offset is a
-        literal in the kernels; one function for every view records again at nearly
-        every call (88 warnings in one fit_material run on temple-ring)."""
+        literal in the kernels; one function for every view would record again at nearly
+        every call."""
         if not self.settings.freeze:
             return view_loss
         if id(view.sensor) not in self.frozen:
@@ -339,8 +339,8 @@ class _Loop:
         the scenes stand in (the one the fit returns). A gain matched during the fit is
         that of the state the step that last drew its view rendered, up to
         ``len(training) / batch`` steps before; early in a fit over many photos those
-        states differ more than the photos' exposures do (docs/benchmarks.md, "What a
-        texture can reach, the pixel filter and the geometry pass's threshold", porous-cube)."""
+        states differ more than the photos' exposures do (docs/decisions.md, "Photos and
+        exposure")."""
         dr, mi, spp = self.dr, self.mi, self.settings.spp
         with dr.suspend_grad():
             for index, view in enumerate(self.training):
@@ -402,7 +402,7 @@ def run(
         best = {"values": variables.snapshot(), "iteration": 0, "error": start_error}
     else:
         record = resumed.record
-        for name, gain in record.get("gain_estimates", {}).items():  # none in a checkpoint from before cdbbd37
+        for name, gain in record.get("gain_estimates", {}).items():  # none in a checkpoint of an older version
             variables.record_gain(name, np.asarray(gain))
         names = [name[len("best/") :] for name in resumed.arrays if name.startswith("best/")]
         best = {

@@ -64,9 +64,9 @@ def backdrop_views(
 
     Beyond the set the photo shows what the scene does not hold (a black cloth, the
     room): where an estimated environment is seen instead, an outline compared with
-    the photo there moves to make the specimen look like that cloth (temple-ring's
-    raised map, far brighter than its black cloth, gave a pass error of 0.043 against
-    0.011 and a worse mesh). Against the scene's own backdrop an outline pixel there
+    the photo there moves to make the specimen look like that cloth (an estimated map
+    far brighter than the cloth behind the specimen gave a pass error four times the
+    backdrop's, and a worse mesh). Against the scene's own backdrop an outline pixel there
     costs what its mask says. The set keeps its photo: the scene holds it, with the
     specimen's shadow on it."""
     import mitsuba as mi

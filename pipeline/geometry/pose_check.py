@@ -67,14 +67,13 @@ def silhouette_check(
     (IoU), and the photos below ``min_silhouette_iou``: a pose SfM got wrong shows the
     specimen where it is not. The check is only as good as the masks: when the photos
     the hull is made of agree with it less than ``min_agreement`` (median IoU), no
-    photo is left out (a white cube on a white table: masks that catch a face or two
-    agree at 0.26 in the median, and the check dropped 29 of 75 well-registered photos).
+    photo is left out (a white specimen on a white table: masks that catch a face or two
+    agree poorly, and the check would drop well-registered photos).
 
     Two passes. The first hull lets a fifth of the photos disagree, so that several
-    wrong poses neither carve it away nor leave no hull at all (two photos posed 164
-    and 42 degrees off did that to the strict hull on bird_volumetric); it finds the
-    outliers. The second, the hull of the rest letting one disagree, gives the
-    scores. Returns ({}, []) when even the first has no inside (the mesh stage then
+    wrong poses neither carve it away nor leave no hull at all (two photos posed far
+    off can empty the strict hull); it finds the outliers. The second, the hull of the
+    rest letting one disagree, gives the scores. Returns ({}, []) when even the first has no inside (the mesh stage then
     says so)."""
     names = sorted(poses)
     consistent = names

@@ -24,8 +24,7 @@ pipeline.fit.stability, docs/benchmarks.md, and on the bird): at eta = 1 exactly
 dielectric interface vanishes and roughdielectric's gradients are NaN; at
 albedo = 0 prbvolpath's gradient with respect to the albedo is exactly 0, so a
 channel clamped there could never come back; a base_color texel at exactly 0
-gets infinite or NaN gradients from prb (on the sample bird ~80 steps of
-fit_texture and fit_geometry dropped them, dark blue texels stuck at 0), though
+gets infinite or NaN gradients from prb (dark texels then stay stuck at 0), though
 the constant at 0 on a sphere does not (the stability probe). sigma_t,
 roughness and alpha are optimised as logarithms: they span decades, and a
 fixed step in the value overshoots a small roughness into the lower bound,
