@@ -12,23 +12,25 @@ volumetric                  the medium's albedo as a grid volume over the specim
                             (a medium has no surface to carry a UV texture)
 ==========================  ==============================================================
 
-With ``refit_constants`` the model's other constants (roughness, spec_trans and
-eta; alpha, eta and sigma_t) are fitted again, from fit_material's values and
-within its bounds: first alone (``iterations`` steps, the colour still
-constant), then along with the texture at every level. Fitted next to a
-constant colour they absorb some of the colour's variation (roughness, most of all). The texture is fitted by pipeline.fit.engine
-(the same loop, loss, views and held-out photos as fit_material). A bitmap starts
-(``start = photos``) baked from the training photos under the fitted light and
-constants (pipeline.fit.bake: per texel, the least-squares colour of the photos'
-pixels that see it, from windows of ``bake_max_size`` pixels, finer than the fit's,
-corrected over ``bake_rounds`` by what renders with it still miss; a guessed light's level
-rises until the colours fit their bound, and the scene files carry the raised light),
-and is then fitted at ``max_resolution`` texels alone. From the constant
-(``start = constant``, and always for a grid) it is fitted at ``levels`` resolutions, each twice
-the last, ending at ``max_resolution`` (``max_grid_resolution`` along a grid's longest side);
-every level starts from the last one's best state, resampled. A smoothness prior (``smoothness`` times the
-mean squared difference of neighbouring texels) keeps texels from absorbing
-highlights and noise and fills texels no photo sees from their neighbours.
+With ``refit_constants`` the model's other constants (roughness, spec_trans and eta;
+alpha, eta and sigma_t) are fitted again, from fit_material's values and within its
+bounds: first alone (``iterations`` steps, the colour still constant), then along
+with the texture at every level. Fitted next to a constant colour they absorb some
+of the colour's variation (roughness, most of all). The texture is fitted by
+pipeline.fit.engine (the same loop, loss, views and held-out photos as
+fit_material). A bitmap starts (``start = photos``) baked from the training photos
+under the fitted light and constants (pipeline.fit.bake: per texel, the
+least-squares colour of the photos' pixels that see it, from windows of
+``bake_max_size`` pixels, finer than the fit's, corrected over ``bake_rounds`` by
+what renders with it still miss; a guessed light's level rises until the colours fit
+their bound, and the scene files carry the raised light), and is then fitted at
+``max_resolution`` texels alone. From the constant (``start = constant``, and always
+for a grid) it is fitted at ``levels`` resolutions, each twice the last, ending at
+``max_resolution`` (``max_grid_resolution`` along a grid's longest side); every
+level starts from the last one's best state, resampled. A smoothness prior
+(``smoothness`` times the mean squared difference of neighbouring texels) keeps
+texels from absorbing highlights and noise and fills texels no photo sees from their
+neighbours.
 
 Model only what the scene needs: with ``texture = "auto"`` the texture is kept
 only when it lowers the held-out error by at least ``min_improvement``
