@@ -322,8 +322,17 @@ def cases() -> list[Case]:
             "issue",
             add_file("images/IMG_0001.HEIC"),
             ["check", "CAPTURE", "--no-features"],
+            1,
+            "cannot read this HEIF file",
+        ),
+        Case(
+            "psd-photo",
+            "silently wrong",
+            "new",
+            add_file("images/IMG_0002.PSD"),
+            ["check", "CAPTURE", "--no-features"],
             0,
-            "IMG_0001.HEIC: not a photo the pipeline reads",
+            "IMG_0002.PSD: not a photo the pipeline reads",
         ),
         Case(
             "fit-nan-reference",

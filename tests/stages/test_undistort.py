@@ -124,10 +124,10 @@ def test_photos_whose_names_give_one_camera_id_are_refused_by_name(run_stages, t
 
 
 def test_files_that_are_not_photos_are_warned_about_and_left_out(run_stages, tiny_capture, tmp_path, caplog):
-    capture = _copy_capture(tiny_capture, tmp_path / "heic")
-    (capture / "images" / "IMG_0001.HEIC").write_bytes(b"ftypheic")
+    capture = _copy_capture(tiny_capture, tmp_path / "psd")
+    (capture / "images" / "IMG_0001.PSD").write_bytes(b"8BPS")
     outputs = run_stages(capture, "undistort")
-    assert "IMG_0001.HEIC is not a photo the pipeline reads" in caplog.text
+    assert "IMG_0001.PSD is not a photo the pipeline reads" in caplog.text
     assert len(read_photos(outputs["undistort"]["pinhole"])) == 6
 
 

@@ -250,7 +250,7 @@ def test_clean_waits_for_a_run_to_write_its_report(ran_capture, presets_dir, toy
     from pipeline import report as html_report
 
     calls = []
-    monkeypatch.setattr(html_report, "write", lambda capture, records: calls.append(lock_is_held(capture)))
+    monkeypatch.setattr(html_report, "write", lambda capture, *rest: calls.append(lock_is_held(capture)))
     monkeypatch.setattr(html_report, "records", lambda *args: [])
     assert toy_cli(["--quiet", "run", str(ran_capture)]) == 0
     assert calls == [True]
