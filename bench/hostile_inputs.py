@@ -449,7 +449,7 @@ def cases() -> list[Case]:
             fill_disk(0),
             ["report", "CAPTURE"],
             1,
-            "the previous report was kept",
+            "the previous guide and report were kept",
             on_tmpfs_kb=4096,
         ),
         # further cases of the same kinds

@@ -11,7 +11,8 @@ from __future__ import annotations
 from collections import defaultdict
 from pathlib import Path
 
-from pipeline.core.fsutil import atomic_write_text
+from pipeline.core.errors import DiskFull
+from pipeline.core.fsutil import atomic_write_text, disk_full_error
 from pipeline.core.publish import MANIFEST, OUTPUT, STAGES, current_manifest
 
 README_TXT = "README.txt"
@@ -82,5 +83,10 @@ def text(capture_dir: Path) -> str:
 def write(capture_dir: Path) -> Path:
     """Write CAPTURE/output/README.txt; returns its path."""
     path = capture_dir / OUTPUT / README_TXT
-    atomic_write_text(path, text(capture_dir))
+    try:
+        atomic_write_text(path, text(capture_dir))
+    except OSError as error:
+        if disk_full_error(error):
+            raise DiskFull(path.parent, f"writing {path.name}", "the previous guide and report were kept") from error
+        raise
     return path
