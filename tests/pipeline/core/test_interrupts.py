@@ -46,3 +46,26 @@ def test_sigterm_after_pycolmap_loads_reaches_python_without_a_stack_dump():
 
     done = run_python(SIGTERM_AFTER_PYCOLMAP)
     assert done.returncode == 143 and "stack trace" not in done.stderr and "Aborted" not in done.stderr
+
+
+OTHER_SIGNALS_THEN_SIGTERM = """
+import os, signal, sys, time
+from pipeline.core import interrupts
+interrupts.install()
+signal.signal(signal.SIGALRM, lambda *args: None)  # a watchdog's, or any other handled signal
+for _ in range(3):
+    os.kill(os.getpid(), signal.SIGALRM)
+time.sleep(0.5)  # the watcher thread has read them
+try:
+    os.kill(os.getpid(), signal.SIGTERM)
+    time.sleep(10)
+except interrupts.Interrupted as stopped:
+    sys.exit(stopped.exit_code)
+"""
+
+
+def test_only_interruptions_count_towards_the_second_signal_that_ends_at_once():
+    from tests.support.toy_stages import run_python
+
+    done = run_python(OTHER_SIGNALS_THEN_SIGTERM)
+    assert done.returncode == 143 and "interrupted twice" not in done.stderr
