@@ -38,7 +38,8 @@ from PIL import Image
 from pipeline import logger
 from pipeline.core.config import Range
 from pipeline.core.stage import Stage, StageInputs, StageResult
-from pipeline.formats.scene_folder import MESH_PLY, read_json, texture_png
+from pipeline.formats.fit_results import FittedValues
+from pipeline.formats.scene_folder import MESH_PLY, texture_png
 
 # glTF is y up: x stays, y becomes z, z becomes -y.
 Z_UP_TO_Y_UP = np.array([[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]], dtype=float)
@@ -139,7 +140,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     scene_dir = inputs.upstream["fit_geometry"]["geometry_dir"]
     # The final scene's values: a kept texture's mean stands in the textured
     # parameter's place (a volume's albedo has no glTF texture).
-    fitted = read_json(inputs.upstream["fit_geometry"]["params"])
+    fitted = FittedValues.read(inputs.upstream["fit_geometry"]["params"])
     # The PLY's vertex normals are the ones Mitsuba shades with: the glb carries them
     # (turned with the mesh), so that viewers shade it smooth as the renders are.
     mesh = trimesh.load(scene_dir / MESH_PLY, force="mesh", process=False)
@@ -148,7 +149,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     folder = out_dir / "export"
     folder.mkdir()
     glb = folder / "specimen.glb"
-    glb.write_bytes(specimen_glb(mesh, fitted["model"], dict(fitted["params"]), texture))
+    glb.write_bytes(specimen_glb(mesh, fitted.model, dict(fitted.params), texture))
     logger.info("glTF: %s, %d triangles", glb.name, len(mesh.faces))
     return StageResult({"glb": glb}, {"triangles": len(mesh.faces), "textured": image_path is not None})
 

@@ -75,15 +75,9 @@ from pipeline.fit.checkpoint import resumable_stage
 from pipeline.fit.outputs import write_fit_log, write_heldout
 from pipeline.fit.passes import material_pass, pass_summary, shape_pass, specimen_error, sphere_in_box
 from pipeline.fit.views import CapturePhotos, PhotoGains, Windowing, load_views, read_capture_photos
-from pipeline.formats.scene_folder import (
-    HELDOUT,
-    MESH_PLY,
-    PARAMS_JSON,
-    copy_scene,
-    fitted_description,
-    read_json,
-    write_json,
-)
+from pipeline.formats.fit_results import FittedValues, GeometryFit, TexturedFit, read_fitted_scene
+from pipeline.formats.scene_description import SceneDescription
+from pipeline.formats.scene_folder import HELDOUT, MESH_PLY, PARAMS_JSON, copy_scene
 from pipeline.render import materials, mitsuba_variant
 
 
@@ -166,7 +160,7 @@ def _material_settings(conf: Config, seed: int) -> engine.FitSettings:
 def _rounds(
     conf: Config,
     geometry: Path,
-    description: dict,
+    description: SceneDescription,
     loss: str,
     photos: CapturePhotos,
     held: set[str],
@@ -224,21 +218,24 @@ def _rounds(
 @resumable_stage
 def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     # 1. The scene to start from: fit_texture's, or fit_material's for the sphere.
-    material = read_json(inputs.upstream["fit_material"]["params"])
+    description, material = read_fitted_scene(
+        inputs.upstream["scene"]["description"], inputs.upstream["fit_material"]["params"]
+    )
     source = "fit_material" if conf.start == "sphere" else "fit_texture"
     source_dir = inputs.upstream[source]["fitted_dir" if source == "fit_material" else "textured_dir"]
-    source_params = material if source == "fit_material" else read_json(inputs.upstream["fit_texture"]["params"])
-    # fit_material's model: it may have chosen opaque over the scene's principled.
-    description = fitted_description(read_json(inputs.upstream["scene"]["description"]), material)
-    model = description["model"]
+    start_fit: FittedValues = (
+        material if source == "fit_material" else TexturedFit.read(inputs.upstream["fit_texture"]["params"])
+    )
+    model = description.model
     loss = conf.loss if conf.loss != "auto" else ("silhouette" if model == "volumetric" else "photometric")
     geometry = copy_scene(source_dir, out_dir / "geometry")
     outputs = {"geometry_dir": geometry, "params": geometry / PARAMS_JSON, "heldout": geometry / HELDOUT}
-    report = {"enabled": conf.enabled, "start": conf.start, "model": model}
-    values, bounds = dict(source_params["params"]), source_params["bounds"]
+    about = {"enabled": conf.enabled, "start": conf.start}
+    values, bounds, held_out = dict(start_fit.params), start_fit.bounds, start_fit.held_out
     if not conf.enabled:
         shutil.copytree(inputs.upstream[source]["heldout"], geometry / HELDOUT)
-        write_json(geometry / PARAMS_JSON, report | {"params": values, "bounds": bounds})
+        unchanged = GeometryFit(model=model, params=values, bounds=bounds, held_out=held_out, kept=False, details=about)
+        unchanged.write(geometry / PARAMS_JSON)
         return StageResult(outputs, {"enabled": False})
     hull = trimesh.load(geometry / MESH_PLY, force="mesh", process=False)
     if conf.start == "sphere":
@@ -252,10 +249,11 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         inputs.upstream["masks"]["masks_json"],
         PhotoGains.of(material),
     )
-    held = set(material["held_out"])
+    held = set(held_out)
     diagonal = float(np.linalg.norm(hull.extents))
     start = trimesh.load(geometry / MESH_PLY, force="mesh", process=False).vertices.copy()
-    texture = (source_params["learning_rate"], source_params["smoothness"]) if source_params.get("kept") else None
+    kept_texture = isinstance(start_fit, TexturedFit) and start_fit.kept
+    texture = (start_fit.learning_rate, start_fit.smoothness) if kept_texture else None
     parameters = materials.refit_parameters(model, bounds, texture)
     started = time.perf_counter()
     measured = Windowing(conf.material_max_size, conf.erode_px, conf.validation_spp)
@@ -277,21 +275,20 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     positions = trimesh.load(geometry / MESH_PLY, force="mesh", process=False).vertices
     moved = np.linalg.norm(positions - start, axis=1)
     first, last = rounds[0]["geometry"], rounds[-1]["geometry"]
-    report |= {
+    about |= {
         "loss": loss,
         "rounds": rounds,
         "validation_mse_start": first["validation_start"],
         "validation_mse": last["validation"],
         "specimen_validation_mse": {"start": specimen["start"], "end": specimen["end"]},
-        "kept": specimen["kept"],
-        "params": values,
-        "bounds": bounds,
         "vertices": int(len(positions)),
         "seconds": time.perf_counter() - started,
-        "held_out": sorted(held),
         "median_vertex_move_of_diagonal": float(np.median(moved)) / diagonal,
     }
-    write_json(geometry / PARAMS_JSON, report)
+    refined = GeometryFit(
+        model=model, params=values, bounds=bounds, held_out=sorted(held), kept=specimen["kept"], details=about
+    )
+    refined.write(geometry / PARAMS_JSON)
     return StageResult(
         outputs, {"validation_mse_start": first["validation_start"], "validation_mse": last["validation"]}
     )

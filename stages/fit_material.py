@@ -81,7 +81,9 @@ from pipeline.fit.material import MaterialFitting
 from pipeline.fit.outputs import write_fit_log, write_heldout
 from pipeline.fit.settings import FitSettings
 from pipeline.fit.views import Windowing, read_capture_photos
-from pipeline.formats.scene_folder import HELDOUT, PARAMS_JSON, SCENE_XML, read_json, write_json
+from pipeline.formats.fit_results import LightChoice, MaterialFit
+from pipeline.formats.scene_description import SceneDescription
+from pipeline.formats.scene_folder import HELDOUT, PARAMS_JSON, SCENE_XML
 from pipeline.render import materials, mitsuba_variant
 from pipeline.render.capture_scene import rewrite_integrator
 
@@ -126,8 +128,8 @@ def fit_parameters(model: str, bounds: tuple[str, ...], models: list[str]) -> li
 @resumable_stage
 def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     # 1. The scene stage's folder, copied: the fitted values (and light) are written into it.
-    description = read_json(inputs.upstream["scene"]["description"])
-    models = description.get("model_choice", [description["model"]])
+    description = SceneDescription.read(inputs.upstream["scene"]["description"])
+    models = description.model_choice
     mitsuba_variant.activate(inputs.shared["mitsuba"].variant)
     fitted = out_dir / "fitted"
     shutil.copytree(inputs.upstream["scene"]["scene_dir"], fitted)
@@ -169,41 +171,41 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     write_fit_log(fitted, result.log)
     parameters = fitting.parameters[model]
     material_values = {p.name: result.values[p.name] for p in parameters}
-    light_report = {
-        "chosen": material.light.summary() if material.light else {"model": "given"},
-        "why": why,
-        "candidates": [c.summary("light") for c in candidates],
-        "level": description.get("light", {}).get("level"),
-        "level_from": description.get("light", {}).get("level_from"),
-    }
-    params = write_json(
-        fitted / PARAMS_JSON,
-        {
-            "model": model,
-            "params": material_values,
-            "bounds": {p.name: [p.lower, p.upper] for p in parameters},
-            "units": {p.name: materials.PARAMETERS[p.name].units for p in parameters},
+    light_choice = LightChoice(
+        chosen=material.light.summary() if material.light else {"model": "given"},
+        why=why,
+        candidates=[c.summary("light") for c in candidates],
+        level=description.light.level,
+        level_from=description.light.level_from,
+    )
+    record = MaterialFit(
+        model=model,
+        params=material_values,
+        bounds={p.name: [p.lower, p.upper] for p in parameters},
+        held_out=material.held,
+        units={p.name: materials.PARAMETERS[p.name].units for p in parameters},
+        integrator=material.integrator,
+        light=light_choice,
+        photo_gains=result.photo_gains,
+        gain_channels=gain_channels,
+        heldout_gains=heldout_gains,
+        details={
             "model_choice": {
                 "chosen": model,
                 "why": choice.why,
                 "candidates": [c.summary("material") for c in choice.candidates],
                 "depth": choice.depth,
             },
-            "integrator": material.integrator,
             "best_iteration": result.best_iteration,
             "iterations": len(result.log),
             "validation_mse": result.validation_error,
-            "held_out": material.held,
             "stopped": result.stopped,
-            "photo_gains": result.photo_gains,
-            "gain_channels": gain_channels,
-            "heldout_gains": heldout_gains,
-            "light": light_report,
             "skipped_gradients": result.skipped_gradients,
         },
     )
+    params = record.write(fitted / PARAMS_JSON)
     metrics = {"iterations": len(result.log), "best_iteration": result.best_iteration, "model": model}
-    metrics |= {"validation_mse": result.validation_error, "light": light_report["chosen"]["model"]}
+    metrics |= {"validation_mse": result.validation_error, "light": light_choice.chosen["model"]}
     metrics |= {n: v if len(v) > 1 else v[0] for n, v in material_values.items()}
     outputs = {"fitted_dir": fitted, "params": params, "heldout": fitted / HELDOUT, "scene": fitted / SCENE_XML}
     return StageResult(outputs, metrics)

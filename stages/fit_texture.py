@@ -86,16 +86,9 @@ from pipeline.fit.outputs import write_fit_log, write_heldout
 from pipeline.fit.settings import FitSettings, LoopSettings
 from pipeline.fit.texture import TextureFit, fit_constants_then_levels, level_shapes, write_texture
 from pipeline.fit.views import CapturePhotos, PhotoGains, Windowing, load_views, read_capture_photos
-from pipeline.formats.scene_folder import (
-    HELDOUT,
-    MESH_PLY,
-    PARAMS_JSON,
-    SPECIMEN_XML,
-    copy_scene,
-    fitted_description,
-    read_json,
-    write_json,
-)
+from pipeline.formats.fit_results import MaterialFit, TexturedFit, read_fitted_scene
+from pipeline.formats.scene_description import SceneDescription
+from pipeline.formats.scene_folder import HELDOUT, MESH_PLY, PARAMS_JSON, SPECIMEN_XML, copy_scene
 from pipeline.render import light as estimated_light
 from pipeline.render import materials, mitsuba_variant, scene_xml
 from pipeline.render.materials import SPECIMEN
@@ -159,13 +152,13 @@ def _keep_texture(conf: Config, constant_error: float | None, texture_error: flo
     )
 
 
-def _finish_report(report: dict, material: dict, constants: dict, texture_mean: list | None) -> None:
+def _final_values(model: str, material: MaterialFit, constants: dict, texture_mean: list | None) -> dict:
     """The scene's values as in fit_material's params.json: the refitted constants,
     and a kept texture's mean in its parameter's place."""
-    report["params"] = {**material["params"], **constants}
+    values = {**material.params, **constants}
     if texture_mean is not None:
-        report["params"][materials.TEXTURE_SLOTS[report["model"]].parameter] = texture_mean
-    report["bounds"] = material["bounds"]
+        values[materials.TEXTURE_SLOTS[model].parameter] = texture_mean
+    return values
 
 
 def _texture_fit(conf: Config, model: str, bounds: dict, views: list[engine.FitView], held: set[str]) -> TextureFit:
@@ -179,42 +172,42 @@ def _texture_fit(conf: Config, model: str, bounds: dict, views: list[engine.FitV
     return TextureFit(training=training, validation=validation, parameters=parameters, settings=settings)
 
 
-def _baker(
-    conf: Config,
-    slot,
-    shape: tuple[int, ...],
-    fit: TextureFit,
-    material: dict,
-    scene: tuple[Path, dict],
-    photos: CapturePhotos,
-    report: dict,
-):
-    """With ``start = photos`` and a bitmap: what bakes the texture from the training
-    ``photos`` (``scene``: the scene folder and its description) into the training
-    views' scenes, as the constants' refit leaves them, and notes it in ``report``;
-    None otherwise."""
-    if conf.start != "photos" or slot.kind != "bitmap":
-        return None
+@dataclass
+class _Baker:
+    """What bakes the texture from the training photos into the training views'
+    scenes, as the constants' refit leaves them (``start = photos``, a bitmap)."""
 
-    def bake() -> np.ndarray:
+    conf: Config
+    slot: materials.TextureSlot
+    shape: tuple[int, ...]
+    fit: TextureFit
+    material: MaterialFit
+    scene_dir: Path
+    description: SceneDescription
+    photos: CapturePhotos
+    record: dict | None = None
+    """What the bake did (params.json's ``baked``), once it ran."""
+
+    def __call__(self) -> np.ndarray:
+        conf, fit = self.conf, self.fit
         scenes = {v.name: v.scene for v in fit.training}
         windowing = Windowing(conf.bake_max_size, conf.erode_px, conf.bake_spp)
-        views = load_views(*scene, photos, windowing, names=set(scenes), scenes=scenes)
-        free = material["light"].get("level_from") == estimated_light.SPECIMEN_LEVEL  # a guessed level may rise
+        views = load_views(self.scene_dir, self.description, self.photos, windowing, names=set(scenes), scenes=scenes)
+        free = self.material.light.level_from == estimated_light.SPECIMEN_LEVEL  # a guessed level may rise
         relit = [v.scene for v in (*fit.training, *fit.validation)] if free else []
-        bounds = material["bounds"][slot.parameter]
+        bounds = self.material.bounds[self.slot.parameter]
         texture, seen, scale = bake_bitmap(
-            [v for v, _ in views], slot.key, SPECIMEN, shape, conf.bake_spp, bounds, relit, conf.bake_rounds
+            [v for v, _ in views], self.slot.key, SPECIMEN, self.shape, conf.bake_spp, bounds, relit, conf.bake_rounds
         )
-        report["baked"] = dict(max_size=conf.bake_max_size, spp=conf.bake_spp, rounds=conf.bake_rounds)
-        report["baked"] |= dict(texels_seen=seen, light_scale=scale)
+        self.record = dict(max_size=conf.bake_max_size, spp=conf.bake_spp, rounds=conf.bake_rounds)
+        self.record |= dict(texels_seen=seen, light_scale=scale)
         logger.info("texture baked from %d photos: %.0f %% of texels seen, light x %.3g", len(views), 100 * seen, scale)
         return texture
 
-    return bake
 
-
-def _render_heldout(conf: Config, textured: Path, description: dict, photos: CapturePhotos, held: set[str]) -> None:
+def _render_heldout(
+    conf: Config, textured: Path, description: SceneDescription, photos: CapturePhotos, held: set[str]
+) -> None:
     # the photos' gains: a held-out photo's measured one scales its render
     windowing = Windowing(conf.max_size, conf.erode_px, conf.spp)
     views = load_views(textured, description, photos, windowing, names=held)
@@ -226,32 +219,36 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     # Longer than 60 lines on purpose: the stage's five steps in their order.
     # 1. fit_material's scene, without its fit results.
     material_dir = inputs.upstream["fit_material"]["fitted_dir"]
-    material = read_json(inputs.upstream["fit_material"]["params"])
-    # fit_material's model: it may have chosen opaque over the scene's principled.
-    description = fitted_description(read_json(inputs.upstream["scene"]["description"]), material)
-    model = description["model"]
+    description, material = read_fitted_scene(
+        inputs.upstream["scene"]["description"], inputs.upstream["fit_material"]["params"]
+    )
+    model = description.model
     slot = materials.TEXTURE_SLOTS[model]
     textured = copy_scene(material_dir, out_dir / "textured")
     outputs = {"textured_dir": textured, "params": textured / PARAMS_JSON, "heldout": textured / HELDOUT}
-    report = {
-        "model": model,
+    about = {
         "parameter": slot.parameter,
         "kind": slot.kind,
         "mode": conf.texture,
-        "constant": material["params"][slot.parameter],
-        "held_out": material["held_out"],
+        "constant": material.params[slot.parameter],
     }
     if conf.texture == "off":
         shutil.copytree(inputs.upstream["fit_material"]["heldout"], textured / HELDOUT)
-        report |= {"kept": False, "reason": "texture = off", "params": material["params"], "bounds": material["bounds"]}
-        write_json(textured / PARAMS_JSON, report)
+        TexturedFit(
+            model=model,
+            params=material.params,
+            bounds=material.bounds,
+            held_out=material.held_out,
+            kept=False,
+            details=about | {"reason": "texture = off"},
+        ).write(textured / PARAMS_JSON)
         return StageResult(outputs, {"kept": False})
 
     # 2. The texture at the coarsest level, set to fit_material's constant.
     mesh = trimesh.load(textured / MESH_PLY, force="mesh")
     box = np.array([mesh.bounds[0] - 0.02 * mesh.extents, mesh.bounds[1] + 0.02 * mesh.extents])
     shapes = level_shapes(conf.levels, conf.max_resolution, conf.max_grid_resolution, slot.kind, box[1] - box[0])
-    texture = np.broadcast_to(np.float32(material["params"][slot.parameter]), (*shapes[0], 3)).copy()
+    texture = np.broadcast_to(np.float32(material.params[slot.parameter]), (*shapes[0], 3)).copy()
     specimen = textured / SPECIMEN_XML
     parameter_key = materials.PARAMETERS[slot.parameter].key
     scene_xml.set_values(specimen, {}, specimen, textures={parameter_key: write_texture(textured, slot, texture, box)})
@@ -266,25 +263,32 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     )
     windowing = Windowing(conf.max_size, conf.erode_px, conf.spp)
     views = [view for view, _ in load_views(textured, description, photos, windowing)]
-    held = set(material["held_out"])
-    fit = _texture_fit(conf, model, material["bounds"], views, held)
-    bake = _baker(conf, slot, shapes[-1], fit, material, (textured, description), photos, report)
+    held = set(material.held_out)
+    fit = _texture_fit(conf, model, material.bounds, views, held)
+    bake = None
+    if conf.start == "photos" and slot.kind == "bitmap":
+        bake = _Baker(conf, slot, shapes[-1], fit, material, textured, description, photos)
     fitted = fit_constants_then_levels(slot, texture, shapes, fit, bake)
     result, texture, constants = fitted.result, fitted.texture, fitted.constants
     constant_error, texture_error = fitted.constant_error, fitted.levels[-1]["validation_mse"]
+    if bake is not None and bake.record is not None:
+        about["baked"] = bake.record
     if fitted.constants_fit is not None:
-        report["constants_fit"] = fitted.constants_fit
+        about["constants_fit"] = fitted.constants_fit
 
     # 4. Keep the texture only if it earns its place.
     kept, reason = _keep_texture(conf, constant_error, texture_error)
     logger.info("texture %s: %s", "kept" if kept else "not kept", reason)
     write_fit_log(textured, fitted.log)
+    light = None
     if kept:
         write_texture(textured, slot, texture, box)
         constant_values = {n: result.values[n] for n in constants}
-        if (scale := report.get("baked", {}).get("light_scale", 1.0)) != 1.0:
+        if (scale := about.get("baked", {}).get("light_scale", 1.0)) != 1.0:
             poses = {name: pose for name, (_, pose) in photos.cameras.items()}
-            report["light"] = estimated_light.rescale_files(textured, material["light"], scale, description, poses)
+            light = estimated_light.rescale_files(
+                textured, material.light.chosen, scale, description.view_files(), poses
+            )
     else:
         # fit_material's constant scene, with the refitted constants.
         shutil.copy2(material_dir / SPECIMEN_XML, specimen)
@@ -298,19 +302,25 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         _render_heldout(conf, textured, description, photos, held)
     else:
         shutil.copytree(inputs.upstream["fit_material"]["heldout"], textured / HELDOUT)
-    _finish_report(report, material, constant_values, result.values[slot.parameter] if kept else None)
-    report |= {
-        "kept": kept,
-        "reason": reason,
-        "smoothness": conf.smoothness,
-        "learning_rate": conf.learning_rate,
-        "validation_mse_constant": constant_error,
-        "validation_mse_texture": texture_error,
-        "levels": fitted.levels,
-        "texture_mean": [float(v) for v in texture.reshape(-1, 3).mean(axis=0)],
-        "files": sorted(p.name for p in textured.glob(f"{slot.parameter}.*")),
-    }
-    write_json(textured / PARAMS_JSON, report)
+    TexturedFit(
+        model=model,
+        params=_final_values(model, material, constant_values, result.values[slot.parameter] if kept else None),
+        bounds=material.bounds,
+        held_out=material.held_out,
+        kept=kept,
+        learning_rate=conf.learning_rate,
+        smoothness=conf.smoothness,
+        light=light,
+        details=about
+        | {
+            "reason": reason,
+            "validation_mse_constant": constant_error,
+            "validation_mse_texture": texture_error,
+            "levels": fitted.levels,
+            "texture_mean": [float(v) for v in texture.reshape(-1, 3).mean(axis=0)],
+            "files": sorted(p.name for p in textured.glob(f"{slot.parameter}.*")),
+        },
+    ).write(textured / PARAMS_JSON)
     return StageResult(
         outputs, {"kept": kept, "validation_mse_constant": constant_error, "validation_mse_texture": texture_error}
     )

@@ -68,7 +68,15 @@ from pipeline.core.stage import Stage, StageInputs, StageResult
 from pipeline.formats.cameras import read_frame, read_views
 from pipeline.formats.masks import read_masks
 from pipeline.formats.pinhole import linear_photos
-from pipeline.formats.scene_folder import DESCRIPTION_JSON, MESH_PLY, SCENE_XML, SPECIMEN_XML, write_json
+from pipeline.formats.scene_description import (
+    Ground,
+    Integrator,
+    LightStart,
+    MaterialParameter,
+    SceneDescription,
+    ViewFiles,
+)
+from pipeline.formats.scene_folder import DESCRIPTION_JSON, MESH_PLY, SCENE_XML, SPECIMEN_XML
 from pipeline.render import light as estimated_light
 from pipeline.render import materials, mitsuba_variant
 from pipeline.render.capture_scene import (
@@ -142,7 +150,7 @@ def _write_scene_files(
     views: dict,
     light: LightSection,
     environment: str | None,
-    integrator: tuple,
+    integrator: Integrator,
     spp: int,
     near_clip: float,
 ) -> tuple[Path, dict[str, Path]]:
@@ -195,8 +203,8 @@ def _light_level(view_files, views, linear, masks, board, near_clip) -> tuple[tu
     return (float(np.mean(level)),) * 3, estimated_light.SPECIMEN_LEVEL
 
 
-def _view_entries(view_files: dict[str, Path], out_dir: Path) -> dict:
-    return {name: {"xml": str(path.relative_to(out_dir))} for name, path in view_files.items()}
+def _relative(view_files: dict[str, Path], out_dir: Path) -> dict[str, str]:
+    return {name: str(path.relative_to(out_dir)) for name, path in view_files.items()}
 
 
 def _poses(views: dict) -> dict:
@@ -205,41 +213,41 @@ def _poses(views: dict) -> dict:
 
 def _description(
     model: str,
-    integrator: dict,
+    integrators: dict[str, Integrator],
     light: LightSection,
     near_clip: float,
     board,
-    ground: dict | None,
+    ground: Ground | None,
     values: dict,
-    view_files: dict[str, Path],
-    out_dir: Path,
-) -> dict:
-    """scene.json's content (pipeline.formats.scene_folder), what the fit stages read."""
+    view_files: dict[str, str],
+    light_start: LightStart,
+) -> SceneDescription:
+    """scene.json's content (pipeline.formats.scene_description), what the fit stages read."""
     parameters = {
-        name: {
-            "key": materials.PARAMETERS[name].key,
-            "value": list(value),
-            "lower": materials.PARAMETERS[name].lower,
-            "upper": materials.PARAMETERS[name].upper,
-            "units": materials.PARAMETERS[name].units,
-        }
+        name: MaterialParameter(
+            key=materials.PARAMETERS[name].key,
+            value=list(value),
+            lower=materials.PARAMETERS[name].lower,
+            upper=materials.PARAMETERS[name].upper,
+            units=materials.PARAMETERS[name].units,
+        )
         for name, value in values.items()
     }
-    return {
-        "model": model,
-        "integrator": integrator,
-        "light_frame": light.frame,
-        "near_clip": near_clip,
+    return SceneDescription(
+        model=model,
+        integrator=integrators[model],
+        light_frame=light.frame,
+        near_clip=near_clip,
         # the print's half width and height (metres, at the world's origin): its
         # reflectance is known, so fit_material counts its pixels for the light's level
-        "board_print": None if board is None else board_half_extent(board).tolist(),
-        "ground": ground,
-        "parameters": parameters,
-        "views": {
-            name: {"xml": str(path.relative_to(out_dir)), "sensor": Path(name).stem}
-            for name, path in view_files.items()
-        },
-    }
+        board_print=None if board is None else board_half_extent(board).tolist(),
+        ground=ground,
+        parameters=parameters,
+        views={name: ViewFiles(xml=xml, sensor=Path(name).stem) for name, xml in view_files.items()},
+        model_choice=list(integrators),
+        integrators=integrators,
+        light=light_start,
+    )
 
 
 def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
@@ -249,8 +257,8 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     frame, views = read_frame(cameras_json), read_views(cameras_json)
     choice = model_choice(conf, inputs.shared["capture.material"])
     model = materials.OPEN_SCENE_MODEL if len(choice) > 1 else choice[0]
-    integrators = {m: materials.integrator_description(m, conf.max_depth) for m in choice}
-    integrator = (integrators[model]["differentiable"], integrators[model]["max_depth"])
+    integrators = {m: materials.model_integrator(m, conf.max_depth) for m in choice}
+    integrator = integrators[model]
     if not frame.get("metric") and not light.estimated and light.area_light:
         logger.warning(
             "the world frame is not metric (%s): the light positions in [light] are used as they are",
@@ -284,12 +292,12 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     # 4. An estimated light's start: uniform, at the level the photos show.
     linear = linear_photos(inputs.upstream["undistort"]["pinhole"])
     masks = read_masks(inputs.upstream["masks"]["masks_json"])
-    light_json = {"model": light.model if light.estimated else "given"}
+    light_start = LightStart(model=light.model if light.estimated else "given")
     if light.estimated:
         level, source = _light_level(view_files, views, linear, masks, board, near_clip)
         start = estimated_light.start("constant", light.frame, np.array(level), 1)
-        estimated_light.write(start, out_dir, {"views": _view_entries(view_files, out_dir)}, _poses(views))
-        light_json |= {"level": list(level), "level_from": source}
+        estimated_light.write(start, out_dir, _relative(view_files, out_dir), _poses(views))
+        light_start = LightStart(model=light.model, level=list(level), level_from=source)
         logger.info("light: starts uniform at %s, measured on the %s", np.round(level, 3).tolist(), source)
 
     # 5. The ground's albedo, measured in the photos under that light.
@@ -308,14 +316,15 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     # 6. A preview, and the description the fit stages read.
     first = sorted(views)[0]
     render_preview(view_files[first], *views[first], near_clip, mesh, conf.preview_spp, out_dir / "preview.png")
-    ground = {"radius": ground_radius, "albedo": ground_albedo} if ground_albedo else None
-    description = _description(model, integrators[model], light, near_clip, board, ground, values, view_files, out_dir)
-    description["model_choice"] = choice
-    description["integrators"] = integrators
-    description["light"] = light_json
-    scene_json = write_json(out_dir / DESCRIPTION_JSON, description)
+    ground = Ground(radius=ground_radius, albedo=list(ground_albedo)) if ground_albedo else None
+    files = _relative(view_files, out_dir)
+    description = _description(model, integrators, light, near_clip, board, ground, values, files, light_start)
+    scene_json = description.write(out_dir / DESCRIPTION_JSON)
     outputs = {"scene_dir": out_dir, "scene": scene, "description": scene_json, "preview": out_dir / "preview.png"}
-    return StageResult(outputs, {"model": model, "views": len(views), "integrator": f"{integrator[0]}/{integrator[1]}"})
+    return StageResult(
+        outputs,
+        {"model": model, "views": len(views), "integrator": f"{integrator.differentiable}/{integrator.max_depth}"},
+    )
 
 
 STAGE = Stage(

@@ -63,7 +63,8 @@ from bench.common import write_section
 from pipeline.fit.bake import bake_bitmap, fill_unseen, pixel_rays, render_view, texels_hit
 from pipeline.fit.outputs import write_heldout
 from pipeline.fit.views import PhotoGains, Windowing, load_views, read_capture_photos
-from pipeline.formats.scene_folder import fitted_description, read_json
+from pipeline.formats.fit_results import read_fitted_scene
+from pipeline.formats.scene_description import SceneDescription
 from pipeline.render import materials, mitsuba_variant
 from pipeline.render.materials import SPECIMEN
 from pipeline.synthetic.score import score_heldout
@@ -85,7 +86,7 @@ def _scored(views: list, texture: np.ndarray | None, key: str, folder: Path) -> 
     return score_heldout(folder)
 
 
-def photographer_scenes(textured: Path, description: dict, cameras: dict, distance: float, radius: float) -> dict:
+def photographer_scenes(textured: Path, description: SceneDescription, cameras: dict, distance: float, radius: float) -> dict:
     """Each view's scene (its XML without the sensor) with a black disk behind its camera
     (the module docstring's ``--photographer``)."""
     import mitsuba as mi
@@ -94,7 +95,7 @@ def photographer_scenes(textured: Path, description: dict, cameras: dict, distan
     centre = (np.array(box.min) + np.array(box.max)) / 2
     mi.file_resolver().prepend(str(textured))
     scenes = {}
-    for name, view in description["views"].items():
+    for name, view in description.views.items():
         camera = np.asarray(cameras[name][1].center, float)
         away = camera - centre
         reach = float(np.linalg.norm(away))
@@ -105,7 +106,7 @@ def photographer_scenes(textured: Path, description: dict, cameras: dict, distan
             f'<lookat origin="{at[0]} {at[1]} {at[2]}" target="{centre[0]} {centre[1]} {centre[2]}" up="0 0 1"/>'
             '</transform><bsdf type="diffuse" id="photographer_bsdf"><rgb name="reflectance" value="0"/></bsdf></shape>'
         )
-        xml = re.sub(r"\s*<sensor .*?</sensor>", "", (textured / view["xml"]).read_text(), flags=re.S)
+        xml = re.sub(r"\s*<sensor .*?</sensor>", "", (textured / view.xml).read_text(), flags=re.S)
         scenes[name] = mi.load_string(xml.replace("</scene>", disk + "</scene>"))
     return scenes
 
@@ -218,23 +219,22 @@ def ceiling(
     import mitsuba as mi
 
     outputs = cached_outputs(capture, "fit_texture", overrides)
-    material = read_json(outputs["fit_material"]["params"])
+    description, material = read_fitted_scene(outputs["scene"]["description"], outputs["fit_material"]["params"])
     textured = outputs["fit_texture"]["textured_dir"]
     bitmap = textured / "base_color.exr"
     if not bitmap.is_file():
         raise SystemExit(f"{capture.name}: fit_texture kept no bitmap ({textured}): nothing to bake into")
-    description = fitted_description(read_json(outputs["scene"]["description"]), material)
     texture_conf = json.loads((outputs["fit_texture"]["params"]).read_text())
     mitsuba_variant.activate("auto")
     shape = np.array(mi.Bitmap(str(bitmap))).shape[:2]
-    key = materials.TEXTURE_SLOTS[description["model"]].key
+    key = materials.TEXTURE_SLOTS[description.model].key
     photos = read_capture_photos(
         outputs["sfm"]["cameras"],
         outputs["undistort"]["pinhole"],
         outputs["masks"]["masks_json"],
         PhotoGains.of(material),
     )
-    held = set(material["held_out"])
+    held = set(material.held_out)
     scenes = photographer_scenes(textured, description, photos.cameras, *photographer) if photographer else None
     baked = texture_conf.get("baked", {})
     rounds = rounds or baked.get("rounds", 1)

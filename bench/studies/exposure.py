@@ -19,7 +19,8 @@ from bench.common import write_section
 from bench.studies.ceiling import cached_outputs
 from pipeline.fit.exposure import NEAREST, table_gains
 from pipeline.fit.views import read_capture_photos
-from pipeline.formats.scene_folder import read_json
+from pipeline.formats.fit_results import MaterialFit
+from pipeline.formats.scene_description import SceneDescription
 
 COUNTS = (2, 3, 4, 6, 10)
 """Numbers of nearest cameras compared."""
@@ -32,20 +33,20 @@ def main() -> None:
     parser.add_argument("--write", action="store_true", help="rewrite docs/benchmarks.md's section")
     args = parser.parse_args()
     outputs = cached_outputs(args.capture, "fit_material", args.overrides)
-    params = read_json(outputs["fit_material"]["params"])
-    if not params.get("photo_gains"):
+    params = MaterialFit.read(outputs["fit_material"]["params"])
+    if not params.photo_gains:
         raise SystemExit(f"{args.capture}: fit_material fitted no photo gains (fit_material.exposure, white_balance)")
     photos = read_capture_photos(
         outputs["sfm"]["cameras"], outputs["undistort"]["pinhole"], outputs["masks"]["masks_json"]
     )
-    description = read_json(outputs["scene"]["description"])
-    held = params["held_out"]
+    description = SceneDescription.read(outputs["scene"]["description"])
+    held = params.held_out
     lines = [
         f"| nearest cameras ({args.capture.name}) | median | 90th percentile | largest | " + " | ".join(held) + " |",
         "|---|---|---|---|" + "---|" * len(held),
     ]
     for count in COUNTS:
-        found = table_gains(description, photos, params["photo_gains"], held, 3, count)
+        found = table_gains(description, photos, params.photo_gains, held, 3, count)
         if not found:
             raise SystemExit(f"{args.capture}: its scene has no table, or no two photos share enough of it")
         error = found["training_error"]

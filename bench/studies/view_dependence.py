@@ -43,7 +43,7 @@ from bench.studies.ceiling import cached_outputs
 from pipeline.fit.bake import pixel_rays
 from pipeline.fit.loop import matched_gain
 from pipeline.fit.views import PhotoGains, Windowing, load_views, read_capture_photos
-from pipeline.formats.scene_folder import fitted_description, read_json
+from pipeline.formats.fit_results import read_fitted_scene
 from pipeline.render import mitsuba_variant
 
 BINS_DEG = np.arange(-180, 181, 30)
@@ -61,9 +61,8 @@ def rendered_views(capture: Path, overrides: list[str], names: str = "training")
     import mitsuba as mi
 
     outputs = cached_outputs(capture, "fit_texture", overrides)
-    material = read_json(outputs["fit_material"]["params"])
+    description, material = read_fitted_scene(outputs["scene"]["description"], outputs["fit_material"]["params"])
     textured = outputs["fit_texture"]["textured_dir"]
-    description = fitted_description(read_json(outputs["scene"]["description"]), material)
     photos = read_capture_photos(
         outputs["sfm"]["cameras"],
         outputs["undistort"]["pinhole"],
@@ -71,8 +70,8 @@ def rendered_views(capture: Path, overrides: list[str], names: str = "training")
         PhotoGains.of(material),
     )
     mitsuba_variant.activate("auto")
-    held = set(material["held_out"])
-    chosen = held if names == "held_out" else set(description["views"]) - held
+    held = set(material.held_out)
+    chosen = held if names == "held_out" else set(description.views) - held
     views = load_views(textured, description, photos, Windowing(128, 2, 64), names=chosen)
     rendered = []
     for view, _ in views:

@@ -90,6 +90,59 @@ class FeatureSettings:
     """Ring matching: each photo is matched with this many following ones, cyclically."""
 
 
+@dataclass(frozen=True)
+class FeaturePlan:
+    """FeatureSettings with every "auto" choice made for one capture."""
+
+    max_features: int
+    """Most SIFT features kept per photo."""
+    upsample: bool
+    """SIFT from twice the resolution (COLMAP's first_octave of -1)."""
+    domain_size_pooling: bool
+    """DSP-SIFT descriptors."""
+    mask_dir: Path | None
+    """Where features may come from (feature_masks), or None for everywhere."""
+    matcher: Literal["exhaustive", "sequential", "ring"]
+    """Which pairs are matched."""
+    sequential_overlap: int
+    """Sequential matching: following photos each photo is matched with."""
+    ring_neighbours: int
+    """Ring matching: following photos each photo is matched with, cyclically."""
+    still_camera: bool
+    """Matches that do not move are dropped (a turntable's room)."""
+
+    @classmethod
+    def of(
+        cls,
+        settings: FeatureSettings,
+        rig: str,
+        photos: dict[str, dict],
+        cameras: list[dict],
+        masks: dict[str, Path],
+        work: Path,
+    ) -> FeaturePlan:
+        """The plan for ``rig``'s photos; writes the feature masks into ``work``."""
+        mode = settings.feature_mask
+        if mode == "auto":
+            mode = "moving" if rig == "turntable" else "everywhere"
+        matcher = settings.matcher
+        if matcher == "auto":
+            exhaustive = len(photos) <= settings.exhaustive_max_images
+            matcher = "ring" if rig == "turntable" else "exhaustive" if exhaustive else "sequential"
+        longest = max(max(c["intrinsics"]["width"], c["intrinsics"]["height"]) for c in cameras)
+        small = longest < settings.small_photo_px
+        return cls(
+            max_features=settings.max_features,
+            upsample=settings.upsample == "yes" or (settings.upsample == "auto" and small),
+            domain_size_pooling=settings.dsp_sift == "yes" or (settings.dsp_sift == "auto" and small),
+            mask_dir=feature_masks(mode, settings.mask_dilation, photos, masks, work),
+            matcher=matcher,
+            sequential_overlap=settings.sequential_overlap,
+            ring_neighbours=settings.ring_neighbours,
+            still_camera=rig == "turntable",
+        )
+
+
 def features_and_matches(
     settings: FeatureSettings,
     rig: str,
@@ -100,57 +153,22 @@ def features_and_matches(
 ) -> Path:
     """SIFT features and verified matches of every photo (undistort's ``{"srgb": PNG}``)
     in a new COLMAP database in ``work``, the settings' "auto" choices made for ``rig``."""
-    mode = settings.feature_mask
-    if mode == "auto":
-        mode = "moving" if rig == "turntable" else "everywhere"
-    matcher = settings.matcher
-    if matcher == "auto":
-        exhaustive = len(photos) <= settings.exhaustive_max_images
-        matcher = "ring" if rig == "turntable" else "exhaustive" if exhaustive else "sequential"
-    longest = max(max(c["intrinsics"]["width"], c["intrinsics"]["height"]) for c in cameras)
-    small = longest < settings.small_photo_px
+    plan = FeaturePlan.of(settings, rig, photos, cameras, masks, work)
     database = work / "database.db"
-    _extract_and_match(
-        photos,
-        cameras,
-        feature_masks(mode, settings.mask_dilation, photos, masks, work),
-        next(iter(photos.values()))["srgb"].parent,
-        database,
-        settings.max_features,
-        upsample=settings.upsample == "yes" or (settings.upsample == "auto" and small),
-        domain_size_pooling=settings.dsp_sift == "yes" or (settings.dsp_sift == "auto" and small),
-        matcher=matcher,
-        sequential_overlap=settings.sequential_overlap,
-        ring_neighbours=settings.ring_neighbours,
-        still_camera=rig == "turntable",
-    )
+    _extract(plan, photos, cameras, database)
+    _match(plan, photos, database)
     return database
 
 
-def _extract_and_match(
-    photos: dict[str, dict],
-    cameras: list[dict],
-    mask_dir: Path | None,
-    image_dir: Path,
-    database: Path,
-    max_features: int,
-    upsample: bool,
-    domain_size_pooling: bool,
-    matcher: str,
-    sequential_overlap: int,
-    ring_neighbours: int,
-    still_camera: bool,
-) -> None:
-    """SIFT features of every photo (one SIMPLE_RADIAL COLMAP camera per camera
-    setting, its distortion 0 until self-calibration; ``upsample``: from twice the
-    resolution; ``domain_size_pooling``: DSP-SIFT descriptors), matched
-    ``matcher``-wise (exhaustive, sequential or ring) and verified with seeded RANSAC;
-    ``still_camera`` drops matches that do not move (a turntable's room)."""
+def _extract(plan: FeaturePlan, photos: dict[str, dict], cameras: list[dict], database: Path) -> None:
+    """SIFT features of every photo: one SIMPLE_RADIAL COLMAP camera per camera
+    setting, its distortion 0 until self-calibration."""
     extraction = pycolmap.FeatureExtractionOptions()
-    extraction.sift.max_num_features = max_features
-    extraction.sift.first_octave = -1 if upsample else 0
-    extraction.sift.domain_size_pooling = domain_size_pooling
+    extraction.sift.max_num_features = plan.max_features
+    extraction.sift.first_octave = -1 if plan.upsample else 0
+    extraction.sift.domain_size_pooling = plan.domain_size_pooling
     extraction.num_threads = -1
+    image_dir = next(iter(photos.values()))["srgb"].parent
     pycolmap.Database.open(database).close()  # import_images needs the file to exist
     for index, camera in enumerate(cameras):
         names = [Path(p["srgb"]).name for p in photos.values() if p["camera"] == index]
@@ -163,8 +181,8 @@ def _extract_and_match(
         reader.camera_model = "SIMPLE_RADIAL"
         # COLMAP puts the first pixel's centre at (0.5, 0.5), OpenCV and we at (0, 0).
         reader.camera_params = f"{K.fx},{K.cx + COLMAP_PIXEL_OFFSET},{K.cy + COLMAP_PIXEL_OFFSET},0"
-        if mask_dir is not None:
-            reader.mask_path = str(mask_dir)
+        if plan.mask_dir is not None:
+            reader.mask_path = str(plan.mask_dir)
         # Extraction numbers photos in the order its threads finish, and matching
         # and mapping follow those numbers: importing them first, sorted, makes a
         # rerun give the same model (it gave rotation errors of 0.7 to 164 degrees).
@@ -180,22 +198,15 @@ def _extract_and_match(
             extraction_options=extraction,
             device=pycolmap.Device.cpu,
         )
-    _match(photos, database, matcher, sequential_overlap, ring_neighbours, still_camera)
 
 
-def _match(
-    photos: dict[str, dict],
-    database: Path,
-    matcher: str,
-    sequential_overlap: int,
-    ring_neighbours: int,
-    still_camera: bool,
-) -> None:
-    logger.info("%s matching of %d photos", matcher, len(photos))
+def _match(plan: FeaturePlan, photos: dict[str, dict], database: Path) -> None:
+    """Matches of the plan's pairs, verified with seeded RANSAC."""
+    logger.info("%s matching of %d photos", plan.matcher, len(photos))
     verification = pycolmap.TwoViewGeometryOptions()
     # A fixed camera sees the still room at the same pixels in every photo: matches
     # that do not move say nothing about the turning object.
-    verification.filter_stationary_matches = still_camera
+    verification.filter_stationary_matches = plan.still_camera
     # COLMAP seeds RANSAC from the clock by default: the same photos then give
     # different verified matches, and a different model, on every run.
     verification.ransac.random_seed = 0
@@ -205,17 +216,17 @@ def _match(
     # reruns identical for about twice the matching time (3 s for the bird's 30 photos).
     matching.num_threads = 1
     device = pycolmap.Device.cpu
-    if matcher == "exhaustive":
+    if plan.matcher == "exhaustive":
         pycolmap.match_exhaustive(database, matching, verification_options=verification, device=device)
-    elif matcher == "sequential":
+    elif plan.matcher == "sequential":
         pairing = pycolmap.SequentialPairingOptions()
-        pairing.overlap = sequential_overlap
+        pairing.overlap = plan.sequential_overlap
         pycolmap.match_sequential(
             database, matching, pairing_options=pairing, verification_options=verification, device=device
         )
     else:
         names = sorted(Path(p["srgb"]).name for p in photos.values())
-        neighbours = min(ring_neighbours, len(names) // 2)
+        neighbours = min(plan.ring_neighbours, len(names) // 2)
         pairs = {
             tuple(sorted((names[i], names[(i + k) % len(names)])))
             for i in range(len(names))

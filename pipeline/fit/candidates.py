@@ -21,6 +21,7 @@ from typing import Any, Literal
 import numpy as np
 
 from pipeline.fit.engine import FitResult
+from pipeline.formats.scene_description import Integrator
 
 Choice = Literal["light", "material", "depth"]
 
@@ -33,8 +34,8 @@ class Candidate:
     """The material model."""
     light: Any
     """pipeline.render.light's EstimatedLight (``model``, ``summary()``), or None."""
-    integrator: dict
-    """scene.json's integrator entry the fit rendered with (type, max_depth, differentiable)."""
+    integrator: Integrator
+    """What the fit rendered with."""
     result: FitResult
     held: list[str]
     """The held-out photos its error was measured on. The fit's scenes are not kept:
@@ -47,7 +48,7 @@ class Candidate:
         if of == "material":
             return self.model
         if of == "depth":
-            return f"max_depth {self.integrator['max_depth']}"
+            return f"max_depth {self.integrator.max_depth}"
         return self.light.model if self.light else "given"
 
     def level_in_light(self) -> Candidate:

@@ -28,6 +28,7 @@ import numpy as np
 from pipeline.camera.model import Intrinsics, Pose, ground_hits, project
 from pipeline.core import progress
 from pipeline.fit.views import CapturePhotos
+from pipeline.formats.scene_description import SceneDescription
 from pipeline.render.capture_scene import photo_at_most, table_region
 
 CLIPPED = 0.9
@@ -107,7 +108,7 @@ def predicted_gain(
 
 
 def table_gains(
-    description: dict,
+    description: SceneDescription,
     photos: CapturePhotos,
     fitted: dict[str, list[float]],
     names: list[str],
@@ -121,11 +122,11 @@ def table_gains(
     each training photo's gain predicted from the others};
     empty without a table in the scene or fitted gains. ``channels`` 1: one gain, the
     channels' mean; ``nearest``: predicted_gain's."""
-    ground = description.get("ground")
+    ground = description.ground
     if not ground or not fitted or not names:
         return {}
     cameras, linear, masks = photos.cameras, photos.linear, photos.masks
-    region = table_region(ground["radius"], description.get("board_print"))
+    region = table_region(ground.radius, description.board_print)
     pixels = {
         name: table_pixels(*cameras[name], linear[name], masks[name], region)
         for name in progress.track(sorted(fitted) + list(names), "exposure from the table")

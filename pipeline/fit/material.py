@@ -41,6 +41,7 @@ from pipeline.fit import engine
 from pipeline.fit.candidates import Candidate, choose, improves
 from pipeline.fit.settings import FitSettings
 from pipeline.fit.views import BoardPixels, CapturePhotos, PhotoGains, Windowing, held_out_names, load_views
+from pipeline.formats.scene_description import Integrator, SceneDescription
 from pipeline.formats.scene_folder import MESH_PLY, SPECIMEN_XML
 from pipeline.render import light as estimated_light
 from pipeline.render import materials
@@ -73,8 +74,7 @@ class MaterialFitting:
 
     folder: Path
     """The scene folder each candidate's values and light are written into."""
-    description: dict
-    """scene.json."""
+    description: SceneDescription
     photos: CapturePhotos
     parameters: dict[str, list[engine.FitParameter]]
     """Each material model's parameters with their bounds."""
@@ -96,7 +96,7 @@ class MaterialFitting:
     @staticmethod
     def prepare(
         folder: Path,
-        description: dict,
+        description: SceneDescription,
         photos: CapturePhotos,
         parameters: dict[str, list[engine.FitParameter]],
         light: LightSection,
@@ -107,11 +107,11 @@ class MaterialFitting:
     ) -> MaterialFitting:
         poses = {name: pose for name, (_, pose) in photos.cameras.items()}
         mesh = trimesh.load(folder / MESH_PLY, force="mesh", process=False)
-        level_from = description.get("light", {}).get("level_from")
+        level_from = description.light.level_from
         # With the board's print in the fit, its known reflectance sets the light's level
         # where the specimen stands (the measured level is the print's mean, shadow and a
         # near light's falloff included): the level is the loss's, not held.
-        board_print = description.get("board_print") if light.estimated else None
+        board_print = description.board_print if light.estimated else None
         held_level = light.estimated and not board_print
         measured_on = estimated_light.measured_surface(level_from, mesh, poses, light.frame) if held_level else None
         return MaterialFitting(
@@ -130,28 +130,27 @@ class MaterialFitting:
             measured_on,
         )
 
-    @property
-    def initial(self) -> dict:
-        return {name: entry["value"] for name, entry in self.description["parameters"].items()}
-
     def write_scene(self, model: str, values: dict, fitted_light) -> None:
         """The material's values and the light (None: the given one) into the folder."""
         rewrite_specimen_material(self.folder / SPECIMEN_XML, model, values)
         if fitted_light is not None:
-            estimated_light.write(fitted_light, self.folder, self.description, self.poses)
+            estimated_light.write(fitted_light, self.folder, self.description.view_files(), self.poses)
 
-    def views(self, model: str, integrator: dict, names=None, count_board=False, fitted_gains=None, measured=None):
-        seen = self.description | {"model": model, "integrator": integrator}
+    def views(
+        self, model: str, integrator: Integrator, names=None, count_board=False, fitted_gains=None, measured=None
+    ):
+        seen = self.description.fitted_with(model, integrator)
         board = BoardPixels(tuple(self.board_print), count_board) if self.board_print else None
         gains = PhotoGains(fitted_gains or {}, self.gain_channels, measured or {})
         photos = replace(self.photos, gains=gains)
         return [v for v, _ in load_views(self.folder, seen, photos, self.windowing, names=names, board=board)]
 
-    def fit(self, model: str, start_light, start_values: dict | None = None, integrator: dict | None = None):
+    def fit(self, model: str, start_light, start_values: dict | None = None, integrator: Integrator | None = None):
         """One candidate: ``model`` from ``start_values`` (the scene's) under ``start_light``."""
         started = time.perf_counter()
-        integrator = integrator or self.description["integrators"][model]
-        self.write_scene(model, self.initial if start_values is None else start_values, start_light)
+        integrator = integrator or self.description.integrators[model]
+        initial = self.description.initial_values() if start_values is None else start_values
+        self.write_scene(model, initial, start_light)
         # the board's print counts in training only: held out, the specimen is scored
         views = self.views(model, integrator, count_board=start_light is not None)
         held = set(held_out_names([v.name for v in views], self.held_out))
@@ -168,7 +167,7 @@ class MaterialFitting:
             logger.info("light %s: held-out error %.4g", end_light.model, result.validation_error or float("nan"))
         return Candidate(model, end_light, integrator, result, sorted(held), time.perf_counter() - started)
 
-    def heldout_views(self, candidate: Candidate, integrator: dict, measured=None) -> list[engine.FitView]:
+    def heldout_views(self, candidate: Candidate, integrator: Integrator, measured=None) -> list[engine.FitView]:
         """The candidate's held-out photos, its values and light written into the folder."""
         self.write_scene(candidate.model, candidate.result.values, candidate.light)
         gains = candidate.result.photo_gains
@@ -176,11 +175,11 @@ class MaterialFitting:
 
     def fit_lights(self) -> list[Candidate]:
         """The scene's model under the given light, or under each light model, simplest first."""
-        model, light = self.description["model"], self.light
+        model, light = self.description.model, self.light
         candidate_lights = light_models(light.model, light.estimated)
         if not candidate_lights:
             return [self.fit(model, None)]
-        level = np.array(self.description["light"]["level"], np.float32)
+        level = np.array(self.description.light.level, np.float32)
         candidates: list[Candidate] = []
         for light_model in candidate_lights:
             if light_model == "envmap+area":
@@ -210,7 +209,7 @@ class MaterialFitting:
         material, why = choose(candidates, margin, "material")
         depth = None
         if len(models) > 1:
-            deeper = material.integrator | {"max_depth": 2 * material.integrator["max_depth"]}
+            deeper = material.integrator.deeper()
             refit = partial(self.fit, material.model, material.light, material.result.values, deeper)
             material, depth = deeper_or_not(
                 material, self.heldout_views(material, deeper), margin, validation_spp, refit
@@ -228,10 +227,10 @@ def deeper_or_not(
     shallow_error = material.result.validation_error
     if not held or shallow_error is None:
         return material, {"why": "no held-out photos"}
-    max_depth = 2 * material.integrator["max_depth"]
+    max_depth = material.integrator.deeper().max_depth
     deep_error = engine.heldout_error(held, spp, held[0].integrator)
     del held  # their scenes, before the refit's (see Candidate.held)
-    report = {"max_depth": material.integrator["max_depth"], "deeper_validation_mse": deep_error}
+    report = {"max_depth": material.integrator.max_depth, "deeper_validation_mse": deep_error}
     change = abs(deep_error - shallow_error) / shallow_error
     if change <= margin:
         why = f"rendered at max_depth {max_depth}, the held-out error changes by {change:.1%}: kept"

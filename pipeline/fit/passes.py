@@ -16,6 +16,7 @@ from pipeline.camera.model import Intrinsics, Pose, ground_hits
 from pipeline.fit import engine
 from pipeline.fit.outputs import write_texture_files
 from pipeline.fit.views import CapturePhotos, Window, Windowing, load_views
+from pipeline.formats.scene_description import SceneDescription
 from pipeline.formats.scene_folder import MESH_PLY, SPECIMEN_XML
 from pipeline.render import materials, scene_xml
 
@@ -54,7 +55,7 @@ def backdrop_views(
     views: list[tuple[engine.FitView, Window]],
     masks: dict[str, Path],
     cameras: dict[str, tuple[Intrinsics, Pose]],
-    description: dict,
+    description: SceneDescription,
     spp: int = BACKDROP_SPP,
 ) -> list[engine.FitView]:
     """The same windows, every pixel weighted, each reference the photo inside its
@@ -96,21 +97,21 @@ def _mask_cover(window: Window, mask_file: Path) -> np.ndarray:
     return window.cut((cv2.imread(str(mask_file), cv2.IMREAD_GRAYSCALE) > 127).astype(np.float32))
 
 
-def _on_set(camera: Intrinsics, pose: Pose, description: dict) -> np.ndarray:
+def _on_set(camera: Intrinsics, pose: Pose, description: SceneDescription) -> np.ndarray:
     """(h, w) float: 1 where a pixel centre's ray meets the scene's table disk or the
     board's print (scene.json's ``ground`` and ``board_print``), else 0."""
     hits, distance = ground_hits(camera, pose)
     reached, on = distance > 0, np.zeros(distance.shape, bool)
-    if description.get("ground"):
-        on |= reached & (np.linalg.norm(hits[..., :2], axis=-1) < description["ground"]["radius"])
-    if description.get("board_print"):
-        on |= reached & np.all(np.abs(hits[..., :2]) < np.asarray(description["board_print"]), axis=-1)
+    if description.ground:
+        on |= reached & (np.linalg.norm(hits[..., :2], axis=-1) < description.ground.radius)
+    if description.board_print:
+        on |= reached & np.all(np.abs(hits[..., :2]) < np.asarray(description.board_print), axis=-1)
     return on.astype(np.float32)
 
 
 def shape_pass(
     geometry: Path,
-    description: dict,
+    description: SceneDescription,
     loss: str,
     photos: CapturePhotos,
     held: set[str],
@@ -131,7 +132,7 @@ def shape_pass(
     else:
         # The silhouette and its surroundings carry the shape: every window pixel counts.
         views = backdrop_views(windowed, photos.masks, photos.cameras, description)
-        kind, depth = description["integrator"]["differentiable"], description["integrator"]["max_depth"]
+        kind, depth = description.integrator.differentiable, description.integrator.max_depth
         integrator = (
             {"type": "prb_projective", "max_depth": depth, "sppi": 0}
             if kind == "prb"
@@ -158,7 +159,7 @@ def improved(result, min_improvement: float) -> bool:
 
 def material_pass(
     geometry: Path,
-    description: dict,
+    description: SceneDescription,
     photos: CapturePhotos,
     held: set[str],
     parameters: list[engine.FitParameter],
@@ -176,7 +177,7 @@ def material_pass(
     )
     if not improved(result, min_improvement):
         return result, False
-    slot = materials.TEXTURE_SLOTS[description["model"]]
+    slot = materials.TEXTURE_SLOTS[description.model]
     constants = {p.name: result.values[p.name] for p in parameters if p.key != slot.key}
     specimen = geometry / SPECIMEN_XML
     scene_xml.set_values(specimen, {materials.PARAMETERS[n].key: v for n, v in constants.items()}, specimen)
@@ -194,7 +195,7 @@ def sphere_in_box(bounds: np.ndarray, subdivisions: int) -> trimesh.Trimesh:
 
 
 def specimen_error(
-    geometry: Path, description: dict, photos: CapturePhotos, held: set[str], windowing: Windowing
+    geometry: Path, description: SceneDescription, photos: CapturePhotos, held: set[str], windowing: Windowing
 ) -> float:
     """The held-out error of the scene folder as it stands, as fit_material and
     fit_texture measure it: the held-out photos' eroded specimen masks in their

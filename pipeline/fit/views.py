@@ -30,8 +30,10 @@ from pipeline import logger
 from pipeline.camera.model import Intrinsics, Pose, ground_hits, mesh_coverage, resize_exact, scaled
 from pipeline.fit.loop import FitView, gain_range
 from pipeline.formats.cameras import read_views
+from pipeline.formats.fit_results import MaterialFit
 from pipeline.formats.masks import read_masks
 from pipeline.formats.pinhole import linear_photos
+from pipeline.formats.scene_description import SceneDescription
 from pipeline.formats.scene_folder import MESH_PLY, SCENE_XML
 from pipeline.imaging.photo_io import read_photo
 from pipeline.render import scene_xml
@@ -157,10 +159,10 @@ class PhotoGains:
     they are scored, as they are written, in the photo's own units."""
 
     @staticmethod
-    def of(params: dict) -> PhotoGains:
-        """fit_material's params.json's photo_gains, gain_channels and heldout_gains."""
-        measured = (params.get("heldout_gains") or {}).get("gains") or {}
-        return PhotoGains(params.get("photo_gains") or {}, params.get("gain_channels", 0), measured)
+    def of(material: MaterialFit) -> PhotoGains:
+        """fit_material's photo_gains, gain_channels and heldout_gains."""
+        measured = (material.heldout_gains or {}).get("gains") or {}
+        return PhotoGains(material.photo_gains or {}, material.gain_channels, measured)
 
 
 @dataclass(frozen=True)
@@ -214,7 +216,7 @@ def board_weight(window: Window, intrinsics: Intrinsics, pose: Pose, board: Boar
 
 def load_views(
     scene_dir: Path,
-    description: dict,
+    description: SceneDescription,
     photos: CapturePhotos,
     windowing: Windowing,
     names: set[str] | None = None,
@@ -231,15 +233,15 @@ def load_views(
     import mitsuba as mi
 
     shared_scene = None
-    if scenes is None and description["light_frame"] == "world":
+    if scenes is None and description.light_frame == "world":
         shared_scene = mi.load_file(str(scene_dir / SCENE_XML))
     # The scene files name a render integrator (path): the fit renders with its
     # differentiable counterpart, at the same depth.
     integrator = mi.load_dict(
-        {"type": description["integrator"]["differentiable"], "max_depth": description["integrator"]["max_depth"]}
+        {"type": description.integrator.differentiable, "max_depth": description.integrator.max_depth}
     )
     cameras, linear, gains = photos.cameras, photos.linear, photos.gains
-    every = specimen_masks(scene_dir / MESH_PLY, cameras, {n: photos.masks[n] for n in sorted(description["views"])})
+    every = specimen_masks(scene_dir / MESH_PLY, cameras, {n: photos.masks[n] for n in sorted(description.views)})
     windows = mask_windows(every, windowing.max_size, board_margin=BOARD_MARGIN if board else 0.0)
     # one filter for every window (Dr.Jit bakes it into the kernels), at their median scale
     rfilter = pixel_filter(float(np.median([w.scale for w in windows.values()]))) if windows else None
@@ -264,13 +266,13 @@ def load_views(
         if scenes is not None:
             scene = scenes[name]
         else:
-            scene = shared_scene or mi.load_file(str(scene_dir / description["views"][name]["xml"]))
+            scene = shared_scene or mi.load_file(str(scene_dir / description.views[name].xml))
         sensor = scene_xml.load_sensor(
             scene_xml.sensor_properties(
                 window.intrinsics(intrinsics),
                 pose,
                 windowing.spp,
-                description["near_clip"],
+                description.near_clip,
                 sample_border=windowing.sample_border,
                 rfilter=rfilter,
             )

@@ -24,13 +24,11 @@ environment.exr     (estimated light) the fitted lat-long environment map
 
 from __future__ import annotations
 
-import json
 import shutil
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
 from pipeline.core import jsonio
-from pipeline.core.errors import require_finite
 
 SCENE_XML = "scene.xml"
 SPECIMEN_XML = "specimen.xml"
@@ -42,28 +40,6 @@ LOSS_PNG = "loss.png"
 HELDOUT = "heldout"
 FIT_RESULTS = (HELDOUT, LOG_JSONL, LOSS_PNG, PARAMS_JSON)
 """What a fit stage adds to a scene folder; a copy without them is a plain scene."""
-
-
-def read_json(path: Path) -> dict:
-    """scene.json or params.json."""
-    return json.loads(path.read_text())
-
-
-def write_json(path: Path, data: dict) -> Path:
-    """scene.json or params.json, in the layout every stage has always written; a NaN
-    or infinity in it is refused (errors.require_finite)."""
-    require_finite(data, str(path))
-    path.write_text(json.dumps(data, indent=1))
-    return path
-
-
-def fitted_description(description: dict, material: dict) -> dict:
-    """scene.json's description with fit_material's choices (its params.json): the
-    material model, and the integrator it was fitted with."""
-    return description | {
-        "model": material["model"],
-        "integrator": material["integrator"],
-    }
 
 
 def copy_scene(source: Path, target: Path) -> Path:

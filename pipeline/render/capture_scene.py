@@ -16,6 +16,7 @@ import trimesh
 from pipeline.camera.board import board_image
 from pipeline.camera.model import Intrinsics, Pose, ground_hits, resize_exact, scaled
 from pipeline.core.sections import BoardSection, LightSection
+from pipeline.formats.scene_description import Integrator
 from pipeline.imaging.photo_io import read_photo, to_uint8
 from pipeline.render import materials, scene_xml
 
@@ -103,15 +104,15 @@ def rewrite_specimen_material(path: Path, model: str, values: dict) -> None:
     scene_xml.write(tree.getroot(), path, SPECIMEN_COMMENT)
 
 
-def rewrite_integrator(folder: Path, integrator: dict) -> None:
-    """Every scene file in ``folder`` made to render with ``integrator`` (scene.json's
-    form: the render type and max_depth), comments kept."""
+def rewrite_integrator(folder: Path, integrator: Integrator) -> None:
+    """Every scene file in ``folder`` made to render with ``integrator`` (its render
+    type and max_depth), comments kept."""
     for path in sorted(folder.glob("*.xml")):
         root = ET.parse(path, ET.XMLParser(target=ET.TreeBuilder(insert_comments=True))).getroot()
         old = root.find("integrator")
         if old is None:
             continue
-        properties = {"type": integrator["type"], "id": "integrator", "max_depth": integrator["max_depth"]}
+        properties = {"type": integrator.type, "id": "integrator", "max_depth": integrator.max_depth}
         new = scene_xml.plugin(root, "integrator", properties)
         root.remove(new)
         root.insert(list(root).index(old), new)
@@ -138,14 +139,14 @@ def write_scene_file(
     views: list[tuple[str, Intrinsics, Pose]],
     light: LightSection,
     environment: str | None,
-    integrator: tuple[str, int],
+    integrator: Integrator,
     spp: int,
     near_clip: float,
     comment: str,
 ) -> Path:
     root = scene_xml.new_scene()
-    render_type = materials.RENDER_INTEGRATORS[integrator[0]]
-    scene_xml.plugin(root, "integrator", {"type": render_type, "id": "integrator", "max_depth": integrator[1]})
+    properties = {"type": integrator.type, "id": "integrator", "max_depth": integrator.max_depth}
+    scene_xml.plugin(root, "integrator", properties)
     for sensor_id, intrinsics, pose in views:
         scene_xml.sensor(root, sensor_id, scene_xml.sensor_properties(intrinsics, pose, spp, near_clip))
     lights(root, light, views[0][2], environment)

@@ -225,16 +225,17 @@ def read(summary: dict, scene_dir: Path) -> EstimatedLight:
     return EstimatedLight(summary["model"], summary["frame"], environment, area)
 
 
-def write(light: EstimatedLight, scene_dir: Path, description: dict, poses: dict[str, Pose]) -> None:
-    """Put ``light`` into scene.xml and every view-NAME.xml of ``scene_dir`` (the
-    environment map written beside them), in place of the lights they had."""
+def write(light: EstimatedLight, scene_dir: Path, view_files: dict[str, str], poses: dict[str, Pose]) -> None:
+    """Put ``light`` into scene.xml and every photo's scene file of ``scene_dir``
+    (``view_files``: by photo name; the environment map written beside them), in place
+    of the lights they had."""
     section = light.section()
     environment_file = None
     if light.model != "constant":
         write_image(scene_dir / ENVIRONMENT_FILE, light.environment.astype(np.float32))
         environment_file = ENVIRONMENT_FILE
-    first = sorted(description["views"])[0]
-    files = [("scene.xml", first)] + [(v["xml"], name) for name, v in sorted(description["views"].items())]
+    first = sorted(view_files)[0]
+    files = [("scene.xml", first)] + [(xml, name) for name, xml in sorted(view_files.items())]
     for filename, photo in files:
         path = scene_dir / filename
         tree = ET.parse(path)
@@ -257,12 +258,14 @@ def rescale_scenes(scenes: list, factor: float) -> None:
         params.update()
 
 
-def rescale_files(scene_dir: Path, report: dict, factor: float, description: dict, poses: dict[str, Pose]) -> dict:
-    """The light fit_material chose (``report``: its params.json's ``light``; the map in
-    ``scene_dir``) times ``factor`` in every scene file of ``scene_dir``, and the table's
+def rescale_files(
+    scene_dir: Path, chosen: dict, factor: float, view_files: dict[str, str], poses: dict[str, Pose]
+) -> dict:
+    """The light fit_material chose (``chosen``: its summary; the map in ``scene_dir``)
+    times ``factor`` in every scene file of ``scene_dir`` (write), and the table's
     albedo in its specimen file divided by it; the new light's summary."""
-    scaled = read(report["chosen"], scene_dir).scaled(factor)
-    write(scaled, scene_dir, description, poses)
+    scaled = read(chosen, scene_dir).scaled(factor)
+    write(scaled, scene_dir, view_files, poses)
     specimen = scene_dir / SPECIMEN_XML
     for bsdf in [b for b in ET.parse(specimen).iter("bsdf") if b.get("id") == capture_scene.GROUND_BSDF]:
         albedo = [float(v) / factor for v in next(bsdf.iter("rgb")).get("value").replace(",", " ").split()]

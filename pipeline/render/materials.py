@@ -36,6 +36,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal, Mapping
 
+from pipeline.formats.scene_description import Integrator
 from pipeline.render.parameters import FitParameter
 
 MaterialModel = Literal["opaque", "principled", "volumetric"]
@@ -142,15 +143,13 @@ with: rich enough to take up what an opaque surface cannot show, and several tim
 cheaper to render than a medium."""
 
 
-def integrator_description(model: MaterialModel, max_depth: int = 0) -> dict:
-    """scene.json's integrator entry for ``model``: the render integrator the files
-    name, the differentiable one the fits use, and the path depth (0: the model's)."""
+def model_integrator(model: MaterialModel, max_depth: int = 0) -> Integrator:
+    """The integrators for ``model``: the render integrator the files name, the
+    differentiable one the fits use, and the path depth (0: the model's)."""
     differentiable, depth = INTEGRATORS[model]
-    return {
-        "type": RENDER_INTEGRATORS[differentiable],
-        "max_depth": max_depth or depth,
-        "differentiable": differentiable,
-    }
+    return Integrator(
+        type=RENDER_INTEGRATORS[differentiable], max_depth=max_depth or depth, differentiable=differentiable
+    )
 
 
 @dataclass(frozen=True)

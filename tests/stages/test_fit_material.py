@@ -41,6 +41,8 @@ def test_white_balance_writes_centred_gains_by_which_the_views_divide_their_phot
 
     from pipeline.fit.loop import matched_gain
     from pipeline.fit.views import BoardPixels, PhotoGains, Windowing, load_views, read_capture_photos
+    from pipeline.formats.fit_results import MaterialFit
+    from pipeline.formats.scene_description import SceneDescription
 
     overrides = (*TINY_FIT, "fit_material.white_balance=true", "light.model=constant")
     outputs = run_stages(bird_capture, "fit_material", *overrides)
@@ -54,7 +56,7 @@ def test_white_balance_writes_centred_gains_by_which_the_views_divide_their_phot
     photos = read_capture_photos(
         outputs["sfm"]["cameras"], outputs["undistort"]["pinhole"], outputs["masks"]["masks_json"]
     )
-    description = json.loads(outputs["scene"]["description"].read_text())
+    description = SceneDescription.read(outputs["scene"]["description"])
     folder = outputs["fit_material"]["fitted_dir"]
     plain, divided = (
         load_views(folder, description, replace(photos, gains=given), Windowing(32, 0, 4), names={name})[0][0]
@@ -67,8 +69,8 @@ def test_white_balance_writes_centred_gains_by_which_the_views_divide_their_phot
     assert divided.heldout_gain_range == (0.5, 4.0)
     # the scene as written renders a training photo divided by its gain (on the pixels
     # its gain was matched on: the specimen and the board's print beside it)
-    board = BoardPixels(tuple(description["board_print"]), True)
-    with_gains = replace(photos, gains=PhotoGains.of(params))
+    board = BoardPixels(tuple(description.board_print), True)
+    with_gains = replace(photos, gains=PhotoGains.of(MaterialFit.read(outputs["fit_material"]["params"])))
     fitted = load_views(folder, description, with_gains, Windowing(48, 2, 4), names={name}, board=board)[0][0]
     render = np.asarray(mi.render(fitted.scene, sensor=fitted.sensor, integrator=fitted.integrator, spp=64))
     matched = matched_gain(render, render, fitted.reference, fitted.weight[..., None], 3)
@@ -147,11 +149,16 @@ def test_a_material_model_left_open_is_chosen_by_held_out_error_and_carried_down
     volumetric only when principled beat opaque by more than model_margin; keeps the
     simplest within the margin of the best (margin 0: the best), then checks twice the
     path depth. The scene files, params.json and fit_texture follow the choice."""
+    from dataclasses import replace
+
+    from pipeline.formats.fit_results import MaterialFit
+    from pipeline.formats.scene_description import SceneDescription
+
     overrides = (*TINY_FIT, "capture.material=auto", "fit_material.model_margin=0", *TINY_TEXTURE)
     outputs = run_stages(bird_capture, "fit_texture", *overrides, "fit_texture.texture=off")
-    description = json.loads(outputs["scene"]["description"].read_text())
-    assert description["model_choice"] == ["opaque", "principled", "volumetric"]
-    assert description["model"] == "principled" and set(description["integrators"]) == set(description["model_choice"])
+    description = SceneDescription.read(outputs["scene"]["description"])
+    assert description.model_choice == ["opaque", "principled", "volumetric"]
+    assert description.model == "principled" and set(description.integrators) == set(description.model_choice)
     params = json.loads(outputs["fit_material"]["params"].read_text())
     choice = params["model_choice"]
     errors = {c["model"]: c["validation_mse"] for c in choice["candidates"]}
@@ -168,12 +175,14 @@ def test_a_material_model_left_open_is_chosen_by_held_out_error_and_carried_down
     assert set(params["params"]) == names[expected]
     # The depth: the chosen model's own, or twice it when a deeper refit won.
     depth = choice["depth"]
-    own = description["integrators"][expected]["max_depth"]
+    own = description.integrators[expected].max_depth
     assert depth["max_depth"] == own and depth["deeper_validation_mse"] > 0
     deeper = {c["model"]: c["validation_mse"] for c in depth.get("candidates", [])}
     assert not deeper or list(deeper) == [f"max_depth {own}", f"max_depth {2 * own}"]
     chosen_depth = 2 * own if deeper and deeper[f"max_depth {2 * own}"] < deeper[f"max_depth {own}"] else own
-    assert params["integrator"] == description["integrators"][expected] | {"max_depth": chosen_depth}
+    assert MaterialFit.read(outputs["fit_material"]["params"]).integrator == replace(
+        description.integrators[expected], max_depth=chosen_depth
+    )
     assert params["validation_mse"] == (deeper[f"max_depth {chosen_depth}"] if deeper else errors[expected])
     scene = mi.load_file(str(outputs["fit_material"]["scene"]))
     assert f"max_depth = {chosen_depth}" in str(scene.integrator())

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from pipeline.formats.cameras import read_views
+from pipeline.formats.scene_description import Integrator, SceneDescription
 
 pytestmark = pytest.mark.slow
 
@@ -17,21 +18,21 @@ pytestmark = pytest.mark.slow
 def test_scene_loads_renders_and_lines_up_with_the_photos(run_stages, bird_capture, mi):
     outputs = run_stages(bird_capture, "scene")["scene"]
     folder = outputs["scene_dir"]
-    description = json.loads(outputs["description"].read_text())
+    description = SceneDescription.read(outputs["description"])
     views = read_views(run_stages(bird_capture, "sfm")["sfm"]["cameras"])
     scene = mi.load_file(str(outputs["scene"]))
-    assert len(scene.sensors()) == len(views) == len(description["views"])
+    assert len(scene.sensors()) == len(views) == len(description.views)
     root = ET.parse(folder / "specimen.xml").getroot()
     # Every shape, BSDF, medium and emitter has an id; the principled model has no medium.
     for file in [outputs["scene"], folder / "specimen.xml"]:
         for element in ET.parse(file).getroot().iter():
             if element.tag in ("shape", "bsdf", "medium", "emitter", "sensor"):
                 assert element.get("id"), f"{file.name}: <{element.tag} type={element.get('type')}> has no id"
-    assert root.find(".//medium") is None and description["model"] == "principled"
-    assert description["integrator"] == {"type": "path", "max_depth": 8, "differentiable": "prb"}
+    assert root.find(".//medium") is None and description.model == "principled"
+    assert description.integrator == Integrator(type="path", max_depth=8, differentiable="prb")
     # The specimen alone, rendered white on black from a photo's view file, covers its mask.
     name = sorted(views)[3]
-    view_scene = mi.load_file(str(folder / description["views"][name]["xml"]))
+    view_scene = mi.load_file(str(folder / description.views[name].xml))
     params = mi.traverse(view_scene)
     silhouette = mi.load_dict(
         {

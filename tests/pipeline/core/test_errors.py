@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from pipeline.core.errors import NonFiniteOutput, require_finite
-from pipeline.formats.scene_folder import write_json
+from pipeline.formats.fit_results import FittedValues
 from pipeline.render import scene_xml
 
 
@@ -18,8 +18,9 @@ def test_finite_results_pass_and_a_nan_anywhere_is_named_by_its_key():
 
 
 def test_writers_refuse_non_finite_values(tmp_path):
+    fitted = FittedValues(model="opaque", params={}, bounds={}, held_out=[], details={"validation_mse": float("inf")})
     with pytest.raises(NonFiniteOutput, match="validation_mse"):
-        write_json(tmp_path / "params.json", {"validation_mse": float("inf")})
+        fitted.write(tmp_path / "params.json")
     assert not (tmp_path / "params.json").exists()
     root = scene_xml.new_scene()
     shape = scene_xml.plugin(root, "shape", {"type": "sphere", "id": "specimen"})

@@ -4,11 +4,12 @@ import pytest
 
 from pipeline.fit.candidates import Candidate, choose, improves
 from pipeline.fit.engine import FitResult
+from pipeline.formats.scene_description import Integrator
 
 
 def _candidate(model: str, error: float | None, depth: int = 8) -> Candidate:
     result = FitResult({}, 1, error, "iterations", start_validation_error=1.0)
-    integrator = {"type": "path", "max_depth": depth, "differentiable": "prb"}
+    integrator = Integrator(type="path", max_depth=depth, differentiable="prb")
     return Candidate(model, None, integrator, result, ["view_002"], 2.0)
 
 

@@ -7,7 +7,9 @@ import pytest
 
 from pipeline.fit.exposure import table_gains
 from pipeline.fit.views import CapturePhotos
+from pipeline.formats.scene_description import Ground
 from pipeline.render import scene_xml
+from tests.support.scene_descriptions import scene_description
 from tests.support.sphere_views import RADIUS, K, ring_poses, sphere_mask
 
 WHITE_BALANCE = np.array([1.0, 0.9, 1.1])
@@ -50,7 +52,7 @@ def _table_photos(folder, exposures: dict[str, float]):
         cameras[name], linear[name] = (K, pose), write_image(folder / f"{name}.exr", photo)
         masks[name] = folder / f"{name}.png"
         cv2.imwrite(str(masks[name]), sphere_mask(pose).astype(np.uint8) * 255)
-    return {"ground": {"radius": 0.5}}, CapturePhotos(cameras, linear, masks)
+    return scene_description(ground=Ground(radius=0.5, albedo=[0.5] * 3)), CapturePhotos(cameras, linear, masks)
 
 
 @pytest.mark.slow

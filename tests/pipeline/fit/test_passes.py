@@ -8,7 +8,9 @@ from pipeline.camera.model import Intrinsics, Pose
 from pipeline.fit.loop import FitView
 from pipeline.fit.passes import backdrop_views
 from pipeline.fit.views import Window
+from pipeline.formats.scene_description import Ground
 from pipeline.render import scene_xml
+from tests.support.scene_descriptions import scene_description
 
 K = Intrinsics(32, 32, 40.0, 40.0, 15.5, 15.5)
 
@@ -40,7 +42,7 @@ def test_outside_its_mask_and_off_the_table_a_photo_is_the_scenes_own_backdrop(m
     view = FitView("photo", scene, sensor, photo, np.zeros((K.height, K.width), np.float32), gain=measured)
     window = Window(1.0, 0, 0, K.width, K.height, (K.height, K.width))
 
-    description = {"ground": {"radius": 10.0} if table else None, "board_print": None}
+    description = scene_description(ground=Ground(radius=10.0, albedo=[0.5] * 3) if table else None)
     (compared,) = backdrop_views(
         [(view, window)], {"photo": tmp_path / "mask.png"}, {"photo": (K, pose)}, description, 4
     )

@@ -158,14 +158,14 @@ def test_written_lights_replace_the_old_ones_and_load(mi, tmp_path):
         scene_xml.plugin(root, "emitter", {"type": "constant", "id": "environment", "radiance": (0.5, 0.5, 0.5)})
         scene_xml.area_light(root, "softbox", [0.4, 0.4, 0.6], [0, 0, 0], [0, 0, 1], 0.3, (8.0, 8.0, 8.0))
         scene_xml.write(root, tmp_path / name)
-    description = {"views": {"a.jpg": {"xml": "view-a.xml"}}}
+    view_files = {"a.jpg": "view-a.xml"}
     envmap = light.start("envmap", "world", np.array([0.3, 0.3, 0.3]), 16)
-    light.write(envmap, tmp_path, description, {"a.jpg": pose})
+    light.write(envmap, tmp_path, view_files, {"a.jpg": pose})
     for name in ("scene.xml", "view-a.xml"):
         keys = set(mi.traverse(mi.load_file(str(tmp_path / name))).keys())
         assert "environment.data" in keys and not any(k.startswith("softbox") for k in keys)
     lit = light.with_area(envmap, np.zeros(3), 1.0)
-    light.write(lit, tmp_path, description, {"a.jpg": pose})
+    light.write(lit, tmp_path, view_files, {"a.jpg": pose})
     keys = set(mi.traverse(mi.load_file(str(tmp_path / "view-a.xml"))).keys())
     assert {"environment.data", "softbox.emitter.radiance.value"} <= keys
     assert isinstance(light.parameters(lit, 0.01, UP)[1], FitParameter)
@@ -218,13 +218,13 @@ def test_a_raised_level_in_the_files_renders_as_the_raised_scenes_and_keeps_the_
         root = scene_xml.new_scene()
         scene_xml.include(root, SPECIMEN_XML)
         scene_xml.write(root, tmp_path / name)
-    description = {"views": {"a.jpg": {"xml": "view-a.xml"}}}
+    view_files = {"a.jpg": "view-a.xml"}
     lit = light.with_area(light.start("envmap", "world", np.array([0.3, 0.2, 0.1]), 16), np.zeros(3), 1.0)
-    light.write(lit, tmp_path, description, {"a.jpg": pose})
+    light.write(lit, tmp_path, view_files, {"a.jpg": pose})
     sensor = scene_xml.load_sensor(scene_xml.sensor_properties(K_SMALL, pose, 16, 0.01))
     scaled = mi.load_file(str(tmp_path / "view-a.xml"))
     light.rescale_scenes([scaled, scaled], 2.5)  # a scene listed twice is scaled once
-    summary = light.rescale_files(tmp_path, {"chosen": lit.summary()}, 2.5, description, {"a.jpg": pose})
+    summary = light.rescale_files(tmp_path, lit.summary(), 2.5, view_files, {"a.jpg": pose})
     assert summary["area"]["radiance"] == pytest.approx([2.5 * v for v in lit.area.radiance])
     assert summary["environment_mean"] == pytest.approx([0.75, 0.5, 0.25], rel=1e-3)  # a half-float map
     written = mi.load_file(str(tmp_path / "view-a.xml"))

@@ -1,8 +1,11 @@
 """pipeline.render.materials and the specimen file rewritten with another model."""
 
+from dataclasses import replace
+
 import pytest
 import trimesh
 
+from pipeline.formats.scene_description import Integrator
 from pipeline.render import capture_scene, materials, scene_xml
 
 
@@ -46,9 +49,9 @@ def test_scene_files_are_rewritten_to_another_integrator_and_still_load(tmp_path
     scene_xml.plugin(root, "integrator", {"type": "path", "id": "integrator", "max_depth": 8})
     scene_xml.include(root, "specimen.xml")
     scene_xml.write(root, tmp_path / "scene.xml", "the scene stage's note")
-    volumetric = materials.integrator_description("volumetric")
-    assert volumetric == {"type": "volpath", "max_depth": 32, "differentiable": "prbvolpath"}
-    capture_scene.rewrite_integrator(tmp_path, volumetric | {"max_depth": 64})
+    volumetric = materials.model_integrator("volumetric")
+    assert volumetric == Integrator(type="volpath", max_depth=32, differentiable="prbvolpath")
+    capture_scene.rewrite_integrator(tmp_path, replace(volumetric, max_depth=64))
     text = (tmp_path / "scene.xml").read_text()
     assert "the scene stage's note" in text and text.count("<integrator") == 1
     integrator = mi.load_file(str(tmp_path / "scene.xml")).integrator()
