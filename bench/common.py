@@ -3,10 +3,29 @@ docs/benchmarks.md, one marked section per benchmark."""
 
 from __future__ import annotations
 
+import os
+import shutil
+import subprocess
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 BENCHMARKS = ROOT / "docs" / "benchmarks.md"
+
+
+def machine() -> str:
+    """The machine a section was measured on, in words: cores, memory, GPU."""
+    memory = next(
+        int(line.split()[1]) / 2**20
+        for line in Path("/proc/meminfo").read_text().splitlines()
+        if line.startswith("MemTotal")
+    )
+    gpu = (
+        shutil.which("nvidia-smi")
+        and subprocess.run(
+            ["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True, text=True
+        ).stdout.strip()
+    )
+    return f"Machine: {os.cpu_count()} cores, {memory:.0f} GiB, {gpu or 'no GPU'}."
 
 
 def run_stages(
@@ -43,13 +62,13 @@ def truth_in_reconstruction(capture: Path, outputs: dict):
 
 def write_section(name: str, lines: list[str]) -> str:
     """Replace the section between ``<!-- NAME:begin -->`` and ``<!-- NAME:end -->``
-    (new sections go before "## Test suite"); returns the section's text."""
+    (a new section goes at the end); returns the section's text."""
     begin, end = f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
     section = "\n".join([begin, *lines, end])
     text = BENCHMARKS.read_text()
     if begin in text:
         text = text[: text.index(begin)] + section + text[text.index(end) + len(end) :]
     else:
-        text = text.replace("\n## Test suite", f"\n{section}\n\n## Test suite")
+        text = text.rstrip("\n") + f"\n\n{section}\n"
     BENCHMARKS.write_text(text)
     return section

@@ -1,7 +1,7 @@
 """Time to target of `pipeline fit` against the original tool's loop, in one run.
 
     .venv/bin/python -m bench.fit_speed [--materials principled volumetric] [--budget 900]
-                                        [--configs NAME ...] [--repeat 2]
+                                        [--configs NAME ...] [--repeat 2] [--write]
 
 The kit, built like the original tool's synthetic test scenes: a blob (a sphere with
 low-frequency bumps, 1280 faces) on a grey floor, one square area light and a
@@ -33,6 +33,7 @@ Each run is repeated (``--repeat``, default 2) and the last is reported: every r
 then finds Dr.Jit's kernels compiled, so the ratio is the loops' own cost; the
 first run's time (cold for whichever compiled first) is in its own column. The
 machine's variant is Mitsuba's automatic choice (cuda_ad_rgb where a GPU works).
+``--write`` puts the table into docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -40,12 +41,14 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
+from bench.common import machine, write_section
 from pipeline.cli.fit import FitOptions
 from pipeline.fit import engine
 from pipeline.render import mitsuba_variant
@@ -306,14 +309,18 @@ def main() -> None:
     parser.add_argument("--configs", nargs="*", default=list(CONFIGS))
     parser.add_argument("--budget", type=float, default=300.0)
     parser.add_argument("--repeat", type=int, default=2)
+    parser.add_argument("--write", action="store_true", help="rewrite docs/benchmarks.md's section")
     args = parser.parse_args()
     variant = mitsuba_variant.activate()
     import drjit as dr
     import mitsuba as mi
 
     print(f"variant {variant}")
-    print("| material | run | time to target | steps | first run | errors at the end | ratio to the original |")
-    print("|---|---|---|---|---|---|---|")
+    lines = [
+        "| material | run | time to target | steps | first run | errors at the end | ratio to the original |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    print("\n".join(lines))
     for kind in args.materials:
         folder = Path(tempfile.mkdtemp(prefix=f"fit_speed_{kind}_"))
         references(kind, folder, mi)
@@ -327,7 +334,20 @@ def main() -> None:
                 baseline = last.reached
             ratio = f"{baseline / last.reached:.2f}x" if baseline is not None and last.reached is not None else "-"
             shown = ", ".join(f"{n} {e:.3f}" for n, e in errors(kind, last.last).items())
-            print(f"| {kind} | {name} | {reached} | {last.steps} | {first_time} | {shown} | {ratio} |", flush=True)
+            lines.append(f"| {kind} | {name} | {reached} | {last.steps} | {first_time} | {shown} | {ratio} |")
+            print(lines[-1], flush=True)
+    if args.write:
+        options = sys.argv[1:]
+        command = " ".join([".venv/bin/python -m bench.fit_speed", *(o for o in options if o != "--write")])
+        intro = [
+            "## Fitting speed",
+            "",
+            f"{machine()} Mitsuba variant {variant}. Command: `{command} --write`. The kit, the",
+            "targets and the runs: bench/fit_speed.py's docstring (each run repeated, the last reported;",
+            "the first run's time in its own column).",
+            "",
+        ]
+        write_section("fit-speed", intro + lines)
 
 
 if __name__ == "__main__":

@@ -1,11 +1,11 @@
 """Memory and time to decode a huge photo whole and reduced while decoding.
 
-    .venv/bin/python -m bench.huge_photos [--width 12000 --height 9000]
+    .venv/bin/python -m bench.huge_photos [--width 12000 --height 9000] [--write]
 
 Writes a JPEG of the given size (a smooth gradient plus noise), then decodes it in
 fresh processes with pipeline.imaging.photo_io.read_photo at reduce = 1 (whole),
 2, 4 and 8, reporting the process's peak RSS after its imports and after decoding,
-and the decoding time.
+and the decoding time. ``--write`` puts the table into docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -18,6 +18,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from bench.common import machine, write_section
 
 MEASURE = """
 import resource, sys, time
@@ -38,6 +40,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--width", type=int, default=12000)
     parser.add_argument("--height", type=int, default=9000)
+    parser.add_argument("--write", action="store_true", help="rewrite docs/benchmarks.md's section")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as folder:
         path = Path(folder) / "huge.jpg"
@@ -47,19 +50,26 @@ def main() -> None:
         started = time.perf_counter()
         write_image(path, np.repeat(pixels, 3, axis=2))
         del pixels
-        print(
-            f"{args.width}x{args.height} JPEG, {path.stat().st_size / 1e6:.0f} MB, written in "
-            f"{time.perf_counter() - started:.1f} s"
-        )
-        print("| reduce | decoded size | peak RSS after imports | peak RSS after decoding | seconds |")
-        print("|---|---|---|---|---|")
+        lines = [
+            f"A {args.width}x{args.height} JPEG ({path.stat().st_size / 1e6:.0f} MB), each decode in a fresh process:",
+            "",
+            "| reduce | decoded size | peak RSS after imports | peak RSS after decoding | seconds |",
+            "|---|---|---|---|---|",
+        ]
+        print(f"written in {time.perf_counter() - started:.1f} s")
         for reduce in (1, 2, 4, 8):
             out = subprocess.run(
                 [sys.executable, "-c", MEASURE, str(path), str(reduce)], capture_output=True, text=True, check=True
             ).stdout.split()
-            print(
+            lines.append(
                 f"| {reduce} | {out[0]}x{out[1]} | {float(out[2]):.0f} MB | {float(out[3]):.0f} MB | {float(out[4]):.1f} |"
             )
+            print(lines[-1])
+    if args.write:
+        command = ".venv/bin/python -m bench.huge_photos" + (
+            "" if (args.width, args.height) == (12000, 9000) else f" --width {args.width} --height {args.height}"
+        )
+        write_section("huge-photos", ["## Huge photos", "", f"{machine()} Command: `{command} --write`.", "", *lines])
 
 
 if __name__ == "__main__":

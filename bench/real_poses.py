@@ -51,13 +51,11 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.common import ROOT, machine, write_section
 from pipeline.camera.model import Pose
 from pipeline.formats.cameras import read_cameras
 from pipeline.synthetic.score import score_cameras
 
-ROOT = Path(__file__).resolve().parents[1]
-DOCS = ROOT / "docs" / "benchmarks.md"
-SECTION = "## Real poses"
 TURN = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 """The reference camera's axes turned about its optical axis: x' = y, y' = -x."""
 
@@ -345,28 +343,22 @@ NOTES = [
 ]
 
 
-def write_section(lines: list[str], summary: list[str], command: str) -> None:
-    """Replace the "Real poses" section of docs/benchmarks.md."""
-    text = DOCS.read_text()
-    start = text.index(SECTION)
-    end = text.find("\n## ", start + len(SECTION))
-    body = "\n".join(
-        [
-            f"{SECTION} (issue 51)",
-            "",
-            f"Machine: the 2-core, 24 GiB VM (no GPU). Command: `{command}` (regenerates this section;",
-            "synthetic captures are rendered once into the work folder). Columns: bench/real_poses.py's docstring.",
-            "",
-            HEADER,
-            *lines,
-            "",
-            *summary,
-            "",
-            *NOTES,
-            "",
-        ]
-    )
-    DOCS.write_text(text[:start] + body + (text[end:] if end >= 0 else ""))
+def write_real_poses(lines: list[str], summary: list[str], command: str) -> None:
+    """The "Real poses" section of docs/benchmarks.md."""
+    body = [
+        "## Real poses",
+        "",
+        f"{machine()} Command: `{command}` (synthetic captures are rendered once into the work",
+        "folder). Columns: bench/real_poses.py's docstring.",
+        "",
+        HEADER,
+        *lines,
+        "",
+        *summary,
+        "",
+        *NOTES,
+    ]
+    write_section("real-poses", body)
 
 
 def main() -> None:
@@ -403,7 +395,8 @@ def main() -> None:
         )
         print(summary[-1])
     if args.write:
-        write_section(lines, summary, "bench/real_poses.py " + " ".join(sys.argv[1:]).replace(" --write", ""))
+        options = " ".join(o for o in sys.argv[1:] if o != "--write")
+        write_real_poses(lines, summary, f".venv/bin/python -m bench.real_poses {options} --write")
 
 
 if __name__ == "__main__":

@@ -429,7 +429,7 @@ def main() -> None:
                 "### The speed/accuracy trade (issue 27, point 1)",
                 "",
                 "Reproduce: `.venv/bin/python -m bench.trade --workdir DIR --samples CAPTURE --groups ... "
-                "[--only ...]`, the commands listed after this section; the section shows every point",
+                "[--only ...]` (the groups and samples: bench/trade.py's docstring); the section shows every point",
                 "kept in DIR, each with the commit that measured it.",
                 "Machine: the 2-core, 24 GiB VM, no GPU (llvm_ad_rgb). Time: the sum of the wall times of",
                 "every stage the result depends on. Memory: the peak resident memory of the run that",

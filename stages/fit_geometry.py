@@ -35,7 +35,7 @@ that does not help leaves the scene as it was. A geometry pass scores its whole
 window, so the rounds are kept only when they lower the held-out error over the
 specimen as fit_texture measures it; otherwise its scene is passed through
 (params.json: ``kept``, ``specimen_validation_mse``). The measurements behind these
-choices: docs/fit_geometry.md.
+choices: docs/decisions.md, "Fitting's windows and geometry".
 
 Outputs, in geometry/ (exported to CAPTURE/output/stages/fit_geometry/ and, as the
 final scene, to the top of CAPTURE/output/), a scene folder
@@ -112,7 +112,7 @@ class Config:
     geometry_min_improvement: Annotated[float, Range(0.0, 1.0)] = 0.02
     """Relative drop of held-out error a geometry pass must bring for its mesh to
     replace the one it started from; smaller gains are within the held-out renders'
-    noise, and a mesh moved for them can leave the specimen worse (docs/fit_geometry.md)."""
+    noise, and a mesh moved for them can leave the specimen worse (docs/decisions.md)."""
     material_min_improvement: Annotated[float, Range(0.0, 1.0)] = 0.02
     """Relative drop of held-out error a material pass must bring for its values to
     replace the ones it started from; smaller gains are within the held-out renders' noise."""

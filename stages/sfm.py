@@ -55,17 +55,17 @@ stage warns when it displaces the specimen's outline by more than half a pixel
 
 from __future__ import annotations
 
-import json
 import shutil
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
+import pycolmap
 
 from pipeline import logger
 from pipeline.camera.board import board_poses
-from pipeline.camera.model import Intrinsics, Similarity
+from pipeline.camera.model import Intrinsics, Pose, Similarity
 from pipeline.camera.self_calibration import SelfCalibrationSettings, outline_shift_px
 from pipeline.colmap import COLMAP_PIXEL_OFFSET, features, mapping, model_io
 from pipeline.core.config import Range, input_file_path
@@ -76,6 +76,7 @@ from pipeline.formats.cameras import write_cameras
 from pipeline.formats.external_cameras import external_poses
 from pipeline.formats.masks import read_masks
 from pipeline.formats.pinhole import read_camera_settings, read_photos
+from pipeline.formats.sfm_report import SfmReport
 from pipeline.geometry import world_frame
 from pipeline.geometry.pose_check import drop_inconsistent
 from pipeline.geometry.turntable_placement import PlacementSettings, RigSettings, circular_poses
@@ -114,139 +115,246 @@ class Config(features.FeatureSettings, RigSettings, SelfCalibrationSettings):
     """Voxels along the hull's longest side of the silhouette check."""
 
 
-def _note(report: dict, **entries) -> None:
-    """Record in sfm.json the entries a step found (None: the step had nothing to say)."""
-    report.update({name: value for name, value in entries.items() if value is not None})
+@dataclass
+class _Posed:
+    """Step 2's poses and what came with them."""
+
+    poses: dict[str, Pose]
+    causes: dict[str, str]
+    """Why each photo without a pose has none."""
+    intrinsics: dict[str, Intrinsics]
+    points: np.ndarray
+    poses_from: str
+    details: dict = field(default_factory=dict)
+    """What sfm.json adds for this way of posing."""
+    database: Path | None = None
+    """The COLMAP database the poses came from (None: another tool's poses)."""
+    model: pycolmap.Reconstruction | None = None
+    """COLMAP's incremental model, when it posed the photos."""
+    solution: Any = None
+    """The rig's circular-motion solution, when it posed the photos."""
+    table: Any = None
+    """The turntable the rig's solution found."""
+    cameras: list[tuple] = field(default_factory=list)
+    """(focal, cx, cy, k1) of each camera the poses were solved with."""
+
+
+@dataclass(frozen=True)
+class _Photos:
+    """Step 1's photos, their cameras and masks."""
+
+    order: list[str]
+    records: dict[str, dict]
+    """undistort's photo records (``srgb``, ``camera``)."""
+    cameras: list[dict]
+    """undistort's camera settings."""
+    masks: dict[str, Path]
+    stem_of: dict[str, str]
+    """Each photo's file name (COLMAP's image name)."""
+    intrinsics: dict[str, Intrinsics]
 
 
 def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
-    # Longer than 60 lines on purpose: the stage's steps in their order, each a few
-    # calls into pipeline.colmap and pipeline.geometry; split further, the order would hide.
-    # 1. The photos, their cameras and masks; the board's poses with the cameras as calibrated.
     rig: str = inputs.shared["capture.rig"]
-    pinhole_json = inputs.upstream["undistort"]["pinhole"]
-    cameras = read_camera_settings(pinhole_json)
-    photos = read_photos(pinhole_json, "images")
-    masks = read_masks(inputs.upstream["masks"]["masks_json"])
-    order = sorted(photos)
-    stem_of = {name: Path(photos[name]["srgb"]).name for name in order}
-    intrinsics = {name: Intrinsics.from_json(cameras[photos[name]["camera"]]["intrinsics"]) for name in order}
+    photos = _read_photos(inputs)
     board: BoardSection = inputs.shared["board"]
-    board_found, board_errors = board_poses(board, photos, intrinsics, conf.board_min_corners, conf.board_max_error_px)
-    # A camera the board calibrated stays as it is; a guessed one (EXIF, prior) is refined.
-    refine_focal = any(c["calibrated_by"] not in ("board", "external") for c in cameras)
-    circular = rig in ("turntable", "ring")
-
-    # 2. The poses: another tool's, the rig's circular motion, or COLMAP's incremental model.
-    external: CamerasSection = inputs.shared["cameras"]
-    work = out_dir / "colmap"
-    work.mkdir()
-    report: dict = {"photos": len(order)}
-    model, database, table, solution, points = None, None, None, None, np.zeros((0, 3))
-    if external.source:
-        poses, causes = external_poses(input_file_path(inputs.capture_dir, external.source), external.source, order)
-        report["poses_from"] = f"[cameras] source = {external.source}"
-    elif circular:
-        database = features.features_and_matches(conf, rig, photos, cameras, masks, work)
-        keypoints, matches = features.verified_matches(database, order, stem_of)
-        settings = PlacementSettings.of(conf, conf, rig == "turntable", conf.min_pose_inliers, refine_focal)
-        table, poses, solution, report["circular"] = circular_poses(
-            settings, order, intrinsics, masks, keypoints, matches, board_found
-        )
-        intrinsics = {name: solution.intrinsics.without_distortion() for name in order}
-        causes, points = report["circular"]["unplaced"], solution.points
-        report |= {"poses_from": f"circular motion ({rig})", "points": len(points)}
-        report["mean_reprojection_error_px"] = report["circular"]["reprojection_error_px_median"]
-        report["mean_track_length"] = float(np.mean([len(t) for t in solution.tracks])) if solution.tracks else None
-        residual_k1 = [
-            (solution.intrinsics.fx, solution.intrinsics.cx, solution.intrinsics.cy, solution.intrinsics.dist[0])
-        ]
-    else:
-        database = features.features_and_matches(conf, rig, photos, cameras, masks, work)
-        image_dir = next(iter(photos.values()))["srgb"].parent
-        model = mapping.incremental_map(database, image_dir, work / "models", refine_focal, conf.min_pose_inliers)
-        if model is not None and refine_focal and conf.self_calibrate:
-            report["self_calibration"] = mapping.self_calibrate(model, conf)
-        poses = mapping.registered_poses(model, {s: n for n, s in stem_of.items()}, intrinsics, refine_focal)
-        unregistered = [n for n in order if n not in poses]
-        causes = features.unregistered_causes(database, unregistered, stem_of) if unregistered else {}
-        points = np.array([p.xyz for p in model.points3D.values()]).reshape(-1, 3) if model else points
-        report |= {"poses_from": "SfM", "points": len(points), **mapping.model_metrics(model)}
-        offset = COLMAP_PIXEL_OFFSET
-        cameras_params = [c.params for c in model.cameras.values()] if model else []
-        residual_k1 = [(f, cx - offset, cy - offset, k1) for f, cx, cy, k1 in cameras_params]
+    board_found, board_errors = board_poses(
+        board, photos.records, photos.intrinsics, conf.board_min_corners, conf.board_max_error_px
+    )
+    posed = _pose(conf, inputs, rig, photos, board_found, out_dir / "colmap")
     # A board pose is as good as a registration (in the board frame), and SfM may
     # fail on a plain specimen.
-    if len(set(poses) | set(board_found)) < conf.min_registered_fraction * len(order):
-        _too_few(conf, set(poses) | set(board_found), order, causes)
-    report |= {"registered": len(poses), "unregistered": causes}
-    if database is not None:
-        _residual_distortion(report, residual_k1, list(masks.values()))
-
-    # 3. The world frame: the board's when the poses agree with it, else the turntable's,
-    # the ground's or the cameras'.
-    tie = world_frame.tie_to_board(conf.frame, conf.board_max_disagreement, board_found, poses, points, circular)
-    frame, poses, points = tie.frame, tie.poses, tie.points
-    model = None if tie.dropped else model
-    _note(report, frame=tie.record, replaced_by_board=tie.replaced_by_board)
-    to_world = frame or Similarity.identity()
-    if frame is not None and not circular:
-        report["posed_by_board"] = sorted(set(board_found) - set(poses))
-        poses |= {n: board_found[n] for n in report["posed_by_board"]}
-    if frame is None:
-        level, report["frame"] = world_frame.frame_without_board(conf.frame, poses, points, table)
-        poses = {n: level.pose(p) for n, p in poses.items()}
-        points = level.points(points) if len(points) else points
-        to_world = to_world.then(level)
-
-    # 4. Poses the silhouettes or the table contradict are left out (the circular
-    # placement checked its photos against the silhouettes already).
-    check = (conf.min_silhouette_iou, conf.silhouette_resolution, conf.min_mask_agreement)
-    consistent = drop_inconsistent(
-        poses, intrinsics, masks, *check, report["frame"].get("ground_plane") is not None, not circular
+    if len(set(posed.poses) | set(board_found)) < conf.min_registered_fraction * len(photos.order):
+        _too_few(conf, set(posed.poses) | set(board_found), photos.order, posed.causes)
+    registered = len(posed.poses)
+    if posed.database is not None:
+        posed.details |= _residual_distortion(posed.cameras, list(photos.masks.values()))
+    frame, to_world = _world_frame(conf, rig, posed, board_found)
+    _drop_inconsistent(conf, rig, photos, posed, frame)
+    sparse, cameras_json = _write_model(out_dir, photos, posed, frame, to_world)
+    report = SfmReport(
+        photos=len(photos.order),
+        poses_from=posed.poses_from,
+        registered=registered,
+        unregistered=posed.causes,
+        frame=frame,
+        points=None if posed.database is None else len(posed.points),
+        mean_reprojection_error_px=posed.details.pop("mean_reprojection_error_px", None),
+        mean_track_length=posed.details.pop("mean_track_length", None),
+        board_reprojection_px=board_errors,
+        details=posed.details,
     )
-    poses = consistent.kept
-    _note(report, silhouette_iou=consistent.silhouette_iou, below_ground=consistent.below_ground)
-    if len(poses) < conf.min_registered_fraction * len(order):
-        _too_few(conf, set(poses), order, causes)
-    if len(poses) < len(order):
-        logger.warning(
-            "%d of %d photos are not registered and are left out: %s",
-            len(order) - len(poses),
-            len(order),
-            ", ".join(n for n in order if n not in poses),
-        )
-
-    # 5. The model, cameras.json and sfm.json.
-    sparse = out_dir / "sparse"
-    if database is None:
-        # Where a mesh from the same tool ([mesh] source) must be moved to.
-        report["frame"]["from_source"] = to_world.to_json()
-        model_io.model_from_poses(intrinsics, poses, stem_of, sparse)
-    elif solution is not None:
-        model_io.model_from_tracks(database, solution.intrinsics, poses, points, solution.tracks, stem_of, sparse)
-    else:
-        model_io.write_model(model, database, to_world, poses, stem_of, sparse)
-    cameras_json = out_dir / "cameras.json"
-    write_cameras(cameras_json, {n: intrinsics[n] for n in poses}, poses, frame=report["frame"])
-    report["board_reprojection_px"] = board_errors
-    sfm_json = out_dir / "sfm.json"
-    sfm_json.write_text(json.dumps(report, indent=1))
-    if (work / "models").exists():
-        shutil.rmtree(work / "models")
-    metrics = {k: report.get(k) for k in ("registered", "photos", "mean_reprojection_error_px", "mean_track_length")}
-    metrics["frame"] = report["frame"]["source"]
+    sfm_json = report.write(out_dir / "sfm.json")
+    metrics = {"registered": registered, "photos": report.photos}
+    metrics |= {"mean_reprojection_error_px": report.mean_reprojection_error_px}
+    metrics |= {"mean_track_length": report.mean_track_length, "frame": frame["source"]}
     return StageResult({"cameras": cameras_json, "sparse": sparse, "report": sfm_json}, metrics)
 
 
-def _residual_distortion(report: dict, cameras: list[tuple], masks: list[Path]) -> None:
+def _read_photos(inputs: StageInputs) -> _Photos:
+    """1. The photos, their cameras (as calibrated) and masks."""
+    pinhole_json = inputs.upstream["undistort"]["pinhole"]
+    cameras = read_camera_settings(pinhole_json)
+    records = read_photos(pinhole_json, "images")
+    order = sorted(records)
+    return _Photos(
+        order=order,
+        records=records,
+        cameras=cameras,
+        masks=read_masks(inputs.upstream["masks"]["masks_json"]),
+        stem_of={name: Path(records[name]["srgb"]).name for name in order},
+        intrinsics={name: Intrinsics.from_json(cameras[records[name]["camera"]]["intrinsics"]) for name in order},
+    )
+
+
+def _pose(
+    conf: Config, inputs: StageInputs, rig: str, photos: _Photos, board_found: dict[str, Pose], work: Path
+) -> _Posed:
+    """2. The poses: another tool's, the rig's circular motion, or COLMAP's incremental model."""
+    # A camera the board calibrated stays as it is; a guessed one (EXIF, prior) is refined.
+    refine_focal = any(c["calibrated_by"] not in ("board", "external") for c in photos.cameras)
+    external: CamerasSection = inputs.shared["cameras"]
+    work.mkdir()
+    if external.source:
+        poses, causes = external_poses(
+            input_file_path(inputs.capture_dir, external.source), external.source, photos.order
+        )
+        return _Posed(poses, causes, photos.intrinsics, np.zeros((0, 3)), f"[cameras] source = {external.source}")
+    database = features.features_and_matches(conf, rig, photos.records, photos.cameras, photos.masks, work)
+    if rig in ("turntable", "ring"):
+        keypoints, matches = features.verified_matches(database, photos.order, photos.stem_of)
+        settings = PlacementSettings.of(conf, conf, rig == "turntable", conf.min_pose_inliers, refine_focal)
+        table, poses, solution, circular = circular_poses(
+            settings, photos.order, photos.intrinsics, photos.masks, keypoints, matches, board_found
+        )
+        K = solution.intrinsics
+        return _Posed(
+            poses,
+            circular["unplaced"],
+            {name: K.without_distortion() for name in photos.order},
+            solution.points,
+            f"circular motion ({rig})",
+            details={
+                "circular": circular,
+                "mean_reprojection_error_px": circular["reprojection_error_px_median"],
+                "mean_track_length": float(np.mean([len(t) for t in solution.tracks])) if solution.tracks else None,
+            },
+            database=database,
+            solution=solution,
+            table=table,
+            cameras=[(K.fx, K.cx, K.cy, K.dist[0])],
+        )
+    image_dir = next(iter(photos.records.values()))["srgb"].parent
+    model = mapping.incremental_map(database, image_dir, work / "models", refine_focal, conf.min_pose_inliers)
+    details = {}
+    if model is not None and refine_focal and conf.self_calibrate:
+        details["self_calibration"] = mapping.self_calibrate(model, conf)
+    name_of = {s: n for n, s in photos.stem_of.items()}
+    poses = mapping.registered_poses(model, name_of, photos.intrinsics, refine_focal)
+    unregistered = [n for n in photos.order if n not in poses]
+    causes = features.unregistered_causes(database, unregistered, photos.stem_of) if unregistered else {}
+    points = np.array([p.xyz for p in model.points3D.values()]).reshape(-1, 3) if model else np.zeros((0, 3))
+    offset = COLMAP_PIXEL_OFFSET
+    solved = [c.params for c in model.cameras.values()] if model else []
+    cameras = [(f, cx - offset, cy - offset, k1) for f, cx, cy, k1 in solved]
+    return _Posed(
+        poses,
+        causes,
+        photos.intrinsics,
+        points,
+        "SfM",
+        details=details | mapping.model_metrics(model),
+        database=database,
+        model=model,
+        cameras=cameras,
+    )
+
+
+def _world_frame(conf: Config, rig: str, posed: _Posed, board_found: dict[str, Pose]) -> tuple[dict, Similarity]:
+    """3. The world frame: the board's when the poses agree with it, else the turntable's,
+    the ground's or the cameras'. Moves the poses and points into it; returns its
+    record (cameras.json's frame) and the move from the poses' first frame."""
+    circular = rig in ("turntable", "ring")
+    tie = world_frame.tie_to_board(
+        conf.frame, conf.board_max_disagreement, board_found, posed.poses, posed.points, circular
+    )
+    frame, posed.poses, posed.points = tie.frame, tie.poses, tie.points
+    posed.model = None if tie.dropped else posed.model
+    if tie.replaced_by_board is not None:
+        posed.details["replaced_by_board"] = tie.replaced_by_board
+    to_world = frame or Similarity.identity()
+    if frame is not None and not circular:
+        posed.details["posed_by_board"] = sorted(set(board_found) - set(posed.poses))
+        posed.poses |= {n: board_found[n] for n in posed.details["posed_by_board"]}
+    if frame is not None:
+        return tie.record, to_world
+    level, record = world_frame.frame_without_board(conf.frame, posed.poses, posed.points, posed.table)
+    posed.poses = {n: level.pose(p) for n, p in posed.poses.items()}
+    posed.points = level.points(posed.points) if len(posed.points) else posed.points
+    return record, to_world.then(level)
+
+
+def _drop_inconsistent(conf: Config, rig: str, photos: _Photos, posed: _Posed, frame: dict) -> None:
+    """4. Poses the silhouettes or the table contradict are left out (the circular
+    placement checked its photos against the silhouettes already)."""
+    consistent = drop_inconsistent(
+        posed.poses,
+        posed.intrinsics,
+        photos.masks,
+        conf.min_silhouette_iou,
+        conf.silhouette_resolution,
+        conf.min_mask_agreement,
+        frame.get("ground_plane") is not None,
+        rig not in ("turntable", "ring"),
+    )
+    posed.poses = consistent.kept
+    for name, value in (("silhouette_iou", consistent.silhouette_iou), ("below_ground", consistent.below_ground)):
+        if value is not None:
+            posed.details[name] = value
+    order = photos.order
+    if len(posed.poses) < conf.min_registered_fraction * len(order):
+        _too_few(conf, set(posed.poses), order, posed.causes)
+    if len(posed.poses) < len(order):
+        logger.warning(
+            "%d of %d photos are not registered and are left out: %s",
+            len(order) - len(posed.poses),
+            len(order),
+            ", ".join(n for n in order if n not in posed.poses),
+        )
+
+
+def _write_model(out_dir: Path, photos: _Photos, posed: _Posed, frame: dict, to_world: Similarity) -> tuple[Path, Path]:
+    """5. The sparse model (COLMAP's format) and cameras.json, in the world frame."""
+    sparse = out_dir / "sparse"
+    poses, intrinsics, stem_of = posed.poses, posed.intrinsics, photos.stem_of
+    if posed.database is None:
+        # Where a mesh from the same tool ([mesh] source) must be moved to.
+        frame["from_source"] = to_world.to_json()
+        model_io.model_from_poses(intrinsics, poses, stem_of, sparse)
+    elif posed.solution is not None:
+        solution = posed.solution
+        model_io.model_from_tracks(
+            posed.database, solution.intrinsics, poses, posed.points, solution.tracks, stem_of, sparse
+        )
+    else:
+        model_io.write_model(posed.model, posed.database, to_world, poses, stem_of, sparse)
+    cameras_json = out_dir / "cameras.json"
+    write_cameras(cameras_json, {n: intrinsics[n] for n in poses}, poses, frame=frame)
+    if (out_dir / "colmap" / "models").exists():
+        shutil.rmtree(out_dir / "colmap" / "models")
+    return sparse, cameras_json
+
+
+def _residual_distortion(cameras: list[tuple], masks: list[Path]) -> dict:
     """Radial distortion self-calibration found in the undistorted photos (used
-    without it), and how far it moves the specimen's outline: a warning past half a pixel."""
+    without it), and how far it moves the specimen's outline (sfm.json's
+    ``residual_distortion``): a warning past half a pixel."""
+    found = {}
     for focal, cx, cy, k1 in cameras:
         if k1 == 0:
             continue
         shift = outline_shift_px(k1, focal, cx, cy, masks)
-        report["residual_distortion"] = {"k1": float(k1), "specimen_shift_px": shift}
+        found["residual_distortion"] = {"k1": float(k1), "specimen_shift_px": shift}
         if shift > 0.5:
             logger.warning(
                 "self-calibration found radial distortion (k1 = %.4f) that moves the specimen's outline by up to "
@@ -255,6 +363,7 @@ def _residual_distortion(report: dict, cameras: list[tuple], masks: list[Path]) 
                 k1,
                 shift,
             )
+    return found
 
 
 def _too_few(conf: Config, posed: set[str], order: list[str], causes: dict[str, str]) -> None:

@@ -86,7 +86,9 @@ def _scored(views: list, texture: np.ndarray | None, key: str, folder: Path) -> 
     return score_heldout(folder)
 
 
-def photographer_scenes(textured: Path, description: SceneDescription, cameras: dict, distance: float, radius: float) -> dict:
+def photographer_scenes(
+    textured: Path, description: SceneDescription, cameras: dict, distance: float, radius: float
+) -> dict:
     """Each view's scene (its XML without the sensor) with a black disk behind its camera
     (the module docstring's ``--photographer``)."""
     import mitsuba as mi

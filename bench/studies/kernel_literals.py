@@ -9,15 +9,18 @@ milliseconds. Part 2 calls one frozen render function alternately with two senso
 (or one sensor whose parameters are updated between calls) six times and reports how
 often dr.freeze recorded and how many recordings it kept.
 
-Usage: ``.venv/bin/python -m bench.studies.kernel_literals`` (after bin/bootstrap; seconds).
+Usage: ``.venv/bin/python -m bench.studies.kernel_literals [--write]`` (after
+bin/bootstrap; seconds); ``--write`` puts the tables into docs/benchmarks.md.
 Run it with a Dr.Jit kernel cache that has not seen these kernels (``HOME`` pointing
 at an empty folder) for part 1's compile times.
 """
 
 from __future__ import annotations
 
+import sys
 import time
 
+from bench.common import machine, write_section
 from pipeline.render import mitsuba_variant
 
 
@@ -45,7 +48,7 @@ def main() -> None:
         dr.sync_thread()
         return time.perf_counter() - started
 
-    print("| render with | seconds |\n|---|---|")
+    lines = ["| render with | seconds |", "|---|---|"]
     for label, camera in (
         ("48x40, the first render", sensor()),
         ("the same settings again (a new sensor)", sensor()),
@@ -56,7 +59,7 @@ def main() -> None:
         ("a 48x40 crop of a 200x200 film at (10, 10)", sensor(200, 200, crop=(10, 10, 48, 40))),
         ("the same crop at (20, 30)", sensor(200, 200, crop=(20, 30, 48, 40))),
     ):
-        print(f"| {label} | {seconds(camera):.3f} |")
+        lines.append(f"| {label} | {seconds(camera):.3f} |")
 
     def frozen_calls(cameras, updates=None) -> tuple[int, int]:
         @dr.freeze
@@ -74,7 +77,7 @@ def main() -> None:
         return render.n_recordings, render.n_cached_recordings
 
     other = mi.traverse(sensor(z=3.5))
-    print("\n| six calls of one frozen function with | recorded | recordings kept |\n|---|---|---|")
+    lines += ["", "| six calls of one frozen function with | recorded | recordings kept |", "|---|---|---|"]
     one = sensor()
     start = {"to_world": type(mi.traverse(one)["to_world"])(mi.traverse(one)["to_world"])}
     for label, cameras, updates in (
@@ -83,7 +86,21 @@ def main() -> None:
         ("two sensors, two poses", [sensor(), sensor(z=3.5)], None),
         ("one sensor, its pose updated between calls", [sensor()], [start, {"to_world": other["to_world"]}]),
     ):
-        print(f"| {label} | %d | %d |" % frozen_calls(cameras, updates))
+        lines.append(f"| {label} | %d | %d |" % frozen_calls(cameras, updates))
+    print("\n".join(lines))
+    if "--write" in sys.argv[1:]:
+        command = "HOME=$(mktemp -d) .venv/bin/python -m bench.studies.kernel_literals --write"
+        intro = [
+            "## Kernels compiled per view",
+            "",
+            f"{machine()} Command: `{command}` (an empty kernel cache).",
+            "A film's size and a crop's offset are literals in Dr.Jit's kernels, the pose, field of view",
+            "and principal point are not (so every view of a fit has one window size and no crop:",
+            "pipeline.fit.views.mask_windows); dr.freeze records once per sensor object (so each view",
+            "has its own recording: pipeline.fit.loop).",
+            "",
+        ]
+        write_section("kernel-literals", intro + lines)
 
 
 if __name__ == "__main__":

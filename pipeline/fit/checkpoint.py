@@ -117,20 +117,6 @@ class Checkpoint:
         os.replace(partial, self.path)
         self._last = time.perf_counter()
 
-    def save_loop(
-        self, optimizer, record: dict[str, Any], iteration: int, started: float, stopped: str | None, best: dict
-    ) -> None:
-        """Save a fit loop's state: ``record`` updated with where the loop is, and
-        ``best`` (its "iteration", "error" and the arrays under "arrays")."""
-        record.update(
-            iteration=iteration,
-            seconds=time.perf_counter() - started,
-            stopped=stopped,
-            best_iteration=best["iteration"],
-            best_error=best["error"],
-        )
-        self.save(optimizer, {f"best/{name}": value for name, value in best["arrays"].items()}, record)
-
     def restore(self, optimizer) -> Resumed | None:
         """Load the checkpoint into ``optimizer`` (whose keys it must hold); None if there is none."""
         if not self.path.is_file():

@@ -36,7 +36,7 @@ the step, the loss, the held-out error and the time left.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Any, Callable
 
 import numpy as np
@@ -199,27 +199,58 @@ along which Adam's noise would walk it (without it a phone capture's base colour
 walked to its bound of 1). The gain is the rendered photo's own, so the pull has no delay."""
 
 
-def view_loss(scene, params, sensor, integrator, spp: int, seeds, gain_channels: int, target: Target, dual, share):
-    """One view's loss (``dual``: from two renders, else l2 from one) after the renders
-    are multiplied by the gain matched to them with ``gain_channels`` (1 or 3;
-    Target.matched_gain; 0: none, and None returned for it), and its gradient
-    backpropagated with weight ``share``. What changes between calls is a Dr.Jit value
-    or holds them, so that ``dr.freeze`` replays it correctly."""
+@dataclass
+class ViewRender:
+    """What one view's step renders. A dataclass: Dr.Jit traverses it, so a frozen step
+    replays with each call's own scene parameters and seeds."""
+
+    scene: Any
+    params: Any
+    """mi.traverse(scene), with the fitted values applied."""
+    sensor: Any
+    integrator: Any
+    spp: int
+    seeds: tuple
+    """Two opaque render seeds (seed): the second render's for the dual loss."""
+
+
+@dataclass
+class ViewComparison:
+    """How one view's renders are compared with its photo (a dataclass, as ViewRender)."""
+
+    target: Target
+    gain_channels: int
+    """Channels of the gain matched to the renders before the loss (Target.matched_gain):
+    1 or 3; 0: none."""
+    dual: bool
+    """The dual-buffer loss from two renders, else l2 from one."""
+    share: Any
+    """The weight the gradient is backpropagated with (an opaque 1 / batch)."""
+
+
+def view_loss(render: ViewRender, comparison: ViewComparison):
+    """One view's loss after the renders are multiplied by the gain matched to them
+    (None returned for the gain when none is), its gradient backpropagated with the
+    comparison's share. What changes between calls is a Dr.Jit value or holds them,
+    so that ``dr.freeze`` replays it correctly."""
     import drjit as dr
     import mitsuba as mi
 
-    image = mi.render(scene, params, sensor=sensor, integrator=integrator, spp=spp, seed=seeds[0])
-    second = mi.render(scene, params, sensor=sensor, integrator=integrator, spp=spp, seed=seeds[1]) if dual else image
+    r, target = render, comparison.target
+    image = mi.render(r.scene, r.params, sensor=r.sensor, integrator=r.integrator, spp=r.spp, seed=r.seeds[0])
+    second = image
+    if comparison.dual:
+        second = mi.render(r.scene, r.params, sensor=r.sensor, integrator=r.integrator, spp=r.spp, seed=r.seeds[1])
     gain, pull = None, 0.0
-    if gain_channels:
+    if comparison.gain_channels:
         # matched with its gradient for the level's pull (this photo's gain, fresh,
         # towards 1: LEVEL_PULL), detached where it scales the renders
-        attached = target.matched_gain(image, second, gain_channels, dr, detached=False)
+        attached = target.matched_gain(image, second, comparison.gain_channels, dr, detached=False)
         gain = dr.detach(attached)
         pull = LEVEL_PULL * dr.mean(dr.square(dr.log(attached)))
         image, second = image * gain, second * gain
-    loss = target.dual(image, second, dr) if dual else target.mse(image, dr)
-    dr.backward((loss + pull) * share)
+    loss = target.dual(image, second, dr) if comparison.dual else target.mse(image, dr)
+    dr.backward((loss + pull) * comparison.share)
     return loss, gain
 
 
@@ -293,16 +324,15 @@ class _Loop:
             self.variables.apply(id(view.scene))
             gain_channels = self.variables.gain_channels_of(view.name)
             arguments = (
-                view.scene,
-                self.variables.traversed[id(view.scene)],
-                view.sensor,
-                self.integrator or view.integrator,
-                self.settings.spp,
-                (seed(render_seed), seed(render_seed + 1)),
-                gain_channels,
-                self.targets[view.name],
-                self.settings.loss == "dual",
-                self.share,
+                ViewRender(
+                    view.scene,
+                    self.variables.traversed[id(view.scene)],
+                    view.sensor,
+                    self.integrator or view.integrator,
+                    self.settings.spp,
+                    (seed(render_seed), seed(render_seed + 1)),
+                ),
+                ViewComparison(self.targets[view.name], gain_channels, self.settings.loss == "dual", self.share),
             )
             try:
                 loss, gain = self.view_loss(view)(*arguments)
@@ -355,6 +385,46 @@ class _Loop:
                 gain = self.targets[view.name].matched_gain(image, second, channels, dr)
                 self.variables.record_gain(view.name, np.ravel(np.array(gain, np.float64)))
 
+    def train(self, iteration: int, state: LoopState, started: float) -> dict:
+        """One step: renders, backpropagation, Adam, the bounds; its log entry."""
+        variables = self.variables
+        step_losses = self.step(iteration)
+        variables.add_priors()
+        self.drop_non_finite_gradients(iteration)
+        variables.optimizer.step()
+        variables.clamp()
+        # One read of the device per step: the batch's losses and gains together.
+        self.dr.eval([(loss, gain) for _, loss, gain in step_losses])
+        values = [float(loss.array[0]) for _, loss, _ in step_losses]
+        for name, _, gain in step_losses:
+            if gain is not None:
+                variables.record_gain(name, np.ravel(np.array(gain, np.float64)))
+        relative = 0.0
+        for (name, _, _), value in zip(step_losses, values):
+            # Views differ in brightness and size: the stopping rule compares each
+            # view's loss with its first one.
+            state.first_loss.setdefault(name, max(abs(value), 1e-12))
+            relative += value / state.first_loss[name]
+        state.relative_losses.append(relative / len(values))
+        entry = {
+            "iteration": iteration,
+            "loss": float(np.mean(values)),
+            "relative_loss": state.relative_losses[-1],
+            "seconds": time.perf_counter() - started,
+        }
+        summary = variables.summary()
+        if summary is not None:
+            entry["params"] = summary
+        return entry
+
+    def finish(self, best: BestState) -> None:
+        """The scenes in the best state, and the training views' gains matched to it."""
+        self.variables.restore(best.values)
+        with self.dr.suspend_grad():
+            for scene_key in self.variables.traversed:
+                self.variables.apply(scene_key)
+        self.match_gains()
+
     def validate(self) -> float:
         with self.dr.suspend_grad():
             for scene_key in {id(view.scene) for view in self.validation}:
@@ -376,6 +446,49 @@ def validation_error(
     return float(np.mean(errors))
 
 
+@dataclass
+class BestState:
+    """The state the loop returns to: the variables' values at the lowest held-out error."""
+
+    values: dict[str, np.ndarray]
+    iteration: int
+    error: float | None
+    """Its held-out error (None without held-out views: then the last state)."""
+
+
+@dataclass
+class LoopState:
+    """What the loop carries from step to step, and what its checkpoint saves."""
+
+    start_error: float | None
+    """The held-out error before the first step."""
+    iteration: int = 0
+    seconds: float = 0.0
+    """Time spent over this and earlier (resumed) runs."""
+    relative_losses: list[float] = field(default_factory=list)
+    """Each step's mean of its views' losses, each relative to that view's first."""
+    first_loss: dict[str, float] = field(default_factory=dict)
+    log: list[dict] = field(default_factory=list)
+    stopped: str | None = None
+    gain_estimates: dict[str, list] = field(default_factory=dict)
+    """The gains matched to each view so far (pipeline.fit.variables)."""
+
+    RECORD_KEYS = {"relative_losses": "losses"}
+    """Names in the checkpoint's record that differ from the field's."""
+
+    def record(self, best: BestState) -> dict:
+        """The checkpoint's JSON record."""
+        record = {self.RECORD_KEYS.get(f.name, f.name): getattr(self, f.name) for f in fields(self)}
+        return record | {"best_iteration": best.iteration, "best_error": best.error}
+
+    @staticmethod
+    def resumed(record: dict, arrays: dict[str, np.ndarray]) -> tuple[LoopState, BestState]:
+        names = {LoopState.RECORD_KEYS.get(f.name, f.name): f.name for f in fields(LoopState)}
+        state = LoopState(**{names[key]: value for key, value in record.items() if key in names})
+        values = {name[len("best/") :]: array for name, array in arrays.items() if name.startswith("best/")}
+        return state, BestState(values, record["best_iteration"], record["best_error"])
+
+
 def run(
     variables,
     training: list[FitView],
@@ -388,107 +501,72 @@ def run(
     """Fit ``variables`` (pipeline.fit.variables, registered in their optimiser) to the
     training views; the scenes end in the best state. ``integrator`` overrides the
     views' own; ``on_iteration`` sees each step's log entry."""
-    # Longer than 60 lines: the loop's steps in their order (resume, step, validate,
-    # stop, checkpoint); split further, the order would hide.
     if not training:
         raise PipelineError("no views to fit: every view is held out")
     loop = _Loop(variables, training, validation, settings, integrator, label)
     checkpoint = next_checkpoint()
-    resumed = checkpoint.restore(variables.optimizer) if checkpoint is not None else None
-    if resumed is None:
-        start_error = loop.validate() if loop.validation else None
-        record = {"iteration": 0, "seconds": 0.0, "losses": [], "first_loss": {}, "log": [], "stopped": None}
-        record["start_error"] = start_error
-        best = {"values": variables.snapshot(), "iteration": 0, "error": start_error}
-    else:
-        record = resumed.record
-        for name, gain in record.get("gain_estimates", {}).items():  # none in a checkpoint of an older version
-            variables.record_gain(name, np.asarray(gain))
-        names = [name[len("best/") :] for name in resumed.arrays if name.startswith("best/")]
-        best = {
-            "values": {name: resumed.arrays[f"best/{name}"] for name in names},
-            "iteration": record["best_iteration"],
-            "error": record["best_error"],
-        }
-        for iteration in range(1, record["iteration"] + 1):
-            loop.batches.draw(iteration)  # replayed: the views each later step draws stay the same
-    losses, first_loss, log = record["losses"], record["first_loss"], record["log"]
-    started = time.perf_counter() - record["seconds"]
-    stopped = record["stopped"]
+    state, best = _start(loop, checkpoint)
+    started = time.perf_counter() - state.seconds
 
-    def save(iteration: int, why: str | None) -> None:
-        record["gain_estimates"] = variables.gain_estimates
-        checkpoint.save_loop(variables.optimizer, record, iteration, started, why, best | {"arrays": best["values"]})
+    def save(why: str | None) -> None:
+        state.seconds, state.stopped = time.perf_counter() - started, why
+        state.gain_estimates = variables.gain_estimates
+        checkpoint.save(variables.optimizer, {f"best/{n}": v for n, v in best.values.items()}, state.record(best))
 
-    last = settings.iterations if stopped is None else record["iteration"]
-    last_validation = None
-    with progress.steps(last - record["iteration"], label) as advance:
-        for iteration in range(record["iteration"] + 1, last + 1):
-            step_losses = loop.step(iteration)
-            variables.add_priors()
-            loop.drop_non_finite_gradients(iteration)
-            variables.optimizer.step()
-            variables.clamp()
-            # One read of the device per step: the batch's losses and gains together.
-            loop.dr.eval([(loss, gain) for _, loss, gain in step_losses])
-            values = [float(loss.array[0]) for _, loss, _ in step_losses]
-            for name, _, gain in step_losses:
-                if gain is not None:
-                    variables.record_gain(name, np.ravel(np.array(gain, np.float64)))
-            relative = 0.0
-            for (name, _, _), value in zip(step_losses, values):
-                # Views differ in brightness and size: the stopping rule compares each
-                # view's loss with its first one.
-                first_loss.setdefault(name, max(abs(value), 1e-12))
-                relative += value / first_loss[name]
-            losses.append(relative / len(values))
-            entry = {
-                "iteration": iteration,
-                "loss": float(np.mean(values)),
-                "relative_loss": losses[-1],
-                "seconds": time.perf_counter() - started,
-            }
-            summary = variables.summary()
-            if summary is not None:
-                entry["params"] = summary
+    last = settings.iterations if state.stopped is None else state.iteration
+    with progress.steps(last - state.iteration, label) as advance:
+        for iteration in range(state.iteration + 1, last + 1):
+            entry = loop.train(iteration, state, started)
             if loop.validation and (iteration % settings.validate_every == 0 or iteration == settings.iterations):
                 entry["validation_error"] = loop.validate()
-                if entry["validation_error"] < best["error"]:
-                    best = _best(variables, iteration, entry["validation_error"])
+                if entry["validation_error"] < best.error:
+                    best = BestState(variables.snapshot(), iteration, entry["validation_error"])
             elif not loop.validation:
-                best = _best(variables, iteration, None)
-            log.append(entry)
-            if "validation_error" in entry:
-                last_validation = entry["validation_error"]
-            advance(_status(entry, last_validation, best))
+                best = BestState(variables.snapshot(), iteration, None)
+            state.log.append(entry)
+            state.iteration = iteration
+            advance(_status(entry, state.log, best))
             if on_iteration is not None:
                 on_iteration(entry)
-            stopped = _stop_reason(settings, losses, entry)
-            if stopped:
+            state.stopped = _stop_reason(settings, state.relative_losses, entry)
+            if state.stopped:
                 break
             if checkpoint is not None and checkpoint.due():
-                save(iteration, None)
-    stopped = stopped or "iterations"
+                save(None)
+    state.stopped = state.stopped or "iterations"
     if checkpoint is not None:
-        save(len(log), stopped)
-    variables.restore(best["values"])
-    with loop.dr.suspend_grad():
-        for scene_key in variables.traversed:
-            variables.apply(scene_key)
-    loop.match_gains()
+        state.iteration = len(state.log)
+        save(state.stopped)
+    loop.finish(best)
     logger.info(
         "%s stopped (%s) after %d steps in %.0f s; best at step %d (held-out error %s -> %s)",
         label,
-        stopped,
-        len(log),
+        state.stopped,
+        len(state.log),
         time.perf_counter() - started,
-        best["iteration"],
-        _number(record["start_error"]),
-        _number(best["error"]),
+        best.iteration,
+        _number(state.start_error),
+        _number(best.error),
     )
     return LoopResult(
-        best["values"], best["iteration"], best["error"], record["start_error"], stopped, log, loop.skipped
+        best.values, best.iteration, best.error, state.start_error, state.stopped, state.log, loop.skipped
     )
+
+
+def _start(loop: _Loop, checkpoint) -> tuple[LoopState, BestState]:
+    """A fresh state, or the checkpoint's (its views' draws replayed, so that each
+    later step draws the views it would have)."""
+    variables = loop.variables
+    resumed = checkpoint.restore(variables.optimizer) if checkpoint is not None else None
+    if resumed is None:
+        start_error = loop.validate() if loop.validation else None
+        return LoopState(start_error), BestState(variables.snapshot(), 0, start_error)
+    state, best = LoopState.resumed(resumed.record, resumed.arrays)
+    for name, gain in state.gain_estimates.items():
+        variables.record_gain(name, np.asarray(gain))
+    for iteration in range(1, state.iteration + 1):
+        loop.batches.draw(iteration)
+    return state, best
 
 
 def _stop_reason(settings: LoopSettings, losses: list[float], entry: dict) -> str | None:
@@ -506,12 +584,8 @@ def _number(value: float | None) -> str:
     return "-" if value is None else f"{value:.4g}"
 
 
-def _best(variables, iteration: int, error: float | None) -> dict:
-    """The state to return to."""
-    return {"values": variables.snapshot(), "iteration": iteration, "error": error}
-
-
-def _status(entry: dict, validation: float | None, best: dict) -> str:
+def _status(entry: dict, log: list[dict], best: BestState) -> str:
     """The progress line's: this step's loss, the last held-out error and the best."""
-    heldout = f", held-out {_number(validation)} (best {_number(best['error'])})" if validation is not None else ""
+    validation = next((e["validation_error"] for e in reversed(log) if "validation_error" in e), None)
+    heldout = f", held-out {_number(validation)} (best {_number(best.error)})" if validation is not None else ""
     return f"loss {entry['loss']:.4g}{heldout}"

@@ -12,8 +12,14 @@ calibration         calibrate       calibration.json: intrinsics per camera sett
 pinhole             undistort       pinhole.json: pinhole intrinsics, photo files
 masks               masks           masks.json: one mask PNG per photo
 cameras             sfm, synth      cameras.json: intrinsics and pose per photo
+sfm_report          sfm             sfm.json: how the photos were posed (SfmReport)
 scene_folder        scene, fit_*    a self-contained Mitsuba scene folder, and the
-                                    fit results beside it (params.json, log,
-                                    heldout/)
+                                    fit results beside it (log, heldout/)
+scene_description   scene           scene.json: the scene folder's description for
+                                    the fits (SceneDescription)
+fit_results         fit_*           params.json: the fitted values and what the
+                                    next fit takes over (MaterialFit, TexturedFit,
+                                    GeometryFit)
+records             -               the typed JSON records' shared base
 ==================  ==============  =============================================
 """

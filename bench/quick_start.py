@@ -1,0 +1,142 @@
+"""The README's two Quick start commands in a fresh clone, as a new user and CI run them.
+
+    .venv/bin/python -m bench.quick_start [--parts tests,pipeline] [--keep DIR] [--write]
+
+Clones the repository's HEAD into a new folder whose parent holds no ``shared``
+folder (so the optional real-capture tests skip, as in CI), then runs, one after the
+other and alone: ``CI=true .ci/run`` (= ``bin/test``, bootstrap included) and
+``bin/pipeline run sample_captures/bird`` (bootstrap included, the default preset),
+then ``pipeline score`` on the bird. Reports each command's exit code and wall time,
+pytest's summary, the stages' times, and the score's figures after each fit stage.
+``--write`` puts the table into docs/benchmarks.md. About 30 minutes on 2 cores.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import shutil
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+
+from bench.common import ROOT, machine, write_section
+
+FIT_STAGES = ("fit_material", "fit_texture", "fit_geometry")
+
+
+def fresh_clone(keep: Path | None) -> Path:
+    parent = keep or Path(tempfile.mkdtemp(prefix="quick_start_"))
+    parent.mkdir(parents=True, exist_ok=True)
+    clone = parent / "fresh"
+    subprocess.run(["git", "clone", "--quiet", "--no-hardlinks", str(ROOT), str(clone)], check=True)
+    if (parent / "shared").exists():
+        raise SystemExit(f"{parent / 'shared'} exists: the clone would see the real captures, which CI does not")
+    return clone
+
+
+def empty_home(folder: Path) -> Path:
+    """A home without caches (Dr.Jit's kernels, pip's, npm's), with the user's settings
+    for the package tools (where they find packages)."""
+    folder.mkdir()
+    for name in (".npmrc", ".gitconfig", ".config/pip"):
+        source = Path.home() / name
+        if source.is_file():
+            shutil.copy2(source, folder / name)
+        elif source.is_dir():
+            shutil.copytree(source, folder / name)
+    return folder
+
+
+def timed(command: list[str], cwd: Path, env: dict[str, str], log: Path) -> tuple[int, float, str]:
+    """Run ``command``: its exit code, wall time and standard output (its log: ``log``)."""
+    started = time.perf_counter()
+    with log.open("w") as handle:
+        done = subprocess.run(command, cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=handle, text=True)
+    with log.open("a") as handle:
+        handle.write(done.stdout)
+    return done.returncode, time.perf_counter() - started, done.stdout
+
+
+def test_row(clone: Path, environment: dict[str, str]) -> list[str]:
+    log = clone.parent / "tests.log"
+    code, seconds, _ = timed([".ci/run"], clone, environment | {"CI": "true"}, log)
+    summary = re.findall(r"=+ (.*(?:passed|failed|error).*) in ([\d.]+)s", log.read_text())
+    result, pytest_seconds = summary[-1] if summary else ("no pytest summary (see the log)", "-")
+    return [f"| `CI=true .ci/run` | {code} | {seconds:.0f} s | {result}, pytest {pytest_seconds} s |"]
+
+
+def pipeline_row(clone: Path, environment: dict[str, str]) -> list[str]:
+    log = clone.parent / "pipeline.log"
+    capture = clone / "sample_captures" / "bird"
+    code, seconds = timed(["bin/pipeline", "run", "sample_captures/bird", "--json"], clone, environment, log)
+    stages = "see the log"
+    summary = next((line for line in reversed(log.read_text().splitlines()) if line.startswith("{")), None)
+    if summary is not None:
+        times = json.loads(summary).get("seconds", {})
+        stages = f"stages {sum(times.values()):.0f} s; " + ", ".join(
+            f"{s} {times[s]:.0f} s" for s in FIT_STAGES if s in times
+        )
+    rows = [f"| `bin/pipeline run sample_captures/bird` | {code} | {seconds:.0f} s | {stages} |"]
+    score = subprocess.run(
+        [str(clone / ".venv" / "bin" / "pipeline"), "score", str(capture), "--json"],
+        cwd=clone,
+        env=environment,
+        capture_output=True,
+        text=True,
+    )
+    if score.returncode == 0:
+        figures = json.loads(score.stdout)
+        rows.append(f"| `pipeline score sample_captures/bird` | 0 | - | {score_cells(figures)} |")
+    return rows
+
+
+def score_cells(figures: dict) -> str:
+    """Held-out PSNR after each fit stage, and the material's errors at the end."""
+    psnr = [figures.get(part, {}).get("psnr_db_mean") for part in ("heldout", "heldout_textured", "heldout_geometry")]
+    shown = " / ".join("-" if value is None else f"{value:.1f}" for value in psnr)
+    errors = figures.get("material_fit_geometry") or {}
+    cells = ", ".join(
+        f"{name.removesuffix('_abs_error').removesuffix('_rel_error')} {value:.3f}"
+        for name, value in errors.items()
+        if name.endswith("_error")
+    )
+    return f"held-out PSNR {shown} dB after {' / '.join(FIT_STAGES)}; errors after fit_geometry: {cells}"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--parts", default="tests,pipeline")
+    parser.add_argument("--keep", type=Path, help="clone into DIR/fresh and keep it (default: a new temporary folder)")
+    parser.add_argument("--write", action="store_true", help="rewrite docs/benchmarks.md's section")
+    args = parser.parse_args()
+    clone = fresh_clone(args.keep)
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=clone, capture_output=True, text=True).stdout
+    environment = os.environ | {"HOME": str(empty_home(clone.parent / "home"))}
+    environment.pop("VIRTUAL_ENV", None)
+    environment.pop("DRJIT_LIBLLVM_PATH", None)
+    lines = ["| command | exit | wall time (bootstrap included) | result |", "|---|---|---|---|"]
+    parts = args.parts.split(",")
+    if "tests" in parts:
+        lines += test_row(clone, environment)
+        print(lines[-1], flush=True)
+    if "pipeline" in parts:
+        lines += pipeline_row(clone, environment)
+        print("\n".join(lines[-2:]), flush=True)
+    if args.write:
+        intro = [
+            "## Quick start and test suite",
+            "",
+            f"{machine()} Command: `.venv/bin/python -m bench.quick_start --parts {args.parts} --write`:",
+            f"a fresh clone of {commit.strip()} beside no real captures (as CI), a home without",
+            "caches (no Dr.Jit kernels, no pip or npm cache), each command alone on the machine.",
+            "",
+        ]
+        write_section("quick-start", intro + lines)
+
+
+if __name__ == "__main__":
+    main()
