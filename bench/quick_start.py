@@ -17,7 +17,6 @@ import argparse
 import json
 import os
 import re
-import shutil
 import subprocess
 import tempfile
 import time
@@ -36,19 +35,6 @@ def fresh_clone(keep: Path | None) -> Path:
     if (parent / "shared").exists():
         raise SystemExit(f"{parent / 'shared'} exists: the clone would see the real captures, which CI does not")
     return clone
-
-
-def empty_home(folder: Path) -> Path:
-    """A home without caches (Dr.Jit's kernels, pip's, npm's), with the user's settings
-    for the package tools (where they find packages)."""
-    folder.mkdir()
-    for name in (".npmrc", ".gitconfig", ".config/pip"):
-        source = Path.home() / name
-        if source.is_file():
-            shutil.copy2(source, folder / name)
-        elif source.is_dir():
-            shutil.copytree(source, folder / name)
-    return folder
 
 
 def timed(command: list[str], cwd: Path, env: dict[str, str], log: Path) -> tuple[int, float, str]:
@@ -115,7 +101,10 @@ def main() -> None:
     args = parser.parse_args()
     clone = fresh_clone(args.keep)
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=clone, capture_output=True, text=True).stdout
-    environment = os.environ | {"HOME": str(empty_home(clone.parent / "home"))}
+    # no Dr.Jit kernels compiled before, no pip cache: as on a new machine
+    kernels = clone.parent / "drjit-kernels"
+    kernels.mkdir()
+    environment = os.environ | {"DRJIT_CACHE_DIR": str(kernels), "PIP_NO_CACHE_DIR": "1"}
     environment.pop("VIRTUAL_ENV", None)
     environment.pop("DRJIT_LIBLLVM_PATH", None)
     lines = ["| command | exit | wall time (bootstrap included) | result |", "|---|---|---|---|"]
@@ -131,8 +120,8 @@ def main() -> None:
             "## Quick start and test suite",
             "",
             f"{machine()} Command: `.venv/bin/python -m bench.quick_start --parts {args.parts} --write`:",
-            f"a fresh clone of {commit.strip()} beside no real captures (as CI), a home without",
-            "caches (no Dr.Jit kernels, no pip or npm cache), each command alone on the machine.",
+            f"a fresh clone of {commit.strip()} beside no real captures (as CI), an empty Dr.Jit",
+            "kernel cache and no pip cache, each command alone on the machine.",
             "",
         ]
         write_section("quick-start", intro + lines)

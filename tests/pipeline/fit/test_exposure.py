@@ -75,5 +75,5 @@ def test_a_held_out_photos_exposure_is_read_off_the_table_it_shares(mi, tmp_path
     # scene, or no fitted gains: nothing measured
     cv2.imwrite(str(photos.masks["held"]), np.full((K.height, K.width), 255, np.uint8))
     assert "held" not in table_gains(description, photos, fitted, ["held"], 3)["gains"]
-    assert table_gains({"ground": None}, photos, fitted, ["held"], 3) == {}
+    assert table_gains(scene_description(), photos, fitted, ["held"], 3) == {}
     assert table_gains(description, photos, {}, ["held"], 3) == {}
