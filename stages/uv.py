@@ -5,8 +5,7 @@ xatlas cuts the mesh into charts and packs them into a square atlas of
 (metres in a board-scaled frame), else at the highest density (tried in steps
 of 15 % in area) at which every chart fits the one atlas. Charts must never
 overflow onto a second atlas: its UVs cover the same square, so two parts of
-the surface would share texels and no texture could match both (stage version
-1 let this happen to ~10 % of the texels of the sample bird).
+the surface would share texels and no texture could match both.
 Vertices on chart seams are split, so the UV mesh has more vertices than the
 cleaned mesh but the same surface.
 

@@ -213,7 +213,7 @@ def _match(plan: FeaturePlan, photos: dict[str, dict], database: Path) -> None:
     matching = pycolmap.FeatureMatchingOptions()
     # The CPU matcher's approximate nearest-neighbour search gives other matches when
     # its threads interleave differently (seen on a loaded machine): one thread keeps
-    # reruns identical for about twice the matching time (3 s for the bird's 30 photos).
+    # reruns identical for about twice the matching time.
     matching.num_threads = 1
     device = pycolmap.Device.cpu
     if plan.matcher == "exhaustive":

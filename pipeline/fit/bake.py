@@ -8,7 +8,7 @@ the bitmap at 0, ``D + S`` with it at 1. Over the pixels whose centre's ray meet
 specimen at texel ``t`` in every view, per channel,
 ``a_t = sum D (I - S) / sum D^2``: the photos' detail at their own resolution,
 which a gradient fit through small windows and a few dozen steps does not reach
-(docs/benchmarks.md, "A texture baked from the photos"). Texels no pixel sees take
+(docs/decisions.md, "Texture"). Texels no pixel sees take
 the value of the nearest texel seen (chart gutters: bilinear lookups near a
 chart's edge read them).
 

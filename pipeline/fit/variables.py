@@ -67,8 +67,8 @@ class MaterialVariables:
     the view (the least-squares gain, pipeline.fit.loop.Target.matched_gain) and its
     gradient detached, which is exact for the loss minimised over the gain (variable
     projection). A latent gain would get a gradient only on the steps that draw its
-    photo, a few in a fit over many photos, and stay near where it started (measured in
-    docs/benchmarks.md, "Real light"). The loss is thereby blind to the overall level
+    photo, a few in a fit over many photos, and stay near where it started
+    (docs/decisions.md, "Photos and exposure"). The loss is thereby blind to the overall level
     and colour of the renders, which the gains trade off exactly with the light and the
     albedo; each rendered photo's own gain pulls them towards 1 (pipeline.fit.loop.LEVEL_PULL),
     so the level and colour settle at the average photo's. The gains are those of the
@@ -76,7 +76,7 @@ class MaterialVariables:
     what is left of their geometric mean into an estimated light. An earlier pull
     through the gains' mean acted on gains matched up to ``len(training) / batch``
     steps before, and Adam's steps of fixed size turned that delay into a limit cycle
-    of the level and colour (docs/benchmarks.md, "The photos' gains: a limit cycle")."""
+    of the level and colour (docs/decisions.md, "Photos and exposure")."""
 
     def __init__(
         self, parameters: list[FitParameter], traversed: dict[int, Any], gain_views: list[str], gain_channels: int = 1

@@ -122,7 +122,7 @@ def pixel_filter(scale: float) -> dict:
     averaged down over each pixel's square, ``cv2.INTER_AREA``; exactly its variance is
     (1 - scale^2) / 12, so at scale 1 this is 0.05 px wider than the photo). Mitsuba's
     default (0.5 px) is about right for photos halved, and blurs a render past a photo
-    averaged down 3-5 times (docs/benchmarks.md, "What a texture can reach")."""
+    averaged down 3-5 times (docs/decisions.md, "Fitting's windows and geometry")."""
     return {"type": "gaussian", "stddev": float(np.sqrt(1 / 12 + (PHOTO_BLUR_PX * scale) ** 2))}
 
 

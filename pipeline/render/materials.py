@@ -80,6 +80,7 @@ PARAMETERS: dict[str, Parameter] = {
             learning_rate=0.05,
         ),
         Parameter("specular", f"{SPECIMEN}.bsdf.specular", (0.5,), 0.0, 1.0, "1 (F0 / 0.08)"),
+        Parameter("metallic", f"{SPECIMEN}.bsdf.metallic.value", (0.0,), 0.0, 1.0, "1 (fraction metal)"),
         Parameter("spec_trans", f"{SPECIMEN}.bsdf.spec_trans.value", (0.3,), 0.0, 1.0, "1 (fraction transmitted)"),
         Parameter(
             "eta", f"{SPECIMEN}.bsdf.eta", (1.5,), 1.001, 3.0, "1 (relative index of refraction)", learning_rate=0.01
