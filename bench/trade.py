@@ -13,7 +13,7 @@ target (issue 6's targets).
 Groups (``--groups``):
 
 material   fit_material alone: max_size (working resolution), spp, batch (views per
-           step), iterations, the loss-flattening stop (tolerance), and recording
+           step), iterations, the early stop (still_threshold), and recording
            each view's step with dr.freeze or tracing it every time
 mesh       mesh.resolution, through fit_material
 texture    fit_texture's finest resolution and number of levels
@@ -141,7 +141,7 @@ def points_for(groups: list[str], presets: list[str], only: set[str] | None = No
                 for value in values
             ),
             Point(
-                "material", "fit_material", overrides=("fit_material.iterations=300", "fit_material.tolerance=0.001")
+                "material", "fit_material", overrides=("fit_material.iterations=300", "fit_material.still_threshold=2")
             ),
         ],
         "mesh": [Point("mesh", "fit_material", overrides=(f"mesh.resolution={r}",)) for r in (96, 192)],

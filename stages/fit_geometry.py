@@ -144,7 +144,7 @@ def _shape_settings(conf: Config, diagonal: float, seed: int) -> engine.ShapeSet
 
 
 def _material_settings(conf: Config, seed: int) -> engine.FitSettings:
-    """fit_material's loop without its tolerance stop."""
+    """fit_material's loop, run to its iterations (no early stop)."""
     return engine.FitSettings(
         iterations=conf.material_iterations,
         batch=conf.batch,
@@ -152,7 +152,7 @@ def _material_settings(conf: Config, seed: int) -> engine.FitSettings:
         learning_rate_scale=1.0,
         validate_every=conf.validate_every,
         validation_spp=conf.validation_spp,
-        tolerance=0.0,
+        still_threshold=0.0,
         seed=seed,
     )
 

@@ -100,8 +100,8 @@ class Config(LoopSettings):
 
     iterations: Annotated[int, Range(1, None)] = 30
     """Most Adam steps per level."""
-    window: Annotated[int, Range(1, None)] = 10
-    """Steps per window of the tolerance test (per level)."""
+    window: Annotated[int, Range(4, None)] = 20
+    """Fewest steps the trend test looks at (per level)."""
 
     texture: Literal["auto", "on", "off"] = "auto"
     """auto: keep the texture only when it lowers the held-out error by

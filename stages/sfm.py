@@ -1,6 +1,6 @@
 """Stage sfm: camera poses of the undistorted photos, in a metric, upright world frame.
 
-1. **Features and matches** (pipeline.features.features_and_matches): SIFT on
+1. **Features and matches** (pipeline.colmap.features): SIFT on
    undistort's 8-bit photos, upsampled and DSP-SIFT on small photos; for a
    turntable only from what changes between photos (the still room masked out) and
    matched with ring neighbours, else exhaustively (sequentially past 150 photos).
@@ -220,7 +220,8 @@ def _pose(
             input_file_path(inputs.capture_dir, external.source), external.source, photos.order
         )
         return _Posed(poses, causes, photos.intrinsics, np.zeros((0, 3)), f"[cameras] source = {external.source}")
-    database = features.features_and_matches(conf, rig, photos.records, photos.cameras, photos.masks, work)
+    plan = features.FeaturePlan.of(conf, rig, photos.records, photos.cameras, photos.masks, work)
+    database = features.features_and_matches(plan, photos.records, photos.cameras, work)
     if rig in ("turntable", "ring"):
         keypoints, matches = features.verified_matches(database, photos.order, photos.stem_of)
         settings = PlacementSettings.of(conf, conf, rig == "turntable", conf.min_pose_inliers, refine_focal)

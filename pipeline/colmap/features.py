@@ -143,17 +143,9 @@ class FeaturePlan:
         )
 
 
-def features_and_matches(
-    settings: FeatureSettings,
-    rig: str,
-    photos: dict[str, dict],
-    cameras: list[dict],
-    masks: dict[str, Path],
-    work: Path,
-) -> Path:
+def features_and_matches(plan: FeaturePlan, photos: dict[str, dict], cameras: list[dict], work: Path) -> Path:
     """SIFT features and verified matches of every photo (undistort's ``{"srgb": PNG}``)
-    in a new COLMAP database in ``work``, the settings' "auto" choices made for ``rig``."""
-    plan = FeaturePlan.of(settings, rig, photos, cameras, masks, work)
+    in a new COLMAP database in ``work``, as ``plan`` says."""
     database = work / "database.db"
     _extract(plan, photos, cameras, database)
     _match(plan, photos, database)

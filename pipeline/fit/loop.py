@@ -16,10 +16,11 @@ Per step:
    merely render with less noise) recorded; the state with the lowest one is kept
    and the variables end in it.
 
-It stops at ``iterations``, when the time budget is spent, or when the mean
-training loss over the last ``window`` steps improved by less than ``tolerance``
-(relative) on the window before; each view's loss counts relative to its first,
-so that a batch of bright views does not look like a setback.
+It stops at ``iterations``, when the time budget is spent, or when nothing moves
+beyond its noise any more (pipeline.fit.stopping: no fitted value and not the
+training loss trends over the second half of the fit so far); each view's loss
+counts relative to its first, so that a batch of bright views does not look like a
+setback.
 
 What the loop costs, and why it is written this way (docs/benchmarks.md, "Fitting
 speed"): render seeds are passed as opaque Dr.Jit variables, so the kernels
@@ -46,6 +47,7 @@ from pipeline.core import progress
 from pipeline.core.errors import PipelineError
 from pipeline.fit.checkpoint import next_checkpoint
 from pipeline.fit.settings import LoopSettings
+from pipeline.fit.stopping import still
 
 
 @dataclass
@@ -528,7 +530,7 @@ def run(
             advance(_status(entry, state.log, best))
             if on_iteration is not None:
                 on_iteration(entry)
-            state.stopped = _stop_reason(settings, state.relative_losses, entry)
+            state.stopped = _stop_reason(settings, state.log, entry)
             if state.stopped:
                 break
             if checkpoint is not None and checkpoint.due():
@@ -569,12 +571,9 @@ def _start(loop: _Loop, checkpoint) -> tuple[LoopState, BestState]:
     return state, best
 
 
-def _stop_reason(settings: LoopSettings, losses: list[float], entry: dict) -> str | None:
-    window = settings.window
-    if settings.tolerance > 0 and len(losses) >= 2 * window:
-        previous, recent = np.mean(losses[-2 * window : -window]), np.mean(losses[-window:])
-        if previous > 0 and (previous - recent) / previous < settings.tolerance:
-            return f"loss improved by less than {settings.tolerance:g} over {window} steps"
+def _stop_reason(settings: LoopSettings, log: list[dict], entry: dict) -> str | None:
+    if (reason := still(log, settings.window, settings.still_threshold)) is not None:
+        return reason
     if settings.time_budget_s and entry["seconds"] > settings.time_budget_s:
         return f"time budget of {settings.time_budget_s:g} s spent"
     return None

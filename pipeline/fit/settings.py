@@ -29,11 +29,13 @@ class LoopSettings:
     """Steps between renders of the held-out views."""
     validation_spp: Annotated[int, Range(1, None)] = 64
     """Samples per pixel of the held-out renders."""
-    tolerance: Annotated[float, Range(0.0, None)] = 1e-3
-    """Stop when the mean loss over ``window`` steps improves by less than this (relative);
-    0: never (run ``iterations``)."""
-    window: Annotated[int, Range(1, None)] = 20
-    """Steps per window of the tolerance test."""
+    still_threshold: Annotated[float, Range(0.0, None)] = 2.0
+    """Stop when no fitted value and not the loss trends, over the second half of the fit
+    so far, by more than this many standard errors of its step-to-step noise
+    (pipeline.fit.stopping); 0: never stop early (run ``iterations``)."""
+    window: Annotated[int, Range(4, None)] = 40
+    """Fewest steps the trend test looks at (and before which the fit does not stop
+    early): a drift a few times the noise shows over about this many steps."""
     time_budget_s: Annotated[float, Range(0.0, None)] = 0.0
     """Stop after this many seconds of fitting; 0 for no limit."""
     seed: int = 0
@@ -78,9 +80,9 @@ class ShapeSettings(LoopSettings):
     """Samples per pixel of each training render."""
     validation_spp: Annotated[int, Range(1, None)] = 32
     """Samples per pixel of the held-out renders."""
-    tolerance: Annotated[float, Range(0.0, None)] = 0.0
-    """Stop when the mean loss over ``window`` steps improves by less than this (relative);
-    0: never (run ``iterations``)."""
+    still_threshold: Annotated[float, Range(0.0, None)] = 0.0
+    """Stop when nothing trends beyond its noise (pipeline.fit.stopping); 0: never stop
+    early (run ``iterations``)."""
     step: Annotated[float, Range(0.0, None, exclusive_lo=True)] = 1e-3
     """Adam step (uniform) on the differential coordinates, in world units."""
     smoothing: Annotated[float, Range(0.0, None)] = 20.0

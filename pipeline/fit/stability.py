@@ -122,7 +122,7 @@ def probe(
     parameters = materials.fit_parameters(model, bounds)
     started = time.perf_counter()
     result = engine.fit(
-        parameters, views, [], engine.FitSettings(iterations=steps, batch=1, spp=spp, loss="l2", tolerance=0.0)
+        parameters, views, [], engine.FitSettings(iterations=steps, batch=1, spp=spp, loss="l2", still_threshold=0.0)
     )
     seconds = (time.perf_counter() - started) / steps
     trajectory = [e["params"] for e in result.log]

@@ -26,9 +26,9 @@ class LightChoice:
     why: str
     candidates: list[dict]
     """Each candidate's summary (pipeline.fit.candidates): model and held-out errors."""
-    level: list[float] | None = None
-    """An estimated light's starting level (scene.json's)."""
-    level_from: str | None = None
+    level: list[float] | None
+    """An estimated light's starting level (scene.json's; None for the files' light)."""
+    level_from: str | None
     """What that level was measured on (scene.json's)."""
 
     @property

@@ -78,8 +78,13 @@ def _part_from_json(cls: type[JsonRecord], name: str, value: Any) -> Any:
 
 
 def _to_json(value: Any) -> Any:
+    """JSON of a part: an optional field left at None is not written (readers take the default)."""
     if dataclasses.is_dataclass(value):
-        return {k: _to_json(v) for k, v in dataclasses.asdict(value).items()}
+        return {
+            f.name: _to_json(getattr(value, f.name))
+            for f in dataclasses.fields(value)
+            if not (getattr(value, f.name) is None and f.default is None)
+        }
     if isinstance(value, dict):
         return {k: _to_json(v) for k, v in value.items()}
     if isinstance(value, tuple):

@@ -104,7 +104,7 @@ def test_fit_moves_every_parameter_toward_the_truth_within_bounds(mi, references
     start = {"base_color": [0.5, 0.5, 0.5], "roughness": [0.7]}
     views = _views(mi, _scene_file(tmp_path, start["base_color"], start["roughness"]), references / "references")
     result = engine.fit(
-        PARAMETERS, views, [], engine.FitSettings(iterations=40, batch=3, spp=8, loss="dual", tolerance=0.0)
+        PARAMETERS, views, [], engine.FitSettings(iterations=40, batch=3, spp=8, loss="dual", still_threshold=0.0)
     )
     for name, truth in TRUTH.items():
         before = np.abs(np.subtract(start[name], truth))
@@ -117,7 +117,7 @@ def test_fit_moves_every_parameter_toward_the_truth_within_bounds(mi, references
 def test_bounds_hold_and_order_of_views_does_not_matter(mi, references, tmp_path):
     scene = _scene_file(tmp_path, [0.5, 0.5, 0.5], [0.7])
     tight = [PARAMETERS[0], engine.FitParameter("roughness", PARAMETERS[1].key, 0.6, 0.9, log=True, learning_rate=0.05)]
-    settings = engine.FitSettings(iterations=6, batch=2, spp=4, loss="l2", tolerance=0.0)
+    settings = engine.FitSettings(iterations=6, batch=2, spp=4, loss="l2", still_threshold=0.0)
     # Fresh scenes for each run: a fit leaves its scene in the fitted state.
     forward = engine.fit(tight, _views(mi, scene, references / "references"), [], settings)
     backward = engine.fit(tight, list(reversed(_views(mi, scene, references / "references"))), [], settings)
@@ -129,7 +129,9 @@ def test_bounds_hold_and_order_of_views_does_not_matter(mi, references, tmp_path
 
 def test_validation_keeps_the_best_state(mi, references, tmp_path):
     views = _views(mi, _scene_file(tmp_path, [0.5, 0.5, 0.5], [0.7]), references / "references")
-    settings = engine.FitSettings(iterations=8, batch=2, spp=4, validate_every=2, validation_spp=16, tolerance=0.0)
+    settings = engine.FitSettings(
+        iterations=8, batch=2, spp=4, validate_every=2, validation_spp=16, still_threshold=0.0
+    )
     result = engine.fit(PARAMETERS, views[:2], views[2:], settings)
     validated = [e for e in result.log if "validation_error" in e]
     best = min(validated, key=lambda e: e["validation_error"])
@@ -188,7 +190,7 @@ def test_pipeline_fit_command(mi, references, tmp_path, capsys):
             "3",
             "--spp",
             "8",
-            "--tolerance",
+            "--still-threshold",
             "0",
             "--out",
             str(out),
@@ -251,7 +253,7 @@ def test_volumetric_fit_moves_every_parameter_toward_the_truth_within_bounds(mi,
     views = [engine.FitView(f"view{i}", scene, s, reference[i]) for i, s in enumerate(scene.sensors())]
     parameters = materials.fit_parameters("volumetric")
     result = engine.fit(
-        parameters, views, [], engine.FitSettings(iterations=40, batch=3, spp=8, loss="dual", tolerance=0.0)
+        parameters, views, [], engine.FitSettings(iterations=40, batch=3, spp=8, loss="dual", still_threshold=0.0)
     )
     for name in start:
         before = np.abs(np.subtract(start[name], truth[name]))
@@ -260,10 +262,10 @@ def test_volumetric_fit_moves_every_parameter_toward_the_truth_within_bounds(mi,
     assert all(p.lower <= v <= p.upper for e in result.log for p in parameters for v in e["params"][p.name])
 
 
-def test_zero_tolerance_runs_every_iteration(mi, references, tmp_path):
+def test_a_zero_still_threshold_runs_every_iteration(mi, references, tmp_path):
     views = _views(mi, _scene_file(tmp_path, [0.5, 0.5, 0.5], [0.7]), references / "references")
-    # A window of 2 sees the noise of 4 spp: with any tolerance the rule could fire.
-    settings = engine.FitSettings(iterations=10, batch=1, spp=4, loss="dual", tolerance=0.0, window=2)
+    # A window of 4 sees the noise of 4 spp: with a threshold the rule could fire.
+    settings = engine.FitSettings(iterations=10, batch=1, spp=4, loss="dual", still_threshold=0.0, window=4)
     assert len(engine.fit(PARAMETERS, views, [], settings).log) == 10
 
 
@@ -319,7 +321,7 @@ def test_an_interrupted_fit_resumes_from_its_checkpoint(mi, references, tmp_path
 
     scene = _scene_file(tmp_path, [0.5, 0.5, 0.5], [0.7])
     settings = engine.FitSettings(
-        iterations=10, batch=2, spp=4, loss="l2", tolerance=0.0, validate_every=3, exposure=True
+        iterations=10, batch=2, spp=4, loss="l2", still_threshold=0.0, validate_every=3, exposure=True
     )
     whole = engine.fit(PARAMETERS, _views(mi, scene, references / "references"), [], settings)
 
@@ -439,7 +441,7 @@ def test_later_steps_compile_no_kernel(mi, references, tmp_path):
 
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     try:
-        settings = engine.FitSettings(iterations=12, batch=2, spp=4, tolerance=0.0, freeze_min_replays=0)
+        settings = engine.FitSettings(iterations=12, batch=2, spp=4, still_threshold=0.0, freeze_min_replays=0)
         engine.fit(PARAMETERS, views, [], settings, on_iteration=on_iteration)
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, False)
@@ -453,7 +455,7 @@ def test_a_frozen_step_gives_the_unfrozen_fit(mi, references, tmp_path):
             PARAMETERS,
             _views(mi, scene, references / "references"),
             [],
-            engine.FitSettings(iterations=5, batch=2, spp=4, tolerance=0.0, freeze=freeze, freeze_min_replays=0),
+            engine.FitSettings(iterations=5, batch=2, spp=4, still_threshold=0.0, freeze=freeze, freeze_min_replays=0),
         )
         for freeze in (True, False)
     ]
@@ -478,15 +480,15 @@ def test_each_view_replays_its_own_recording(mi, references, tmp_path, monkeypat
     recordings = []
     freeze = dr.freeze
     monkeypatch.setattr(dr, "freeze", lambda f: recordings.append(freeze(f)) or recordings[-1])
-    settings = engine.FitSettings(iterations=16, batch=3, spp=4, tolerance=0.0, freeze_min_replays=0)
+    settings = engine.FitSettings(iterations=16, batch=3, spp=4, still_threshold=0.0, freeze_min_replays=0)
     engine.fit(PARAMETERS, views, [], settings)
     assert len(recordings) == 3 and all(r.n_recordings <= 3 for r in recordings)
     # A recording per view pays only when replayed often: 16 steps over 3 views is
     # 16 replays each, fewer than the default's 30, so nothing is recorded.
     recordings.clear()
-    engine.fit(PARAMETERS, views, [], engine.FitSettings(iterations=16, batch=3, spp=4, tolerance=0.0))
+    engine.fit(PARAMETERS, views, [], engine.FitSettings(iterations=16, batch=3, spp=4, still_threshold=0.0))
     assert recordings == []
-    engine.fit(PARAMETERS, views, [], engine.FitSettings(iterations=30, batch=3, spp=4, tolerance=0.0))
+    engine.fit(PARAMETERS, views, [], engine.FitSettings(iterations=30, batch=3, spp=4, still_threshold=0.0))
     assert len(recordings) == 3
 
 
@@ -502,7 +504,7 @@ def test_white_balance_recovers_each_photos_gains_and_the_true_colour(mi, refere
         for view in views:
             view.reference = view.reference * np.float32(gains[view.name])
         settings = engine.FitSettings(
-            iterations=80, batch=3, spp=8, loss="dual", tolerance=0.0, white_balance=white_balance
+            iterations=80, batch=3, spp=8, loss="dual", still_threshold=0.0, white_balance=white_balance
         )
         results[white_balance] = engine.fit(PARAMETERS, views, [], settings)
     balanced, unbalanced = results[True], results[False]
@@ -525,7 +527,7 @@ def test_each_photos_exposure_is_right_after_its_first_draw(mi, references, tmp_
         views = _views(mi, scene, references / "references")
         for view in views:
             view.reference = view.reference * np.float32(exposures[view.name])
-        settings = engine.FitSettings(iterations=6, batch=1, spp=8, loss=loss, tolerance=0.0, exposure=True)
+        settings = engine.FitSettings(iterations=6, batch=1, spp=8, loss=loss, still_threshold=0.0, exposure=True)
         result = engine.fit(PARAMETERS, views, [], settings)
         for name, exposure in exposures.items():
             np.testing.assert_allclose(result.photo_gains[name], [exposure] * 3, rtol=0.03, err_msg=loss)
@@ -547,7 +549,7 @@ def test_the_photos_gains_are_those_of_the_state_the_fit_returns(mi, references,
         batch=3,
         spp=8,
         loss="l2",
-        tolerance=0.0,
+        still_threshold=0.0,
         white_balance=True,
         validate_every=1,
         validation_spp=32,
@@ -573,7 +575,7 @@ def test_the_photos_gains_are_matched_to_the_state_the_fit_returns(mi, reference
         view.weight = (np.abs(view.reference - 0.3).max(axis=2) > 0.02).astype(np.float32)
         view.reference = view.reference * np.float32(exposures[view.name])
     settings = engine.FitSettings(
-        iterations=3, batch=1, spp=16, loss="l2", tolerance=0.0, white_balance=True, learning_rate_scale=4.0
+        iterations=3, batch=1, spp=16, loss="l2", still_threshold=0.0, white_balance=True, learning_rate_scale=4.0
     )
     result = engine.fit(PARAMETERS, views, [], settings)
     assert np.max(np.abs(np.asarray(result.values["base_color"]) - 0.2)) > 0.3, "the state did not move"
@@ -611,7 +613,7 @@ def test_gains_matched_to_many_photos_pull_the_level_to_the_average_photo_withou
             view.weight = (np.abs(view.reference - 0.3).max(axis=2) > 0.02).astype(np.float32)
             view.reference = view.reference * np.float32(exposures[view.name])
             views.append(replace(view, name=f"{view.name}_{copy}"))
-    settings = engine.FitSettings(iterations=60, batch=1, spp=8, loss="l2", tolerance=0.0, white_balance=True)
+    settings = engine.FitSettings(iterations=60, batch=1, spp=8, loss="l2", still_threshold=0.0, white_balance=True)
     result = engine.fit(PARAMETERS, views, [], settings)
     late = [entry["loss"] for entry in result.log[20:]]
     assert np.mean(late) < 0.004 and np.max(late) < 0.012, (np.mean(late), np.max(late))
@@ -665,7 +667,7 @@ def test_extreme_photos_and_settings_keep_every_step_finite_and_inside_the_bound
         elif case == "one-pixel mask":
             view.weight = np.zeros(view.reference.shape[:2], np.float32)
             view.weight[15, 20] = 1.0  # on the sphere
-    result = engine.fit(PARAMETERS, views, [], engine.FitSettings(iterations=6, batch=3, spp=spp, tolerance=0.0))
+    result = engine.fit(PARAMETERS, views, [], engine.FitSettings(iterations=6, batch=3, spp=spp, still_threshold=0.0))
     for entry in result.log:
         assert np.isfinite(entry["loss"]), entry
         for parameter in PARAMETERS:
@@ -699,7 +701,7 @@ def test_a_recording_dr_jit_refuses_to_replay_is_traced_instead(mi, references, 
         PARAMETERS,
         _views(mi, scene, references / "references"),
         [],
-        engine.FitSettings(iterations=4, batch=2, spp=4, tolerance=0.0, freeze=False),
+        engine.FitSettings(iterations=4, batch=2, spp=4, still_threshold=0.0, freeze=False),
     )
 
     def refusing(function):
@@ -710,7 +712,7 @@ def test_a_recording_dr_jit_refuses_to_replay_is_traced_instead(mi, references, 
 
     monkeypatch.setattr(dr, "freeze", refusing)
     views = _views(mi, scene, references / "references")
-    settings = engine.FitSettings(iterations=4, batch=2, spp=4, tolerance=0.0, freeze_min_replays=0)
+    settings = engine.FitSettings(iterations=4, batch=2, spp=4, still_threshold=0.0, freeze_min_replays=0)
     result = engine.fit(PARAMETERS, views, [], settings)
     assert "could not replay a recording" in caplog.text
     for name in unfrozen.values:

@@ -19,7 +19,9 @@ def _material_fit() -> MaterialFit:
         held_out=["b.jpg"],
         units={"base_color": "linear RGB reflectance", "roughness": "1"},
         integrator=Integrator(type="path", max_depth=16, differentiable="prb"),
-        light=LightChoice(chosen={"model": "given"}, why="the only light candidate fitted", candidates=[]),
+        light=LightChoice(
+            chosen={"model": "given"}, why="the only light candidate fitted", candidates=[], level=None, level_from=None
+        ),
         photo_gains={"a.jpg": [1.0]},
         gain_channels=1,
         heldout_gains={},
@@ -74,3 +76,10 @@ def test_the_fitted_scene_is_the_description_with_fit_materials_model_and_depth(
     material = _material_fit().write(tmp_path / "params.json")
     seen, fit = read_fitted_scene(description, material)
     assert (seen.model, seen.integrator.max_depth, fit.model) == ("opaque", 16, "opaque")
+
+
+def test_an_optional_part_field_left_unset_is_not_written(tmp_path):
+    """A given light has no level: its entry stays {"model": "given"}, as the files always had it."""
+    path = scene_description(light=LightStart(model="given")).write(tmp_path / "scene.json")
+    assert json.loads(path.read_text())["light"] == {"model": "given"}
+    assert type(scene_description()).read(path).light == LightStart(model="given")
