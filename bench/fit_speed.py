@@ -274,9 +274,12 @@ def kit_xml(kit: Kit, values: dict, folder: Path) -> Path:
 
 
 def references(kit: Kit, folder: Path, mi) -> Path:
-    """The truth's renders at REFERENCE_SPP, one EXR per sensor, in ``folder``/references."""
-    scene = mi.load_file(str(kit_xml(kit, kit.truth, folder)))
+    """The truth's renders at REFERENCE_SPP, one EXR per sensor, in ``folder``/references
+    (kept from an earlier run of the same kit)."""
     out = folder / "references"
+    if out.is_dir() and len(list(out.glob("view_*.exr"))) == kit.views:
+        return out
+    scene = mi.load_file(str(kit_xml(kit, kit.truth, folder)))
     out.mkdir(exist_ok=True)
     for i in range(kit.views):
         mi.Bitmap(mi.render(scene, sensor=i, spp=REFERENCE_SPP, seed=100 + i)).write(str(out / f"view_{i}.exr"))
@@ -462,8 +465,10 @@ def main() -> None:
     parser.add_argument("--configs", nargs="*", default=["defaults"])
     parser.add_argument("--budget", type=float, default=300.0, help="seconds the original loop may run per kit")
     parser.add_argument("--repeat", type=int, default=1)
+    parser.add_argument("--work", type=Path, help="keep each kit's scene and references here (default: a new folder)")
     parser.add_argument("--write", action="store_true", help="rewrite docs/benchmarks.md's section")
     args = parser.parse_args()
+    work = args.work or Path(tempfile.mkdtemp(prefix="fit_speed_"))
     variant = mitsuba_variant.activate()
     import drjit as dr
     import mitsuba as mi
@@ -478,7 +483,8 @@ def main() -> None:
     for material in args.materials:
         for seed in range(args.first_seed, args.first_seed + args.kits):
             kit = draw_kit(seed, material)
-            folder = Path(tempfile.mkdtemp(prefix=f"fit_speed_{material}_{seed}_"))
+            folder = work / f"{material}-{seed}"
+            folder.mkdir(parents=True, exist_ok=True)
             references(kit, folder, mi)
             original = run(kit, folder, "original", args.budget, args.repeat, mi, dr)
             for name in ["original", *args.configs]:
@@ -499,7 +505,7 @@ def main() -> None:
     summary = summary_lines(outcomes, args.budget)
     print("\n".join(summary))
     if args.write:
-        options = " ".join(o for o in sys.argv[1:] if o != "--write")
+        options = " ".join(o for o in sys.argv[1:] if o != "--write").replace(str(args.work), "DIR")
         intro = [
             "## Fitting speed",
             "",

@@ -683,7 +683,7 @@ def cases() -> list[Case]:
             "signal",
             "new",
             scene_folder(None),
-            [*fit[:-4], "--iterations", "100000", "--spp", "2", "--tolerance", "0", "--out", "CAPTURE/fitted"],
+            [*fit[:-4], "--iterations", "100000", "--spp", "2", "--still-threshold", "0", "--out", "CAPTURE/fitted"],
             143,
             "interrupted",
             signal_after=(signal.SIGTERM, "12"),

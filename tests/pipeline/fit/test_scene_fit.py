@@ -92,7 +92,7 @@ def _fit(scene: Path, references: Path, out: Path, *params: str) -> int:
             "3",
             "--spp",
             "4",
-            "--tolerance",
+            "--still-threshold",
             "0",
             "--out",
             str(out),
