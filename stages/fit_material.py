@@ -131,8 +131,8 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     description = SceneDescription.read(inputs.upstream["scene"]["description"])
     models = description.model_choice
     mitsuba_variant.activate(inputs.shared["mitsuba"].variant)
-    fitted = out_dir / "fitted"
-    shutil.copytree(inputs.upstream["scene"]["scene_dir"], fitted)
+    fitted_dir = out_dir / "fitted"
+    shutil.copytree(inputs.upstream["scene"]["scene_dir"], fitted_dir)
     light: LightSection = inputs.shared["light"]
 
     # 2. Every photo as a view in its mask's window, and what every candidate fit shares;
@@ -143,7 +143,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     )
     gain_channels = 3 if conf.white_balance else 1 if conf.exposure else 0
     fitting = MaterialFitting.prepare(
-        fitted,
+        fitted_dir,
         description,
         photos,
         {m: fit_parameters(m, conf.bounds, models) for m in models},
@@ -166,9 +166,11 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     # 5. The fitted scene, light, log, held-out exposures (the table's), renders, params.json.
     fitting.write_scene(model, result.values, material.light)
     heldout_gains = table_gains(description, photos, result.photo_gains, material.held, gain_channels)
-    write_heldout(fitting.heldout_views(material, material.integrator, heldout_gains.get("gains")), fitted / HELDOUT)
-    rewrite_integrator(fitted, material.integrator)
-    write_fit_log(fitted, result.log)
+    write_heldout(
+        fitting.heldout_views(material, material.integrator, heldout_gains.get("gains")), fitted_dir / HELDOUT
+    )
+    rewrite_integrator(fitted_dir, material.integrator)
+    write_fit_log(fitted_dir, result.log)
     parameters = fitting.parameters[model]
     material_values = {p.name: result.values[p.name] for p in parameters}
     light_choice = LightChoice(
@@ -203,11 +205,16 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
             "skipped_gradients": result.skipped_gradients,
         },
     )
-    params = record.write(fitted / PARAMS_JSON)
+    params = record.write(fitted_dir / PARAMS_JSON)
     metrics = {"iterations": len(result.log), "best_iteration": result.best_iteration, "model": model}
     metrics |= {"validation_mse": result.validation_error, "light": light_choice.chosen["model"]}
     metrics |= {n: v if len(v) > 1 else v[0] for n, v in material_values.items()}
-    outputs = {"fitted_dir": fitted, "params": params, "heldout": fitted / HELDOUT, "scene": fitted / SCENE_XML}
+    outputs = {
+        "fitted_dir": fitted_dir,
+        "params": params,
+        "heldout": fitted_dir / HELDOUT,
+        "scene": fitted_dir / SCENE_XML,
+    }
     return StageResult(outputs, metrics)
 
 

@@ -268,18 +268,18 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     bake = None
     if conf.start == "photos" and slot.kind == "bitmap":
         bake = _Baker(conf, slot, shapes[-1], fit, material, textured, description, photos)
-    fitted = fit_constants_then_levels(slot, texture, shapes, fit, bake)
-    result, texture, constants = fitted.result, fitted.texture, fitted.constants
-    constant_error, texture_error = fitted.constant_error, fitted.levels[-1]["validation_mse"]
+    levels_fit = fit_constants_then_levels(slot, texture, shapes, fit, bake)
+    result, texture, constants = levels_fit.result, levels_fit.texture, levels_fit.constants
+    constant_error, texture_error = levels_fit.constant_error, levels_fit.levels[-1]["validation_mse"]
     if bake is not None and bake.record is not None:
         about["baked"] = bake.record
-    if fitted.constants_fit is not None:
-        about["constants_fit"] = fitted.constants_fit
+    if levels_fit.constants_fit is not None:
+        about["constants_fit"] = levels_fit.constants_fit
 
     # 4. Keep the texture only if it earns its place.
     kept, reason = _keep_texture(conf, constant_error, texture_error)
     logger.info("texture %s: %s", "kept" if kept else "not kept", reason)
-    write_fit_log(textured, fitted.log)
+    write_fit_log(textured, levels_fit.log)
     light = None
     if kept:
         write_texture(textured, slot, texture, box)
@@ -294,11 +294,11 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
         shutil.copy2(material_dir / SPECIMEN_XML, specimen)
         for leftover in textured.glob(f"{slot.parameter}.*"):
             leftover.unlink()
-        constant_values = fitted.refitted
+        constant_values = levels_fit.refitted
     scene_xml.set_values(specimen, {materials.PARAMETERS[n].key: v for n, v in constant_values.items()}, specimen)
 
     # 5. Held-out renders of the scene kept, and params.json.
-    if kept or fitted.refitted:
+    if kept or levels_fit.refitted:
         _render_heldout(conf, textured, description, photos, held)
     else:
         shutil.copytree(inputs.upstream["fit_material"]["heldout"], textured / HELDOUT)
@@ -316,7 +316,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
             "reason": reason,
             "validation_mse_constant": constant_error,
             "validation_mse_texture": texture_error,
-            "levels": fitted.levels,
+            "levels": levels_fit.levels,
             "texture_mean": [float(v) for v in texture.reshape(-1, 3).mean(axis=0)],
             "files": sorted(p.name for p in textured.glob(f"{slot.parameter}.*")),
         },
