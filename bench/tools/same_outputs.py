@@ -4,7 +4,8 @@ carry a time stamp) pixel for pixel, else (JSON) value for value without the key
 that hold wall times, else how far apart the numbers are.
 
 For refactors that must not change results: run the old code on one copy of a
-capture and the new code on another, then
+capture and the new code on another (with bench/tools/one_thread.py, so that the fits
+can agree to the bit), then
 
     .venv/bin/python -m bench.tools.same_outputs OLD_CAPTURE NEW_CAPTURE [--section NAME]
 
