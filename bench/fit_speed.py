@@ -59,6 +59,7 @@ import numpy as np
 from bench.common import ROOT, machine, write_section
 from pipeline.cli.fit import FitOptions
 from pipeline.fit import engine
+from pipeline.fit.scene_fit import FilmSizes
 from pipeline.render import mitsuba_variant
 from pipeline.render.user_scene import DIFFERENTIABLE
 
@@ -106,12 +107,14 @@ REFERENCE_SPP = 512
 DEFAULT_MAX_SIZE = FitOptions.__dataclass_fields__["max_size"].default
 
 CONFIGS = {
-    "defaults": (engine.FitSettings(), DEFAULT_MAX_SIZE),
-    "defaults, not frozen": (engine.FitSettings(freeze=False), DEFAULT_MAX_SIZE),
-    "defaults at full size": (engine.FitSettings(), 0),
+    "defaults": (engine.FitSettings(), FilmSizes(DEFAULT_MAX_SIZE)),
+    "defaults, not frozen": (engine.FitSettings(freeze=False), FilmSizes(DEFAULT_MAX_SIZE)),
+    "defaults at full size": (engine.FitSettings(), FilmSizes(0)),
+    "coarse to fine": (engine.FitSettings(), FilmSizes(DEFAULT_MAX_SIZE, coarse_to_fine=True)),
 }
 """`pipeline fit`'s settings to compare with the original loop: the loop's settings and
-``--max-size``. ``defaults`` are those `pipeline fit` runs with when given no option."""
+the films' sizes. ``defaults`` are those `pipeline fit` runs with when given no option;
+``coarse to fine`` adds ``--coarse-to-fine``."""
 
 
 @dataclass(frozen=True)
@@ -369,7 +372,7 @@ def original_loop(kit: Kit, folder: Path, clock: Clock, mi, dr) -> None:
         iteration += 1
 
 
-def pipeline_fit(kit: Kit, folder: Path, settings: engine.FitSettings, max_size: int, clock: Clock) -> dict:
+def pipeline_fit(kit: Kit, folder: Path, settings: engine.FitSettings, sizes: FilmSizes, clock: Clock) -> dict:
     """`pipeline fit` (pipeline.fit.scene_fit.fit_scene, what the command calls) on the
     kit's file, the parameters named by property as a user names them; it runs to its own
     stopping rule. Its log's parameters after each step are checked against the targets;
@@ -397,7 +400,7 @@ def pipeline_fit(kit: Kit, folder: Path, settings: engine.FitSettings, max_size:
             None,
             out,
             "auto",
-            max_size,
+            sizes,
         )
     finally:
         engine.fit = fit

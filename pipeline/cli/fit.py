@@ -29,6 +29,9 @@ class FitOptions:
     max_size: Annotated[int, Range(0, None)] = 64
     """Fit at films of at most this many pixels along the longer side, the references
     averaged down to them (0: at the films' own size). The written scene keeps its films."""
+    coarse_to_fine: bool = False
+    """After max_size, fit again at twice the pixels, and so on up to the films' own
+    size, each level from the last one's values and until nothing moves beyond its noise."""
     settings: FitSettings = field(default_factory=FitSettings)
     """The loop's settings."""
     lr: Annotated[float | None, Range(0.0, None, exclusive_lo=True)] = None
@@ -43,7 +46,7 @@ class FitOptions:
 
 @command("fit", FitOptions, "fit parameters of any Mitsuba scene to reference images (the original tool)")
 def fit(options: FitOptions) -> int:
-    from pipeline.fit.scene_fit import fit_scene, list_keys
+    from pipeline.fit.scene_fit import FilmSizes, fit_scene, list_keys
 
     if options.list:
         print("\n".join(list_keys(Path(options.scene), options.variant)))
@@ -59,7 +62,7 @@ def fit(options: FitOptions) -> int:
         options.lr,
         Path(options.out),
         options.variant,
-        options.max_size,
+        FilmSizes(options.max_size, options.coarse_to_fine),
     )
     print(params_json.read_text())
     return 0

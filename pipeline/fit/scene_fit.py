@@ -19,9 +19,13 @@ sigma_t, ...), else ``--bound`` must give them. Only plain values can be fitted
 
 The fit renders each sensor with its film reduced to ``max_size`` pixels along the
 longer side and compares with the reference averaged down to the same pixels: a
-plain value is one number for the whole image, and on the benchmark kit 64 px
-reach the targets in a fraction of the time 256 px take (docs/benchmarks.md,
-"Fitting speed"). The written scene keeps its films.
+plain value is one number for the whole image, and small films reach most targets
+in a fraction of the time full ones take (docs/benchmarks.md, "Fitting speed").
+``coarse_to_fine`` goes on from there at twice the pixels, and so on up to the films'
+own size, each level starting from the last one's values and running until nothing
+moves beyond its noise (pipeline.fit.stopping): what only shows at full size (a
+small highlight's width) stays identifiable, and the finer levels' lower noise lets
+the stop see a slow drift. The written scene keeps its films.
 
 params.json and log.jsonl are written first: a scene that cannot be written
 back (a value given by a texture, say) keeps them and says what failed.
@@ -35,6 +39,7 @@ import re
 import tempfile
 import time
 import xml.etree.ElementTree as ET
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -49,6 +54,27 @@ from pipeline.imaging.photo_io import list_photos, read_photo
 from pipeline.render import materials, mitsuba_variant, scene_xml, user_scene
 
 EXR_SUFFIXES = (".exr",)
+
+
+@dataclass(frozen=True)
+class FilmSizes:
+    """The film sizes a fit renders at."""
+
+    max_size: int = 0
+    """Pixels along a film's longer side at the first level (0: the films' own)."""
+    coarse_to_fine: bool = False
+    """Then twice as many, and so on, up to the films' own size."""
+
+    def levels(self, longest: int) -> list[int]:
+        """Each level's max_size for films whose longer side is ``longest`` (0: their own)."""
+        if not self.max_size or self.max_size >= longest:
+            return [0]
+        if not self.coarse_to_fine:
+            return [self.max_size]
+        sizes = [self.max_size]
+        while 2 * sizes[-1] < longest:
+            sizes.append(2 * sizes[-1])
+        return [*sizes, 0]
 
 
 def property_name(key: str) -> str:
@@ -104,6 +130,14 @@ def select_parameters(
             f"no fittable parameter matches {' '.join(patterns)}; `pipeline fit SCENE --list` shows the scene's keys"
         )
     return selected
+
+
+def _set_values(scene_values, values: dict) -> None:
+    """The fitted ``values`` (lists by key) into a traversed scene."""
+    for key, value in values.items():
+        kind = type(scene_values[key])
+        scene_values[key] = kind(*value) if len(np.ravel(value)) > 1 else kind(float(np.ravel(value)[0]))
+    scene_values.update()
 
 
 def list_keys(scene_path: Path, variant: str) -> list[str]:
@@ -183,31 +217,48 @@ def fit_scene(
     learning_rate: float | None,
     out_dir: Path,
     variant: str = "auto",
-    max_size: int = 0,
+    sizes: FilmSizes = FilmSizes(),
 ) -> Path:
-    """Fit (films reduced to ``max_size`` px, 0: as they are) and write the results
-    into ``out_dir``; returns its params.json."""
+    """Fit (at ``sizes``) and write the results into ``out_dir``; returns its params.json."""
     check_out_dir(out_dir, scene_path, references)
     _check_patterns(patterns)
     mitsuba_variant.activate(variant)
     import mitsuba as mi
 
-    # 1. The scene as Mitsuba loads it with stable keys (its films reduced), and the references.
+    # 1. The scene as Mitsuba loads it with stable keys, and the films' sizes per level.
     tree = user_scene.normalised(scene_path)
-    reduced = copy.deepcopy(tree)
-    full_sizes = user_scene.reduce_films(reduced, max_size)
-    scene = _load(scene_path, reduced)
-    views = _views(scene, scene_path, references, user_scene.differentiable_integrator(tree), full_sizes)
-    traversed = mi.traverse(scene)
-    parameters = select_parameters(
-        traversed, patterns, engine.parse_bounds(bound_entries, "--bound"), learning_rate, tree
-    )
-    start = {p.key: np.ravel(np.asarray(traversed[p.key])).tolist() for p in parameters}
+    full_sizes = user_scene.reduce_films(copy.deepcopy(tree), 0)
+    integrator = user_scene.differentiable_integrator(tree)
+    levels = sizes.levels(max((max(size) for size in full_sizes), default=0))
 
-    # 2. The fit.
-    logger.info("fitting %s on %d views", ", ".join(p.key for p in parameters), len(views))
+    # 2. The fit, level by level: the scene loaded with its films reduced (the references
+    # averaged down to them); the parameters chosen on the first, each later level
+    # starting from the last one's values.
     started = time.perf_counter()
-    result = engine.fit(parameters, views, [], settings)
+    parameters, start, log, result, first_step = None, {}, [], None, 0.0
+    for level, max_size in enumerate(levels):
+        reduced = copy.deepcopy(tree)
+        user_scene.reduce_films(reduced, max_size)
+        scene = _load(scene_path, reduced)
+        scene_values = mi.traverse(scene)
+        if parameters is None:
+            parameters = select_parameters(
+                scene_values, patterns, engine.parse_bounds(bound_entries, "--bound"), learning_rate, tree
+            )
+            start = {p.key: np.ravel(np.asarray(scene_values[p.key])).tolist() for p in parameters}
+            logger.info("fitting %s on %d views", ", ".join(p.key for p in parameters), len(full_sizes))
+        else:
+            _set_values(scene_values, result.values)
+        views = _views(scene, scene_path, references, integrator, full_sizes)
+        if len(levels) > 1:
+            logger.info("level %d of %d: films of %s px", level + 1, len(levels), max_size or "their own")
+        # a later level's steps counted from the first level's first step, as one fit's
+        first_step = first_step if level else time.perf_counter()
+        offset = time.perf_counter() - first_step
+        result = engine.fit(parameters, views, [], settings)
+        log += [entry | {"level": level, "seconds": offset + entry["seconds"]} for entry in result.log]
+        sensor_ids = [view.sensor.id() for view in views]
+        del scene, scene_values, views  # Dr.Jit traces every live scene into the next level's kernels
     seconds = time.perf_counter() - started
 
     # 3. What was found first, then the scene with it written in; each file written beside
@@ -215,12 +266,13 @@ def fit_scene(
     params_json = out_dir / "params.json"
     summary = {
         "scene": str(scene_path),
-        "references": {view.sensor.id(): str(path) for view, path in zip(views, list_photos(references))},
+        "references": dict(zip(sensor_ids, (str(path) for path in list_photos(references)))),
         "start": start,
         "params": result.values,
         "bounds": {p.key: [p.lower, p.upper] for p in parameters},
-        "iterations": len(result.log),
-        "final_loss": result.log[-1]["loss"] if result.log else None,
+        "iterations": len(log),
+        "levels": [size or "full" for size in levels],
+        "final_loss": log[-1]["loss"] if log else None,
         "stopped": result.stopped,
         "seconds": seconds,
     }
@@ -229,7 +281,7 @@ def fit_scene(
     with tempfile.TemporaryDirectory(dir=out_dir, prefix=".fit.tmp-") as folder:
         staging = Path(folder)
         atomic_write_text(params_json, jsonio.dumps(summary, indent=1))
-        write_fit_log(staging, result.log)
+        write_fit_log(staging, log)
         for written in sorted(staging.iterdir()):
             os.replace(written, out_dir / written.name)
         written_scene = staging.with_suffix(".xml")  # in out_dir, so that its relative file names hold

@@ -251,3 +251,29 @@ def test_results_stay_json_when_the_fit_ends_non_finite(tmp_path):
     write_log(tmp_path / "log.jsonl", [{"iteration": 1, "loss": float("nan"), "value": [float("inf"), 1.0]}])
     entry = json.loads((tmp_path / "log.jsonl").read_text(), parse_constant=lambda name: pytest.fail(name))
     assert entry == {"iteration": 1, "loss": None, "value": [None, 1.0]}
+
+
+def test_coarse_to_fine_fits_level_by_level_up_to_the_films_own_size(mi, references, tmp_path):
+    """48x36 films from 16 px: levels of 16, 32 and 48 (their own) pixels, each from the
+    last one's values; the log says each step's level, the record the levels."""
+    from pipeline.fit.scene_fit import FilmSizes
+
+    assert FilmSizes(16, True).levels(48) == [16, 32, 0]
+    assert FilmSizes(64, True).levels(48) == [0] and FilmSizes(16).levels(48) == [16] and FilmSizes(0).levels(48) == [0]
+    scene = _write_scene(tmp_path / "start", rough=0.7, colour="0.5, 0.5, 0.5", floor="0.6, 0.6, 0.6")
+    out = tmp_path / "out"
+    arguments = ["--max-size", "16", "--coarse-to-fine", "--iterations", "6", "--batch", "3", "--spp", "4"]
+    code = cli_main(
+        ["fit", str(scene), "--references", str(references), "--params", "roughness", *arguments, "--out", str(out)]
+    )
+    assert code == 0
+    record = json.loads((out / "params.json").read_text())
+    log = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    assert record["levels"] == [16, 32, "full"] and record["iterations"] == len(log) == 18
+    assert [entry["level"] for entry in log] == [0] * 6 + [1] * 6 + [2] * 6
+    assert all(a["seconds"] < b["seconds"] for a, b in zip(log, log[1:]))
+    # each level starts where the last one ended (one Adam step, 0.1 in log space, apart),
+    # not at the file's 0.7
+    roughness = [entry["params"]["mat.roughness.value"][0] for entry in log]
+    assert abs(np.log(roughness[6] / roughness[5])) < 0.15 and abs(np.log(roughness[12] / roughness[11])) < 0.15
+    assert abs(record["params"]["mat.roughness.value"][0] - 0.3) < abs(0.7 - 0.3)
