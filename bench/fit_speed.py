@@ -11,9 +11,10 @@ radiance drawn) and a constant environment (level drawn), 2-8 views at 128-512 p
 round it at a drawn elevation, written as a scene file the usual way (the material
 declared once, used through ``<ref>``; the render integrator, path or volpath), and
 references rendered from it at 512 spp. True values are drawn over the parameters'
-ranges: Disney principled (base_color, roughness, spec_trans, eta; a third of the
-kits partly metallic instead of transmissive, with metallic and specular fitted;
-metallic at most 0.5, where the dielectric's specular still shows) or a
+ranges: Disney principled (base_color and roughness, with spec_trans and eta on half
+the kits, metallic on a quarter, specular on a quarter: metallic and specular both
+scale the highlight, and fitted together they trade off where the base colour is
+grey) or a
 rough dielectric with a homogeneous medium (alpha, eta, albedo, sigma_t). Every fit
 starts from the same values, the middle of each range.
 
@@ -104,17 +105,19 @@ BOUNDS = {
 INTEGRATORS = {"principled": ("path", 8), "volumetric": ("volpath", 16)}
 SIZES = (128, 192, 256, 384, 512)
 REFERENCE_SPP = 512
-DEFAULT_MAX_SIZE = FitOptions.__dataclass_fields__["max_size"].default
+DEFAULT_SIZES = FilmSizes(
+    FitOptions.__dataclass_fields__["max_size"].default, FitOptions.__dataclass_fields__["coarse_to_fine"].default
+)
 
 CONFIGS = {
-    "defaults": (engine.FitSettings(), FilmSizes(DEFAULT_MAX_SIZE)),
-    "defaults, not frozen": (engine.FitSettings(freeze=False), FilmSizes(DEFAULT_MAX_SIZE)),
+    "defaults": (engine.FitSettings(), DEFAULT_SIZES),
+    "defaults, not frozen": (engine.FitSettings(freeze=False), DEFAULT_SIZES),
     "defaults at full size": (engine.FitSettings(), FilmSizes(0)),
-    "coarse to fine": (engine.FitSettings(), FilmSizes(DEFAULT_MAX_SIZE, coarse_to_fine=True)),
+    "max_size only": (engine.FitSettings(), FilmSizes(DEFAULT_SIZES.max_size, coarse_to_fine=False)),
 }
 """`pipeline fit`'s settings to compare with the original loop: the loop's settings and
 the films' sizes. ``defaults`` are those `pipeline fit` runs with when given no option;
-``coarse to fine`` adds ``--coarse-to-fine``."""
+``max_size only`` is ``--no-coarse-to-fine``."""
 
 
 @dataclass(frozen=True)
@@ -160,8 +163,11 @@ def draw_kit(seed: int, material: str) -> Kit:
 
     if material == "principled":
         truth = {"base_color": [uniform("base_color") for _ in range(3)], "roughness": uniform("roughness")}
-        if rng.random() < 1 / 3:
-            truth |= {"metallic": uniform("metallic"), "specular": uniform("specular")}
+        variant = rng.random()
+        if variant < 1 / 4:
+            truth["metallic"] = uniform("metallic")
+        elif variant < 1 / 2:
+            truth["specular"] = uniform("specular")
         else:
             truth |= {"spec_trans": uniform("spec_trans"), "eta": uniform("eta")}
     else:

@@ -29,9 +29,10 @@ class FitOptions:
     max_size: Annotated[int, Range(0, None)] = 64
     """Fit at films of at most this many pixels along the longer side, the references
     averaged down to them (0: at the films' own size). The written scene keeps its films."""
-    coarse_to_fine: bool = False
+    coarse_to_fine: bool = True
     """After max_size, fit again at twice the pixels, and so on up to the films' own
-    size, each level from the last one's values and until nothing moves beyond its noise."""
+    size, each level from the last one's values with half its learning rates, until
+    nothing moves beyond its noise (--no-coarse-to-fine: max_size only)."""
     settings: FitSettings = field(default_factory=FitSettings)
     """The loop's settings."""
     lr: Annotated[float | None, Range(0.0, None, exclusive_lo=True)] = None

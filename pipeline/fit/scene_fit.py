@@ -22,10 +22,11 @@ longer side and compares with the reference averaged down to the same pixels: a
 plain value is one number for the whole image, and small films reach most targets
 in a fraction of the time full ones take (docs/benchmarks.md, "Fitting speed").
 ``coarse_to_fine`` goes on from there at twice the pixels, and so on up to the films'
-own size, each level starting from the last one's values and running until nothing
-moves beyond its noise (pipeline.fit.stopping): what only shows at full size (a
-small highlight's width) stays identifiable, and the finer levels' lower noise lets
-the stop see a slow drift. The written scene keeps its films.
+own size, each level starting from the last one's values with half its learning
+rates and running until nothing moves beyond its noise (pipeline.fit.stopping):
+what only shows at full size (a small highlight's width) stays identifiable, and
+the finer levels' smaller steps and lower noise let the values settle closer. The
+written scene keeps its films.
 
 params.json and log.jsonl are written first: a scene that cannot be written
 back (a value given by a texture, say) keeps them and says what failed.
@@ -39,7 +40,7 @@ import re
 import tempfile
 import time
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -255,7 +256,10 @@ def fit_scene(
         # a later level's steps counted from the first level's first step, as one fit's
         first_step = first_step if level else time.perf_counter()
         offset = time.perf_counter() - first_step
-        result = engine.fit(parameters, views, [], settings)
+        # Adam's steps keep a value jittering by about its learning rate: each finer level,
+        # starting near the answer, steps half as far
+        level_settings = replace(settings, learning_rate_scale=settings.learning_rate_scale / 2**level)
+        result = engine.fit(parameters, views, [], level_settings)
         log += [entry | {"level": level, "seconds": offset + entry["seconds"]} for entry in result.log]
         sensor_ids = [view.sensor.id() for view in views]
         del scene, scene_values, views  # Dr.Jit traces every live scene into the next level's kernels
