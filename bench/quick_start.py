@@ -42,31 +42,54 @@ def timed(command: list[str], cwd: Path, env: dict[str, str], log: Path) -> tupl
     started = time.perf_counter()
     with log.open("w") as handle:
         done = subprocess.run(command, cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=handle, text=True)
+    seconds = time.perf_counter() - started
     with log.open("a") as handle:
-        handle.write(done.stdout)
-    return done.returncode, time.perf_counter() - started, done.stdout
+        handle.write(done.stdout + f"\nwall seconds: {seconds:.0f}\n")
+    return done.returncode, seconds, done.stdout
 
 
-def test_row(clone: Path, environment: dict[str, str]) -> list[str]:
+def _kept_wall_seconds(log: Path) -> float | None:
+    """The wall time ``timed`` wrote at the end of a kept log."""
+    found = re.findall(r"^wall seconds: (\d+)$", log.read_text(), re.MULTILINE)
+    return float(found[-1]) if found else None
+
+
+def test_row(clone: Path, environment: dict[str, str], run: bool = True) -> list[str]:
+    """The test command's row (``run``: False reads the kept log of an earlier run)."""
     log = clone.parent / "tests.log"
-    code, seconds, _ = timed([".ci/run"], clone, environment | {"CI": "true"}, log)
+    if run:
+        code, seconds, _ = timed([".ci/run"], clone, environment | {"CI": "true"}, log)
+    else:
+        code, seconds = 0, _kept_wall_seconds(log)
+    wall = "-" if seconds is None else f"{seconds:.0f} s"
     summary = re.findall(r"=+ (.*(?:passed|failed|error).*) in ([\d.]+)s", log.read_text())
     result, pytest_seconds = summary[-1] if summary else ("no pytest summary (see the log)", "-")
-    return [f"| `CI=true .ci/run` | {code} | {seconds:.0f} s | {result}, pytest {pytest_seconds} s |"]
+    return [f"| `CI=true .ci/run` | {code} | {wall} | {result}, pytest {pytest_seconds} s |"]
 
 
-def pipeline_row(clone: Path, environment: dict[str, str]) -> list[str]:
+def pipeline_row(clone: Path, environment: dict[str, str], run: bool = True) -> list[str]:
+    """The Quick start's run (``run``: False reads the kept log of an earlier one), and
+    `pipeline score` on its results."""
     log = clone.parent / "pipeline.log"
     capture = clone / "sample_captures" / "bird"
-    code, seconds = timed(["bin/pipeline", "run", "sample_captures/bird", "--json"], clone, environment, log)
-    stages = "see the log"
-    summary = next((line for line in reversed(log.read_text().splitlines()) if line.startswith("{")), None)
-    if summary is not None:
-        times = json.loads(summary).get("seconds", {})
-        stages = f"stages {sum(times.values()):.0f} s; " + ", ".join(
-            f"{s} {times[s]:.0f} s" for s in FIT_STAGES if s in times
+    command = "`bin/pipeline run sample_captures/bird`"
+    if run:
+        code, seconds, printed = timed(
+            ["bin/pipeline", "run", "sample_captures/bird", "--json"], clone, environment, log
         )
-    rows = [f"| `bin/pipeline run sample_captures/bird` | {code} | {seconds:.0f} s | {stages} |"]
+        wall = f"{seconds:.0f} s"
+    else:
+        code, printed = 0, log.read_text()
+        wall = "-" if (kept := _kept_wall_seconds(log)) is None else f"{kept:.0f} s"
+    start = re.search(r"^\{$", printed, re.MULTILINE)  # run --json's object, after the log's lines
+    if start is None:
+        return [f"| {command} | {code or 'no summary'} | {wall} | see {log} |"]
+    summary = json.loads(printed[start.start() :])
+    times = {s["stage"]: s["seconds"] or 0.0 for s in summary["stages"]}
+    fits = ", ".join(f"{name} {times[name]:.0f} s" for name in FIT_STAGES if name in times)
+    rows = [
+        f"| {command} | {code} | {wall} | the run {summary['seconds']:.0f} s: stages {sum(times.values()):.0f} s ({fits}) |"
+    ]
     score = subprocess.run(
         [str(clone / ".venv" / "bin" / "pipeline"), "score", str(capture), "--json"],
         cwd=clone,
@@ -97,23 +120,26 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--parts", default="tests,pipeline")
     parser.add_argument("--keep", type=Path, help="clone into DIR/fresh and keep it (default: a new temporary folder)")
+    parser.add_argument("--report-only", action="store_true", help="report the run kept in --keep DIR, run nothing")
     parser.add_argument("--write", action="store_true", help="rewrite docs/benchmarks.md's section")
     args = parser.parse_args()
-    clone = fresh_clone(args.keep)
+    if args.report_only and args.keep is None:
+        raise SystemExit("--report-only reads the run kept in --keep DIR: name it")
+    clone = args.keep / "fresh" if args.report_only else fresh_clone(args.keep)
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=clone, capture_output=True, text=True).stdout
     # no Dr.Jit kernels compiled before, no pip cache: as on a new machine
     kernels = clone.parent / "drjit-kernels"
-    kernels.mkdir()
+    kernels.mkdir(exist_ok=True)
     environment = os.environ | {"DRJIT_CACHE_DIR": str(kernels), "PIP_NO_CACHE_DIR": "1"}
     environment.pop("VIRTUAL_ENV", None)
     environment.pop("DRJIT_LIBLLVM_PATH", None)
     lines = ["| command | exit | wall time (bootstrap included) | result |", "|---|---|---|---|"]
     parts = args.parts.split(",")
     if "tests" in parts:
-        lines += test_row(clone, environment)
+        lines += test_row(clone, environment, run=not args.report_only)
         print(lines[-1], flush=True)
     if "pipeline" in parts:
-        lines += pipeline_row(clone, environment)
+        lines += pipeline_row(clone, environment, run=not args.report_only)
         print("\n".join(lines[-2:]), flush=True)
     if args.write:
         intro = [
