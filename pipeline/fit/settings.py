@@ -54,8 +54,8 @@ class LoopSettings:
 @dataclass(frozen=True)
 class FitSettings(LoopSettings):
     """How a fit of material parameters (plain values or textures) runs. The defaults
-    are `pipeline fit`'s, the fastest to the targets on bench/fit_speed.py's kit; the
-    fit stages' presets set their own."""
+    are `pipeline fit`'s, measured on bench/fit_speed.py's suite of kits; the fit
+    stages' presets set their own."""
 
     spp: Annotated[int, Range(1, None)] = 4
     """Samples per pixel of each training render."""
