@@ -384,7 +384,7 @@ def pipeline_fit(kit: Kit, folder: Path, settings: engine.FitSettings, sizes: Fi
     stopping rule. Its log's parameters after each step are checked against the targets;
     the time before the loop (loading the scene and the references) counts. Returns its
     params.json (the values it ends with, and why it stopped)."""
-    from pipeline.fit.scene_fit import fit_scene, property_name
+    from pipeline.fit.scene_fit import SceneFit, fit_scene, property_name
 
     out = folder / "fit_out"
     loop_started = []
@@ -397,17 +397,15 @@ def pipeline_fit(kit: Kit, folder: Path, settings: engine.FitSettings, sizes: Fi
     engine.fit = timed_fit
     started = time.perf_counter()
     try:
-        params = fit_scene(
+        request = SceneFit(
             kit_xml(kit, kit.start(), folder),
             folder / "references",
-            list(kit.truth),
+            tuple(kit.truth),
             settings,
-            [],
-            None,
-            out,
-            "auto",
-            sizes,
+            out_dir=out,
+            sizes=sizes,
         )
+        params = fit_scene(request)
     finally:
         engine.fit = fit
     log = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]

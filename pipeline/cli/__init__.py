@@ -26,7 +26,7 @@ from pipeline.core.fsutil import disk_full_error
 
 def build_parser() -> argparse.ArgumentParser:
     # Loaded here, not on import: loading them takes a second, which Ctrl-C may interrupt.
-    from pipeline.cli import batch, capture, fit, stages, synthetic  # noqa: F401  (each registers its commands)
+    from pipeline.cli import batch, capture, fit, stages, studio, synthetic  # noqa: F401  (each registers its commands)
 
     parser = argparse.ArgumentParser(
         prog="pipeline", description="Photogrammetry-to-material pipeline: photos in, a Mitsuba 3 scene out."

@@ -39,31 +39,44 @@ class FitOptions:
     """One learning rate for every parameter (default: per parameter, pipeline.render.materials)."""
     bound: Annotated[tuple[str, ...], Arg(repeat=True, metavar="NAME=LO:HI")] = ()
     """Bounds of a parameter, by property name or full key (repeatable)."""
+    heldout: Annotated[tuple[str, ...], Arg(repeat=True, metavar="IMAGE")] = ()
+    """A reference image (file name without its suffix) to hold out: not fitted to, but
+    rendered every validate_every steps, and the fit keeps the state with the lowest error
+    on the held-out images (repeatable)."""
     variant: Literal["auto", "cuda_ad_rgb", "llvm_ad_rgb"] = "auto"
     """Mitsuba variant (auto: cuda_ad_rgb if it works, else llvm_ad_rgb)."""
     out: str = "fit_out"
     """Folder for the fitted scene, params.json, log.jsonl, loss.png."""
 
 
+def scene_fit_request(options: FitOptions):
+    """The library's request for the fit ``options`` describe (`pipeline studio` fills
+    the same options from its page)."""
+    from pipeline.fit.scene_fit import FilmSizes, SceneFit
+
+    return SceneFit(
+        Path(options.scene),
+        Path(options.references or ""),
+        options.params,
+        options.settings,
+        options.bound,
+        options.lr,
+        Path(options.out),
+        options.variant,
+        FilmSizes(options.max_size, options.coarse_to_fine),
+        options.heldout,
+    )
+
+
 @command("fit", FitOptions, "fit parameters of any Mitsuba scene to reference images (the original tool)")
 def fit(options: FitOptions) -> int:
-    from pipeline.fit.scene_fit import FilmSizes, fit_scene, list_keys
+    from pipeline.fit.scene_fit import fit_scene, list_keys
 
     if options.list:
         print("\n".join(list_keys(Path(options.scene), options.variant)))
         return 0
     if not options.references or not options.params:
         raise ConfigError("pipeline fit needs --references DIR and --params PATTERN (or --list to see the keys)")
-    params_json = fit_scene(
-        Path(options.scene),
-        Path(options.references),
-        list(options.params),
-        options.settings,
-        list(options.bound),
-        options.lr,
-        Path(options.out),
-        options.variant,
-        FilmSizes(options.max_size, options.coarse_to_fine),
-    )
+    params_json = fit_scene(scene_fit_request(options))
     print(params_json.read_text())
     return 0

@@ -174,47 +174,47 @@ def report(options: ReportOptions) -> int:
     return 0
 
 
-@command("status", StatusOptions, "stages, cache keys, timings and cache size")
-def status(options: StatusOptions) -> int:
-    runner = make_runner(options.capture, options.config)
+def status_summary(runner: Runner) -> dict:
+    """`pipeline status --json`'s summary (and `pipeline studio`'s stage table): each
+    stage's state under the runner's settings, why it would run, its cache key, its
+    last result's time and seconds, its cache entries and their size."""
     plan = {p.stage.name: p for p in runner.plan()}
     cache = runner.cache
-    table = Table("stage", "current config", "key", "finished", "seconds", "entries", "size")
     rows = []
     for stage in runner.stages:
         entries = cache.entries(stage.name)
         item = plan[stage.name]
-        state = {"cached": "cached", "run": "to run", "disabled": "disabled"}[item.action]
         shown = item.entry or (entries[-1] if entries else None)
-        when = time.strftime("%Y-%m-%d %H:%M", time.localtime(shown.finished)) if shown else "-"
-        seconds = shown.status["seconds"] if shown else None
-        size = sum(tree_size(e.path) for e in entries)
-        table.add_row(
-            stage.name,
-            state,
-            item.key[:10],
-            when,
-            "-" if seconds is None else f"{seconds:.1f}",
-            str(len(entries)),
-            f"{size / 1e6:.1f} MB",
-        )
         rows.append(
             {
                 "stage": stage.name,
-                "state": state,
+                "state": {"cached": "cached", "run": "to run", "disabled": "disabled"}[item.action],
+                "reason": item.reason,
                 "key": item.key,
-                "finished": when,
-                "seconds": seconds,
+                "finished": time.strftime("%Y-%m-%d %H:%M", time.localtime(shown.finished)) if shown else "-",
+                "seconds": shown.status["seconds"] if shown else None,
                 "entries": len(entries),
-                "bytes": size,
+                "bytes": sum(tree_size(e.path) for e in entries),
             }
         )
     total = tree_size(cache.state_dir) if cache.state_dir.is_dir() else 0
+    return {"stages": rows, "cache_bytes": total}
+
+
+@command("status", StatusOptions, "stages, cache keys, timings and cache size")
+def status(options: StatusOptions) -> int:
+    runner = make_runner(options.capture, options.config)
+    summary = status_summary(runner)
     if options.json:
-        print(json.dumps({"stages": rows, "cache_bytes": total}, indent=2))
-    else:
-        progress.console.print(table)
-        progress.console.print(f"cache: {total / 1e6:.1f} MB in {cache.state_dir}")
+        print(json.dumps(summary, indent=2))
+        return 0
+    table = Table("stage", "current config", "key", "finished", "seconds", "entries", "size")
+    for row in summary["stages"]:
+        seconds = "-" if row["seconds"] is None else f"{row['seconds']:.1f}"
+        size = f"{row['bytes'] / 1e6:.1f} MB"
+        table.add_row(row["stage"], row["state"], row["key"][:10], row["finished"], seconds, str(row["entries"]), size)
+    progress.console.print(table)
+    progress.console.print(f"cache: {summary['cache_bytes'] / 1e6:.1f} MB in {runner.cache.state_dir}")
     return 0
 
 

@@ -94,4 +94,24 @@ class CaptureLock:
         self._fd = None
 
 
-__all__ = ["CaptureBusy", "CaptureLock"]
+def holder(capture_dir: Path) -> str | None:
+    """Who holds the capture's lock now (None: nobody), without waiting or taking it
+    for longer than the test."""
+    path = capture_dir / ".pipeline" / LOCK_FILE
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except FileNotFoundError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        try:
+            return _holder_text(json.loads(path.read_text() or "{}"))
+        except json.JSONDecodeError:
+            return "another process"
+    finally:
+        os.close(fd)  # closing releases a lock the test took
+    return None
+
+
+__all__ = ["CaptureBusy", "CaptureLock", "holder"]

@@ -14,6 +14,8 @@ A checkpoint is one ``.npz`` (no pickle): Adam's state per parameter (value, ste
 count, both moments), the loop's arrays (the best values so far) and a JSON
 record (iteration, log, best iteration and error, why the loop stopped). Files
 are replaced atomically, so a kill while saving leaves the previous checkpoint.
+Beside it, ``NN.steps.jsonl`` gets each step's log entry as it is made: what a
+watcher (`pipeline studio`) reads to follow a stage's fit live.
 
 Limitations: the optimiser state is read from ``drjit.opt.Adam.state`` (value,
 promoted, learning rate, (t, m_t, v_t, v_max)), Dr.Jit 1.5's layout; AMSGrad's
@@ -116,6 +118,16 @@ class Checkpoint:
             np.savez(f, **stored)
         os.replace(partial, self.path)
         self._last = time.perf_counter()
+
+    @property
+    def steps_path(self) -> Path:
+        return self.path.with_suffix(".steps.jsonl")
+
+    def log_step(self, entry: dict[str, Any]) -> None:
+        """Append one step's log entry to the live log (one JSON line, flushed)."""
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        with self.steps_path.open("a") as f:
+            f.write(json.dumps(entry) + "\n")
 
     def restore(self, optimizer) -> Resumed | None:
         """Load the checkpoint into ``optimizer`` (whose keys it must hold); None if there is none."""

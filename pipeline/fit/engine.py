@@ -86,7 +86,8 @@ def fit(
     settings: FitSettings,
     on_iteration=None,
 ) -> FitResult:
-    """Fit ``parameters`` to the training views; the scenes end in the best state."""
+    """Fit ``parameters`` to the training views; the scenes end in the best state.
+    ``on_iteration`` sees each step's log entry and may return a reason to stop."""
     training, validation = _with_pixels(training), _with_pixels(validation)
     if not training:
         raise PipelineError("no views to fit: every view is held out")

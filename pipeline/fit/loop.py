@@ -497,12 +497,14 @@ def run(
     validation: list[FitView],
     settings: LoopSettings,
     integrator=None,
-    on_iteration: Callable[[dict], None] | None = None,
+    on_iteration: Callable[[dict], str | None] | None = None,
     label: str = "fit",
 ) -> LoopResult:
     """Fit ``variables`` (pipeline.fit.variables, registered in their optimiser) to the
     training views; the scenes end in the best state. ``integrator`` overrides the
-    views' own; ``on_iteration`` sees each step's log entry."""
+    views' own; ``on_iteration`` sees each step's log entry and may return a reason to
+    stop (a user's Stop in the studio): the loop then ends as it would at its own stop,
+    in the best state."""
     if not training:
         raise PipelineError("no views to fit: every view is held out")
     loop = _Loop(variables, training, validation, settings, integrator, label)
@@ -528,9 +530,10 @@ def run(
             state.log.append(entry)
             state.iteration = iteration
             advance(_status(entry, state.log, best))
-            if on_iteration is not None:
-                on_iteration(entry)
-            state.stopped = _stop_reason(settings, state.log, entry)
+            if checkpoint is not None:
+                checkpoint.log_step(entry)
+            asked = on_iteration(entry) if on_iteration is not None else None
+            state.stopped = asked or _stop_reason(settings, state.log, entry)
             if state.stopped:
                 break
             if checkpoint is not None and checkpoint.due():

@@ -28,6 +28,12 @@ what only shows at full size (a small highlight's width) stays identifiable, and
 the finer levels' smaller steps and lower noise let the values settle closer. The
 written scene keeps its films.
 
+``heldout`` names reference images that are not fitted to but rendered every
+``validate_every`` steps: the fit then keeps the state with the lowest error on them
+(pipeline.fit.loop) instead of its last. A watcher (``FitWatcher``: `pipeline
+studio`) sees each level's views and each step, and may stop the fit, which then
+ends in its best state and is written as any other.
+
 params.json and log.jsonl are written first: a scene that cannot be written
 back (a value given by a texture, say) keeps them and says what failed.
 """
@@ -40,8 +46,9 @@ import re
 import tempfile
 import time
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
@@ -55,6 +62,8 @@ from pipeline.imaging.photo_io import list_photos, read_photo
 from pipeline.render import materials, mitsuba_variant, scene_xml, user_scene
 
 EXR_SUFFIXES = (".exr",)
+USER_STOP = "stopped by the user"
+"""How a watcher's stop reason begins (``FitWatcher.step``): it ends every level."""
 
 
 @dataclass(frozen=True)
@@ -91,7 +100,7 @@ def selects(pattern: str, key: str) -> bool:
     return re.search(pattern, key) is not None
 
 
-def _check_patterns(patterns: list[str]) -> None:
+def check_patterns(patterns: list[str]) -> None:
     for pattern in patterns:
         try:
             re.compile(pattern)
@@ -99,23 +108,30 @@ def _check_patterns(patterns: list[str]) -> None:
             raise ConfigError(f"--params {pattern!r} is not a regular expression: {error}") from None
 
 
+def _plain_value(params, key: str, tree) -> str | None:
+    """Why ``key`` cannot be fitted (None: it can): only one float or colour written in
+    the scene file ``tree`` can be fitted and written back."""
+    import mitsuba as mi
+
+    if not scene_xml.writable(tree, key):
+        return "not a plain value in the scene file (a default Mitsuba adds?)"
+    value = params[key]
+    if not isinstance(value, (mi.Float, mi.Color3f)) or (isinstance(value, mi.Float) and len(value) != 1):
+        return f"not a single float or colour ({type(value).__name__})"
+    return None
+
+
 def select_parameters(
     params, patterns: list[str], bounds: dict[str, tuple[float, float]], learning_rate: float | None, tree
 ) -> list[engine.FitParameter]:
     """The keys ``patterns`` select that hold one float or colour written in the scene
     file ``tree`` (so that the fit can be written back), with their bounds."""
-    import mitsuba as mi
-
     selected = []
     for key in params.keys():
         if not any(selects(pattern, key) for pattern in patterns):
             continue
-        if not scene_xml.writable(tree, key):
-            logger.info("skipping %s: not a plain value in the scene file (a default Mitsuba adds?)", key)
-            continue
-        value = params[key]
-        if not isinstance(value, (mi.Float, mi.Color3f)) or (isinstance(value, mi.Float) and len(value) != 1):
-            logger.info("skipping %s: not a single float or colour (%s)", key, type(value).__name__)
+        if (reason := _plain_value(params, key, tree)) is not None:
+            logger.info("skipping %s: %s", key, reason)
             continue
         name = property_name(key)
         spec = materials.PARAMETERS.get(name)
@@ -131,6 +147,34 @@ def select_parameters(
             f"no fittable parameter matches {' '.join(patterns)}; `pipeline fit SCENE --list` shows the scene's keys"
         )
     return selected
+
+
+def describe_parameters(scene_path: Path, variant: str) -> list[dict]:
+    """Every differentiable key of the scene with its type, whether it can be fitted
+    (and why not), its value and its default bounds (pipeline.render.materials; None:
+    --bound must give them): `pipeline studio`'s parameter table."""
+    mitsuba_variant.activate(variant)
+    import mitsuba as mi
+
+    tree = user_scene.normalised(scene_path)
+    params = mi.traverse(_load(scene_path, tree))
+    rows = []
+    for key in params.keys():
+        if params.flags(key) & int(mi.ParamFlags.NonDifferentiable):
+            continue
+        reason = _plain_value(params, key, tree)
+        spec = materials.PARAMETERS.get(property_name(key))
+        rows.append(
+            {
+                "key": key,
+                "type": type(params[key]).__name__,
+                "fittable": reason is None,
+                "why_not": reason,
+                "value": np.ravel(np.asarray(params[key])).tolist() if reason is None else None,
+                "bounds": [spec.lower, spec.upper] if spec is not None else None,
+            }
+        )
+    return rows
 
 
 def _set_values(scene_values, values: dict) -> None:
@@ -209,28 +253,73 @@ def check_out_dir(out_dir: Path, scene_path: Path, references: Path) -> None:
         ) from error
 
 
-def fit_scene(
-    scene_path: Path,
-    references: Path,
-    patterns: list[str],
-    settings: engine.FitSettings,
-    bound_entries: list[str],
-    learning_rate: float | None,
-    out_dir: Path,
-    variant: str = "auto",
-    sizes: FilmSizes = FilmSizes(),
-) -> Path:
-    """Fit (at ``sizes``) and write the results into ``out_dir``; returns its params.json."""
+@dataclass(frozen=True)
+class SceneFit:
+    """What `pipeline fit` and `pipeline studio` ask of a fit."""
+
+    scene: Path
+    """The Mitsuba scene file, one sensor per reference image."""
+    references: Path
+    """The folder of reference images, matched to the sensors by sorted file name."""
+    patterns: tuple[str, ...]
+    """``--params`` words or regular expressions selecting the keys to fit."""
+    settings: engine.FitSettings = field(default_factory=engine.FitSettings)
+    """The loop's settings."""
+    bounds: tuple[str, ...] = ()
+    """``NAME=LO:HI`` entries, by property name or full key."""
+    learning_rate: float | None = None
+    """One learning rate for every parameter (None: each parameter's own)."""
+    out_dir: Path = Path("fit_out")
+    """Where the fitted scene, params.json, log.jsonl and loss.png go."""
+    variant: str = "auto"
+    """The Mitsuba variant."""
+    sizes: FilmSizes = field(default_factory=FilmSizes)
+    """The film sizes the fit renders at."""
+    heldout: tuple[str, ...] = ()
+    """Reference images (by file name without its suffix) not fitted to but rendered
+    every ``validate_every`` steps: the fit keeps the state with the lowest error on
+    them instead of its last one."""
+
+
+class FitWatcher(Protocol):
+    """Follows a fit as it runs (`pipeline studio`); both calls come from the fit's thread."""
+
+    def level_started(self, level: int, levels: list[int], views: list[engine.FitView]) -> None:
+        """A level begins: its index, every level's max_size (0: full) and its views
+        (training and held out), whose scenes render its current state."""
+
+    def step(self, entry: dict) -> str | None:
+        """One step's log entry; a reason to stop, or None to go on."""
+
+
+def _split_heldout(views: list[engine.FitView], heldout: tuple[str, ...], references: Path):
+    names = {view.name for view in views}
+    unknown = sorted(set(heldout) - names)
+    if unknown:
+        raise ConfigError(
+            f"--heldout {' '.join(unknown)}: no such image in {references} (its images: {', '.join(sorted(names))})"
+        )
+    training = [view for view in views if view.name not in heldout]
+    if not training:
+        raise ConfigError("--heldout names every reference image: leave at least one to fit to")
+    return training, [view for view in views if view.name in heldout]
+
+
+def fit_scene(request: SceneFit, watcher: FitWatcher | None = None) -> Path:
+    """Fit (at ``request.sizes``) and write the results into ``request.out_dir``;
+    returns its params.json."""
+    scene_path, references, out_dir = request.scene, request.references, request.out_dir
     check_out_dir(out_dir, scene_path, references)
-    _check_patterns(patterns)
-    mitsuba_variant.activate(variant)
+    check_patterns(list(request.patterns))
+    mitsuba_variant.activate(request.variant)
     import mitsuba as mi
 
     # 1. The scene as Mitsuba loads it with stable keys, and the films' sizes per level.
     tree = user_scene.normalised(scene_path)
     full_sizes = user_scene.reduce_films(copy.deepcopy(tree), 0)
     integrator = user_scene.differentiable_integrator(tree)
-    levels = sizes.levels(max((max(size) for size in full_sizes), default=0))
+    levels = request.sizes.levels(max((max(size) for size in full_sizes), default=0))
+    bounds = engine.parse_bounds(list(request.bounds), "--bound")
 
     # 2. The fit, level by level: the scene loaded with its films reduced (the references
     # averaged down to them); the parameters chosen on the first, each later level
@@ -243,26 +332,38 @@ def fit_scene(
         scene = _load(scene_path, reduced)
         scene_values = mi.traverse(scene)
         if parameters is None:
-            parameters = select_parameters(
-                scene_values, patterns, engine.parse_bounds(bound_entries, "--bound"), learning_rate, tree
-            )
+            parameters = select_parameters(scene_values, list(request.patterns), bounds, request.learning_rate, tree)
             start = {p.key: np.ravel(np.asarray(scene_values[p.key])).tolist() for p in parameters}
             logger.info("fitting %s on %d views", ", ".join(p.key for p in parameters), len(full_sizes))
         else:
             _set_values(scene_values, result.values)
         views = _views(scene, scene_path, references, integrator, full_sizes)
+        training, heldout = _split_heldout(views, request.heldout, references)
         if len(levels) > 1:
             logger.info("level %d of %d: films of %s px", level + 1, len(levels), max_size or "their own")
+        if watcher is not None:
+            watcher.level_started(level, levels, views)
         # a later level's steps counted from the first level's first step, as one fit's
         first_step = first_step if level else time.perf_counter()
         offset = time.perf_counter() - first_step
         # Adam's steps keep a value jittering by about its learning rate: each finer level,
         # starting near the answer, steps half as far
+        settings = request.settings
         level_settings = replace(settings, learning_rate_scale=settings.learning_rate_scale / 2**level)
-        result = engine.fit(parameters, views, [], level_settings)
+        result = engine.fit(
+            parameters, training, heldout, level_settings, on_iteration=watcher.step if watcher else None
+        )
         log += [entry | {"level": level, "seconds": offset + entry["seconds"]} for entry in result.log]
         sensor_ids = [view.sensor.id() for view in views]
-        del scene, scene_values, views  # Dr.Jit traces every live scene into the next level's kernels
+        del (
+            scene,
+            scene_values,
+            views,
+            training,
+            heldout,
+        )  # Dr.Jit traces every live scene into the next level's kernels
+        if result.stopped.startswith(USER_STOP):
+            break  # the user's stop ends the fit, not only this level
     seconds = time.perf_counter() - started
 
     # 3. What was found first, then the scene with it written in; each file written beside
@@ -277,6 +378,9 @@ def fit_scene(
         "iterations": len(log),
         "levels": [size or "full" for size in levels],
         "final_loss": log[-1]["loss"] if log else None,
+        "heldout": list(request.heldout),
+        "best_iteration": result.best_iteration if request.heldout else None,
+        "heldout_error": result.validation_error,
         "stopped": result.stopped,
         "seconds": seconds,
     }

@@ -1,0 +1,236 @@
+"""A capture as the studio shows it: its stages (`pipeline status --json`'s table with
+the reasons to rerun), a run started from the page, that run's log and, while a fit
+stage runs, its steps; the photos with their masks, the cameras, the current mesh and
+the report.
+
+A run is `pipeline run` in a child process (``python -m pipeline run CAPTURE --preset
+P -s ...``): it takes the capture's lock as the command does (a capture another run
+holds is reported, not raced), and the studio's Stop sends it SIGINT, after which the
+run keeps its finished stages and fit checkpoints as an interrupted run does. A fit
+stage's steps are read from the live log its checkpoint keeps
+(pipeline.fit.checkpoint, ``NN.steps.jsonl``).
+
+Everything read comes from the capture's own folder: the stages' cached results for
+the current settings (the plan's entries), output/ and the checkpoints.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import signal
+import subprocess
+import sys
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.cli.registry import ConfigLayers, capture_dir
+from pipeline.cli.stages import make_runner, status_summary
+from pipeline.core.config import DEFAULT_PRESET, parse_override, preset_names
+from pipeline.core.errors import ConfigError
+from pipeline.core.lock import holder
+from pipeline.formats.cameras import read_views
+
+THUMBNAIL_PX = 320
+"""Longer side of a photo's thumbnail."""
+LOG_LINES = 2000
+"""Lines of a run's log the studio keeps (the oldest go first)."""
+
+
+@dataclass
+class RunState:
+    """A run started from the page."""
+
+    command: list[str] = field(default_factory=list)
+    log: list[str] = field(default_factory=list)
+    dropped: int = 0
+    """Log lines dropped from the front (past LOG_LINES)."""
+    exit_code: int | None = None
+
+
+class CaptureSession:
+    """One capture folder; at most one run from the page at a time."""
+
+    def __init__(self, capture: str, preset: str = DEFAULT_PRESET, overrides: tuple[str, ...] = ()):
+        self.folder = capture_dir(capture)
+        self.layers = self._layers(preset, list(overrides))
+        self._runner()  # a bad preset, -s or capture.toml fails here, before the page opens
+        self.run_state = RunState()
+        self._process: subprocess.Popen | None = None
+        self._lock = threading.Lock()
+
+    @staticmethod
+    def _layers(preset: str, overrides: list[str]) -> ConfigLayers:
+        if preset not in preset_names():
+            raise ConfigError(f"preset {preset!r} does not exist: use one of {', '.join(preset_names())}")
+        for override in overrides:
+            parse_override(override)
+        return ConfigLayers(preset, tuple(overrides))
+
+    def _runner(self):
+        return make_runner(str(self.folder), self.layers)
+
+    def describe(self) -> dict[str, Any]:
+        return {
+            "mode": "capture",
+            "capture": str(self.folder),
+            "preset": self.layers.preset,
+            "presets": preset_names(),
+            "set": list(self.layers.set),
+        }
+
+    def stages(self, preset: str | None = None, overrides: list[str] | None = None) -> dict[str, Any]:
+        """`pipeline status --json`'s summary under the page's settings, and who holds
+        the capture's lock."""
+        if preset is not None:
+            self.layers = self._layers(preset, overrides or [])
+        return status_summary(self._runner()) | {"locked_by": holder(self.folder)}
+
+    # A run.
+
+    def start_run(self) -> None:
+        with self._lock:
+            if self._process is not None and self._process.poll() is None:
+                raise ConfigError("a run started here is still going: stop it or wait for it")
+            busy = holder(self.folder)
+            if busy is not None:
+                raise ConfigError(f"{self.folder} is in use by {busy}: wait for it to finish")
+            command = [sys.executable, "-m", "pipeline", "run", str(self.folder), "--preset", self.layers.preset]
+            for override in self.layers.set:
+                command += ["-s", override]
+            self.run_state = RunState(command)
+            self._process = subprocess.Popen(
+                command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1
+            )
+            threading.Thread(target=self._read_log, args=(self._process,), daemon=True).start()
+
+    def stop_run(self) -> None:
+        """SIGINT, as Ctrl-C: the run keeps its finished stages and checkpoints."""
+        with self._lock:
+            if self._process is not None and self._process.poll() is None:
+                self._process.send_signal(signal.SIGINT)
+
+    def wait(self, timeout: float | None = None) -> None:
+        if self._process is not None:
+            self._process.wait(timeout)
+
+    def _read_log(self, process: subprocess.Popen) -> None:
+        for line in process.stdout:
+            with self._lock:
+                self.run_state.log.append(line.rstrip("\n"))
+                if len(self.run_state.log) > LOG_LINES:
+                    del self.run_state.log[0]
+                    self.run_state.dropped += 1
+        code = process.wait()
+        with self._lock:
+            self.run_state.exit_code = code
+
+    def run_snapshot(self, since: int = 0) -> dict[str, Any]:
+        """The run's log lines from line ``since`` on, its exit code, and the steps of
+        the fit running now (or last seen) with its stage."""
+        with self._lock:
+            state = self.run_state
+            start = max(since - state.dropped, 0)
+            result = {
+                "running": self._process is not None and state.exit_code is None,
+                "command": state.command,
+                "log": state.log[start:],
+                "next": state.dropped + len(state.log),
+                "exit_code": state.exit_code,
+            }
+        return result | self.live_fit()
+
+    def live_fit(self) -> dict[str, Any]:
+        """The steps of the newest fit checkpoint's live log: the stage fitting now."""
+        logs = sorted(
+            (self.folder / ".pipeline" / "checkpoints").glob("*/*.steps.jsonl"), key=lambda p: p.stat().st_mtime
+        )
+        if not logs:
+            return {"fit_stage": None, "fit_log": []}
+        newest = logs[-1]
+        stage = newest.parent.name.rsplit("-", 1)[0]
+        entries = []
+        for line in newest.read_text().splitlines():
+            try:
+                entries.append(json.loads(line))
+            except json.JSONDecodeError:
+                break  # the line being written
+        return {"fit_stage": f"{stage} (fit {newest.name.split('.')[0]})", "fit_log": entries}
+
+    # What the stages made.
+
+    def _outputs(self, stage: str) -> dict[str, Path]:
+        plan = {item.stage.name: item for item in self._runner().plan()}
+        item = plan.get(stage)
+        return item.entry.outputs if item is not None and item.entry is not None else {}
+
+    def photos(self) -> list[str]:
+        folder = self._outputs("undistort").get("undistorted")
+        return sorted(path.stem for path in folder.glob("*.png")) if folder else []
+
+    def photo(self, name: str) -> bytes:
+        """A photo's thumbnail (undistorted), its mask's outside darkened when there is one."""
+        import cv2
+
+        if name not in self.photos():
+            raise ConfigError(f"no undistorted photo {name} in {self.folder} (run the undistort stage)")
+        image = cv2.imread(str(self._outputs("undistort")["undistorted"] / f"{name}.png"), cv2.IMREAD_COLOR)
+        masks = self._outputs("masks").get("masks")
+        if masks is not None and (masks / f"{name}.png").is_file():
+            mask = cv2.imread(str(masks / f"{name}.png"), cv2.IMREAD_GRAYSCALE)
+            if mask is not None and mask.shape == image.shape[:2]:
+                outside = mask < 128
+                image[outside] = (image[outside] * 0.25 + np.array([120, 0, 0]) * 0.75).astype(np.uint8)
+        scale = THUMBNAIL_PX / max(image.shape[:2])
+        if scale < 1:
+            image = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+        return cv2.imencode(".jpg", image)[1].tobytes()
+
+    def cameras(self) -> list[dict[str, Any]]:
+        """Each posed photo's camera as a frustum (its centre and the four corners of its
+        image plane at a tenth of the cameras' spread) in the pipeline's world frame."""
+        path = self._outputs("sfm").get("cameras")
+        if path is None or not path.is_file():
+            return []
+        views = read_views(path)
+        centres = np.array([pose.center for _, pose in views.values()])
+        depth = 0.15 * max(float(np.median(np.linalg.norm(centres - centres.mean(axis=0), axis=1))), 1e-6)
+        frusta = []
+        for name, (intrinsics, pose) in sorted(views.items()):
+            w, h = intrinsics.width, intrinsics.height
+            corners = []
+            for u, v in ((0, 0), (w, 0), (w, h), (0, h)):
+                ray = np.array([(u - intrinsics.cx) / intrinsics.fx, (v - intrinsics.cy) / intrinsics.fy, 1.0])
+                corners.append((pose.center + depth * pose.R.T @ ray).tolist())
+            frusta.append({"name": name, "centre": pose.center.tolist(), "corners": corners})
+        return frusta
+
+    def mesh_glb(self) -> bytes | None:
+        """The current result's mesh as glTF: export's glb (textured when the texture was
+        fitted), else the newest mesh a stage made, untextured."""
+        glb = self._outputs("export").get("glb")
+        if glb is not None and glb.is_file():
+            return glb.read_bytes()
+        import trimesh
+
+        for stage in reversed([stage.name for stage in self._runner().stages]):
+            mesh = self._outputs(stage).get("mesh")
+            if mesh is not None and mesh.is_file() and mesh.suffix == ".ply":
+                buffer = io.BytesIO()
+                # normals written: a glTF viewer shades a mesh without them black
+                trimesh.load(mesh, force="mesh", process=False).export(buffer, file_type="glb", include_normals=True)
+                return buffer.getvalue()
+        return None
+
+    def output_file(self, relative: str) -> Path:
+        """A file under the capture's output/ (the report and what it links to); any
+        other path is refused."""
+        output = (self.folder / "output").resolve()
+        path = (output / relative).resolve()
+        if not path.is_relative_to(output) or not path.is_file():
+            raise ConfigError(f"{relative} is not a file in {self.folder / 'output'}")
+        return path

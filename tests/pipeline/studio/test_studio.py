@@ -1,0 +1,188 @@
+"""`pipeline studio` in a real browser (Playwright driving Debian's chromium, which
+bin/test installs): a scene's fit started, watched and stopped from the page, and a
+capture's stages, photos, cameras and a run from the page; and what the studio
+refuses."""
+
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import urllib.error
+import urllib.request
+from contextlib import contextmanager
+from pathlib import Path
+
+import pytest
+
+from pipeline.core.errors import ConfigError
+from pipeline.core.lock import CaptureLock
+from tests.support.byo_capture import byo_capture
+from tests.support.studio_kit import START, TRUTH, write_kit
+
+pytestmark = pytest.mark.slow
+
+SCREENSHOTS = os.environ.get("STUDIO_SCREENSHOTS")
+"""A folder to copy the pages' screenshots into (docs/ holds them: bench/tools/studio_screenshots.sh)."""
+
+
+def _chromium() -> str:
+    for candidate in ("/usr/lib/chromium/chromium", shutil.which("chromium")):
+        if candidate and Path(candidate).is_file():
+            return candidate
+    pytest.skip("chromium is not installed (bin/test installs Debian's package)")
+
+
+@contextmanager
+def studio(*args: str, cwd: Path):
+    """`pipeline studio ARGS --no-browser` on a free port; yields its address and log."""
+    process = subprocess.Popen(
+        [sys.executable, "-m", "pipeline", "studio", *args, "--no-browser"],
+        cwd=cwd,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    lines = []
+    try:
+        for line in process.stderr:
+            lines.append(line)
+            if found := re.search(r"studio at (http://\S+)", line):
+                break
+        else:
+            pytest.fail("the studio did not start:\n" + "".join(lines))
+        yield found.group(1), lines
+    finally:
+        process.terminate()
+        process.wait(60)
+
+
+@contextmanager
+def browser_page():
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as playwright:
+        browser = playwright.chromium.launch(
+            executable_path=_chromium(), args=["--no-sandbox", "--use-gl=swiftshader", "--enable-unsafe-swiftshader"]
+        )
+        page = browser.new_page(viewport={"width": 1400, "height": 1200})
+        errors = []
+        page.on("pageerror", lambda error: errors.append(str(error)))
+        yield page
+        browser.close()
+        assert not errors, errors
+
+
+def _screenshot(page, path: Path) -> None:
+    page.screenshot(path=str(path), full_page=True)
+    if SCREENSHOTS:
+        shutil.copy(path, Path(SCREENSHOTS) / path.name)
+
+
+def _get(url: str) -> tuple[int, dict]:
+    try:
+        with urllib.request.urlopen(url) as response:
+            return response.status, json.loads(response.read() or b"null")
+    except urllib.error.HTTPError as error:
+        return error.code, json.loads(error.read() or b"null")
+
+
+def test_a_fit_started_watched_and_stopped_in_the_page_moves_toward_the_truth(mi, tmp_path):
+    scene, references = write_kit(tmp_path / "kit")
+    out = tmp_path / "out"
+    with studio(str(scene), "--references", str(references), "--out", str(out), cwd=tmp_path) as (url, _):
+        with browser_page() as page:
+            page.goto(url)
+            page.wait_for_selector("#params tbody tr")
+            page.fill("#filter", "roughness base_color")
+            page.wait_for_function("document.querySelectorAll('#params tbody tr:not([hidden])').length === 2")
+            for key in ("mat.roughness.value", "mat.base_color.value"):
+                page.locator(f'tr[data-key="{key}"] input.tick').check()
+            page.locator('tr[data-view="1_side"] input.heldout').check()
+            page.fill("#settings input[name=iterations]", "5000")
+            page.fill("#settings input[name=still_threshold]", "0")  # runs until Stop
+            page.click("#start")
+            page.wait_for_function("Number(document.getElementById('loss-plot').dataset.points) >= 30", timeout=120_000)
+            page.wait_for_function("document.getElementById('preview-render').naturalWidth === 32")
+            page.select_option("#preview-view", "1_side")
+            _screenshot(page, tmp_path / "studio-fit.png")
+            page.click("#stop")
+            page.wait_for_selector("#downloads li >> text=params.json", timeout=120_000)
+            assert page.inner_text("#stopped").startswith("Stopped: stopped by the user")
+            assert page.locator("#trajectories canvas").count() == 2
+    params = json.loads((out / "params.json").read_text())
+    assert params["heldout"] == ["1_side"] and params["best_iteration"] > 0
+    rough = params["params"]["mat.roughness.value"][0]
+    assert abs(rough - TRUTH["rough"]) < abs(START["rough"] - TRUTH["rough"]) / 2
+    for fitted, truth, start in zip(params["params"]["mat.base_color.value"], TRUTH["colour"], START["colour"]):
+        assert abs(fitted - truth) < abs(start - truth) / 2
+    assert (out / "scene.xml").is_file() and "stopped by the user" in params["stopped"]
+
+
+def test_a_capture_shows_the_stage_table_of_status_json_its_photos_and_cameras_and_runs(tiny_capture, tmp_path):
+    capture = byo_capture(tiny_capture, tmp_path / "capture")  # its cameras and mesh given: no SfM on 96 px
+    given = ["-s", "cameras.source='external'", "-s", "mesh.source='ground_truth/mesh.ply'"]
+    subprocess.run([sys.executable, "-m", "pipeline", "run", str(capture), *given, "--until", "sfm"], check=True)
+    status = subprocess.run(
+        [sys.executable, "-m", "pipeline", "status", str(capture), *given, "--json"],
+        check=True,
+        capture_output=True,
+        text=True,
+    )
+    expected = [(row["stage"], row["state"], row["reason"]) for row in json.loads(status.stdout)["stages"]]
+    with studio(str(capture), *given, cwd=tmp_path) as (url, _):
+        with browser_page() as page:
+            page.goto(url)
+            page.wait_for_selector("#stages tbody[data-loaded='1']")
+            shown = [
+                tuple(row.locator("td").nth(i).inner_text() for i in range(3))
+                for row in page.locator("#stages tbody tr").all()
+            ]
+            assert shown == expected
+            page.wait_for_selector("#view3d[data-cameras='6']")
+            assert page.locator("#photos img").count() == 6
+            page.click("#run")  # the rest of the DAG, stopped once a stage has finished
+            page.wait_for_function(
+                "/mesh\\s+[\\d.]+ s/.test(document.getElementById('run-log').textContent)", timeout=300_000
+            )
+            page.click("#run-stop")
+            page.wait_for_function(
+                "/exit code/.test(document.getElementById('run-status').textContent)", timeout=120_000
+            )
+            page.wait_for_function(
+                "document.querySelector('#stages tr[data-stage=\"mesh\"] .state').textContent === 'cached'"
+            )
+            page.wait_for_selector("#view3d-note >> text=the current mesh")
+            _screenshot(page, tmp_path / "studio-capture.png")
+
+
+def test_a_scene_mitsuba_cannot_load_shows_the_cli_message_in_the_page_and_files_stay_inside(tmp_path, mi):
+    bad = tmp_path / "bad.xml"
+    bad.write_text("<scene version='3.0.0'><shape type='nonsense'/></scene>")
+    (tmp_path / "refs").mkdir()
+    with studio(str(bad), "--references", str(tmp_path / "refs"), cwd=tmp_path) as (url, log):
+        status, session = _get(url + "api/session")
+        assert status == 200 and session["mode"] == "error"
+        assert "Mitsuba cannot load" in session["error"] and str(bad) in session["error"]
+        assert url.startswith("http://127.0.0.1:")
+    scene, references = write_kit(tmp_path / "kit")
+    with studio(str(scene), "--references", str(references), "--host", "0.0.0.0", cwd=tmp_path) as (url, log):
+        assert any("other machines can reach the studio" in line for line in log)
+        status, answer = _get(url + "api/fit/download/..%2F..%2Fkit%2Fscene%2Fscene.xml")
+        assert status in (400, 404)
+        status, answer = _get(url + "api/fit/state")
+        assert status == 200 and answer["status"] == "idle"
+
+
+def test_a_capture_another_run_holds_is_reported_not_raced(tiny_capture, tmp_path):
+    from pipeline.studio.capture_session import CaptureSession
+
+    capture = Path(shutil.copytree(tiny_capture, tmp_path / "capture"))
+    session = CaptureSession(str(capture))
+    with CaptureLock(capture, "pipeline run"):
+        assert "pipeline run" in session.stages()["locked_by"]
+        with pytest.raises(ConfigError, match="in use by pid"):
+            session.start_run()
+    assert session.stages()["locked_by"] is None
+    with pytest.raises(ConfigError, match="is not a file in"):
+        session.output_file("../capture.toml")
