@@ -153,13 +153,15 @@ class CaptureSession:
             return {"fit_stage": None, "fit_log": []}
         newest = logs[-1]
         stage = newest.parent.name.rsplit("-", 1)[0]
-        entries = []
+        entries: dict[int, dict] = {}
         for line in newest.read_text().splitlines():
             try:
-                entries.append(json.loads(line))
+                entry = json.loads(line)
             except json.JSONDecodeError:
                 break  # the line being written
-        return {"fit_stage": f"{stage} (fit {newest.name.split('.')[0]})", "fit_log": entries}
+            entries[entry["iteration"]] = entry  # a resumed fit redoes the steps after its checkpoint
+        steps = [entries[i] for i in sorted(entries)]
+        return {"fit_stage": f"{stage} (fit {newest.name.split('.')[0]})", "fit_log": steps}
 
     # What the stages made.
 

@@ -342,6 +342,10 @@ def test_an_interrupted_fit_resumes_from_its_checkpoint(mi, references, tmp_path
         )
     assert seen == [7, 8, 9, 10]  # iterations 1-6 were not redone
     assert [e["iteration"] for e in resumed.log] == list(range(1, 11))
+    # every step went into the live log as it was made (what `pipeline studio` follows),
+    # the interrupted step 7 twice
+    live = (tmp_path / "checkpoints" / "00.steps.jsonl").read_text().splitlines()
+    assert [json.loads(line)["iteration"] for line in live] == [*range(1, 8), *range(7, 11)]
     # Adam's moments came back too: the resumed trajectory is the uninterrupted one
     # (up to the run-to-run noise of Dr.Jit's parallel gradient sums).
     for name in ("base_color", "roughness"):

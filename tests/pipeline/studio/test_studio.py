@@ -105,6 +105,13 @@ def test_a_fit_started_watched_and_stopped_in_the_page_moves_toward_the_truth(mi
             page.wait_for_function("Number(document.getElementById('loss-plot').dataset.points) >= 30", timeout=120_000)
             page.wait_for_function("document.getElementById('preview-render').naturalWidth === 32")
             page.select_option("#preview-view", "1_side")
+            page.click("#pause")
+            page.wait_for_selector("#status >> text=paused")
+            steps = page.evaluate("document.getElementById('loss-plot').dataset.points")
+            page.wait_for_timeout(1500)
+            assert page.evaluate("document.getElementById('loss-plot').dataset.points") == steps
+            page.click("#pause")  # Resume
+            page.wait_for_selector("#status >> text=running")
             _screenshot(page, tmp_path / "studio-fit.png")
             page.click("#stop")
             page.wait_for_selector("#downloads li >> text=params.json", timeout=120_000)
