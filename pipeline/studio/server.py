@@ -94,10 +94,7 @@ def _fit_routes(app: FastAPI, session: FitSession) -> None:
 
     @app.get("/api/fit/preview/{kind}")
     def preview(kind: str) -> Response:
-        image = session.preview(kind)
-        if image is None:
-            return Response(status_code=204)
-        return Response(image, media_type="image/png", headers=NO_CACHE)
+        return _made(session.preview(kind), "image/png")
 
     @app.get("/api/fit/download/{name}")
     def download(name: str) -> FileResponse:
@@ -138,14 +135,18 @@ def _capture_routes(app: FastAPI, session: CaptureSession) -> None:
 
     @app.get("/api/capture/mesh.glb")
     def mesh() -> Response:
-        glb = session.mesh_glb()
-        if glb is None:
-            return Response(status_code=204)
-        return Response(glb, media_type="model/gltf-binary", headers=NO_CACHE)
+        return _made(session.mesh_glb(), "model/gltf-binary")
 
     @app.get("/output/{relative:path}")
     def output(relative: str) -> FileResponse:
         return FileResponse(session.output_file(relative), headers=NO_CACHE)
+
+
+def _made(content: bytes | None, media_type: str) -> Response:
+    """Something made on request (a preview, a mesh): 204 while there is none yet."""
+    if content is None:
+        return Response(status_code=204)
+    return Response(content, media_type=media_type, headers=NO_CACHE)
 
 
 def listening_socket(host: str, port: int) -> socket.socket:
