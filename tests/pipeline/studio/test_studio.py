@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pytest
 
+from pipeline.cli import main as cli_main
 from pipeline.core.errors import ConfigError
 from pipeline.core.lock import CaptureLock
 from tests.support.byo_capture import byo_capture
@@ -126,17 +127,17 @@ def test_a_fit_started_watched_and_stopped_in_the_page_moves_toward_the_truth(mi
     assert (out / "scene.xml").is_file() and "stopped by the user" in params["stopped"]
 
 
-def test_a_capture_shows_the_stage_table_of_status_json_its_photos_and_cameras_and_runs(tiny_capture, tmp_path):
+def test_a_capture_shows_the_stage_table_of_status_json_its_photos_and_cameras_and_runs(
+    run_stages, tiny_capture, tmp_path, capsys
+):
     capture = byo_capture(tiny_capture, tmp_path / "capture")  # its cameras and mesh given: no SfM on 96 px
-    given = ["-s", "cameras.source='external'", "-s", "mesh.source='ground_truth/mesh.ply'"]
-    subprocess.run([sys.executable, "-m", "pipeline", "run", str(capture), *given, "--until", "sfm"], check=True)
-    status = subprocess.run(
-        [sys.executable, "-m", "pipeline", "status", str(capture), *given, "--json"],
-        check=True,
-        capture_output=True,
-        text=True,
-    )
-    expected = [(row["stage"], row["state"], row["reason"]) for row in json.loads(status.stdout)["stages"]]
+    overrides = ("cameras.source='external'", "mesh.source='ground_truth/mesh.ply'")
+    given = [word for override in overrides for word in ("-s", override)]
+    run_stages(capture, "sfm", *overrides)
+    capsys.readouterr()
+    assert cli_main(["status", str(capture), *given, "--json"]) == 0
+    status = json.loads(capsys.readouterr().out)
+    expected = [(row["stage"], row["state"], row["reason"]) for row in status["stages"]]
     with studio(str(capture), *given, cwd=tmp_path) as (url, _):
         with browser_page() as page:
             page.goto(url)
@@ -163,7 +164,7 @@ def test_a_capture_shows_the_stage_table_of_status_json_its_photos_and_cameras_a
             _screenshot(page, tmp_path / "studio-capture.png")
 
 
-def test_a_scene_mitsuba_cannot_load_shows_the_cli_message_in_the_page_and_files_stay_inside(tmp_path, mi):
+def test_a_scene_mitsuba_cannot_load_shows_the_cli_message_in_the_page(tmp_path):
     bad = tmp_path / "bad.xml"
     bad.write_text("<scene version='3.0.0'><shape type='nonsense'/></scene>")
     (tmp_path / "refs").mkdir()
@@ -171,14 +172,25 @@ def test_a_scene_mitsuba_cannot_load_shows_the_cli_message_in_the_page_and_files
         status, session = _get(url + "api/session")
         assert status == 200 and session["mode"] == "error"
         assert "Mitsuba cannot load" in session["error"] and str(bad) in session["error"]
-        assert url.startswith("http://127.0.0.1:")
-    scene, references = write_kit(tmp_path / "kit")
-    with studio(str(scene), "--references", str(references), "--host", "0.0.0.0", cwd=tmp_path) as (url, log):
+        assert url.startswith("http://127.0.0.1:")  # the default address
+    with studio(str(bad), "--references", str(tmp_path / "refs"), "--host", "0.0.0.0", cwd=tmp_path) as (url, log):
         assert any("other machines can reach the studio" in line for line in log)
-        status, answer = _get(url + "api/fit/download/..%2F..%2Fkit%2Fscene%2Fscene.xml")
-        assert status in (400, 404)
-        status, answer = _get(url + "api/fit/state")
-        assert status == 200 and answer["status"] == "idle"
+
+
+def test_a_fit_offers_only_its_own_results(mi, tmp_path):
+    from pipeline.studio.fit_session import FitSession
+
+    scene, references = write_kit(tmp_path / "kit")
+    session = FitSession(scene, references, tmp_path / "out")
+    for name in ("../kit/scene/scene.xml", "params.json", "scene.xml"):  # nothing written yet
+        with pytest.raises(ConfigError, match="is not one of this fit's results"):
+            session.output_file(name)
+    with pytest.raises(ConfigError, match="fit.spp = 0 is out of range"):
+        session.options({"params": ["mat.roughness.value"], "settings": {"spp": 0}})
+    session.start({"params": ["mat.roughness.value"], "heldout": ["nope"]})  # checked in the worker, shown in the page
+    session.wait(120)
+    state = session.snapshot()
+    assert state["status"] == "failed" and state["error"].startswith("--heldout nope: no such image")
 
 
 def test_a_capture_another_run_holds_is_reported_not_raced(tiny_capture, tmp_path):
