@@ -175,9 +175,10 @@ async function load3d() {
     scene.environment = new THREE.PMREMGenerator(renderer).fromScene(new V.RoomEnvironment()).texture;
     const camera = new THREE.PerspectiveCamera(40, canvas.width / canvas.height, 0.001, 1000);
     const controls = new V.OrbitControls(camera, canvas);
-    viewer = { renderer, scene, camera, controls, group: null };
-    const tick = () => { controls.update(); renderer.render(scene, camera); canvas.dataset.rendered = "1"; requestAnimationFrame(tick); };
-    tick();
+    // drawn when something changed, not every frame: an idle page costs nothing
+    const draw = () => { renderer.render(scene, camera); canvas.dataset.rendered = "1"; };
+    controls.addEventListener("change", draw);
+    viewer = { renderer, scene, camera, controls, group: null, draw };
   }
   if (viewer.group) viewer.scene.remove(viewer.group);
   const group = new THREE.Group(); viewer.group = group; viewer.scene.add(group);
@@ -203,8 +204,9 @@ async function load3d() {
   if (!box.isEmpty()) {
     const centre = box.getCenter(new THREE.Vector3()); const size = box.getSize(new THREE.Vector3()).length() || 1;
     viewer.camera.position.copy(centre).add(new THREE.Vector3(0.6, -0.9, 0.6).multiplyScalar(size));
-    viewer.camera.up.set(0, 0, 1); viewer.controls.target.copy(centre);
+    viewer.camera.up.set(0, 0, 1); viewer.controls.target.copy(centre); viewer.controls.update();
   }
+  viewer.draw();
 }
 async function loadReport() {
   const response = await fetch("/output/report.html");
