@@ -168,13 +168,23 @@ def test_a_scene_mitsuba_cannot_load_shows_the_cli_message_in_the_page(tmp_path)
     bad = tmp_path / "bad.xml"
     bad.write_text("<scene version='3.0.0'><shape type='nonsense'/></scene>")
     (tmp_path / "refs").mkdir()
-    with studio(str(bad), "--references", str(tmp_path / "refs"), cwd=tmp_path) as (url, log):
+    with studio(str(bad), "--references", str(tmp_path / "refs"), "--host", "0.0.0.0", cwd=tmp_path) as (url, log):
+        assert any("other machines can reach the studio" in line for line in log)
         status, session = _get(url + "api/session")
         assert status == 200 and session["mode"] == "error"
         assert "Mitsuba cannot load" in session["error"] and str(bad) in session["error"]
-        assert url.startswith("http://127.0.0.1:")  # the default address
-    with studio(str(bad), "--references", str(tmp_path / "refs"), "--host", "0.0.0.0", cwd=tmp_path) as (url, log):
-        assert any("other machines can reach the studio" in line for line in log)
+
+
+def test_the_studio_listens_on_this_machine_only_unless_told():
+    from pipeline.cli.studio import StudioOptions
+    from pipeline.studio.server import listening_socket
+
+    sock = listening_socket(StudioOptions("scene.xml").host, StudioOptions("scene.xml").port)
+    try:
+        host, port = sock.getsockname()[:2]
+        assert host == "127.0.0.1" and port > 0  # a free port, taken before the server starts
+    finally:
+        sock.close()
 
 
 def test_a_fit_offers_only_its_own_results(mi, tmp_path):
