@@ -34,6 +34,11 @@ from pipeline.core.config import DEFAULT_PRESET, parse_override, preset_names
 from pipeline.core.errors import ConfigError
 from pipeline.core.lock import holder
 from pipeline.formats.cameras import read_views
+from pipeline.formats.pinhole import linear_photos, read_photos
+from pipeline.formats.scene_description import SceneDescription
+from pipeline.imaging.photo_io import read_photo
+from pipeline.render import mitsuba_variant
+from pipeline.studio.fit_session import PREVIEW_SPP, preview_images
 
 THUMBNAIL_PX = 320
 """Longer side of a photo's thumbnail."""
@@ -62,6 +67,8 @@ class CaptureSession:
         self.run_state = RunState()
         self._process: subprocess.Popen | None = None
         self._lock = threading.Lock()
+        self._render_lock = threading.Lock()  # one Dr.Jit render at a time
+        self._preview: tuple[tuple[str, int], dict[str, bytes]] | None = None
 
     @staticmethod
     def _layers(preset: str, overrides: list[str]) -> ConfigLayers:
@@ -163,6 +170,52 @@ class CaptureSession:
         steps = [entries[i] for i in sorted(entries)]
         return {"fit_stage": f"{stage} (fit {newest.name.split('.')[0]})", "fit_log": steps}
 
+    def fit_preview(self, view: str) -> dict[str, bytes] | None:
+        """The running fit stage's latest values rendered in ``view``'s scene file (the
+        scene stage's) beside its photo: render, photo and |difference| x4 (PNGs); None
+        when no fit stage is running or there is no scene yet. Values the scene file
+        cannot take as they are logged (a texture logs its mean; a shape fit logs
+        nothing) are left as the scene has them."""
+        live = self.live_fit()
+        scene_dir = self._outputs("scene").get("scene_dir")
+        if not live["fit_log"] or scene_dir is None:
+            return None
+        entry = live["fit_log"][-1]
+        wanted = (view, live["fit_stage"], entry["iteration"])
+        with self._render_lock:
+            if self._preview is not None and self._preview[0] == wanted:
+                return self._preview[1]
+            description = SceneDescription.read(scene_dir / "scene.json")
+            if view not in description.views:
+                raise ConfigError(f"no view {view} in {scene_dir / 'scene.json'}")
+            render = self._render(scene_dir / description.views[view].xml, description, entry.get("params") or {})
+            photo = read_photo(linear_photos(self._outputs("undistort")["pinhole"])[view], "linear").pixels[..., :3]
+            if photo.shape != render.shape:
+                import cv2
+
+                photo = cv2.resize(photo, render.shape[1::-1], interpolation=cv2.INTER_AREA)
+            self._preview = (wanted, preview_images(render, photo))
+            return self._preview[1]
+
+    @staticmethod
+    def _render(view_xml: Path, description: SceneDescription, values: dict[str, list[float]]) -> np.ndarray:
+        mitsuba_variant.activate("auto")
+        import mitsuba as mi
+
+        scene = mi.load_file(str(view_xml))
+        params = mi.traverse(scene)
+        for name, value in values.items():
+            parameter = description.parameters.get(name)
+            if parameter is None or parameter.key not in params:
+                continue
+            kind = type(params[parameter.key])
+            if kind is mi.Color3f and len(value) == 3:
+                params[parameter.key] = mi.Color3f(*value)
+            elif kind is mi.Float and len(value) == 1:
+                params[parameter.key] = mi.Float(value[0])
+        params.update()
+        return np.asarray(mi.render(scene, spp=PREVIEW_SPP), dtype=np.float32)[..., :3]
+
     # What the stages made.
 
     def _outputs(self, stage: str) -> dict[str, Path]:
@@ -170,20 +223,26 @@ class CaptureSession:
         item = plan.get(stage)
         return item.entry.outputs if item is not None and item.entry is not None else {}
 
+    def _photos(self) -> dict[str, dict]:
+        pinhole = self._outputs("undistort").get("pinhole")
+        return read_photos(pinhole) if pinhole is not None else {}
+
     def photos(self) -> list[str]:
-        folder = self._outputs("undistort").get("undistorted")
-        return sorted(path.stem for path in folder.glob("*.png")) if folder else []
+        """The undistorted photos' names (as images/ has them)."""
+        return sorted(self._photos())
 
     def photo(self, name: str) -> bytes:
-        """A photo's thumbnail (undistorted), its mask's outside darkened when there is one."""
+        """A photo's thumbnail (undistorted), its mask's outside tinted when there is one."""
         import cv2
 
-        if name not in self.photos():
+        photos = self._photos()
+        if name not in photos:
             raise ConfigError(f"no undistorted photo {name} in {self.folder} (run the undistort stage)")
-        image = cv2.imread(str(self._outputs("undistort")["undistorted"] / f"{name}.png"), cv2.IMREAD_COLOR)
+        image = cv2.imread(str(photos[name]["srgb"]), cv2.IMREAD_COLOR)
         masks = self._outputs("masks").get("masks")
-        if masks is not None and (masks / f"{name}.png").is_file():
-            mask = cv2.imread(str(masks / f"{name}.png"), cv2.IMREAD_GRAYSCALE)
+        mask_file = masks / f"{Path(name).stem}.png" if masks is not None else None
+        if mask_file is not None and mask_file.is_file():
+            mask = cv2.imread(str(mask_file), cv2.IMREAD_GRAYSCALE)
             if mask is not None and mask.shape == image.shape[:2]:
                 outside = mask < 128
                 image[outside] = (image[outside] * 0.25 + np.array([120, 0, 0]) * 0.75).astype(np.uint8)

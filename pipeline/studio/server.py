@@ -121,6 +121,11 @@ def _capture_routes(app: FastAPI, session: CaptureSession) -> None:
     def run_state(since: int = Query(0, ge=0)) -> JSONResponse:
         return JSONResponse(session.run_snapshot(since), headers=NO_CACHE)
 
+    @app.get("/api/capture/fit-preview/{kind}")
+    def fit_preview(kind: str, view: str) -> Response:
+        images = session.fit_preview(view)
+        return _made(images.get(kind) if images else None, "image/png")
+
     @app.get("/api/capture/photos")
     def photos() -> dict[str, Any]:
         return {"photos": session.photos()}

@@ -123,7 +123,7 @@ function setupFit(info) {
 }
 
 // ---- a capture ----
-let runLine = 0, viewer = null, wasRunning = false;
+let runLine = 0, viewer = null, wasRunning = false, stagePreviewAt = 0, stagePreviewKey = "";
 
 function overrides() { return $("overrides").value.split("\n").map(s => s.trim()).filter(Boolean); }
 async function refreshStages() {
@@ -152,13 +152,29 @@ async function pollRun() {
     if (state.fit_stage) {
       plotLines($("stage-loss-plot"), lossSeries(state.fit_log), { log: true, xlabel: "step" });
       plotTrajectories($("stage-trajectories"), state.fit_log);
+      refreshStagePreview(state);
     }
     if (wasRunning && !state.running) refreshAll();  // a run ended: its stages, photos, mesh and report
     wasRunning = state.running;
   } catch (e) { showError(e.message); }
 }
+// The running fit's latest values rendered in one photo's view: every 10 s at most
+// (each is a render beside the run), and when another view is picked.
+function refreshStagePreview(state) {
+  const view = $("stage-view").value;
+  if (!view || !state.fit_log.length) return;
+  const key = `${view}/${state.fit_stage}/${state.fit_log[state.fit_log.length - 1].iteration}`;
+  if (key === stagePreviewKey || (Date.now() - stagePreviewAt < 10000 && stagePreviewKey.startsWith(view + "/"))) return;
+  stagePreviewKey = key; stagePreviewAt = Date.now();
+  const query = `view=${encodeURIComponent(view)}&v=${encodeURIComponent(key)}`;
+  $("stage-render").onload = () => { for (const kind of ["photo", "difference"]) $(`stage-${kind}`).src = `/api/capture/fit-preview/${kind === "photo" ? "reference" : kind}?${query}`; };
+  $("stage-render").src = `/api/capture/fit-preview/render?${query}`;
+}
 async function loadPhotos() {
   const { photos } = await api("/api/capture/photos");
+  const select = $("stage-view"), chosen = select.value; select.replaceChildren();
+  photos.forEach(name => select.add(new Option(name, name)));
+  if (photos.includes(chosen)) select.value = chosen;
   const box = $("photos"); box.replaceChildren();
   for (const name of photos) {
     const figure = document.createElement("figure"); const img = document.createElement("img");

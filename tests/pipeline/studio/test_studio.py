@@ -215,3 +215,34 @@ def test_a_capture_another_run_holds_is_reported_not_raced(tiny_capture, tmp_pat
     assert session.stages()["locked_by"] is None
     with pytest.raises(ConfigError, match="is not a file in"):
         session.output_file("../capture.toml")
+
+
+def test_a_running_fit_stage_is_rendered_with_its_latest_values_beside_the_photo(run_stages, tiny_capture, tmp_path):
+    """The studio reads a stage's fit from the live log its checkpoint keeps; here one is
+    written by hand, as the fit loop writes it, into the scene stage's results."""
+    import cv2
+    import numpy as np
+
+    from pipeline.formats.scene_description import SceneDescription
+    from pipeline.studio.capture_session import CaptureSession
+
+    capture = byo_capture(tiny_capture, tmp_path / "capture")
+    overrides = ("cameras.source='external'", "mesh.source='ground_truth/mesh.ply'")
+    outputs = run_stages(capture, "scene", *overrides)
+    description = SceneDescription.read(outputs["scene"]["scene_dir"] / "scene.json")
+    name = next(n for n, p in description.parameters.items() if len(p.value) == 3)  # the base colour
+    view = sorted(description.views)[0]
+    session = CaptureSession(str(capture), overrides=overrides)
+    assert session.fit_preview(view) is None  # no fit running
+    live = capture / ".pipeline" / "checkpoints" / "fit_material-0123456789abcdef" / "00.steps.jsonl"
+    live.parent.mkdir(parents=True)
+    means = []
+    for iteration, colour in enumerate(([0.9, 0.1, 0.1], [0.1, 0.1, 0.9]), start=1):
+        with live.open("a") as f:
+            f.write(json.dumps({"iteration": iteration, "loss": 0.1, "params": {name: colour}}) + "\n")
+        images = session.fit_preview(view)
+        assert set(images) == {"render", "reference", "difference"}
+        render = cv2.imdecode(np.frombuffer(images["render"], np.uint8), cv2.IMREAD_COLOR)
+        means.append(render.reshape(-1, 3).mean(axis=0))  # BGR
+    assert means[0][2] > means[1][2] and means[1][0] > means[0][0]  # red, then blue
+    assert session.run_snapshot()["fit_stage"] == "fit_material (fit 00)"
