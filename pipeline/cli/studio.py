@@ -41,18 +41,31 @@ class StudioOptions:
     """Print the address instead of opening the browser."""
 
 
-def _session(options: StudioOptions):
-    from pipeline.studio.capture_session import CaptureSession
-    from pipeline.studio.fit_session import FitSession
-
+def _check_target(options: StudioOptions) -> None:
+    """What the command line names must exist: nothing to show otherwise."""
     target = Path(options.target)
     if target.is_dir():
-        return CaptureSession(options.target, options.config.preset, options.config.set)
+        return
     if target.suffix.lower() != ".xml" or not target.is_file():
         raise ConfigError(f"{target} is neither a capture folder nor a Mitsuba scene file (.xml)")
     if not options.references:
         raise ConfigError("pipeline studio SCENE.xml needs --references DIR (one image per sensor)")
-    return FitSession(target, Path(options.references), Path(options.out), options.variant)
+
+
+def _session(options: StudioOptions):
+    """The session the page shows, and why it has none: a capture whose settings are
+    wrong ends the command (the CLI's message, exit 2); a scene or reference folder the
+    fit cannot open is shown in the page, where the user is looking."""
+    from pipeline.studio.capture_session import CaptureSession
+    from pipeline.studio.fit_session import FitSession
+
+    if Path(options.target).is_dir():
+        return CaptureSession(options.target, options.config.preset, options.config.set), None
+    try:
+        return FitSession(Path(options.target), Path(options.references), Path(options.out), options.variant), None
+    except PipelineError as failure:
+        logger.error("%s", failure)
+        return None, str(failure)
 
 
 @command("studio", StudioOptions, "fit a scene interactively, or watch and run a capture, in the browser")
@@ -65,11 +78,8 @@ def studio(options: StudioOptions) -> int:
             "start runs; use only on a network you trust",
             options.host,
         )
-    try:
-        session, error = _session(options), None
-    except PipelineError as failure:  # shown in the page as well, where the user looks
-        session, error = None, str(failure)
-        logger.error("%s", failure)
+    _check_target(options)
+    session, error = _session(options)
     try:
         sock = listening_socket(options.host, options.port)
     except OSError as failure:

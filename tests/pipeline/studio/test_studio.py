@@ -175,6 +175,14 @@ def test_a_scene_mitsuba_cannot_load_shows_the_cli_message_in_the_page(tmp_path)
         assert "Mitsuba cannot load" in session["error"] and str(bad) in session["error"]
 
 
+def test_a_target_that_is_neither_scene_nor_capture_ends_at_once(tmp_path, capsys):
+    assert cli_main(["studio", str(tmp_path / "nope.xml"), "--no-browser"]) == 2
+    assert cli_main(["studio", str(tmp_path), "--no-browser", "--preset", "nope"]) == 2  # nothing to show either
+    (tmp_path / "scene.xml").write_text("<scene version='3.0.0'/>")
+    assert cli_main(["studio", str(tmp_path / "scene.xml"), "--no-browser"]) == 2  # no --references
+    assert "needs --references DIR" in capsys.readouterr().err
+
+
 def test_the_studio_listens_on_this_machine_only_unless_told():
     from pipeline.cli.studio import StudioOptions
     from pipeline.studio.server import listening_socket
