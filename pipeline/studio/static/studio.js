@@ -96,6 +96,7 @@ async function pollFit() {
     plotTrajectories($("trajectories"), log);
     if (state.preview_version !== previewVersion) {
       previewVersion = state.preview_version;
+      $("preview-images").hidden = previewVersion === 0;
       for (const kind of ["render", "reference", "difference"]) $(`preview-${kind}`).src = `/api/fit/preview/${kind}?v=${previewVersion}`;
     }
     $("stopped").textContent = state.stopped ? `Stopped: ${state.stopped}` : "";
@@ -167,7 +168,7 @@ function refreshStagePreview(state) {
   if (key === stagePreviewKey || (Date.now() - stagePreviewAt < 10000 && stagePreviewKey.startsWith(view + "/"))) return;
   stagePreviewKey = key; stagePreviewAt = Date.now();
   const query = `view=${encodeURIComponent(view)}&v=${encodeURIComponent(key)}`;
-  $("stage-render").onload = () => { for (const kind of ["photo", "difference"]) $(`stage-${kind}`).src = `/api/capture/fit-preview/${kind === "photo" ? "reference" : kind}?${query}`; };
+  $("stage-render").onload = () => { $("stage-images").hidden = false; for (const kind of ["photo", "difference"]) $(`stage-${kind}`).src = `/api/capture/fit-preview/${kind === "photo" ? "reference" : kind}?${query}`; };
   $("stage-render").src = `/api/capture/fit-preview/render?${query}`;
 }
 async function loadPhotos() {
