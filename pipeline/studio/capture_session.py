@@ -38,7 +38,7 @@ from pipeline.formats.pinhole import linear_photos, read_photos
 from pipeline.formats.scene_description import SceneDescription
 from pipeline.imaging.photo_io import read_photo
 from pipeline.render import mitsuba_variant
-from pipeline.studio.fit_session import PREVIEW_SPP, preview_images
+from pipeline.studio.fit_session import PREVIEW_SPP, finite, preview_images
 
 THUMBNAIL_PX = 320
 """Longer side of a photo's thumbnail."""
@@ -166,7 +166,7 @@ class CaptureSession:
                 entry = json.loads(line)
             except json.JSONDecodeError:
                 break  # the line being written
-            entries[entry["iteration"]] = entry  # a resumed fit redoes the steps after its checkpoint
+            entries[entry["iteration"]] = finite(entry)  # a resumed fit redoes the steps after its checkpoint
         steps = [entries[i] for i in sorted(entries)]
         return {"fit_stage": f"{stage} (fit {newest.name.split('.')[0]})", "fit_log": steps}
 

@@ -16,7 +16,6 @@ budget; a preview costs a render of one view (a kernel compile the first time).
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import json
 import re
@@ -279,7 +278,7 @@ class FitSession(FitWatcher):
 
     def step(self, entry: dict) -> str | None:
         with self._lock:
-            self.state.log.append(_plain(entry))
+            self.state.log.append(finite(entry))
             due = self._preview_due or entry["iteration"] % self.preview_every == 0
         if due:
             self._render_preview(entry["iteration"])
@@ -327,6 +326,13 @@ def preview_images(render: np.ndarray, reference: np.ndarray) -> dict[str, bytes
     return {"render": png(render), "reference": png(reference), "difference": png(difference)}
 
 
-def _plain(entry: dict) -> dict:
-    """A log entry with numbers Python's JSON writes (NaN and inf as None)."""
-    return copy.deepcopy({k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in entry.items()})
+def finite(value: Any) -> Any:
+    """``value`` (a log entry) with every NaN and infinity as None: what JSON can carry to
+    the page (a step's loss can be NaN when every gradient of a step was dropped)."""
+    if isinstance(value, dict):
+        return {key: finite(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [finite(item) for item in value]
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value

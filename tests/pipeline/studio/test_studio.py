@@ -254,3 +254,14 @@ def test_a_running_fit_stage_is_rendered_with_its_latest_values_beside_the_photo
         means.append(render.reshape(-1, 3).mean(axis=0))  # BGR
     assert means[0][2] > means[1][2] and means[1][0] > means[0][0]  # red, then blue
     assert session.run_snapshot()["fit_stage"] == "fit_material (fit 00)"
+
+
+def test_a_step_logged_with_nan_reaches_the_page_as_json():
+    from pipeline.studio.fit_session import finite
+
+    entry = {"iteration": 3, "loss": float("nan"), "params": {"a": [float("inf"), 0.5]}}
+    assert json.loads(json.dumps(finite(entry), allow_nan=False)) == {
+        "iteration": 3,
+        "loss": None,
+        "params": {"a": [None, 0.5]},
+    }
