@@ -6,7 +6,7 @@ view, Pause, Resume and Stop.
 Every Dr.Jit call runs in the worker thread (the fit and its previews); the server's
 threads read only what the worker published under the session's lock. A preview is
 rendered between two steps, with the values of the step just taken, at
-``PREVIEW_SPP``, every ``preview_every`` steps and when the page picks another view.
+``PREVIEW_SPP``, every ``PREVIEW_EVERY`` steps and when the page picks another view.
 Stop ends the fit as its own stopping rule would: in the best state, whose values
 are written (scene, params.json, log.jsonl, loss.png) as `pipeline fit` writes them.
 
@@ -45,6 +45,8 @@ from pipeline.imaging.photo_io import list_photos, srgb_encode
 
 PREVIEW_SPP = 16
 """Samples per pixel of a preview render: enough to judge a material by eye."""
+PREVIEW_EVERY = 5
+"""Steps between two previews of the view the page shows (each costs a render)."""
 PAGE_OPTIONS = ("max_size", "coarse_to_fine", "lr")
 """`pipeline fit`'s options the page sets besides the loop's settings (the scene, the
 references, the output folder and the variant come from the command line; the
@@ -130,7 +132,6 @@ class FitSession(FitWatcher):
         self._preview_view = self.reference_names[0]
         self._preview_due = True
         self._previews: dict[str, bytes] = {}
-        self.preview_every = 5
 
     # The page's requests (server threads).
 
@@ -178,7 +179,9 @@ class FitSession(FitWatcher):
             raise ConfigError(f"{unknown[0]} is not a fittable parameter of {self.scene}")
         settings = dict(form.get("settings") or {})
         loop = build_section("fit", FitSettings, {k: v for k, v in settings.items() if k not in PAGE_OPTIONS})
-        bounds = tuple(f"{key}={lo}:{hi}" for key, (lo, hi) in (form.get("bounds") or {}).items() if key in keys)
+        spans = (form.get("bounds") or {}).items()
+        bounds = tuple(f"{key}={':'.join(str(v) for v in span)}" for key, span in spans if key in keys)
+        engine.parse_bounds(bounds, "bounds")  # a bad pair ends here, with the command line's message
         values = {k: v for k, v in settings.items() if k in PAGE_OPTIONS}
         return build_section(
             "fit",
@@ -279,7 +282,7 @@ class FitSession(FitWatcher):
     def step(self, entry: dict) -> str | None:
         with self._lock:
             self.state.log.append(finite(entry))
-            due = self._preview_due or entry["iteration"] % self.preview_every == 0
+            due = self._preview_due or entry["iteration"] % PREVIEW_EVERY == 0
         if due:
             self._render_preview(entry["iteration"])
         while not self._running.wait(0.2):

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from pipeline.cli import main as cli_main
-from pipeline.core.errors import ConfigError
+from pipeline.core.errors import ConfigError, PipelineError
 from pipeline.core.lock import CaptureLock
 from tests.support.byo_capture import byo_capture
 from tests.support.studio_kit import START, TRUTH, write_kit
@@ -205,6 +205,8 @@ def test_a_fit_offers_only_its_own_results(mi, tmp_path):
             session.output_file(name)
     with pytest.raises(ConfigError, match="fit.spp = 0 is out of range"):
         session.options({"params": ["mat.roughness.value"], "settings": {"spp": 0}})
+    with pytest.raises(PipelineError, match="has lower >= upper"):
+        session.options({"params": ["mat.roughness.value"], "bounds": {"mat.roughness.value": [0.9, 0.1]}})
     session.start({"params": ["mat.roughness.value"], "heldout": ["nope"]})  # checked in the worker, shown in the page
     session.wait(120)
     state = session.snapshot()
