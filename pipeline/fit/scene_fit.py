@@ -177,7 +177,7 @@ def describe_parameters(scene_path: Path, variant: str) -> list[dict]:
     return rows
 
 
-def _set_values(scene_values, values: dict) -> None:
+def set_values(scene_values, values: dict) -> None:
     """The fitted ``values`` (lists by key) into a traversed scene."""
     for key, value in values.items():
         kind = type(scene_values[key])
@@ -336,7 +336,7 @@ def fit_scene(request: SceneFit, watcher: FitWatcher | None = None) -> Path:
             start = {p.key: np.ravel(np.asarray(scene_values[p.key])).tolist() for p in parameters}
             logger.info("fitting %s on %d views", ", ".join(p.key for p in parameters), len(full_sizes))
         else:
-            _set_values(scene_values, result.values)
+            set_values(scene_values, result.values)
         views = _views(scene, scene_path, references, integrator, full_sizes)
         training, heldout = _split_heldout(views, request.heldout, references)
         if len(levels) > 1:

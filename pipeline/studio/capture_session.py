@@ -33,6 +33,7 @@ from pipeline.cli.stages import make_runner, status_summary
 from pipeline.core.config import DEFAULT_PRESET, parse_override, preset_names
 from pipeline.core.errors import ConfigError
 from pipeline.core.lock import holder
+from pipeline.fit.scene_fit import set_values
 from pipeline.formats.cameras import read_views
 from pipeline.formats.pinhole import linear_photos, read_photos
 from pipeline.formats.scene_description import SceneDescription
@@ -68,6 +69,8 @@ class CaptureSession:
         self._process: subprocess.Popen | None = None
         self._lock = threading.Lock()
         self._render_lock = threading.Lock()  # one Dr.Jit render at a time
+        self._results: dict[str, dict[str, Path]] | None = None
+        """Each stage's current results, planned once per stage table (not per thumbnail)."""
         self._preview: tuple[tuple[str, int], dict[str, bytes]] | None = None
 
     @staticmethod
@@ -95,6 +98,7 @@ class CaptureSession:
         the capture's lock."""
         if preset is not None:
             self.layers = self._layers(preset, overrides or [])
+        self._results = None  # the page reloads what the stages made after its table
         return status_summary(self._runner()) | {"locked_by": holder(self.folder)}
 
     # A run.
@@ -204,24 +208,27 @@ class CaptureSession:
 
         scene = mi.load_file(str(view_xml))
         params = mi.traverse(scene)
-        for name, value in values.items():
-            parameter = description.parameters.get(name)
-            if parameter is None or parameter.key not in params:
-                continue
-            kind = type(params[parameter.key])
-            if kind is mi.Color3f and len(value) == 3:
-                params[parameter.key] = mi.Color3f(*value)
-            elif kind is mi.Float and len(value) == 1:
-                params[parameter.key] = mi.Float(value[0])
-        params.update()
+        plain = {mi.Color3f: 3, mi.Float: 1}  # what a logged value can be written into
+        keys = {name: description.parameters[name].key for name in values if name in description.parameters}
+        set_values(
+            params,
+            {
+                key: values[name]
+                for name, key in keys.items()
+                if key in params and plain.get(type(params[key])) == len(values[name])
+            },
+        )
         return np.asarray(mi.render(scene, spp=PREVIEW_SPP), dtype=np.float32)[..., :3]
 
     # What the stages made.
 
     def _outputs(self, stage: str) -> dict[str, Path]:
-        plan = {item.stage.name: item for item in self._runner().plan()}
-        item = plan.get(stage)
-        return item.entry.outputs if item is not None and item.entry is not None else {}
+        """The stage's current results ({} when it has none); planned again when it had
+        none, since a run may have made them since."""
+        if self._results is None or stage not in self._results:
+            plan = self._runner().plan()
+            self._results = {item.stage.name: item.entry.outputs for item in plan if item.entry is not None}
+        return self._results.get(stage, {})
 
     def _photos(self) -> dict[str, dict]:
         pinhole = self._outputs("undistort").get("pinhole")
