@@ -147,10 +147,10 @@ def orbit_capture(tmp_path_factory) -> Path:
     )
 
 
-def pytest_collection_modifyitems(items):
+def pytest_itemcollected(item):
     """Under pytest-xdist (``-n 2 --dist loadgroup``, as bin/test runs), the tests of the
     shared bundled bird run on one worker, whose cache lets each run only the stages it
-    adds; the rest spread over the workers."""
-    for item in items:
-        if "bird_capture" in getattr(item, "fixturenames", ()):
-            item.add_marker(pytest.mark.xdist_group("bird"))
+    adds; the rest spread over the workers. Marked as each test is collected: xdist tags
+    the grouped tests in its own pytest_collection_modifyitems, called before this file's."""
+    if "bird_capture" in getattr(item, "fixturenames", ()):
+        item.add_marker(pytest.mark.xdist_group("bird"))
