@@ -30,7 +30,9 @@ offset removed) and the centres' RMS as a fraction of the circle's radius. "with
 counts the photos whose viewing direction is within a degree, over all photos of the
 capture. "stacked" counts placed photos within 0.1 degrees of another placed photo's
 direction whose true directions are more than half a step apart. "angle std" is the
-uncertainty the solver reports for each placed photo (sfm.json).
+uncertainty the solver reports for each placed photo (sfm.json). "masks": the segmenter
+the masks stage used, and for a synthetic capture the masks' mean / least IoU against the
+true masks, for a real one their mean / largest coverage of the photo.
 
 temple-ring's reference (reference/templeR_par.txt, Middlebury's K [R t]) fits the photos as
 published only when turned by 90 degrees (u' = v, v' = 639 - u); the 16 photos from the
@@ -54,7 +56,7 @@ import numpy as np
 from bench.common import ROOT, machine, write_section
 from pipeline.camera.model import Pose
 from pipeline.formats.cameras import read_cameras
-from pipeline.synthetic.score import score_cameras
+from pipeline.synthetic.score import score_cameras, score_masks
 
 TURN = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 """The reference camera's axes turned about its optical axis: x' = y, y' = -x."""
@@ -258,6 +260,27 @@ def calibration_summary(report: dict) -> str:
     )
 
 
+def _newest_entry(capture: Path, stage: str) -> Path:
+    """The stage's latest cache entry (each case runs once, under one configuration)."""
+    entries = (capture / ".pipeline" / "cache" / stage).glob("[!.]*/status.json")
+    return max(entries, key=lambda p: p.stat().st_mtime).parent
+
+
+def mask_summary(capture: Path) -> str:
+    """The masks stage's segmenter and, against the truth (synthetic captures), the masks'
+    mean and least IoU; for a real capture, their mean and largest coverage."""
+    masks_json = _newest_entry(capture, "masks") / "masks.json"
+    entries = json.loads(masks_json.read_text())["images"].values()
+    status = json.loads((masks_json.parent / "status.json").read_text())
+    segmenter = status.get("metrics", {}).get("segmenter") or json.loads(masks_json.read_text())["source"]
+    if (capture / "ground_truth" / "masks").is_dir():
+        pinhole = _newest_entry(capture, "undistort") / "pinhole.json"
+        scores = list(score_masks(capture / "ground_truth", pinhole, masks_json).values())
+        return f"{segmenter}: IoU {np.mean(scores):.2f} / {np.min(scores):.2f}"
+    coverage = [100 * entry["coverage"] for entry in entries]
+    return f"{segmenter}: covers {np.mean(coverage):.0f} / {np.max(coverage):.0f} %"
+
+
 def run_case(case: Case, captures: Path, work: Path) -> dict:
     """Run sfm on the case and score it: a dict of the table's cells."""
     capture = prepare(case, captures, work)
@@ -290,6 +313,7 @@ def run_case(case: Case, captures: Path, work: Path) -> dict:
         "calibration": calibration_summary(report),
         "angle_std": list(circular.get("angle_std_deg", {}).values()),
     }
+    row["masks"] = mask_summary(capture)
     circle_truth, direction_truth = references(case, captures, capture)
     if direction_truth is not None:
         errors = direction_errors(poses, direction_truth)
@@ -311,7 +335,7 @@ def table_row(row: dict, description: str) -> str:
         return f"{value[0]:.2f} / {value[1]:.2f}{unit}" if value else "-"
 
     if not row["finished"]:
-        return f"| {row['case']} | {description} | {row['photos']} | failed: {row['error']} ||||||| {row['seconds']:.0f} s |"
+        return f"| {row['case']} | {description} | {row['photos']} | failed: {row['error']} |||||||| {row['seconds']:.0f} s |"
     std = np.array(row["angle_std"])
     std_cell = f"{np.median(std):.2f} / {std.max():.2f} deg" if len(std) else "-"
     by = ", ".join(f"{k} {v}" for k, v in row["by"].items())
@@ -320,14 +344,14 @@ def table_row(row: dict, description: str) -> str:
     return (
         f"| {row['case']} | {description} | {row['photos']} | {row['placed']} ({by}) | {within} | "
         f"{row.get('stacked', '-')} | {pair(row.get('direction'))} | {pair(row.get('angle'))} | {centre} | "
-        f"{std_cell} | {row['calibration']} | {row['seconds']:.0f} s |"
+        f"{std_cell} | {row['calibration']} | {row['masks']} | {row['seconds']:.0f} s |"
     )
 
 
 HEADER = (
     "| capture | what | photos | placed (by) | within 1 deg | stacked | direction error median / max | "
     "turn angle error median / max | centres (RMS, % of radius) | angle std median / max | "
-    "intrinsics (self-calibration) | sfm |\n|---|---|---|---|---|---|---|---|---|---|---|---|"
+    "intrinsics (self-calibration) | masks | sfm |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|"
 )
 
 

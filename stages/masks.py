@@ -10,10 +10,15 @@ Where the masks come from, first match wins (``masks.source = "auto"``):
    single plate uses it for all its photos (a fixed camera, e.g. a turntable).
    Pixels differing from the plate by more than the noise are specimen; GrabCut
    settles shadows and colours that match the set.
-3. Automatic segmentation, ``masks.segmenter``: ``neutral_backdrop`` for a specimen
-   on a grey, white or black set (the printed board included): greyness says
-   backdrop, colour says specimen, GrabCut decides the rest; ``centre_prior`` for
-   anything else: GrabCut seeded with the specimen near the image centre.
+3. Automatic segmentation, ``masks.segmenter``: ``set_colours`` for a turntable or a
+   ring without the printed board (the default there): the colours along the borders
+   of most photos are the set's, whatever they are, and for a turntable's fixed camera
+   the pixels that stay as they are while the specimen turns are too (the room);
+   ``neutral_backdrop`` for a specimen on a grey, white or black set (the default
+   otherwise, the printed board included, which turns with the specimen): greyness
+   says backdrop, colour says specimen; ``centre_prior`` for anything else: GrabCut
+   seeded with the specimen near the image centre. GrabCut decides what the evidence
+   leaves open.
 
 Every mask is then cleaned: components smaller than a fraction of the largest are
 removed, and holes smaller than ``max_hole_fraction`` of the silhouette filled (specimen
@@ -30,7 +35,9 @@ masks.json          per photo: source, foreground fraction, whether it touches
 ==================  ============================================================
 
 Limitations: the automatic segmenters rely on colour. A white specimen on a white
-table (or a grey one on a grey board) needs a background plate or user masks;
+table (or a grey one on a grey board) needs a background plate or user masks, and so
+does a specimen that shares its colour with the set; the specimen's shadow on a
+coloured table may be taken with it (the mesh stage cuts the hull at the table).
 ``pipeline check`` reports masks that cover almost nothing or almost everything.
 """
 
@@ -53,7 +60,15 @@ from pipeline.core.stage import Stage, StageInputs, StageResult
 from pipeline.formats.masks import write_masks
 from pipeline.formats.pinhole import read_camera_settings, read_photos
 from pipeline.imaging.photo_io import read_photo, warn_unread
-from pipeline.imaging.segmentation import chroma, clean, read_user_mask, segment, segment_plate_difference
+from pipeline.imaging.segmentation import (
+    FixedSet,
+    chroma,
+    clean,
+    read_user_mask,
+    resolve_segmenter,
+    segment,
+    segment_plate_difference,
+)
 
 
 @dataclass(frozen=True)
@@ -63,10 +78,13 @@ class Config:
     source: Literal["auto", "user", "background", "segment"] = "auto"
     """auto: masks/ if present, else background/ plates if present, else segmentation.
     The others force one source (and fail if its files are missing)."""
-    segmenter: Literal["neutral_backdrop", "centre_prior"] = "neutral_backdrop"
-    """Automatic method. neutral_backdrop: the set (table, board, sweep) is grey, white
-    or black and the specimen is more colourful. centre_prior: GrabCut with the specimen
-    near the centre, for coloured sets."""
+    segmenter: Literal["auto", "set_colours", "neutral_backdrop", "centre_prior"] = "auto"
+    """Automatic method. set_colours: the colours along the borders of most photos are the
+    set's (and, on a turntable, what stays still while the specimen turns). neutral_backdrop:
+    the set (table, board, sweep) is grey, white or black and the specimen is more colourful.
+    centre_prior: GrabCut with the specimen near the centre. auto: set_colours for a
+    turntable or ring without the printed board (board.kind = none: one set frames every
+    photo), else neutral_backdrop."""
     backdrop_chroma: Annotated[float, Range(0.0, 1.0, exclusive_lo=True)] = 0.04
     """neutral_backdrop: spread of the 8-bit sRGB channels (as a fraction of 255) below
     which a pixel is surely backdrop; twice this is probably backdrop, three times surely
@@ -129,12 +147,43 @@ def _choose_source(conf: Config, user_masks: bool, plates: bool) -> str:
     return "user" if user_masks else "background" if plates else "segment"
 
 
-def _mask(
-    conf: Config, source: str, name: str, photo: dict, camera: dict, user_mask: Path | None, plate: dict | None
-) -> np.ndarray:
+@dataclass(frozen=True)
+class _Source:
+    """Where step 2 takes each photo's mask from."""
+
+    kind: str
+    """user, background or segment."""
+    segmenter: str
+    """The automatic segmenter (resolved; segment only)."""
+    user_masks: dict[str, Path]
+    plates: dict[str, dict]
+    fixed_sets: dict[str, tuple[FixedSet, int]]
+    """set_colours: each photo's camera setting's set and the photo's index in it."""
+
+
+def _learn_fixed_sets(conf: Config, photos: dict[str, dict], rig: str) -> dict[str, tuple[FixedSet, int]]:
+    """set_colours: the set of each camera setting, learned from all of its photos."""
+    fixed_sets = {}
+    for camera in sorted({photo["camera"] for photo in photos.values()}):
+        names = [name for name, photo in photos.items() if photo["camera"] == camera]
+        srgb = [cv2.cvtColor(cv2.imread(str(photos[n]["srgb"])), cv2.COLOR_BGR2RGB) for n in names]
+        learned = FixedSet.learn(srgb, conf.working_size, camera_fixed=rig == "turntable")
+        logger.info(
+            "camera setting %d: %d set colours (noise %.1f)%s",
+            camera,
+            len(learned.colours.colours),
+            learned.colours.noise,
+            ", still pixels of the fixed camera" if learned.still is not None else "",
+        )
+        fixed_sets |= {name: (learned, index) for index, name in enumerate(names)}
+    return fixed_sets
+
+
+def _mask(conf: Config, source: _Source, name: str, photo: dict, camera: dict) -> np.ndarray:
     """One photo's mask from the chosen source, cleaned."""
     target = Intrinsics.from_json(camera["intrinsics"])
-    if source == "user":
+    if source.kind == "user":
+        user_mask = source.user_masks[name]
         drawn = read_user_mask(user_mask)
         source_camera = Intrinsics.from_json(camera["source"])
         if drawn.shape != (source_camera.height, source_camera.width):
@@ -143,11 +192,11 @@ def _mask(
                 f"{source_camera.width}x{source_camera.height}: draw the mask on the original photo"
             )
         mask = undistort(drawn.astype(np.float32), source_camera, target) >= 0.5
-    elif source == "background":
+    elif source.kind == "background":
         linear = read_photo(photo["linear"]).pixels
         mask = segment_plate_difference(
             linear,
-            read_photo(plate["linear"]).pixels,
+            read_photo(source.plates[name]["linear"]).pixels,
             conf.background_threshold,
             conf.grabcut_iterations,
             conf.working_size,
@@ -155,7 +204,13 @@ def _mask(
     else:
         srgb = cv2.cvtColor(cv2.imread(str(photo["srgb"])), cv2.COLOR_BGR2RGB)  # undistort's 8-bit copy
         mask = segment(
-            srgb, conf.segmenter, conf.backdrop_chroma, conf.centre_fraction, conf.grabcut_iterations, conf.working_size
+            srgb,
+            source.segmenter,
+            conf.backdrop_chroma,
+            conf.centre_fraction,
+            conf.grabcut_iterations,
+            conf.working_size,
+            source.fixed_sets.get(name),
         )
     return clean(mask, conf.min_component_fraction, conf.max_hole_fraction)
 
@@ -200,49 +255,63 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     cameras = read_camera_settings(pinhole_json)
     warn_unread(inputs.capture_dir / "masks", "mask")
     has_user_masks = any(p.parent == inputs.capture_dir / "masks" for p in inputs.files)
-    source = _choose_source(conf, has_user_masks, bool(plates))
-    user_masks = _user_masks(inputs.capture_dir, inputs.files, photos) if source == "user" else {}
-    plate_of = _plates_for(photos, plates) if source == "background" else {}
-    logger.info("masks from %s", {"user": "masks/", "background": "background plates"}.get(source, conf.segmenter))
-    if source == "segment":
-        _refuse_grayscale(photos, conf.segmenter)
+    kind = _choose_source(conf, has_user_masks, bool(plates))
+    segmenter = resolve_segmenter(conf.segmenter, inputs.shared["capture.rig"], inputs.shared["board.kind"] != "none")
+    logger.info("masks from %s", {"user": "masks/", "background": "background plates"}.get(kind, segmenter))
+    if kind == "segment":
+        _refuse_grayscale(photos, segmenter)
+    source = _Source(
+        kind,
+        segmenter,
+        _user_masks(inputs.capture_dir, inputs.files, photos) if kind == "user" else {},
+        _plates_for(photos, plates) if kind == "background" else {},
+        _learn_fixed_sets(conf, photos, inputs.shared["capture.rig"])
+        if kind == "segment" and segmenter == "set_colours"
+        else {},
+    )
 
     # 2. One mask per photo, with its coverage and whether it touches the border.
     (out_dir / "masks").mkdir()
     report = {}
     for name, photo in progress.track(photos.items(), "masking"):
-        mask = _mask(conf, source, name, photo, cameras[photo["camera"]], user_masks.get(name), plate_of.get(name))
+        mask = _mask(conf, source, name, photo, cameras[photo["camera"]])
         path = out_dir / "masks" / f"{Path(name).stem}.png"
         cv2.imwrite(str(path), mask.astype(np.uint8) * 255)
         border = np.concatenate([mask[0], mask[-1], mask[:, 0], mask[:, -1]])
         report[name] = {
             "mask": str(path.relative_to(out_dir)),
-            "source": source,
+            "source": kind,
             "coverage": float(mask.mean()),
             "touches_border": bool(border.any()),
         }
         if not 0.005 <= mask.mean() <= 0.9:
             logger.warning("%s: the mask covers %.1f %% of the photo; check it in %s", name, 100 * mask.mean(), path)
-    _refuse_empty_masks(report, source)
+    _refuse_empty_masks(report, kind)
 
     # 3. The listing downstream stages read (pipeline.formats.masks).
-    masks_json = write_masks(out_dir / "masks.json", source, report)
+    masks_json = write_masks(out_dir / "masks.json", kind, report)
     cut_off = sorted(n for n, r in report.items() if r["touches_border"])
     if cut_off:
         logger.warning("the specimen touches the image border in %s", ", ".join(cut_off))
     coverage = [r["coverage"] for r in report.values()]
     return StageResult(
         {"masks_json": masks_json, "masks": out_dir / "masks"},
-        {"source": source, "mean_coverage": float(np.mean(coverage)), "touching_border": len(cut_off)},
+        {
+            "source": kind,
+            "segmenter": segmenter if kind == "segment" else None,
+            "mean_coverage": float(np.mean(coverage)),
+            "touching_border": len(cut_off),
+        },
     )
 
 
 STAGE = Stage(
     name="masks",
-    version=3,
+    version=4,
     config=Config,
     main=main,
     needs=("undistort.pinhole",),
     outputs=("masks_json", "masks"),
     reads=("masks/*",),
+    shared=("capture.rig", "board.kind"),
 )

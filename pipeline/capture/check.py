@@ -52,7 +52,7 @@ from pipeline.imaging.photo_io import (
     to_uint8,
     unsupported_files,
 )
-from pipeline.imaging.segmentation import clean, read_user_mask, segment
+from pipeline.imaging.segmentation import FixedSet, clean, read_user_mask, resolve_segmenter, segment
 
 MIN_PHOTOS = 3
 ENOUGH_PHOTOS = 20
@@ -299,6 +299,20 @@ def check_board(capture_dir: Path, config: Config) -> list[Problem]:
     return problems
 
 
+def _fixed_sets(photos: list[PhotoSummary], config: Config) -> dict[str, tuple[FixedSet, int]]:
+    """The set of each camera setting, as the masks stage learns it (set_colours)."""
+    fixed_sets = {}
+    for setting in sorted({photo.setting for photo in photos}):
+        group = [photo for photo in photos if photo.setting == setting]
+        learned = FixedSet.learn(
+            [p.srgb for p in group],
+            MASK_WORKING_SIZE,
+            camera_fixed=config["capture"].rig == "turntable",
+        )
+        fixed_sets |= {photo.name: (learned, index) for index, photo in enumerate(group)}
+    return fixed_sets
+
+
 def check_masks(
     capture_dir: Path, photos: list[PhotoSummary], config: Config
 ) -> tuple[list[Problem], dict[str, np.ndarray | None]]:
@@ -308,6 +322,8 @@ def check_masks(
     user_masks = {p.stem: p for p in list_photos(capture_dir / "masks")}
     problems: list[Problem] = []
     masks: dict[str, np.ndarray | None] = {}
+    segmenter = resolve_segmenter(conf.segmenter, config["capture"].rig, config["board"].kind != "none")
+    fixed_sets = _fixed_sets(photos, config) if segmenter == "set_colours" and not user_masks else {}
     for photo in progress.track(photos, "checking masks"):
         if user_masks:
             if Path(photo.name).stem not in user_masks:
@@ -325,11 +341,12 @@ def check_masks(
         else:
             mask = segment(
                 photo.srgb,
-                conf.segmenter,
+                segmenter,
                 conf.backdrop_chroma,
                 conf.centre_fraction,
                 conf.grabcut_iterations,
                 MASK_WORKING_SIZE,
+                fixed_sets.get(photo.name),
             )
         mask = masks[photo.name] = clean(mask, conf.min_component_fraction, conf.max_hole_fraction)
         coverage = float(mask.mean())

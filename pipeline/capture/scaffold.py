@@ -39,7 +39,9 @@ Folders: {folders}
 - [ ] Light: diffuse and constant for the whole session (softboxes, no mixed daylight).
       Write the rig into `[light]` of capture.toml: positions and sizes in metres.
 - [ ] Background: a neutral (grey, white or black) non-reflective set, and the specimen
-      standing on the printed board; or a coloured set and `masks.segmenter = "centre_prior"`.
+      standing on the printed board. On a turntable or ring any plain set the specimen
+      does not share a colour with does (masks.segmenter "auto" learns the set's colours
+      from the photos' borders); handheld on a coloured set: `masks.segmenter = "centre_prior"`.
 
 ## Calibration shots (calibration/)
 - [ ] 10-20 photos of the flat board alone, filling half the frame or more, from varied

@@ -15,6 +15,7 @@ from pipeline import logger
 from pipeline.camera.model import Intrinsics
 from pipeline.colmap import COLMAP_PIXEL_OFFSET
 from pipeline.core.config import Range
+from pipeline.imaging.segmentation import still_pixels
 
 
 def feature_masks(
@@ -32,14 +33,8 @@ def feature_masks(
     if mode == "moving":
         for camera in {photo["camera"] for photo in photos.values()}:
             names = [n for n, p in photos.items() if p["camera"] == camera]
-            stack = np.stack([cv2.imread(str(photos[n]["srgb"]), cv2.IMREAD_GRAYSCALE) for n in names]).astype(
-                np.float32
-            )
-            still = np.median(stack, axis=0)
-            difference = np.abs(stack - still)
-            noise = max(1.4826 * float(np.median(difference)), 1.0)
-            for name, diff in zip(names, difference):
-                moving[name] = cv2.GaussianBlur(diff, (0, 0), 2.0) > 4 * noise
+            still = still_pixels(np.stack([cv2.imread(str(photos[n]["srgb"]), cv2.IMREAD_GRAYSCALE) for n in names]))
+            moving |= {name: ~still_here for name, still_here in zip(names, still)}
     for name, photo in photos.items():
         specimen = cv2.imread(str(masks[name]), cv2.IMREAD_GRAYSCALE) > 127
         h, w = specimen.shape

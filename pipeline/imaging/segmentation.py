@@ -1,11 +1,24 @@
 """Foreground masks of the specimen: from a background plate or by GrabCut.
 
+The automatic segmenters differ in what they take for the set:
+
+- ``segment_neutral_backdrop``: anything grey, white or black (a handheld capture on a
+  sweep or a printed board; the set behind a handheld camera changes from side to side,
+  so no colour seen along the photos' borders need be the set's, and a capture on the
+  printed board);
+- ``FixedSet.segment``: the colours along the borders of most photos of one fixed
+  set (``SetColours``), whatever they are: a turntable's blue backdrop, a ring's black
+  cloth, and, for a camera that does not move, pixels that stay as they are while the
+  specimen turns (``still_pixels``): the room behind a turntable;
+- ``segment_centre_prior``: whatever GrabCut separates from the image border.
+
 Used by the masks stage and by ``pipeline check`` (which looks at mask coverage
 before the expensive stages run).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -105,6 +118,166 @@ def segment_neutral_backdrop(
     return _photo_size(grabcut(small, seeds, iterations), srgb.shape[:2])
 
 
+LIGHTNESS_WEIGHT = 0.4
+"""Weight of CIELAB lightness against the two colour axes in distances between colours:
+the set's own shading (a shadow, a lit patch of the table) changes its lightness much more
+than its hue."""
+
+SET_COLOUR_CLUSTERS = 8
+"""Colours (k-means clusters) the border pixels of a capture are sorted into."""
+
+MIN_BORDER_PRESENCE = 0.5
+"""A border colour is the set's only when at least this fraction of the photos show it
+along their border (at least 1 % of that photo's border pixels): the set frames every
+photo, a specimen cut off by the frame only some."""
+
+COLOUR_NOISE_FLOOR = 2.0
+"""Smallest colour distance (weighted CIELAB units) taken as noise: about the least
+difference the eye sees."""
+
+
+def _weighted_lab(srgb: np.ndarray) -> np.ndarray:
+    lab = cv2.cvtColor(srgb.astype(np.float32) / 255.0, cv2.COLOR_RGB2Lab)
+    lab[..., 0] *= LIGHTNESS_WEIGHT
+    return lab
+
+
+def _border(shape: tuple[int, int]) -> np.ndarray:
+    """A frame 3 % of the longer side wide (at least 2 px) along the image border."""
+    width = max(2, round(0.03 * max(shape)))
+    frame = np.zeros(shape, bool)
+    frame[:width], frame[-width:], frame[:, :width], frame[:, -width:] = (True,) * 4
+    return frame
+
+
+@dataclass(frozen=True)
+class SetColours:
+    """The colours of a fixed set (backdrop, table, stand), learned from the borders of
+    its photos; ``distance`` says how far a pixel is from all of them, in units of
+    ``noise`` (the spread of the set's own border pixels about their colours)."""
+
+    colours: np.ndarray
+    """Weighted CIELAB colours of the set (n x 3)."""
+    noise: float
+    """95th percentile of the set's border pixels' distance to their colour, at least
+    ``COLOUR_NOISE_FLOOR``."""
+
+    @classmethod
+    def learn(cls, photos: list[np.ndarray], samples_per_photo: int = 2000) -> SetColours:
+        """From 8-bit RGB ``photos`` of one set (working copies): their border pixels
+        sorted into ``SET_COLOUR_CLUSTERS`` colours, of which those along the borders of
+        most photos are kept."""
+        rng = np.random.default_rng(0)
+        pixels, owner = [], []
+        for index, photo in enumerate(photos):
+            border = _weighted_lab(photo)[_border(photo.shape[:2])]
+            chosen = rng.choice(len(border), min(samples_per_photo, len(border)), replace=False)
+            pixels.append(border[chosen])
+            owner.append(np.full(len(chosen), index))
+        pixels_all, owner_all = np.concatenate(pixels).astype(np.float32), np.concatenate(owner)
+        clusters = min(SET_COLOUR_CLUSTERS, len(pixels_all))
+        cv2.setRNGSeed(0)  # k-means++ draws from OpenCV's global random state
+        criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 0.1)
+        _, labels, centres = cv2.kmeans(pixels_all, clusters, None, criteria, 3, cv2.KMEANS_PP_CENTERS)
+        labels = labels.ravel()
+        shares = np.array([np.bincount(labels[owner_all == i], minlength=clusters) for i in range(len(photos))])
+        shares = shares / np.maximum(shares.sum(axis=1, keepdims=True), 1)
+        presence = (shares >= 0.01).mean(axis=0)
+        kept = np.flatnonzero(presence >= MIN_BORDER_PRESENCE)
+        if len(kept) == 0:  # no colour frames most photos: the commonest one
+            kept = np.array([int(np.argmax(presence))])
+        members = pixels_all[np.isin(labels, kept)]
+        spread = np.min(np.linalg.norm(members[:, None] - centres[kept][None], axis=-1), axis=1)
+        return cls(centres[kept], max(float(np.quantile(spread, 0.95)), COLOUR_NOISE_FLOOR))
+
+    def distance(self, srgb: np.ndarray) -> np.ndarray:
+        """Each pixel's distance to the nearest set colour, in units of ``noise``."""
+        lab = _weighted_lab(srgb).reshape(-1, 1, 3)
+        nearest = np.full(lab.shape[0], np.inf, np.float32)
+        for colour in self.colours:  # one colour at a time: memory stays one image
+            nearest = np.minimum(nearest, np.linalg.norm(lab[:, 0] - colour, axis=-1))
+        return (nearest / self.noise).reshape(srgb.shape[:2])
+
+
+def still_pixels(grey: np.ndarray) -> np.ndarray:
+    """For a stack of 8-bit grey photos from a camera that did not move (n x h x w): the
+    pixels of each that differ from the stack's median by less than 4 noise sigmas (noise
+    from the median absolute difference, most of which is the still set), blurred over
+    2 px so that sensor noise does not speckle the result."""
+    stack = grey.astype(np.float32)
+    difference = np.abs(stack - np.median(stack, axis=0))
+    noise = max(1.4826 * float(np.median(difference)), 1.0)
+    return np.stack([cv2.GaussianBlur(d, (0, 0), 2.0) < 4 * noise for d in difference])
+
+
+ALWAYS_STILL = 0.9
+"""A pixel still in at least this fraction of a fixed camera's photos is the set for
+sure (the room); one still less often may be a plain specimen's middle, which looks
+alike from every side, and is left to GrabCut."""
+
+
+@dataclass(frozen=True)
+class FixedSet:
+    """What the photos of one fixed set (a turntable's or a ring's) show of the set: its
+    colours, and for a camera that did not move, each photo's still pixels."""
+
+    colours: SetColours
+    still: np.ndarray | None
+    """Each photo's still pixels at the working size (n x h x w; ``still_pixels``), or
+    None for a camera that moved."""
+    always_still: np.ndarray | None
+    """Pixels still in at least ``ALWAYS_STILL`` of the photos."""
+
+    @classmethod
+    def learn(cls, photos: list[np.ndarray], working_size: int, camera_fixed: bool) -> FixedSet:
+        """From the 8-bit RGB photos of one camera setting, in the order ``segment``'s
+        ``index`` counts them; ``camera_fixed``: a turntable's (the specimen turns, the
+        set and the camera stay), not a ring's."""
+        small = [_working_copy(photo, working_size) for photo in photos]
+        colours = SetColours.learn(small)
+        if not camera_fixed or len({s.shape for s in small}) > 1:
+            return cls(colours, None, None)
+        still = still_pixels(np.stack([cv2.cvtColor(s, cv2.COLOR_RGB2GRAY) for s in small]))
+        return cls(colours, still, still.mean(axis=0) >= ALWAYS_STILL)
+
+    def segment(self, srgb: np.ndarray, index: int, centre_fraction: float, iterations: int, working_size: int):
+        """The specimen in photo ``index`` (8-bit RGB).
+
+        Within the noise of a set colour is backdrop for sure, up to twice that probably;
+        three times as far (inside the centre prior) is specimen for sure, unless the
+        pixel is still, which makes it probably backdrop, or backdrop for sure where it
+        is still in nearly every photo. GrabCut decides the rest.
+        """
+        small = _working_copy(srgb, working_size)
+        distance = self.colours.distance(small)
+        seeds = centre_prior_seeds(small.shape[:2], centre_fraction)
+        inside = seeds == cv2.GC_PR_FGD
+        seeds[inside & (distance < 2)] = cv2.GC_PR_BGD
+        if self.still is not None:
+            still = self.still[index]
+            seeds[inside & (distance > 3) & ~still] = cv2.GC_FGD
+            seeds[still] = cv2.GC_PR_BGD
+            seeds[still & (self.always_still | self._unlike_specimen(small, seeds == cv2.GC_FGD))] = cv2.GC_BGD
+        else:
+            seeds[inside & (distance > 3)] = cv2.GC_FGD
+        seeds[distance < 1] = cv2.GC_BGD
+        return _photo_size(grabcut(small, seeds, iterations), srgb.shape[:2])
+
+    def _unlike_specimen(self, small: np.ndarray, specimen: np.ndarray) -> np.ndarray:
+        """Pixels farther than three noise units from every colour of ``specimen`` (the
+        photo's sure specimen pixels, sorted into a few colours): a still pixel of such a
+        colour is the room, even beside the specimen, where the smoothness of GrabCut's
+        cut would take it in."""
+        lab = _weighted_lab(small)
+        known = lab[specimen].astype(np.float32)
+        if len(known) < SET_COLOUR_CLUSTERS:
+            return np.zeros(small.shape[:2], bool)
+        cv2.setRNGSeed(0)
+        criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 20, 0.1)
+        _, _, colours = cv2.kmeans(known, SET_COLOUR_CLUSTERS, None, criteria, 1, cv2.KMEANS_PP_CENTERS)
+        return SetColours(colours, self.colours.noise).distance(small) > 3
+
+
 def segment_plate_difference(
     linear: np.ndarray,
     plate: np.ndarray,
@@ -169,6 +342,17 @@ def read_user_mask(path: Path) -> np.ndarray:
     return read_photo(path, "linear").pixels[..., 0] > 0.5 / 255
 
 
+def resolve_segmenter(segmenter: str, rig: str, board: bool) -> str:
+    """``auto``: set_colours for a turntable or ring without the printed board, whose
+    photos one fixed set frames; neutral_backdrop for a handheld capture (its borders
+    show the room from every side) and for a capture on the board, whose black and white
+    turn with the specimen (neither along the border nor still) and which the capture
+    checklist puts on a neutral set."""
+    if segmenter != "auto":
+        return segmenter
+    return "set_colours" if rig in ("turntable", "ring") and not board else "neutral_backdrop"
+
+
 def segment(
     srgb: np.ndarray,
     segmenter: str,
@@ -176,9 +360,14 @@ def segment(
     centre_fraction: float,
     grabcut_iterations: int,
     working_size: int,
+    fixed_set: tuple[FixedSet, int] | None = None,
 ) -> np.ndarray:
-    """The automatic segmenter ``segmenter`` (the masks stage's choice) on an 8-bit RGB
-    photo, before cleaning."""
+    """The automatic segmenter ``segmenter`` (resolved: not auto) on an 8-bit RGB photo,
+    before cleaning; set_colours needs ``fixed_set``: the set learned from the photo's
+    camera setting and the photo's index among them."""
     if segmenter == "neutral_backdrop":
         return segment_neutral_backdrop(srgb, backdrop_chroma, centre_fraction, grabcut_iterations, working_size)
+    if segmenter == "set_colours":
+        learned, index = fixed_set
+        return learned.segment(srgb, index, centre_fraction, grabcut_iterations, working_size)
     return segment_centre_prior(srgb, centre_fraction, grabcut_iterations, working_size)

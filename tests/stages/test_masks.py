@@ -113,3 +113,33 @@ def test_grayscale_photos_are_refused_under_the_colour_segmenter(run_stages, tin
         run_stages(capture, "masks")
     masks = run_stages(capture, "masks", "masks.segmenter=centre_prior")["masks"]  # the fix works
     assert json.loads(masks["masks_json"].read_text())
+
+
+def test_a_turntable_in_a_room_is_cut_from_the_set_its_photos_show_not_from_its_greyness(
+    run_stages, synth_capture, tmp_path
+):
+    """The hard turntable's set: a dark dotted plate before a coloured room. auto learns
+    the set's colours and the room that stays still (set_colours); the room's colours
+    fool neutral_backdrop."""
+    capture = synth_capture(
+        "room_turntable",
+        views=8,
+        width=112,
+        height=84,
+        spp=4,
+        calibration_shots=0,
+        rig="turntable",
+        rings=(20.0,),
+        material="glossy_paint",
+        texture="plain",
+        table="dots",
+        backdrop="room",
+        exif_focal=False,
+        seed=11,
+    )
+    outputs = run_stages(capture, "masks", "board.kind=none")
+    status = json.loads((outputs["masks"]["masks_json"].parent / "status.json").read_text())
+    assert status["metrics"]["segmenter"] == "set_colours"
+    learned = _ious(capture, outputs)
+    neutral = _ious(capture, run_stages(capture, "masks", "board.kind=none", "masks.segmenter=neutral_backdrop"))
+    assert np.mean(learned) >= 0.8 and np.mean(learned) > np.mean(neutral) + 0.2, (learned, neutral)

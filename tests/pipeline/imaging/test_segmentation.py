@@ -1,0 +1,60 @@
+"""pipeline.imaging.segmentation's set_colours segmenter on small drawn photos: a
+specimen in front of a fixed set of any colour, the set learned from the photos."""
+
+import cv2
+import numpy as np
+
+from pipeline.imaging.segmentation import FixedSet, SetColours, clean, iou, resolve_segmenter
+
+BLUE, TABLE, ORANGE, CYAN = (60, 70, 190), (40, 50, 150), (230, 130, 40), (80, 220, 190)
+
+
+def _photo(angle_deg: float, centre=(48, 40), noise_seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A 96x72 photo: blue backdrop over a darker blue table, an orange ellipse turned by
+    ``angle_deg`` (the specimen) at ``centre``; and its true mask."""
+    photo = np.zeros((72, 96, 3), np.uint8)
+    photo[:] = BLUE
+    photo[45:] = TABLE
+    truth = np.zeros((72, 96), np.uint8)
+    cv2.ellipse(truth, centre, (22, 9), angle_deg, 0, 360, 1, -1)
+    photo[truth > 0] = ORANGE
+    noise = np.random.default_rng(noise_seed).normal(0, 2.0, photo.shape)
+    return np.clip(photo + noise, 0, 255).astype(np.uint8), truth > 0
+
+
+def test_the_sets_colours_are_those_along_most_borders_not_a_specimen_cut_off_in_one():
+    photos = [_photo(a, noise_seed=i)[0] for i, a in enumerate(range(0, 180, 30))]
+    photos.append(_photo(0, centre=(10, 40))[0])  # cut off by the frame's left edge
+    learned = SetColours.learn(photos)
+    distance = learned.distance(photos[-1])
+    assert distance[5, 50] < 1 and distance[65, 50] < 1  # backdrop and table
+    assert distance[40, 5] > 3  # the specimen, though on this photo's border
+    assert 2.0 <= learned.noise < 10
+
+
+def test_a_turntable_specimen_is_found_in_front_of_its_coloured_set_and_a_still_room():
+    """A cyan panel no border shows (the room) is still in every photo and is left out;
+    the turning specimen is found."""
+    photos, truths = [], []
+    for index, angle in enumerate(range(0, 360, 30)):
+        photo, truth = _photo(angle, noise_seed=index)
+        photo[4:22, 74:94] = CYAN
+        photos.append(photo)
+        truths.append(truth)
+    learned = FixedSet.learn(photos, working_size=192, camera_fixed=True)
+    scores = []
+    for index, (photo, truth) in enumerate(zip(photos, truths)):
+        mask = clean(learned.segment(photo, index, 0.9, 5, 192), 0.1, 1.0)
+        assert not mask[4:22, 74:94].any()
+        scores.append(iou(mask, truth))
+    assert min(scores) > 0.85, scores  # the edge: a pixel at 96 x 72
+    # Without the still pixels (a ring's moving camera) the panel is taken for specimen.
+    moving_camera = FixedSet.learn(photos, working_size=192, camera_fixed=False)
+    assert moving_camera.segment(photos[0], 0, 0.9, 5, 192)[4:22, 74:94].mean() > 0.5
+
+
+def test_auto_learns_the_set_of_turntables_and_rings_keeps_neutral_backdrops_handheld_and_on_the_board():
+    assert resolve_segmenter("auto", "turntable", False) == resolve_segmenter("auto", "ring", False) == "set_colours"
+    assert resolve_segmenter("auto", "handheld", False) == "neutral_backdrop"
+    assert resolve_segmenter("auto", "turntable", True) == "neutral_backdrop"  # the board turns with it
+    assert resolve_segmenter("centre_prior", "turntable", False) == "centre_prior"
