@@ -83,7 +83,7 @@ class Config:
     set's (and, on a turntable, what stays still while the specimen turns). neutral_backdrop:
     the set (table, board, sweep) is grey, white or black and the specimen is more colourful.
     centre_prior: GrabCut with the specimen near the centre. auto: set_colours for a
-    turntable or ring without the printed board (board.kind = none: one set frames every
+    turntable or ring without the printed board (board.kind none: one set frames every
     photo), else neutral_backdrop."""
     backdrop_chroma: Annotated[float, Range(0.0, 1.0, exclusive_lo=True)] = 0.04
     """neutral_backdrop: spread of the 8-bit sRGB channels (as a fraction of 255) below

@@ -8,6 +8,7 @@ import pytest
 from pipeline.core.errors import PipelineError
 from pipeline.imaging.segmentation import clean
 from pipeline.synthetic.score import score_masks
+from tests.support.hard_turntable import hard_turntable_options
 
 pytestmark = pytest.mark.slow
 
@@ -121,22 +122,8 @@ def test_a_turntable_in_a_room_is_cut_from_the_set_its_photos_show_not_from_its_
     """The hard turntable's set: a dark dotted plate before a coloured room. auto learns
     the set's colours and the room that stays still (set_colours); the room's colours
     fool neutral_backdrop."""
-    capture = synth_capture(
-        "room_turntable",
-        views=8,
-        width=112,
-        height=84,
-        spp=4,
-        calibration_shots=0,
-        rig="turntable",
-        rings=(20.0,),
-        material="glossy_paint",
-        texture="plain",
-        table="dots",
-        backdrop="room",
-        exif_focal=False,
-        seed=11,
-    )
+    options = hard_turntable_options(views=8, width=112, height=84, spp=4, rings=(20.0,), backdrop="room", seed=11)
+    capture = synth_capture("room_turntable", **options)
     outputs = run_stages(capture, "masks", "board.kind=none")
     status = json.loads((outputs["masks"]["masks_json"].parent / "status.json").read_text())
     assert status["metrics"]["segmenter"] == "set_colours"

@@ -15,6 +15,7 @@ from pipeline.core.sections import BoardSection, schema
 from pipeline.formats.cameras import read_cameras
 from pipeline.synthetic.synth import BIRD_CENTRE, SENSOR_WIDTH_MM, SynthOptions, specimen_poses, synthesize
 from stages import STAGES
+from tests.support.hard_turntable import hard_turntable_options
 
 pytestmark = pytest.mark.slow
 
@@ -127,22 +128,8 @@ def test_refuses_a_non_empty_folder(tmp_path):
 def _hard_turntable(tmp_path, backdrop: str):
     """The twin of a hard real turntable, tiny: a glossy plain specimen on a dark plate with
     dots, no board, no EXIF focal length."""
-    options = SynthOptions(
-        views=4,
-        width=64,
-        height=48,
-        spp=2,
-        calibration_shots=0,
-        rig="turntable",
-        rings=(25.0,),
-        material="glossy_paint",
-        texture="plain",
-        table="dots",
-        backdrop=backdrop,
-        exif_focal=False,
-        noise=0.0,
-    )
-    return synthesize(tmp_path / backdrop, options)
+    options = hard_turntable_options(views=4, width=64, height=48, spp=2, backdrop=backdrop, noise=0.0)
+    return synthesize(tmp_path / backdrop, SynthOptions(**options))
 
 
 def test_a_hard_turntable_twin_has_a_room_a_dotted_plate_and_no_board(tmp_path):
