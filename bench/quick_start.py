@@ -84,7 +84,7 @@ def pipeline_row(clone: Path, environment: dict[str, str], run: bool = True) -> 
     start = re.search(r"^\{$", printed, re.MULTILINE)  # run --json's object, after the log's lines
     if start is None:
         return [f"| {command} | {code or 'no summary'} | {wall} | see {log} |"]
-    summary = json.loads(printed[start.start() :])
+    summary, _ = json.JSONDecoder().raw_decode(printed[start.start() :])  # a kept log ends with its wall time
     times = {s["stage"]: s["seconds"] or 0.0 for s in summary["stages"]}
     fits = ", ".join(f"{name} {times[name]:.0f} s" for name in FIT_STAGES if name in times)
     rows = [
