@@ -2,10 +2,10 @@
 
 The automatic segmenters differ in what they take for the set:
 
-- ``segment_neutral_backdrop``: anything grey, white or black (a handheld capture on a
-  sweep or a printed board; the set behind a handheld camera changes from side to side,
-  so no colour seen along the photos' borders need be the set's, and a capture on the
-  printed board);
+- ``segment_neutral_backdrop``: anything grey, white or black; for a handheld capture
+  (its borders show the room from every side, so no colour along them need be the
+  set's) and a capture on the printed board (whose black and white turn with the
+  specimen);
 - ``FixedSet.segment``: the colours along the borders of most photos of one fixed
   set (``SetColours``), whatever they are: a turntable's blue backdrop, a ring's black
   cloth, and, for a camera that does not move, pixels that stay as they are while the
