@@ -64,6 +64,7 @@ from pipeline.imaging.segmentation import (
     FixedSet,
     chroma,
     clean,
+    learn_fixed_sets,
     read_user_mask,
     resolve_segmenter,
     segment,
@@ -163,20 +164,12 @@ class _Source:
 
 def _learn_fixed_sets(conf: Config, photos: dict[str, dict], rig: str) -> dict[str, tuple[FixedSet, int]]:
     """set_colours: the set of each camera setting, learned from all of its photos."""
-    fixed_sets = {}
+    settings = []
     for camera in sorted({photo["camera"] for photo in photos.values()}):
         names = [name for name, photo in photos.items() if photo["camera"] == camera]
-        srgb = [cv2.cvtColor(cv2.imread(str(photos[n]["srgb"])), cv2.COLOR_BGR2RGB) for n in names]
-        learned = FixedSet.learn(srgb, conf.working_size, camera_fixed=rig == "turntable")
-        logger.info(
-            "camera setting %d: %d set colours (noise %.1f)%s",
-            camera,
-            len(learned.colours.colours),
-            learned.colours.noise,
-            ", still pixels of the fixed camera" if learned.still is not None else "",
-        )
-        fixed_sets |= {name: (learned, index) for index, name in enumerate(names)}
-    return fixed_sets
+        srgb = (cv2.cvtColor(cv2.imread(str(photos[n]["srgb"])), cv2.COLOR_BGR2RGB) for n in names)
+        settings.append((names, srgb))
+    return learn_fixed_sets(settings, conf.working_size, camera_fixed=rig == "turntable")
 
 
 def _mask(conf: Config, source: _Source, name: str, photo: dict, camera: dict) -> np.ndarray:

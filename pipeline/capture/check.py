@@ -52,7 +52,14 @@ from pipeline.imaging.photo_io import (
     to_uint8,
     unsupported_files,
 )
-from pipeline.imaging.segmentation import FixedSet, clean, read_user_mask, resolve_segmenter, segment
+from pipeline.imaging.segmentation import (
+    FixedSet,
+    clean,
+    learn_fixed_sets,
+    read_user_mask,
+    resolve_segmenter,
+    segment,
+)
 
 MIN_PHOTOS = 3
 ENOUGH_PHOTOS = 20
@@ -301,16 +308,11 @@ def check_board(capture_dir: Path, config: Config) -> list[Problem]:
 
 def _fixed_sets(photos: list[PhotoSummary], config: Config) -> dict[str, tuple[FixedSet, int]]:
     """The set of each camera setting, as the masks stage learns it (set_colours)."""
-    fixed_sets = {}
+    settings = []
     for setting in sorted({photo.setting for photo in photos}):
         group = [photo for photo in photos if photo.setting == setting]
-        learned = FixedSet.learn(
-            [p.srgb for p in group],
-            MASK_WORKING_SIZE,
-            camera_fixed=config["capture"].rig == "turntable",
-        )
-        fixed_sets |= {photo.name: (learned, index) for index, photo in enumerate(group)}
-    return fixed_sets
+        settings.append(([photo.name for photo in group], [photo.srgb for photo in group]))
+    return learn_fixed_sets(settings, MASK_WORKING_SIZE, camera_fixed=config["capture"].rig == "turntable")
 
 
 def check_masks(

@@ -18,6 +18,7 @@ before the expensive stages run).
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,6 +26,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from pipeline import logger
 from pipeline.imaging.photo_io import read_photo, srgb_encode
 
 SHADOW_CHROMA_CHANGE = 0.03
@@ -229,10 +231,11 @@ class FixedSet:
     """Pixels still in at least ``ALWAYS_STILL`` of the photos."""
 
     @classmethod
-    def learn(cls, photos: list[np.ndarray], working_size: int, camera_fixed: bool) -> FixedSet:
+    def learn(cls, photos: Iterable[np.ndarray], working_size: int, camera_fixed: bool) -> FixedSet:
         """From the 8-bit RGB photos of one camera setting, in the order ``segment``'s
-        ``index`` counts them; ``camera_fixed``: a turntable's (the specimen turns, the
-        set and the camera stay), not a ring's."""
+        ``index`` counts them (an iterable: each is cut to the working size as it comes,
+        so that a generator never holds more than one full photo); ``camera_fixed``: a
+        turntable's (the specimen turns, the set and the camera stay), not a ring's."""
         small = [_working_copy(photo, working_size) for photo in photos]
         colours = SetColours.learn(small)
         if not camera_fixed or len({s.shape for s in small}) > 1:
@@ -340,6 +343,26 @@ def read_user_mask(path: Path) -> np.ndarray:
     """A user's mask as booleans: any nonzero value is specimen (read as linear so that
     8-bit 255 is 1.0 and label images with small values count too)."""
     return read_photo(path, "linear").pixels[..., 0] > 0.5 / 255
+
+
+def learn_fixed_sets(
+    settings: Iterable[tuple[list[str], Iterable[np.ndarray]]], working_size: int, camera_fixed: bool
+) -> dict[str, tuple[FixedSet, int]]:
+    """set_colours: for each camera setting (its photos' names, and their 8-bit RGB
+    pixels in that order) the set learned from all its photos; by photo name, the set and
+    the photo's index among them, as ``segment`` takes them."""
+    fixed_sets = {}
+    for names, photos in settings:
+        learned = FixedSet.learn(photos, working_size, camera_fixed)
+        logger.info(
+            "%d photos: %d set colours (noise %.1f)%s",
+            len(names),
+            len(learned.colours.colours),
+            learned.colours.noise,
+            ", still pixels of the fixed camera" if learned.still is not None else "",
+        )
+        fixed_sets |= {name: (learned, index) for index, name in enumerate(names)}
+    return fixed_sets
 
 
 def resolve_segmenter(segmenter: str, rig: str, board: bool) -> str:
