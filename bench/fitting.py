@@ -17,10 +17,16 @@ oracle     fit_material again on bird_volumetric with the visual hull's shading 
 texture-oracle
            uv, scene, fit_material and fit_texture on the bird's true mesh: whether the
            texture's error is the mesh's or the fit's
+seeds      the fit stages (fit_material, fit_texture, fit_geometry) on the standard
+           preset again and again on one copy of each sample cached through the scene
+           stage, each run with its own seed (``--seeds N``: 0 to N-1): how far the
+           fitted values and the held-out PSNR spread, and in how many runs each
+           parameter meets its target (each run's score is kept in the work folder, so
+           an interrupted part resumes; about 8 minutes a run for the bird on 2 cores)
 (The speed/accuracy trade has a benchmark of its own: bench/trade.py.)
 
-Usage: ``.venv/bin/python -m bench.fitting [--parts extremes,accuracy,oracle,texture-oracle]
-[--workdir DIR] [--samples bird,bird_volumetric]`` (after bin/bootstrap). About 50
+Usage: ``.venv/bin/python -m bench.fitting [--parts extremes,accuracy,oracle,texture-oracle,seeds]
+[--workdir DIR] [--samples bird,bird_volumetric] [--seeds 10]`` (after bin/bootstrap). About 50
 minutes on 2 cores (the oracles about 20 more); a ``--workdir`` keeps the stage caches, so an interrupted run
 resumes where it stopped. A sample whose pipeline run fails is reported as failed.
 """
@@ -417,11 +423,95 @@ def texture_oracle_part(work: Path) -> None:
     )
 
 
+def _seed_run(base: Path, seed: int) -> dict:
+    """The fit stages on a copy of ``base`` (cached through the scene stage) with every
+    fit stage's seed set to ``seed``: its score and the fit stages' seconds, kept as JSON
+    beside the copy so that a rerun of the part reads it instead."""
+    record = base.parent / f"{base.name}.seed-{seed}.json"
+    if record.is_file():
+        return json.loads(record.read_text())
+    capture = base.parent / f"{base.name}-seed-{seed}"
+    if not capture.is_dir():
+        shutil.copytree(base, capture, ignore=shutil.ignore_patterns("output"))
+    seeds = [f"{stage}.seed={seed}" for stage in ("fit_material", "fit_texture", "fit_geometry")]
+    _, seconds = run_stages(capture, "fit_geometry", *seeds)
+    result = {"score": score_capture(capture), "seconds": {s: seconds[s] for s in FIT_STAGES if s in seconds}}
+    record.write_text(json.dumps(result, indent=1))
+    return result
+
+
+def _spread_line(name: str, errors: list[float]) -> str:
+    """One parameter's errors over the runs: median, range and runs within target."""
+    kind, target = TARGETS[name]
+    unit = (lambda e: f"{100 * e:.1f} %") if kind == "rel" else (lambda e: f"{e:.3f}")
+    within = "-" if target is None else f"{sum(e <= target for e in errors)} of {len(errors)}"
+    return (
+        f"| {name} | {unit(float(np.median(errors)))} | {unit(min(errors))} - {unit(max(errors))} | "
+        f"{_target_text(name)} | {within} |"
+    )
+
+
+def seeds_part(work: Path, samples: list[str], seeds: int) -> None:
+    lines = []
+    for name in samples:
+        base = _copy_sample(name, work)
+        run_stages(base, "scene")
+        runs = [_seed_run(base, seed) for seed in range(seeds)]
+        rows, errors = [], {}
+        for seed, run in enumerate(runs):
+            score = run["score"]
+            cells = _error_cells(score.get("material_fit_geometry", {}))
+            for parameter, (error, _) in cells.items():
+                errors.setdefault(parameter, []).append(error)
+            psnr = [score[p]["psnr_db_mean"] for p in ("heldout", "heldout_textured", "heldout_geometry")]
+            rows.append(
+                f"| {seed} | "
+                + ", ".join(f"{p} {text}" for p, (_, text) in cells.items())
+                + " | "
+                + " / ".join(f"{v:.1f}" for v in psnr)
+                + f" dB | {sum(run['seconds'].values()):.0f} s |"
+            )
+        psnr_end = [run["score"]["heldout_geometry"]["psnr_db_mean"] for run in runs]
+        lines += [
+            f"{name}, {len(runs)} runs: errors after fit_geometry",
+            "",
+            "| parameter | median | range | target | runs within target |",
+            "|---|---|---|---|---|",
+            *(_spread_line(parameter, values) for parameter, values in errors.items()),
+            f"| held-out PSNR after fit_geometry | {np.median(psnr_end):.1f} dB | "
+            f"{min(psnr_end):.1f} - {max(psnr_end):.1f} dB | {PSNR_TARGET:.0f} dB | "
+            f"{sum(p >= PSNR_TARGET for p in psnr_end)} of {len(runs)} |",
+            "",
+            "| seed | errors after fit_geometry | held-out PSNR after fit_material / fit_texture / fit_geometry "
+            "| fit stages' time |",
+            "|---|---|---|---|",
+            *rows,
+            "",
+        ]
+    print(
+        write_section(
+            "fitting-seeds",
+            [
+                "### Repeatability over seeds",
+                "",
+                "Machine: 2 cores, 24 GiB, no GPU. The fit stages on the standard preset, each run with "
+                "its own seed (every fit stage's `seed`: the batch order and the renders), from one "
+                "capture cached through the scene stage. Reproduce: "
+                f"`.venv/bin/python -m bench.fitting --parts seeds --samples {','.join(samples)} "
+                f"--seeds {seeds} --workdir DIR`.",
+                "",
+                *lines,
+            ],
+        )
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--parts", default="extremes,accuracy,oracle,texture-oracle")
     parser.add_argument("--workdir", type=Path, help="keep captures and caches here (default: a temporary folder)")
     parser.add_argument("--samples", default="bird,bird_volumetric", help="sample captures of the accuracy part")
+    parser.add_argument("--seeds", type=int, default=10, help="runs of the seeds part, seeds 0 to N-1")
     args = parser.parse_args()
     parts = args.parts.split(",")
     with tempfile.TemporaryDirectory() as folder:
@@ -435,6 +525,8 @@ def main() -> None:
             oracle_part(work)
         if "texture-oracle" in parts:
             texture_oracle_part(work)
+        if "seeds" in parts:
+            seeds_part(work, args.samples.split(","), args.seeds)
 
 
 if __name__ == "__main__":
