@@ -2,13 +2,14 @@
 
     .venv/bin/python -m bench.quick_start [--parts tests,pipeline] [--keep DIR] [--write]
 
-Clones the repository's HEAD into a new folder whose parent holds no ``shared``
-folder (so the optional real-capture tests skip, as in CI), then runs, one after the
-other and alone: ``CI=true .ci/run`` (= ``bin/test``, bootstrap included) and
-``bin/pipeline run sample_captures/bird`` (bootstrap included, the default preset),
-then ``pipeline score`` on the bird. Reports each command's exit code and wall time,
-pytest's summary, the stages' times, and the score's figures after each fit stage.
-``--write`` puts the table into docs/benchmarks.md. About 30 minutes on 2 cores.
+Each command runs alone, in a clone of its own of the repository's HEAD (DIR/fresh-pipeline,
+DIR/fresh-tests) with a Dr.Jit kernel cache of its own, in a folder whose parent holds
+no ``shared`` folder (so the optional real-capture tests skip, as in CI), so that each
+pays its own bootstrap as on a new machine: ``bin/pipeline run sample_captures/bird``
+(the default preset), then ``pipeline score`` on the bird, and ``CI=true .ci/run`` (=
+``bin/test``). Reports each command's exit code and wall time, pytest's summary, the
+stages' times, and the score's figures after each fit stage. ``--write`` puts the
+table into docs/benchmarks.md. About 30 minutes on 2 cores.
 """
 
 from __future__ import annotations
@@ -27,10 +28,9 @@ from bench.common import ROOT, machine, write_section
 FIT_STAGES = ("fit_material", "fit_texture", "fit_geometry")
 
 
-def fresh_clone(keep: Path | None) -> Path:
-    parent = keep or Path(tempfile.mkdtemp(prefix="quick_start_"))
+def fresh_clone(parent: Path, name: str) -> Path:
     parent.mkdir(parents=True, exist_ok=True)
-    clone = parent / "fresh"
+    clone = parent / name
     subprocess.run(["git", "clone", "--quiet", "--no-hardlinks", str(ROOT), str(clone)], check=True)
     if (parent / "shared").exists():
         raise SystemExit(f"{parent / 'shared'} exists: the clone would see the real captures, which CI does not")
@@ -118,36 +118,42 @@ def score_cells(figures: dict) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--parts", default="tests,pipeline")
-    parser.add_argument("--keep", type=Path, help="clone into DIR/fresh and keep it (default: a new temporary folder)")
+    parser.add_argument("--parts", default="pipeline,tests")
+    parser.add_argument(
+        "--keep", type=Path, help="clone into DIR/fresh-PART and keep the clones (default: a new temporary folder)"
+    )
     parser.add_argument("--report-only", action="store_true", help="report the run kept in --keep DIR, run nothing")
     parser.add_argument("--write", action="store_true", help="rewrite docs/benchmarks.md's section")
     args = parser.parse_args()
     if args.report_only and args.keep is None:
         raise SystemExit("--report-only reads the run kept in --keep DIR: name it")
-    clone = args.keep / "fresh" if args.report_only else fresh_clone(args.keep)
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=clone, capture_output=True, text=True).stdout
-    # no Dr.Jit kernels compiled before, no pip cache: as on a new machine
-    kernels = clone.parent / "drjit-kernels"
-    kernels.mkdir(exist_ok=True)
-    environment = os.environ | {"DRJIT_CACHE_DIR": str(kernels), "PIP_NO_CACHE_DIR": "1"}
-    environment.pop("VIRTUAL_ENV", None)
-    environment.pop("DRJIT_LIBLLVM_PATH", None)
+    parent = args.keep or Path(tempfile.mkdtemp(prefix="quick_start_"))
     lines = ["| command | exit | wall time (bootstrap included) | result |", "|---|---|---|---|"]
     parts = args.parts.split(",")
-    if "tests" in parts:
-        lines += test_row(clone, environment, run=not args.report_only)
-        print(lines[-1], flush=True)
-    if "pipeline" in parts:
-        lines += pipeline_row(clone, environment, run=not args.report_only)
-        print("\n".join(lines[-2:]), flush=True)
+    commits = set()
+    for part, row in (("pipeline", pipeline_row), ("tests", test_row)):
+        if part not in parts:
+            continue
+        clone = parent / f"fresh-{part}" if args.report_only else fresh_clone(parent, f"fresh-{part}")
+        done = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=clone, capture_output=True, text=True)
+        commits.add(done.stdout.strip())
+        # no Dr.Jit kernels compiled before, no pip cache: as on a new machine
+        kernels = parent / f"drjit-kernels-{part}"
+        kernels.mkdir(exist_ok=True)
+        environment = os.environ | {"DRJIT_CACHE_DIR": str(kernels), "PIP_NO_CACHE_DIR": "1"}
+        environment.pop("VIRTUAL_ENV", None)
+        environment.pop("DRJIT_LIBLLVM_PATH", None)
+        added = row(clone, environment, run=not args.report_only)
+        lines += added
+        print("\n".join(added), flush=True)
     if args.write:
         intro = [
             "## Quick start and test suite",
             "",
             f"{machine()} Command: `.venv/bin/python -m bench.quick_start --parts {args.parts} --write`:",
-            f"a fresh clone of {commit.strip()} beside no real captures (as CI), an empty Dr.Jit",
-            "kernel cache and no pip cache, each command alone on the machine.",
+            f"each command alone on the machine in a fresh clone of its own of {', '.join(sorted(commits))}",
+            "beside no real captures (as CI), with an empty Dr.Jit kernel cache and no pip cache,",
+            "so that each pays its own bootstrap (a virtual environment, this package).",
             "",
         ]
         write_section("quick-start", intro + lines)
