@@ -35,9 +35,6 @@ Runs:
   as a user names them; it runs to its own stopping rule and its log says when it
   met the targets; its result is the state it ends in.
 
-A configuration that does not apply to a kit (``levenberg-marquardt`` on a medium or on
-``specular``: pipeline.fit.levenberg_marquardt) is reported as refused, with the reason.
-
 Each run is repeated ``--repeat`` times and the last is reported (later runs find
 Dr.Jit's kernels compiled). The table has one row per kit and run; the summary per
 material and configuration: the share of kits whose result meets every target, and
@@ -62,7 +59,6 @@ import numpy as np
 
 from bench.common import ROOT, machine, write_section
 from pipeline.cli.fit import FitOptions
-from pipeline.core.errors import PipelineError
 from pipeline.fit import engine
 from pipeline.fit.scene_fit import FilmSizes
 from pipeline.render import mitsuba_variant
@@ -118,12 +114,10 @@ CONFIGS = {
     "defaults, not frozen": (engine.FitSettings(freeze=False), DEFAULT_SIZES),
     "defaults at full size": (engine.FitSettings(), FilmSizes(0)),
     "max_size only": (engine.FitSettings(), FilmSizes(DEFAULT_SIZES.max_size, coarse_to_fine=False)),
-    "levenberg-marquardt": (engine.FitSettings(optimizer="levenberg_marquardt"), DEFAULT_SIZES),
 }
 """`pipeline fit`'s settings to compare with the original loop: the loop's settings and
 the films' sizes. ``defaults`` are those `pipeline fit` runs with when given no option;
-``max_size only`` is ``--no-coarse-to-fine``; ``levenberg-marquardt`` the defaults with
-``--optimizer levenberg_marquardt``."""
+``max_size only`` is ``--no-coarse-to-fine``."""
 
 
 @dataclass(frozen=True)
@@ -444,10 +438,7 @@ def run(kit: Kit, folder: Path, name: str, budget: float, repeat: int, mi, dr) -
             original_loop(kit, folder, clock, mi, dr)
             outcome = Outcome(clock.reached, clock.steps, clock.last, "target" if clock.reached else "budget")
         else:
-            try:
-                result = pipeline_fit(kit, folder, *CONFIGS[name], clock)
-            except PipelineError as error:  # a configuration that does not apply to the kit
-                return Outcome(None, 0, kit.start(), f"refused: {error}")
+            result = pipeline_fit(kit, folder, *CONFIGS[name], clock)
             outcome = Outcome(clock.reached, clock.steps, result["values"], result["stopped"])
     return outcome
 
@@ -456,22 +447,18 @@ def summary_lines(outcomes: dict[tuple[str, str], list[tuple[Kit, Outcome, Outco
     """Per material and configuration: the share of kits whose result meets every
     target, and the median time-to-target ratio against the original loop."""
     lines = [
-        "| material | run | kits | refused | result within every target | reached the targets at some step "
-        "| median ratio to the original |"
+        "| material | run | kits | result within every target | reached the targets at some step | median ratio to the original |"
     ]
-    lines.append("|---|---|---|---|---|---|---|")
+    lines.append("|---|---|---|---|---|---|")
     for (material, name), rows in outcomes.items():
-        refused = sum(result.stopped.startswith("refused") for _, result, _ in rows)
-        final_ok = sum(
-            within(kit, result.final) and not result.stopped.startswith("refused") for kit, result, _ in rows
-        )
+        final_ok = sum(within(kit, result.final) for kit, result, _ in rows)
         reached = sum(result.reached is not None for _, result, _ in rows)
         ratios = [
             (original.reached or budget) / result.reached for _, result, original in rows if result.reached is not None
         ]
         median = f"{np.median(ratios):.1f}x" if ratios else "-"
         lines.append(
-            f"| {material} | {name} | {len(rows)} | {refused} | {final_ok} ({100 * final_ok / len(rows):.0f} %) | "
+            f"| {material} | {name} | {len(rows)} | {final_ok} ({100 * final_ok / len(rows):.0f} %) | "
             f"{reached} | {median} |"
         )
     return lines

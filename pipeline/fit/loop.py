@@ -46,8 +46,7 @@ from pipeline import logger
 from pipeline.core import progress
 from pipeline.core.errors import PipelineError
 from pipeline.fit.checkpoint import next_checkpoint
-from pipeline.fit.levenberg_marquardt import LevenbergMarquardt
-from pipeline.fit.settings import FitSettings, LoopSettings
+from pipeline.fit.settings import LoopSettings
 from pipeline.fit.stopping import still
 
 
@@ -295,10 +294,6 @@ class _Loop:
         # Frozen functions per loop: their recordings belong to this loop's scenes.
         self.frozen: dict[int, Callable] = {}
         self.skipped = 0
-        self.levenberg_marquardt = None
-        if isinstance(settings, FitSettings) and settings.optimizer == "levenberg_marquardt":
-            self.levenberg_marquardt = LevenbergMarquardt(variables, settings.damping)
-            settings = self.settings = replace(settings, freeze=False)
         replays = settings.iterations * self.batches.size / max(len(self.training), 1)
         if settings.freeze and replays < settings.freeze_min_replays:
             logger.info(
@@ -395,18 +390,14 @@ class _Loop:
     def train(self, iteration: int, state: LoopState, started: float) -> dict:
         """One step: renders, backpropagation, Adam, the bounds; its log entry."""
         variables = self.variables
-        if self.levenberg_marquardt is not None:
-            step_losses = self.levenberg_marquardt.step(self, iteration)
-            values = [loss for _, loss, _ in step_losses]
-        else:
-            step_losses = self.step(iteration)
-            variables.add_priors()
-            self.drop_non_finite_gradients(iteration)
-            variables.optimizer.step()
-            variables.clamp()
-            # One read of the device per step: the batch's losses and gains together.
-            self.dr.eval([(loss, gain) for _, loss, gain in step_losses])
-            values = [float(loss.array[0]) for _, loss, _ in step_losses]
+        step_losses = self.step(iteration)
+        variables.add_priors()
+        self.drop_non_finite_gradients(iteration)
+        variables.optimizer.step()
+        variables.clamp()
+        # One read of the device per step: the batch's losses and gains together.
+        self.dr.eval([(loss, gain) for _, loss, gain in step_losses])
+        values = [float(loss.array[0]) for _, loss, _ in step_losses]
         for name, _, gain in step_losses:
             if gain is not None:
                 variables.record_gain(name, np.ravel(np.array(gain, np.float64)))
@@ -426,8 +417,6 @@ class _Loop:
         summary = variables.summary()
         if summary is not None:
             entry["params"] = summary
-        if self.levenberg_marquardt is not None:
-            entry["damping"] = self.levenberg_marquardt.damping
         return entry
 
     def finish(self, best: BestState) -> None:
@@ -545,8 +534,6 @@ def run(
                 checkpoint.log_step(entry)
             asked = on_iteration(entry) if on_iteration is not None else None
             state.stopped = asked or _stop_reason(settings, state.log, entry)
-            if loop.levenberg_marquardt is not None:
-                state.stopped = state.stopped or loop.levenberg_marquardt.settled()
             if state.stopped:
                 break
             if checkpoint is not None and checkpoint.due():

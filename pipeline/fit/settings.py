@@ -68,12 +68,6 @@ class FitSettings(LoopSettings):
     white_balance: bool = False
     """Fit one gain per colour channel per photo (automatic white balance, as phones
     shoot): exposure and white balance at once."""
-    optimizer: Literal["adam", "levenberg_marquardt"] = "adam"
-    """adam: a first-order step from one backward pass per view; levenberg_marquardt:
-    damped Gauss-Newton steps from forward-mode Jacobians, one render per latent
-    channel (pipeline.fit.levenberg_marquardt; plain values only)."""
-    damping: Annotated[float, Range(0.0, None, exclusive_lo=True)] = 1e-2
-    """Levenberg-Marquardt's starting lambda, relative to the diagonal of J^T J."""
 
 
 @dataclass(frozen=True)

@@ -166,34 +166,6 @@ class MaterialVariables:
         shift = dr.log(mi.Float(start.astype(np.float32)) / sums)
         return type(latent)(latent.array + dr.gather(mi.Float, shift, channel), latent.shape)
 
-    def latent_channels(self) -> list[tuple[str, int]]:
-        """(parameter, channel) of every latent number, in latents()' order; plain values
-        only (pipeline.fit.levenberg_marquardt)."""
-        if self.textured:
-            raise PipelineError(
-                f"{', '.join(sorted(self.textured))}: a texture is fitted with Adam only "
-                "(optimizer = levenberg_marquardt steps plain values)"
-            )
-        return [
-            (p.name, channel)
-            for p in self.parameters
-            for channel in range(len(np.ravel(np.array(self.optimizer[p.name]))))
-        ]
-
-    def latents(self) -> np.ndarray:
-        """Every plain value's latent numbers, flat (latent_channels' order)."""
-        return np.concatenate([np.ravel(np.array(self.optimizer[p.name], np.float64)) for p in self.parameters])
-
-    def set_latents(self, latents: np.ndarray) -> None:
-        """Plain values' latents from a flat vector (latents()' order), within the bounds."""
-        offset = 0
-        for parameter in self.parameters:
-            kind = type(self.optimizer[parameter.name])
-            count = len(np.ravel(np.array(self.optimizer[parameter.name])))
-            self.optimizer[parameter.name] = kind(*[float(v) for v in latents[offset : offset + count]])
-            offset += count
-        self.clamp()
-
     def gain_channels_of(self, view_name: str) -> int:
         """The channels of the gain a training view's render is matched to its photo by
         at each render (0: none)."""
