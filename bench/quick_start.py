@@ -1,6 +1,6 @@
 """The README's two Quick start commands in a fresh clone, as a new user and CI run them.
 
-    .venv/bin/python -m bench.quick_start [--parts tests,pipeline] [--keep DIR] [--write]
+    .venv/bin/python -m bench.quick_start [--parts pipeline,tests] [--keep DIR] [--write]
 
 Each command runs alone, in a clone of its own of the repository's HEAD (DIR/fresh-pipeline,
 DIR/fresh-tests) with a Dr.Jit kernel cache of its own, in a folder whose parent holds
