@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from bench.common import ROOT, run_stages, truth_in_reconstruction, write_section
+from bench.common import ROOT, machine, run_stages, truth_in_reconstruction, write_section
 from pipeline.core.config import load_config
 from pipeline.core.errors import PipelineError
 from pipeline.core.runner import shared_inputs
@@ -425,8 +425,8 @@ def texture_oracle_part(work: Path) -> None:
 
 def _seed_run(base: Path, seed: int) -> dict:
     """The fit stages on a copy of ``base`` (cached through the scene stage) with every
-    fit stage's seed set to ``seed``: its score and the fit stages' seconds, kept as JSON
-    beside the copy so that a rerun of the part reads it instead."""
+    fit stage's seed set to ``seed``: its score, kept as JSON beside the copy so that a
+    rerun of the part reads it instead."""
     record = base.parent / f"{base.name}.seed-{seed}.json"
     if record.is_file():
         return json.loads(record.read_text())
@@ -434,9 +434,8 @@ def _seed_run(base: Path, seed: int) -> dict:
     if not capture.is_dir():
         shutil.copytree(base, capture, ignore=shutil.ignore_patterns("output"))
     seeds = [f"{stage}.seed={seed}" for stage in ("fit_material", "fit_texture", "fit_geometry")]
-    _, seconds = run_stages(capture, "fit_geometry", *seeds)
-    # the stages' seconds are kept, not reported: runs of this part may share the machine
-    result = {"score": score_capture(capture), "seconds": {s: seconds[s] for s in FIT_STAGES if s in seconds}}
+    run_stages(capture, "fit_geometry", *seeds)
+    result = {"score": score_capture(capture)}
     record.write_text(json.dumps(result, indent=1))
     return result
 
@@ -494,7 +493,7 @@ def seeds_part(work: Path, samples: list[str], seeds: int) -> None:
             [
                 "### Repeatability over seeds",
                 "",
-                "Machine: 2 cores, 24 GiB, no GPU. The fit stages on the standard preset, each run with "
+                f"{machine()} The fit stages on the standard preset, each run with "
                 "its own seed (every fit stage's `seed`: the batch order and the renders), from one "
                 "capture cached through the scene stage. Reproduce: "
                 f"`.venv/bin/python -m bench.fitting --parts seeds --samples {','.join(samples)} "
@@ -510,7 +509,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--parts", default="extremes,accuracy,oracle,texture-oracle")
     parser.add_argument("--workdir", type=Path, help="keep captures and caches here (default: a temporary folder)")
-    parser.add_argument("--samples", default="bird,bird_volumetric", help="sample captures of the accuracy part")
+    parser.add_argument(
+        "--samples", default="bird,bird_volumetric", help="sample captures of the accuracy and seeds parts"
+    )
     parser.add_argument("--seeds", type=int, default=10, help="runs of the seeds part, seeds 0 to N-1")
     args = parser.parse_args()
     parts = args.parts.split(",")
