@@ -18,7 +18,8 @@ Per step:
 
 It stops at ``iterations``, when the time budget is spent, or when nothing moves
 beyond its noise any more (pipeline.fit.stopping: no fitted value and not the
-training loss trends over the second half of the fit so far); each view's loss
+training loss trends over the second half of the fit so far) and the held-out error
+has stopped falling (its latest render is not the best so far); each view's loss
 counts relative to its first, so that a batch of bright views does not look like a
 setback.
 
@@ -533,7 +534,7 @@ def run(
             if checkpoint is not None:
                 checkpoint.log_step(entry)
             asked = on_iteration(entry) if on_iteration is not None else None
-            state.stopped = asked or _stop_reason(settings, state.log, entry)
+            state.stopped = asked or _stop_reason(settings, state.log, entry, best)
             if state.stopped:
                 break
             if checkpoint is not None and checkpoint.due():
@@ -574,8 +575,12 @@ def _start(loop: _Loop, checkpoint) -> tuple[LoopState, BestState]:
     return state, best
 
 
-def _stop_reason(settings: LoopSettings, log: list[dict], entry: dict) -> str | None:
-    if (reason := still(log, settings.window, settings.still_threshold)) is not None:
+def _stop_reason(settings: LoopSettings, log: list[dict], entry: dict, best: BestState) -> str | None:
+    # Still, but not while the held-out error keeps falling: its latest render the best
+    # so far says the values are still on their way below the training loss's noise.
+    validated = [e["iteration"] for e in log if "validation_error" in e]
+    falling = bool(validated) and best.iteration == validated[-1]
+    if not falling and (reason := still(log, settings.window, settings.still_threshold)) is not None:
         return reason
     if settings.time_budget_s and entry["seconds"] > settings.time_budget_s:
         return f"time budget of {settings.time_budget_s:g} s spent"

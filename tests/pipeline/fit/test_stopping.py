@@ -52,3 +52,19 @@ def test_a_fit_that_only_jitters_stops_and_says_why():
     assert "nothing moved beyond its noise over the last 20 steps" in reasons[first - 1]
     assert all(reason is None for reason in reasons[:19])  # too few steps to judge
     assert still(log, 20, 0.0) is None  # switched off
+
+
+def test_the_loop_does_not_stop_while_the_held_out_error_still_falls():
+    """A still trajectory stops the loop only once the held-out error has stopped
+    falling: while its latest render is the best so far, the fit goes on."""
+    from pipeline.fit.loop import BestState, _stop_reason
+    from pipeline.fit.settings import LoopSettings
+
+    rng = np.random.default_rng(0)
+    log = [{"relative_loss": 1.0 + 0.01 * rng.standard_normal(), "params": {"x": [0.5]}} for _ in range(60)]
+    for iteration in (20, 40, 60):
+        log[iteration - 1]["validation_error"] = 1.0 / iteration
+        log[iteration - 1]["iteration"] = iteration
+    settings = LoopSettings(still_threshold=2.0, window=40)
+    assert _stop_reason(settings, log, log[-1], BestState({}, 60, 1 / 60)) is None
+    assert "nothing moved" in _stop_reason(settings, log, log[-1], BestState({}, 40, 1 / 40))
