@@ -28,6 +28,14 @@ def machine() -> str:
     return f"Machine: {os.cpu_count()} cores, {memory:.0f} GiB, {gpu or 'no GPU'}."
 
 
+def code_version() -> str:
+    """The commit the benchmark runs, with "+changes" when the work tree differs from it
+    (tracked files changed)."""
+    commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+    changed = subprocess.run(["git", "diff", "--quiet", "HEAD"], cwd=ROOT).returncode != 0
+    return f"{commit}{'+changes' if changed else ''}"
+
+
 def run_stages(
     capture: Path, until: str, *overrides: str, force: tuple[str, ...] = (), preset: str = "standard"
 ) -> tuple[dict, dict]:

@@ -37,7 +37,11 @@ Runs:
   met the targets; its result is the state it ends in.
 
 Each run is repeated ``--repeat`` times and the last is reported (later runs find
-Dr.Jit's kernels compiled). The table has one row per kit and run; the summary per
+Dr.Jit's kernels compiled). A run's outcome is stored in its kit's folder under
+``--work``; a later call with the same folder reuses it when the code is the same
+commit (no uncommitted change), on the same machine and variant, with the same
+budget and repeats: a suite too long for one sitting is run in parts (``--kits``,
+``--first-seed``, ``--materials``) and written whole by a last call over every kit. The table has one row per kit and run; the summary per
 material and configuration: the share of kits whose result meets every target, the
 median ratio of the original loop's time to target to the configuration's (a kit the
 original never reached counts at its budget: a lower bound) and the median seconds
@@ -51,15 +55,16 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import sys
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
-from bench.common import ROOT, machine, write_section
+from bench.common import ROOT, code_version, machine, write_section
 from pipeline.cli.fit import FitOptions
 from pipeline.fit import engine
 from pipeline.fit.scene_fit import FilmSizes
@@ -436,7 +441,16 @@ class Outcome:
     """Until it ended (the original loop: at the target or the budget)."""
 
 
-def run(kit: Kit, folder: Path, name: str, budget: float, repeat: int, mi, dr) -> Outcome:
+def run(kit: Kit, folder: Path, name: str, budget: float, repeat: int, conditions: dict, mi, dr) -> Outcome:
+    """The run ``name`` on the kit in ``folder``, or its outcome stored there by an earlier
+    run under the same ``conditions`` (a committed version of the code, the machine,
+    the variant) and with the same budget and repeats."""
+    stored = folder / f"outcome-{re.sub(r'[^a-z0-9]+', '-', name)}.json"
+    key = conditions | {"budget": budget if name == "original" else None, "repeat": repeat}
+    if stored.is_file() and not key["version"].endswith("+changes"):
+        record = json.loads(stored.read_text())
+        if record["conditions"] == key:
+            return Outcome(**record["outcome"])
     for _ in range(repeat):
         clock = Clock(kit, budget)
         if name == "original":
@@ -446,6 +460,7 @@ def run(kit: Kit, folder: Path, name: str, budget: float, repeat: int, mi, dr) -
         else:
             result = pipeline_fit(kit, folder, *CONFIGS[name], clock)
             outcome = Outcome(clock.reached, clock.steps, result["values"], result["stopped"], result["seconds"])
+    stored.write_text(json.dumps({"conditions": key, "outcome": asdict(outcome)}, indent=1))
     return outcome
 
 
@@ -488,7 +503,8 @@ def main() -> None:
     import drjit as dr
     import mitsuba as mi
 
-    print(f"variant {variant}")
+    conditions = {"version": code_version(), "machine": machine(), "variant": variant}
+    print(f"variant {variant}, code {conditions['version']}")
     lines = [
         "| kit | material | scene | run | time to target | steps | stopped | seconds | errors of the result | ratio |",
         "|---|---|---|---|---|---|---|---|---|---|",
@@ -501,9 +517,13 @@ def main() -> None:
             folder = work / f"{material}-{seed}"
             folder.mkdir(parents=True, exist_ok=True)
             references(kit, folder, mi)
-            original = run(kit, folder, "original", args.budget, args.repeat, mi, dr)
+            original = run(kit, folder, "original", args.budget, args.repeat, conditions, mi, dr)
             for name in ["original", *args.configs]:
-                outcome = original if name == "original" else run(kit, folder, name, args.budget, args.repeat, mi, dr)
+                outcome = (
+                    original
+                    if name == "original"
+                    else run(kit, folder, name, args.budget, args.repeat, conditions, mi, dr)
+                )
                 if name != "original":
                     outcomes.setdefault((material, name), []).append((kit, outcome, original))
                 reached = f"{outcome.reached:.1f} s" if outcome.reached is not None else "never"
@@ -524,7 +544,8 @@ def main() -> None:
         intro = [
             "## Fitting speed",
             "",
-            f"{machine()} Mitsuba variant {variant}. Command: `.venv/bin/python -m bench.fit_speed {options}",
+            f"{machine()} Mitsuba variant {variant}; code at {conditions['version']}. Command:",
+            f"`.venv/bin/python -m bench.fit_speed {options}",
             "--write`. The kits, the targets and the runs: bench/fit_speed.py's docstring. A result within",
             "every target is what the fit returns; a ratio is the original loop's time to target over the",
             "run's (>: the original never got there within the budget).",
