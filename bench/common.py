@@ -3,6 +3,7 @@ docs/benchmarks.md, one marked section per benchmark."""
 
 from __future__ import annotations
 
+import hashlib
 import os
 import shutil
 import subprocess
@@ -28,12 +29,20 @@ def machine() -> str:
     return f"Machine: {os.cpu_count()} cores, {memory:.0f} GiB, {gpu or 'no GPU'}."
 
 
-def code_version() -> str:
-    """The commit the benchmark runs, with "+changes" when the work tree differs from it
-    (tracked files changed)."""
-    commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
-    changed = subprocess.run(["git", "diff", "--quiet", "HEAD"], cwd=ROOT).returncode != 0
-    return f"{commit}{'+changes' if changed else ''}"
+def code_version(*paths: str) -> str:
+    """The code a benchmark runs: HEAD's short commit and the git tree of ``paths`` in it
+    (a later commit that changes nothing there keeps the tree), with "+changes" when
+    the work tree differs from HEAD there."""
+
+    def git(*arguments: str) -> str:
+        return subprocess.run(["git", *arguments], cwd=ROOT, capture_output=True, text=True, check=True).stdout
+
+    trees = git("rev-parse", *(f"HEAD:{path}" for path in paths)).split()
+    changed = subprocess.run(["git", "diff", "--quiet", "HEAD", "--", *paths], cwd=ROOT).returncode != 0
+    tree = hashlib.sha1(" ".join(trees).encode()).hexdigest()[:12]
+    return f"commit {git('rev-parse', '--short', 'HEAD').strip()}, {'/'.join(paths)} tree {tree}" + (
+        " +changes" if changed else ""
+    )
 
 
 def run_stages(

@@ -38,9 +38,9 @@ Runs:
 
 Each run is repeated ``--repeat`` times and the last is reported (later runs find
 Dr.Jit's kernels compiled). A run's outcome is stored in its kit's folder under
-``--work``; a later call with the same folder reuses it when the code is the same
-commit (no uncommitted change), on the same machine and variant, with the same
-budget and repeats: a suite too long for one sitting is run in parts (``--kits``,
+``--work``; a later call with the same folder reuses it when pipeline/ and bench/
+are as committed then (no uncommitted change there), on the same machine and
+variant, with the same budget and repeats: a suite too long for one sitting is run in parts (``--kits``,
 ``--first-seed``, ``--materials``) and written whole by a last call over every kit. The table has one row per kit and run; the summary per
 material and configuration: the share of kits whose result meets every target, the
 median ratio of the original loop's time to target to the configuration's (a kit the
@@ -443,11 +443,11 @@ class Outcome:
 
 def run(kit: Kit, folder: Path, name: str, budget: float, repeat: int, conditions: dict, mi, dr) -> Outcome:
     """The run ``name`` on the kit in ``folder``, or its outcome stored there by an earlier
-    run under the same ``conditions`` (a committed version of the code, the machine,
-    the variant) and with the same budget and repeats."""
+    run under the same ``conditions`` (the same committed pipeline/ and bench/, machine
+    and variant) and with the same budget and repeats."""
     stored = folder / f"outcome-{re.sub(r'[^a-z0-9]+', '-', name)}.json"
     key = conditions | {"budget": budget if name == "original" else None, "repeat": repeat}
-    if stored.is_file() and not key["version"].endswith("+changes"):
+    if stored.is_file() and not key["code"].endswith("+changes"):
         record = json.loads(stored.read_text())
         if record["conditions"] == key:
             return Outcome(**record["outcome"])
@@ -503,8 +503,9 @@ def main() -> None:
     import drjit as dr
     import mitsuba as mi
 
-    conditions = {"version": code_version(), "machine": machine(), "variant": variant}
-    print(f"variant {variant}, code {conditions['version']}")
+    version = code_version("pipeline", "bench")
+    conditions = {"code": version.partition(", ")[2], "machine": machine(), "variant": variant}
+    print(f"variant {variant}, {version}")
     lines = [
         "| kit | material | scene | run | time to target | steps | stopped | seconds | errors of the result | ratio |",
         "|---|---|---|---|---|---|---|---|---|---|",
@@ -544,7 +545,7 @@ def main() -> None:
         intro = [
             "## Fitting speed",
             "",
-            f"{machine()} Mitsuba variant {variant}; code at {conditions['version']}. Command:",
+            f"{machine()} Mitsuba variant {variant}; code: {version}. Command:",
             f"`.venv/bin/python -m bench.fit_speed {options}",
             "--write`. The kits, the targets and the runs: bench/fit_speed.py's docstring. A result within",
             "every target is what the fit returns; a ratio is the original loop's time to target over the",
