@@ -40,14 +40,16 @@ Each run is repeated ``--repeat`` times and the last is reported (later runs fin
 Dr.Jit's kernels compiled). A run's outcome is stored in its kit's folder under
 ``--work``; a later call with the same folder reuses it when pipeline/ and bench/
 are as committed then (no uncommitted change there), on the same machine and
-variant, with the same budget and repeats: a suite too long for one sitting is run in parts (``--kits``,
-``--first-seed``, ``--materials``) and written whole by a last call over every kit. The table has one row per kit and run; the summary per
-material and configuration: the share of kits whose result meets every target, the
-median ratio of the original loop's time to target to the configuration's (a kit the
-original never reached counts at its budget: a lower bound) and the median seconds
-to the end. The machine's
-variant is Mitsuba's automatic choice (cuda_ad_rgb where a GPU works). ``--write``
-puts the table into docs/benchmarks.md.
+variant, with the same budget and repeats: a suite too long for one sitting is run
+in parts (``--kits``, ``--first-seed``, ``--materials``) and written whole by a last
+call over every kit.
+
+The table has one row per kit and run; the summary per material and configuration:
+the share of kits whose result meets every target, the median ratio of the original
+loop's time to target to the configuration's (a kit the original never reached
+counts at its budget: a lower bound) and the median seconds to the end. The
+machine's variant is Mitsuba's automatic choice (cuda_ad_rgb where a GPU works).
+``--write`` puts the table into docs/benchmarks.md.
 """
 
 from __future__ import annotations
