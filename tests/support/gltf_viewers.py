@@ -68,9 +68,9 @@ def three_js_renders(glb: bytes, view: tuple[Intrinsics, Pose], backgrounds: tup
         f"<body>{fragments}</body></html>"
     )
     shot = folder / "viewers.png"
-    # Headless Chromium takes the shot when its virtual time runs out, which does not wait
-    # for the glb's textures to decode: on a busy machine a viewer now and then is still
-    # its bare background. Such a shot is taken again.
+    # Headless Chromium takes the shot when its virtual time runs out; on a busy machine a
+    # viewer has now and then not drawn the glb by then (seen once: still its bare
+    # background). Such a shot is taken again.
     for _ in range(3):
         subprocess.run(
             [chromium, *CHROMIUM_FLAGS, f"--window-size={width * len(backgrounds)},{height}"]
