@@ -32,13 +32,13 @@ def machine() -> str:
 def code_version(*paths: str) -> str:
     """The code a benchmark runs: HEAD's short commit and the git tree of ``paths`` in it
     (a later commit that changes nothing there keeps the tree), with "+changes" when
-    the work tree differs from HEAD there."""
+    the work tree differs from HEAD there, a new file included."""
 
     def git(*arguments: str) -> str:
         return subprocess.run(["git", *arguments], cwd=ROOT, capture_output=True, text=True, check=True).stdout
 
     trees = git("rev-parse", *(f"HEAD:{path}" for path in paths)).split()
-    changed = subprocess.run(["git", "diff", "--quiet", "HEAD", "--", *paths], cwd=ROOT).returncode != 0
+    changed = bool(git("status", "--porcelain", "--", *paths).strip())  # untracked files too
     tree = hashlib.sha1(" ".join(trees).encode()).hexdigest()[:12]
     return f"commit {git('rev-parse', '--short', 'HEAD').strip()}, {'/'.join(paths)} tree {tree}" + (
         " +changes" if changed else ""
