@@ -10,8 +10,9 @@
    them (pipeline.camera.self_calibration; values, deviations and decisions in
    sfm.json). Turntable and ring (``capture.rig``): the rig is the model
    (pipeline.geometry.circular_motion): one axis, one camera offset, one angle per
-   photo, bundle-adjusted with the focal length and distortion, each photo's angle
-   uncertainty reported; an arc of the ring that matching left apart is placed by
+   photo, bundle-adjusted with the focal length and distortion and with the
+   silhouette coherence of the photos' outlines (``silhouette_coherence``), each
+   photo's angle uncertainty reported; an arc of the ring that matching left apart is placed by
    its silhouettes at once, a photo the features cannot place by its board pose, by
    even steps (a timed table) or by its silhouette, else left out with a warning
    naming it (pipeline.geometry.turntable_placement). Fewer than ``min_registered_fraction``
@@ -45,8 +46,8 @@ sfm.json            registered and unregistered photos (with causes), metrics,
 ==================  =============================================================
 
 Limitations: SIFT needs texture. A plain specimen on a plain set registers only
-through the board (or, on a turntable, its matches on the table and its
-silhouette). Without a board the scale is arbitrary. A handheld photo SfM cannot
+through the board (or, on a turntable, its shading's matches, which the outlines
+correct, and its silhouette). Without a board the scale is arbitrary. A handheld photo SfM cannot
 register is dropped. Self-calibrated radial distortion improves the poses and is
 reported, but the photos stay as undistort made them (pinhole, without it): the
 stage warns when it displaces the specimen's outline by more than half a pixel
@@ -380,7 +381,7 @@ def _too_few(conf: Config, posed: set[str], order: list[str], causes: dict[str, 
 
 STAGE = Stage(
     name="sfm",
-    version=11,
+    version=12,
     config=Config,
     main=main,
     needs=("undistort.pinhole", "masks.masks_json"),

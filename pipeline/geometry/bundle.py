@@ -16,8 +16,10 @@ grow linearly with the observations. Outliers are down-weighted with Cauchy's lo
 (the inverse of the reduced system at the solution, scaled by the residuals'
 variance): the basis of the uncertainties the sfm stage reports.
 
-Priors (``Problem.prior``) add residuals on the camera parameters alone, in pixel
-units (a turntable's even steps).
+Priors (``Problem.priors``) add residuals on the camera parameters alone, in pixel
+units (a turntable's even steps, its outlines' coherence); one whose residuals depend
+on the views through few differences gives its own view Jacobian rather than one
+evaluation per view.
 
 Limitations: forward differences limit the attainable precision to about 1e-7 of
 a parameter's scale, far below what pixels constrain; the dense reduced system
@@ -32,7 +34,17 @@ from typing import Callable
 import numpy as np
 
 Projection = Callable[[np.ndarray, np.ndarray, np.ndarray, "Observations"], np.ndarray]
-Prior = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
+@dataclass(frozen=True)
+class Prior:
+    """Residuals on the camera parameters alone, in pixel units."""
+
+    residuals: Callable[[np.ndarray, np.ndarray], np.ndarray]
+    """(global (G,), views (n, k)) -> (r,) residuals."""
+    view_jacobian: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
+    """(global, views) -> (r, n, k) derivatives by the view parameters, or None for
+    forward differences, one evaluation per free view parameter."""
 
 
 @dataclass
@@ -69,8 +81,7 @@ class Problem:
     """Finite-difference step of the point coordinates."""
     loss_scale_px: float = 2.0
     """Cauchy loss scale: residuals of this many pixels get half weight."""
-    prior: Prior | None = None
-    """(global, views) -> residuals in pixel units, or None."""
+    priors: list[Prior] = field(default_factory=list)
 
 
 @dataclass
@@ -124,20 +135,30 @@ class _Linearisation:
             moved = X.copy()
             moved[:, j] += problem.point_step
             self.J_point[:, :, j] = (problem.project(g, V, moved, obs) - predicted) / problem.point_step
-        self.prior_residuals = np.zeros(0)
-        self.J_prior = np.zeros((0, 0))
-        if problem.prior is not None:
-            self.prior_residuals = problem.prior(g, V)
-            columns = []
-            for index in free_g:
-                moved = g.copy()
-                moved[index] += problem.global_steps[index]
-                columns.append((problem.prior(moved, V) - self.prior_residuals) / problem.global_steps[index])
-            for view, j in zip(*np.nonzero(problem.free_views)):
-                moved = V.copy()
-                moved[view, j] += problem.view_steps[j]
-                columns.append((problem.prior(g, moved) - self.prior_residuals) / problem.view_steps[j])
-            self.J_prior = np.column_stack(columns) if columns else np.zeros((len(self.prior_residuals), 0))
+        blocks = [_prior_jacobian(problem, prior, g, V) for prior in problem.priors]
+        self.prior_residuals = np.concatenate([residuals for residuals, _ in blocks]) if blocks else np.zeros(0)
+        n_cam = len(free_g) + int(np.count_nonzero(problem.free_views))
+        self.J_prior = np.vstack([J for _, J in blocks]) if blocks else np.zeros((0, n_cam))
+
+
+def _prior_jacobian(problem: Problem, prior: Prior, g: np.ndarray, V: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A prior's residuals and their Jacobian by the free camera parameters (the free
+    global ones, then the free view entries in row-major order)."""
+    residuals = prior.residuals(g, V)
+    columns = []
+    for index in np.flatnonzero(problem.free_global):
+        moved = g.copy()
+        moved[index] += problem.global_steps[index]
+        columns.append((prior.residuals(moved, V) - residuals) / problem.global_steps[index])
+    if prior.view_jacobian is not None:
+        by_view = prior.view_jacobian(g, V)
+        columns += [by_view[:, view, j] for view, j in zip(*np.nonzero(problem.free_views))]
+    else:
+        for view, j in zip(*np.nonzero(problem.free_views)):
+            moved = V.copy()
+            moved[view, j] += problem.view_steps[j]
+            columns.append((prior.residuals(g, moved) - residuals) / problem.view_steps[j])
+    return residuals, np.column_stack(columns) if columns else np.zeros((len(residuals), 0))
 
 
 def _camera_index(problem: Problem) -> tuple[int, np.ndarray]:
@@ -218,9 +239,7 @@ def _errors(problem: Problem, g, V, X) -> np.ndarray:
 
 def _total_cost(problem: Problem, g, V, X) -> float:
     cost = _robust_cost(_errors(problem, g, V, X), problem.loss_scale_px)
-    if problem.prior is not None:
-        cost += float(np.sum(problem.prior(g, V) ** 2))
-    return cost
+    return cost + sum(float(np.sum(prior.residuals(g, V) ** 2)) for prior in problem.priors)
 
 
 def adjust(

@@ -36,7 +36,12 @@ The solver:
    than ``outlier_px`` are dropped and it is solved again. Every group's angles
    share the axis, offset and intrinsics; each group holds one of its angles fixed.
    An optional prior makes the ring's steps between photos in file order even (a
-   timed turntable).
+   timed turntable). Where the photos' outlines are given, their silhouette
+   coherence (pipeline.geometry.silhouette_coherence: the epipolar tangency errors
+   of pairs of the ring's photos) is fitted with the features, each in its own
+   measured noise, re-measured until it settles: features on a plain or glossy
+   specimen are shading that stays with the light, and the outlines decide what
+   they leave loose.
 5. **Which photos it placed**: no threshold in degrees or pixels, since what a photo's
    angle can be known to depends on the photos' size and noise. A photo is placed
    when it has ``min_observations`` inlier observations and its residuals are no
@@ -65,7 +70,8 @@ from scipy.stats import binom
 from pipeline import logger
 from pipeline.camera.model import Intrinsics, Pose
 from pipeline.camera.self_calibration import corner_radius, frame_coverage, radial_shift_px
-from pipeline.geometry.bundle import Observations, Problem, adjust
+from pipeline.geometry import silhouette_coherence
+from pipeline.geometry.bundle import Observations, Prior, Problem, adjust
 
 GLOBAL_NAMES = ("axis_a", "axis_b", "psi", "f", "cx", "cy", "k1")
 """The model's global parameters: two for the axis direction (a tangent-plane offset
@@ -145,6 +151,9 @@ class CircularMotion:
     groups: list[dict[str, float]] = field(default_factory=list)
     """Photos the features tie to each other but not to the ring: per group, each photo's
     angle relative to the group's first (radians); the group as a whole is still to place."""
+    silhouette_coherence: dict = field(default_factory=dict)
+    """Where outlines were fitted too: the pairs compared and the standard deviations of
+    their tangency errors and of the features' reprojection errors at the solution (pixels)."""
 
 
 def place_group(solution: "CircularMotion", offsets: dict[int, float]) -> tuple[np.ndarray, list[dict[str, int]]]:
@@ -464,6 +473,10 @@ class _Solver:
         """Feature pairs the model explains with turns the other pairs agree with."""
         self.known_rotations: dict[int, np.ndarray] = {}
         """World-to-camera rotations of photos with known poses (a board's), by index."""
+        self.outlines: silhouette_coherence.Outlines | None = None
+        """The photos' outlines (pixels), when their silhouette coherence is fitted."""
+        self.coherence: dict = {}
+        """The last solve's silhouette coherence: pairs, tangency and feature noise (pixels)."""
 
     def K(self) -> np.ndarray:
         return np.array([[self.g[FOCAL], 0, self.g[CX]], [0, self.g[FOCAL], self.g[CY]], [0, 0, 1.0]])
@@ -598,7 +611,57 @@ def _tracks_to_problem(solver: _Solver, tracks: list[dict[str, int]]) -> tuple[n
     return np.array(points).reshape(-1, 3), observations
 
 
-def _problem(solver: _Solver, observations: Observations, free_global: np.ndarray) -> Problem:
+class _Coherence:
+    """The silhouette coherence term of one solve: the ring's photos with an outline,
+    the pairs compared (chosen at the angles the solve starts from) and the tangency
+    errors' standard deviation there, against the features' ``feature_sigma``."""
+
+    def __init__(self, solver: _Solver, feature_sigma: float):
+        outlines = solver.outlines
+        ring = solver.placed & (solver.group == 0)
+        rows = np.flatnonzero(ring[outlines.views])
+        self.model = solver.model
+        self.views = outlines.views[rows]
+        self.pixels = outlines.pixels[rows]
+        self.pairs = silhouette_coherence.choose_pairs(solver.angles[self.views])
+        self.feature_sigma = feature_sigma
+        self.sigma = silhouette_coherence.robust_sigma(self.residuals(solver.g, solver.angles[:, None]))
+
+    def residuals(self, g: np.ndarray, views: np.ndarray, turn_step: float = 0.0) -> np.ndarray:
+        """(P, 4) tangency errors (pixels) of the pairs at the global parameters and
+        angles, every pair's turn increased by ``turn_step``."""
+        axis, p = self.model.axis_and_point(g)
+        normalised = self.model.undistorted_rays(g, self.pixels.reshape(-1, 2)).reshape(self.pixels.shape)
+        angles = views[self.views, 0]
+        turns = angles[self.pairs[:, 1]] - angles[self.pairs[:, 0]] + turn_step
+        return silhouette_coherence.tangency_residuals(axis, p, turns, normalised, self.pairs, g[FOCAL])
+
+    def weighted(self, g: np.ndarray, views: np.ndarray, turn_step: float = 0.0) -> np.ndarray:
+        return silhouette_coherence.weighted(self.residuals(g, views, turn_step), self.sigma, self.feature_sigma)
+
+    def view_jacobian(self, g: np.ndarray, views: np.ndarray) -> np.ndarray:
+        """(4P, n, 1) derivatives by the angles: a pair's residuals depend on its turn alone,
+        so one evaluation with every turn moved gives them all."""
+        step = 1e-7
+        by_turn = (self.weighted(g, views, step) - self.weighted(g, views)) / step
+        J = np.zeros((*by_turn.shape, *views.shape))
+        rows = np.arange(len(self.pairs))
+        J[rows, :, self.views[self.pairs[:, 1]], 0] = by_turn
+        J[rows, :, self.views[self.pairs[:, 0]], 0] = -by_turn
+        return J.reshape(-1, *views.shape)
+
+    @property
+    def prior(self) -> Prior:
+        return Prior(lambda g, views: self.weighted(g, views).ravel(), self.view_jacobian)
+
+    @property
+    def usable(self) -> bool:
+        return len(self.pairs) > 0 and np.isfinite(self.sigma) and self.sigma > 0
+
+
+def _problem(
+    solver: _Solver, observations: Observations, free_global: np.ndarray, coherence: _Coherence | None = None
+) -> Problem:
     free_views = solver.placed[:, None].copy()
     for group in np.unique(solver.group[solver.placed]):
         # Each group's angles are known up to one offset: its first photo holds it.
@@ -613,7 +676,7 @@ def _problem(solver: _Solver, observations: Observations, free_global: np.ndarra
             steps = turns / np.diff(placed)
             return (steps - np.sum(turns) / (placed[-1] - placed[0])) / sigma
 
-        priors.append(even_steps)
+        priors.append(Prior(even_steps))
     known = [(i, R) for i, R in solver.known_rotations.items() if solver.placed[i]]
     if len(known) >= 2:
         # Known poses (a board's) hold their photos' turns: a group of photos no feature
@@ -628,7 +691,9 @@ def _problem(solver: _Solver, observations: Observations, free_global: np.ndarra
             difference = views[others, 0] - views[reference, 0] - rotvecs @ axis
             return np.angle(np.exp(1j * difference)) / sigma
 
-        priors.append(known_turns)
+        priors.append(Prior(known_turns))
+    if coherence is not None:
+        priors.append(coherence.prior)
     return Problem(
         project=solver.model.project,
         observations=observations,
@@ -637,21 +702,29 @@ def _problem(solver: _Solver, observations: Observations, free_global: np.ndarra
         global_steps=np.array([1e-6, 1e-6, 1e-6, 1e-4, 1e-4, 1e-4, 1e-7]),
         view_steps=np.array([1e-7]),
         point_step=1e-7,
-        prior=(lambda g, v: np.concatenate([prior(g, v) for prior in priors])) if priors else None,
+        priors=priors,
     )
 
 
 def _solve(solver: _Solver, tracks, free_global: np.ndarray):
     """Bundle adjustment of the placed photos, outliers dropped and solved again."""
     points, observations = _tracks_to_problem(solver, tracks)
+    feature_sigma = _feature_sigma(solver, observations, points)
     for attempt in range(4):
-        problem = _problem(solver, observations, free_global)
+        coherence = _coherence(solver, feature_sigma)
+        problem = _problem(solver, observations, free_global, coherence)
         result = adjust(problem, solver.g, solver.angles[:, None], points)
         solver.g, solver.angles, points = result.global_params, result.view_params[:, 0], result.points
         limit = max(solver.settings.outlier_px, 4 * result.sigma_px)
         inliers = result.errors_px <= limit
-        if inliers.all() or attempt == 3:
+        # The two noises were measured where the solve started; solved again until
+        # the features' and the outlines' noise at the solution agree with them.
+        settled = coherence is None or _settled(solver, coherence, result.sigma_px)
+        if (inliers.all() and settled) or attempt == 3:
             break
+        feature_sigma = result.sigma_px
+        if inliers.all():
+            continue
         observations = observations.subset(inliers)
         # Points seen fewer than twice are dropped and the rest renumbered.
         counts = np.bincount(observations.point, minlength=len(points))
@@ -661,6 +734,34 @@ def _solve(solver: _Solver, tracks, free_global: np.ndarray):
         observations.point = renumber[observations.point]
         points = points[keep_points]
     return result, problem, points, observations
+
+
+def _feature_sigma(solver: _Solver, observations: Observations, points: np.ndarray) -> float:
+    """The features' reprojection noise at the solver's state (as the bundle adjuster measures it)."""
+    if not len(observations.view):
+        return 1.0
+    predicted = solver.model.project(solver.g, solver.angles[:, None], points, observations)
+    return max(float(np.median(np.linalg.norm(predicted - observations.pixels, axis=1)) / 1.1774), 1e-3)
+
+
+def _coherence(solver: _Solver, feature_sigma: float) -> _Coherence | None:
+    """The silhouette coherence term at the solver's state, None without outlines or pairs."""
+    if solver.outlines is None:
+        return None
+    coherence = _Coherence(solver, feature_sigma)
+    return coherence if coherence.usable else None
+
+
+def _settled(solver: _Solver, coherence: _Coherence, feature_sigma: float) -> bool:
+    """Whether both noises at the solution are within a fifth of those the solve weighted
+    by, and records them (sfm.json)."""
+    sigma = silhouette_coherence.robust_sigma(coherence.residuals(solver.g, solver.angles[:, None]))
+    solver.coherence = {
+        "pairs": len(coherence.pairs),
+        "tangency_sigma_px": round(sigma, 3),
+        "feature_sigma_px": round(feature_sigma, 3),
+    }
+    return abs(sigma / coherence.sigma - 1) < 0.2 and abs(feature_sigma / coherence.feature_sigma - 1) < 0.2
 
 
 def _angle_std_deg(solver: _Solver, problem: Problem, covariance: np.ndarray) -> np.ndarray:
@@ -782,14 +883,18 @@ def solve(
     keypoints: dict[str, np.ndarray],
     matches: dict[tuple[str, str], dict[int, int]],
     known: dict[str, Pose] | None = None,
+    outlines: dict[str, np.ndarray] | None = None,
 ) -> CircularMotion:
     """Circular motion of the photos ``order`` (one camera, initial ``intrinsics``)
-    from their keypoints and verified matches, and ``known`` poses of some of them
-    (a board's, in any one frame) for the start; ValueError when fewer than three
-    photos are connected by consistent matches."""
+    from their keypoints and verified matches, ``known`` poses of some of them (a
+    board's, in any one frame) for the start, and the convex ``outlines`` (pixels) of
+    the photos whose silhouette coherence is fitted too; ValueError when fewer than
+    three photos are connected by consistent matches."""
     # 1-3. Relative motions, axis, angles and the camera's offset.
     solver = _Solver(settings, order, intrinsics, keypoints)
     solver.known_rotations = {solver.index[n]: pose.R for n, pose in (known or {}).items() if n in solver.index}
+    if outlines:
+        solver.outlines = silhouette_coherence.Outlines.of({solver.index[n]: hull for n, hull in outlines.items()})
     free = np.zeros(len(GLOBAL_NAMES), bool)
     free[:3] = True
     free[FOCAL] = settings.refine_focal
@@ -861,4 +966,5 @@ def solve(
         reprojection_px=float(np.median(result.errors_px)) if len(result.errors_px) else 0.0,
         unplaced={n: reason for n, reason in unplaced.items() if not any(n in group for group in groups)},
         groups=groups,
+        silhouette_coherence=solver.coherence,
     )

@@ -45,6 +45,11 @@ class RigSettings:
     model's own error, measured on every capture)."""
     silhouette_ambiguity: Annotated[float, Range(1.0, None)] = 2.0
     """... and every angle more than 5 degrees away must fit this many times worse."""
+    silhouette_coherence: bool = True
+    """Turntable or ring: fit the specimen's outlines with its features (the epipolar
+    tangency of pairs of photos, each cue weighted by its own measured noise): features on
+    a plain or glossy specimen are shading that stays with the light, and the outlines
+    decide what they leave loose. Off: the features alone."""
 
 
 @dataclass(frozen=True)
@@ -60,6 +65,8 @@ class PlacementSettings:
     """A silhouette placement's tangency error may be this many times the feature-placed photos'."""
     silhouette_ambiguity: float
     """... and every angle more than 5 degrees away must do this many times worse."""
+    silhouette_coherence: bool
+    """The outlines are fitted with the features."""
     max_partners: int = 16
     """Placed photos a silhouette is compared with, spread round the circle."""
 
@@ -81,7 +88,7 @@ class PlacementSettings:
             min_frame_coverage=calibration.min_frame_coverage,
             even_steps_deg=rig.even_step_std_deg if turntable and rig.turntable_steps == "even" else 0.0,
         )
-        return cls(circular, turntable, rig.silhouette_noise_factor, rig.silhouette_ambiguity)
+        return cls(circular, turntable, rig.silhouette_noise_factor, rig.silhouette_ambiguity, rig.silhouette_coherence)
 
 
 def circular_poses(
@@ -101,9 +108,18 @@ def circular_poses(
             "a turntable or ring needs one camera setting, but the photos were taken with several (see "
             "calibration.json): shoot it with one camera, zoom and image size"
         )
+    hulls = _hulls(masks)
     try:
         first = intrinsics[order[0]]
-        solution = circular_motion.solve(settings.circular, order, first, keypoints, matches, board_poses)
+        solution = circular_motion.solve(
+            settings.circular,
+            order,
+            first,
+            keypoints,
+            matches,
+            board_poses,
+            outlines=hulls if settings.silhouette_coherence else None,
+        )
     except ValueError as error:
         raise PipelineError(
             f"the photos' features do not determine the turning: {error}. Check the photos with "
@@ -113,7 +129,7 @@ def circular_poses(
     table = Turntable(solution.axis, solution.point, np.eye(3), np.zeros(3), dict(solution.angles))
     unplaced = dict(solution.unplaced)
     if any(solution.partners.get(n, 0) < 2 for n in solution.angles):
-        for name, reason in _unchecked(settings, _Outlines(settings, table, solution, masks), solution).items():
+        for name, reason in _unchecked(settings, _Outlines(settings, table, solution, hulls), solution).items():
             del table.angles[name]
             unplaced[name] = reason
     source = {name: "features" for name in table.angles}
@@ -121,7 +137,7 @@ def circular_poses(
     for name, angle in _by_board(table, solution, board_poses, unplaced).items():
         table.angles[name], source[name] = angle, "board"
     # Silhouettes are compared with the photos the features placed (and kept).
-    outlines = _Outlines(settings, table, solution, masks) if solution.groups or unplaced else None
+    outlines = _Outlines(settings, table, solution, hulls) if solution.groups or unplaced else None
     offsets, grouped = _groups_by_silhouette(settings, outlines, solution.groups, order, unplaced)
     for name, found in grouped.items():
         table.angles[name], source[name], details[name] = found["angle"], "group_silhouette", found
@@ -151,6 +167,7 @@ def circular_poses(
         "angle_std_deg": solution.angle_std_deg,
         "silhouette": details,
         "self_calibration": solution.calibration,
+        "silhouette_coherence": solution.silhouette_coherence,
     }
     return table, poses, solution, report
 
@@ -204,15 +221,27 @@ def _by_even_steps(table: Turntable, order: list[str], unplaced: dict[str, str])
     return found
 
 
+def _hulls(masks: dict[str, Path]) -> dict[str, np.ndarray]:
+    """Each photo's outline (convex hull, pixels); photos with an empty mask have none."""
+    hulls = {}
+    for name, path in masks.items():
+        hull = silhouette_tangency.outline(cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) > 127)
+        if hull is not None:
+            hulls[name] = hull
+    return hulls
+
+
 class _Outlines:
     """The photos' outlines in normalised camera coordinates, the circle's poses, and the
     partners a silhouette is compared with: photos placed by features, spread round it."""
 
-    def __init__(self, settings: PlacementSettings, table: Turntable, solution: CircularMotion, masks: dict[str, Path]):
+    def __init__(
+        self, settings: PlacementSettings, table: Turntable, solution: CircularMotion, hulls: dict[str, np.ndarray]
+    ):
         K = solution.intrinsics
         self.focal = K.fx
         self.table = table
-        self.masks = masks
+        self.hulls = hulls
         self.model = circular_motion.Model(table.axis)
         self.g = np.array([0, 0, 0, K.fx, K.cx, K.cy, K.dist[0]], float)
         feature_placed = sorted((n for n in solution.angles if n in table.angles), key=table.angles.get)
@@ -228,7 +257,7 @@ class _Outlines:
         self.noise_px = float(np.median(errors)) if errors else np.inf
 
     def of(self, name: str) -> np.ndarray | None:
-        hull = silhouette_tangency.outline(cv2.imread(str(self.masks[name]), cv2.IMREAD_GRAYSCALE) > 127)
+        hull = self.hulls.get(name)
         return None if hull is None else self.model.undistorted_rays(self.g, hull)
 
     def pose_at(self, angle: float) -> tuple[np.ndarray, np.ndarray]:

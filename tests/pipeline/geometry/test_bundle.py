@@ -1,6 +1,6 @@
 import numpy as np
 
-from pipeline.geometry.bundle import Observations, Problem, adjust
+from pipeline.geometry.bundle import Observations, Prior, Problem, adjust
 
 
 def _project(g: np.ndarray, views: np.ndarray, points: np.ndarray, obs: Observations) -> np.ndarray:
@@ -60,9 +60,34 @@ def test_a_prior_holds_parameters_the_observations_do_not():
     rng = np.random.default_rng(2)
     problem, truth, views, points = _problem(rng, noise_px=0.2)
     problem.free_global = np.array([True, True, False])  # cx: free, confounded with the views' x
-    problem.prior = lambda g, v: np.array([(g[1] - 64.0) * 100.0])
+    problem.priors = [Prior(lambda g, v: np.array([(g[1] - 64.0) * 100.0]))]
     result = adjust(problem, truth, views, points)
     assert abs(result.global_params[1] - 64.0) < 0.05
+
+
+def test_a_prior_s_own_view_jacobian_gives_what_forward_differences_give():
+    """A prior on differences of the views' parameters, once differentiated by the bundle
+    adjuster view by view and once by its own Jacobian: the same solution and covariance."""
+    rng = np.random.default_rng(4)
+    problem, truth, views, points = _problem(rng, noise_px=0.2)
+
+    def residuals(g, v):
+        return (np.diff(v[:, 0]) - 0.5) * 30.0
+
+    def view_jacobian(g, v):
+        J = np.zeros((len(v) - 1, len(v), v.shape[1]))
+        rows = np.arange(len(v) - 1)
+        J[rows, rows, 0], J[rows, rows + 1, 0] = -30.0, 30.0
+        return J
+
+    without = adjust(problem, truth, views, points)
+    problem.priors = [Prior(residuals)]
+    by_differences = adjust(problem, truth, views, points)
+    problem.priors = [Prior(residuals, view_jacobian)]
+    by_own = adjust(problem, truth, views, points)
+    assert np.allclose(by_own.view_params, by_differences.view_params, atol=1e-6)
+    assert np.allclose(by_own.covariance, by_differences.covariance, rtol=1e-4, atol=1e-12)
+    assert np.sum(residuals(truth, by_own.view_params) ** 2) < np.sum(residuals(truth, without.view_params) ** 2)
 
 
 def test_views_tied_to_nothing_get_an_infinite_variance():

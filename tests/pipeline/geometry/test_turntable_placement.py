@@ -27,7 +27,11 @@ def _masks(tmp_path, views, shape) -> dict:
 
 def _settings(even_steps: float = 0.0) -> PlacementSettings:
     return PlacementSettings(
-        CircularSettings(even_steps_deg=even_steps), True, silhouette_noise_factor=2.0, silhouette_ambiguity=2.0
+        CircularSettings(even_steps_deg=even_steps),
+        True,
+        silhouette_noise_factor=2.0,
+        silhouette_ambiguity=2.0,
+        silhouette_coherence=True,
     )
 
 
