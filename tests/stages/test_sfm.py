@@ -93,6 +93,9 @@ def test_turntable_of_a_plain_specimen_poses_every_photo_within_a_degree(run_sta
     assert sum(len(names) for names in report["pose_source"].values()) == 12
     angles = [report["angle_deg"][n] for n in sorted(truth)]
     assert np.all(np.diff(angles) > 5)  # in turning order, none at another's angle
+    # The outlines were fitted with the features, and the report says how well each agreed.
+    coherence = report["silhouette_coherence"]
+    assert coherence["pairs"] > 0 and 0 < coherence["tangency_sigma_px"] < 2.0
 
 
 @pytest.mark.real_data
