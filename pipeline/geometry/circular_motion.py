@@ -710,6 +710,7 @@ def _solve(solver: _Solver, tracks, free_global: np.ndarray):
     """Bundle adjustment of the placed photos, outliers dropped and solved again."""
     points, observations = _tracks_to_problem(solver, tracks)
     feature_sigma = _feature_sigma(solver, observations, points)
+    solver.coherence = {}
     for attempt in range(4):
         coherence = _coherence(solver, feature_sigma)
         problem = _problem(solver, observations, free_global, coherence)
