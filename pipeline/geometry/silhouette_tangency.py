@@ -13,8 +13,10 @@ on a plain, glossy or translucent specimen.
 
 The error of a pair is in pixels: each outer tangent of one outline, carried to
 the other view as an epipolar line, is moved that far from touching the other
-outline. Outlines are convex hulls of the masks (tangents from a point outside a
-shape touch its convex hull), in normalised camera coordinates.
+outline (``tangency_errors``, signed: positive where it misses, negative where it
+cuts through; vectorised over pairs). Outlines are convex hulls of the masks
+(tangents from a point outside a shape touch its convex hull), in normalised camera
+coordinates.
 
 Limitations: partners seen nearly from the same or the opposite side give no
 constraint (the epipole then lies far out or inside the outline) and are skipped;
@@ -41,58 +43,77 @@ def outline(mask: np.ndarray) -> np.ndarray | None:
     return cv2.convexHull(points.reshape(-1, 1, 2)).reshape(-1, 2).astype(float)
 
 
-def _tangent_points(hull: np.ndarray, epipole: np.ndarray) -> np.ndarray | None:
-    """The two hull vertices on the outer tangents from ``epipole``, or None when the
-    epipole lies inside the hull (no tangents)."""
-    if cv2.pointPolygonTest(hull.astype(np.float32), (float(epipole[0]), float(epipole[1])), False) >= 0:
-        return None
-    towards = hull.mean(axis=0) - epipole
-    offsets = hull - epipole
-    angles = np.arctan2(towards[0] * offsets[:, 1] - towards[1] * offsets[:, 0], offsets @ towards)
-    return hull[[int(np.argmin(angles)), int(np.argmax(angles))]]
+def padded(hulls: list[np.ndarray]) -> np.ndarray:
+    """(n, V, 2) outlines padded to one length, each one's last vertex repeated (a
+    repeated vertex changes no tangent)."""
+    longest = max(len(h) for h in hulls)
+    return np.stack([np.concatenate([h, np.repeat(h[-1:], longest - len(h), axis=0)]) for h in hulls]).astype(float)
 
 
-def _tangency(line: np.ndarray, hull: np.ndarray) -> float:
-    """How far ``line`` (a, b, c with a^2 + b^2 = 1) is from touching ``hull``."""
-    signed = hull @ line[:2] + line[2]
-    low, high = signed.min(), signed.max()
-    if low > 0:
-        return float(low)
-    if high < 0:
-        return float(-high)
-    return float(min(high, -low))
+def _skew(t: np.ndarray) -> np.ndarray:
+    zero = np.zeros(len(t))
+    rows = [[zero, -t[:, 2], t[:, 1]], [t[:, 2], zero, -t[:, 0]], [-t[:, 1], t[:, 0], zero]]
+    return np.stack([np.stack(row, 1) for row in rows], 1)
 
 
-def _project(point: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray | None:
-    camera = R @ point + t
-    return camera[:2] / camera[2] if camera[2] > 1e-9 else None
+def _dehomogenise(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(P, 2) image points of (P, 3) camera-frame points, and whether each lies in front."""
+    front = points[:, 2] > 1e-9
+    return points[:, :2] / np.where(front, points[:, 2], 1.0)[:, None], front
 
 
-def pair_errors(
-    hull_a: np.ndarray, pose_a: tuple[np.ndarray, np.ndarray], hull_b: np.ndarray, pose_b: tuple[np.ndarray, np.ndarray]
-) -> np.ndarray | None:
-    """The four tangency errors (normalised units) of two outlines (normalised camera
-    coordinates) seen from poses (R, t), or None when the pair gives no constraint."""
-    (R_a, t_a), (R_b, t_b) = pose_a, pose_b
-    centre_a, centre_b = -R_a.T @ t_a, -R_b.T @ t_b
-    epipole_a, epipole_b = _project(centre_b, R_a, t_a), _project(centre_a, R_b, t_b)
-    if epipole_a is None or epipole_b is None:
-        return None
-    tangents_a, tangents_b = _tangent_points(hull_a, epipole_a), _tangent_points(hull_b, epipole_b)
-    if tangents_a is None or tangents_b is None:
-        return None
-    R = R_b @ R_a.T
-    t = t_b - R @ t_a
-    E = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ R
-    errors = []
-    for points, matrix, hull in ((tangents_a, E, hull_b), (tangents_b, E.T, hull_a)):
-        for point in points:
-            line = matrix @ np.append(point, 1.0)
-            norm = np.hypot(line[0], line[1])
-            if norm < 1e-12:
-                return None
-            errors.append(_tangency(line / norm, hull))
-    return np.array(errors)
+def _outside(hulls: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(P,) whether each point lies outside its convex outline (P, V, 2), either orientation."""
+    edges = np.roll(hulls, -1, axis=1) - hulls
+    to_point = points[:, None, :] - hulls
+    cross = edges[..., 0] * to_point[..., 1] - edges[..., 1] * to_point[..., 0]
+    return ~(np.all(cross >= 0, axis=1) | np.all(cross <= 0, axis=1))
+
+
+def _tangent_points(hulls: np.ndarray, epipoles: np.ndarray) -> np.ndarray:
+    """(P, 2, 2) the outline vertices on the two outer tangents from each epipole."""
+    offsets = hulls - epipoles[:, None, :]
+    towards = hulls.mean(axis=1) - epipoles
+    cross = towards[:, None, 0] * offsets[..., 1] - towards[:, None, 1] * offsets[..., 0]
+    angles = np.arctan2(cross, np.einsum("pvi,pi->pv", offsets, towards))
+    rows = np.arange(len(hulls))
+    return np.stack([hulls[rows, np.argmin(angles, axis=1)], hulls[rows, np.argmax(angles, axis=1)]], axis=1)
+
+
+def _signed_tangency(lines: np.ndarray, hulls: np.ndarray) -> np.ndarray:
+    """(P, 2) signed distance of each of two lines (P, 2, 3), normalised, from touching
+    the outline (P, V, 2): positive when it misses, negative when it cuts through."""
+    signed = np.einsum("pli,pvi->plv", lines[..., :2], hulls) + lines[..., 2:3]
+    low, high = signed.min(axis=2), signed.max(axis=2)
+    return np.where(low > 0, low, np.where(high < 0, -high, -np.minimum(high, -low)))
+
+
+def tangency_errors(
+    R: np.ndarray, t: np.ndarray, hulls_a: np.ndarray, hulls_b: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Signed tangency errors (normalised units) of pairs of outlines (P, V, 2, normalised
+    camera coordinates) whose second camera is ``R`` (P, 3, 3), ``t`` (P, 3) from the
+    first (X_b = R X_a + t): (P, 4), the two tangents of a carried to b, then those of b
+    carried to a; positive where a carried tangent misses the outline, negative where it
+    cuts it. And (P,) whether the pair constrains anything: both epipoles in front of
+    their camera and outside their outline."""
+    E = _skew(t) @ R
+    # The epipoles: camera b's centre seen from a, and a's seen from b.
+    epipole_a, front_a = _dehomogenise(-np.einsum("pji,pj->pi", R, t))
+    epipole_b, front_b = _dehomogenise(t)
+    valid = front_a & front_b & _outside(hulls_a, epipole_a) & _outside(hulls_b, epipole_b)
+    ones = np.ones((len(t), 2, 1))
+    tangents_a = np.concatenate([_tangent_points(hulls_a, epipole_a), ones], axis=2)
+    tangents_b = np.concatenate([_tangent_points(hulls_b, epipole_b), ones], axis=2)
+    errors = np.zeros((len(t), 4))
+    for columns, lines, hulls in (
+        (slice(0, 2), np.einsum("pij,pkj->pki", E, tangents_a), hulls_b),
+        (slice(2, 4), np.einsum("pji,pkj->pki", E, tangents_b), hulls_a),
+    ):
+        norm = np.hypot(lines[..., 0], lines[..., 1])
+        valid &= np.all(norm > 1e-12, axis=1)
+        errors[:, columns] = _signed_tangency(lines / np.maximum(norm, 1e-300)[..., None], hulls)
+    return np.where(valid[:, None], errors, 0.0), valid
 
 
 @dataclass(frozen=True)
@@ -110,13 +131,20 @@ class Placement:
 def _errors_px(members, angle: float, pose_at, partners, focal_px: float) -> np.ndarray:
     """(members x partners, 4) tangency errors in pixels of the ``members`` (hull,
     relative angle) at ``angle``, capped; nan where a partner gives no constraint."""
-    rows = []
+    Rs, ts, hulls_a, hulls_b = [], [], [], []
     for hull, relative in members:
-        pose = pose_at(angle + relative)
-        for partner_hull, partner_pose in partners:
-            errors = pair_errors(hull, pose, partner_hull, partner_pose)
-            rows.append(np.full(4, np.nan) if errors is None else np.minimum(errors * focal_px, CAP_PX))
-    return np.array(rows).reshape(-1, 4)
+        R_a, t_a = pose_at(angle + relative)
+        for partner_hull, (R_b, t_b) in partners:
+            R = R_b @ R_a.T
+            Rs.append(R)
+            ts.append(t_b - R @ t_a)
+            hulls_a.append(hull)
+            hulls_b.append(partner_hull)
+    if not Rs:
+        return np.zeros((0, 4))
+    both = padded(hulls_a + hulls_b)
+    errors, valid = tangency_errors(np.array(Rs), np.array(ts), both[: len(Rs)], both[len(Rs) :])
+    return np.where(valid[:, None], np.minimum(np.abs(errors) * focal_px, CAP_PX), np.nan)
 
 
 def place(

@@ -21,11 +21,13 @@ def _motion():
 
 
 def _normalised(hulls: list[np.ndarray]) -> np.ndarray:
-    padded = silhouette_coherence.Outlines.of(dict(enumerate(hulls))).pixels
+    padded = silhouette_tangency.padded(hulls)
     return (padded - [LENS.cx, LENS.cy]) / LENS.fx
 
 
-def test_vectorised_tangency_matches_each_pair_s_own_and_is_signed():
+def test_a_pair_s_turn_gives_the_tangency_of_its_two_poses_and_errors_are_signed():
+    """The circular motion's shortcut (a pair's relative pose from its turn alone) against
+    the relative pose of the two photos' own poses on the turntable."""
     rng = np.random.default_rng(0)
     axis, point = _motion()
     angles = np.sort(rng.uniform(0, 2 * np.pi, 10))
@@ -33,17 +35,34 @@ def test_vectorised_tangency_matches_each_pair_s_own_and_is_signed():
     for _ in angles:
         cloud = (rng.normal(size=(40, 2)) * [0.05, 0.08]).astype(np.float32)
         hulls.append(cv2.convexHull(cloud.reshape(-1, 1, 2)).reshape(-1, 2).astype(float))
-    padded = silhouette_coherence.Outlines.of(dict(enumerate(hulls))).pixels
+    padded = silhouette_tangency.padded(hulls)
     pairs = silhouette_coherence.choose_pairs(angles)
     turns = angles[pairs[:, 1]] - angles[pairs[:, 0]]
     residuals = silhouette_coherence.tangency_residuals(axis, point, turns, padded, pairs, 100.0)
     table = Turntable(axis, point, np.eye(3), np.zeros(3), {})
-    for (a, b), found in zip(pairs, residuals):
-        pose_a, pose_b = table.pose(angles[a]), table.pose(angles[b])
-        own = silhouette_tangency.pair_errors(hulls[a], (pose_a.R, pose_a.t), hulls[b], (pose_b.R, pose_b.t))
-        np.testing.assert_allclose(np.abs(found), np.zeros(4) if own is None else own * 100.0, atol=1e-9)
+    poses = [table.pose(a) for a in angles]
+    R = np.array([poses[b].R @ poses[a].R.T for a, b in pairs])
+    t = np.array([poses[b].t - R_ab @ poses[a].t for (a, b), R_ab in zip(pairs, R)])
+    own, valid = silhouette_tangency.tangency_errors(R, t, padded[pairs[:, 0]], padded[pairs[:, 1]])
+    assert valid.sum() > len(pairs) // 2
+    np.testing.assert_allclose(residuals, own * 100.0, atol=1e-9)
     # Random outlines do not agree: some tangents miss, some cut.
     assert np.any(residuals > 0) and np.any(residuals < 0)
+
+
+def test_a_tangent_that_misses_is_positive_and_one_that_cuts_is_negative():
+    """Two photos 60 degrees apart at the true motion: a's tangents carried to b touch b's
+    outline; shrunk about its centre, b's outline is missed, grown, it is cut."""
+    axis, point = _motion()
+    hull_a, hull_b = (silhouette_tangency.outline(blob_mask(pose_at(a), SPHERES, LENS)) for a in (0.0, np.pi / 3))
+    normalised = _normalised([hull_a, hull_b])
+    centre = normalised[1].mean(axis=0)
+    for scale, sign in ((0.9, 1.0), (1.1, -1.0)):
+        outlines = np.stack([normalised[0], centre + scale * (normalised[1] - centre)])
+        found = silhouette_coherence.tangency_residuals(
+            axis, point, np.array([np.pi / 3]), outlines, np.array([[0, 1]]), LENS.fx
+        )
+        assert np.all(sign * found[0, :2] > 1.0)  # pixels
 
 
 def test_the_true_motion_makes_the_outlines_agree_and_a_wrong_turn_does_not():
