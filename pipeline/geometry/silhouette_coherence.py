@@ -25,6 +25,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from pipeline.geometry import silhouette_tangency
 
@@ -65,13 +66,6 @@ def choose_pairs(angles: np.ndarray) -> np.ndarray:
     return np.array(sorted(chosen), int).reshape(-1, 2)
 
 
-def _rotations(axis: np.ndarray, turns: np.ndarray) -> np.ndarray:
-    """(P, 3, 3) rotations about ``axis`` by ``turns`` (Rodrigues)."""
-    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    c, s = np.cos(turns)[:, None, None], np.sin(turns)[:, None, None]
-    return np.eye(3) + s * k + (1 - c) * (k @ k)
-
-
 def tangency_residuals(
     axis: np.ndarray, point: np.ndarray, turns: np.ndarray, normalised: np.ndarray, pairs: np.ndarray, focal: float
 ) -> np.ndarray:
@@ -79,7 +73,7 @@ def tangency_residuals(
     the outlines in normalised camera coordinates) turned by ``turns`` (P,: the second
     photo's angle less the first's, radians) about the circular motion's ``axis`` through
     ``point`` (camera frame); 0 where a pair gives no constraint."""
-    R = _rotations(axis, turns)
+    R = Rotation.from_rotvec(np.outer(turns, axis)).as_matrix()
     errors, _ = silhouette_tangency.tangency_errors(
         R, point - R @ point, normalised[pairs[:, 0]], normalised[pairs[:, 1]]
     )
