@@ -3,7 +3,7 @@ placed, how many within a degree, stacked photos, errors against a reference, th
 reported uncertainty, self-calibration, time.
 
     .venv/bin/python -m bench.real_poses [--captures ../shared/captures] [--work /tmp/real-poses]
-                                         [--suite 12] [--only NAME ...] [--write]
+                                         [--suite 12] [--true-masks] [--only NAME ...] [--write]
 
 Cases (``--only`` picks some by name):
 
@@ -19,7 +19,10 @@ Cases (``--only`` picks some by name):
   turn, a turn restarted part-way or a second partial turn; the specimen shifted half-way
   (wobble) or not; a glossy plain or a textured specimen; a dotted, grey or board table; a
   room, studio, white or black backdrop; camera height 10-45 degrees; EXIF focal length or
-  not. Each is rendered once into ``--work``.
+  not. Each is rendered once into ``--work``. With ``--true-masks`` each runs again as
+  ``suite-SEED-true-masks``, its true masks given as the user's (``masks/``): the same
+  photos with perfect masks (the outlines fitted and placed, and where features may
+  come from), which separates what the masks cost from what the solver does.
 - ``bird``: the bundled sample (handheld rings, the board).
 
 Each becomes a pipeline capture in ``--work`` and runs `pipeline run --until sfm --force
@@ -53,7 +56,7 @@ import shutil
 import subprocess
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -75,6 +78,9 @@ class Case:
     or 'sample:NAME'."""
     rig: str = "handheld"
     overrides: tuple[str, ...] = field(default_factory=tuple)
+    true_masks: bool = False
+    """A synthetic capture with its true masks given as the user's (masks/): what its
+    poses would be with perfect masks."""
 
 
 REAL = [
@@ -249,6 +255,8 @@ def prepare(case: Case, captures: Path, work: Path) -> Path:
         shutil.rmtree(rendered, ignore_errors=True)
         subprocess.run(_pipeline("synth", str(rendered), *suite_options(int(name))[0]), check=True)
     shutil.copytree(rendered, capture, ignore=shutil.ignore_patterns(".pipeline", "output"))
+    if case.true_masks:
+        shutil.copytree(rendered / "ground_truth" / "masks", capture / "masks", dirs_exist_ok=True)
     return capture
 
 
@@ -399,42 +407,53 @@ def write_real_poses(lines: list[str], summary: list[str], command: str) -> None
     write_section("real-poses", body)
 
 
+def suite_summary(rows: list[dict], title: str) -> str:
+    photos = sum(r["photos"] for r in rows)
+    within = sum(r.get("within_1deg", 0) for r in rows)
+    turn_within = sum(r.get("turn_within_1deg", 0) for r in rows)
+    stacked_count = sum(r.get("stacked", 0) for r in rows)
+    failed = sum(not r["finished"] for r in rows)
+    return (
+        f"{title} ({len(rows)} captures, {photos} photos): {within} photos "
+        f"({100 * within / photos:.1f} %) placed with their viewing direction within 1 degree, {turn_within} "
+        f"({100 * turn_within / photos:.1f} %) with their turn angle within 1 degree; {stacked_count} stacked, "
+        f"{failed} stages failed."
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--captures", type=Path, default=ROOT.parent / "shared" / "captures")
     parser.add_argument("--work", type=Path, default=Path("/tmp/real-poses"))
     parser.add_argument("--suite", type=int, default=12, help="synthetic turntables drawn (seeds 0..N-1)")
     parser.add_argument("--only", nargs="*", default=None)
+    parser.add_argument(
+        "--true-masks", action="store_true", help="run each synthetic turntable again with its true masks"
+    )
     parser.add_argument("--write", action="store_true", help="rewrite docs/benchmarks.md's section")
     args = parser.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
     suite = [Case(f"suite-{seed:02d}", f"suite:{seed}", "turntable") for seed in range(args.suite)]
+    if args.true_masks:
+        suite += [replace(c, name=f"{c.name}-true-masks", true_masks=True) for c in suite]
     cases = [c for c in REAL + suite + OTHERS if args.only is None or c.name in args.only]
     print(HEADER, flush=True)
-    lines, suite_rows = [], []
+    lines, suite_rows, true_mask_rows = [], [], []
     for case in cases:
         if case.source.startswith("shared:") and not (args.captures / case.source.split(":")[1]).is_dir():
             continue
         description = suite_options(int(case.source.split(":")[1]))[1] if case.source.startswith("suite:") else case.rig
+        description += ", true masks" if case.true_masks else ""
         row = run_case(case, args.captures, args.work)
         lines.append(table_row(row, description))
         print(lines[-1], flush=True)
         if case.source.startswith("suite:"):
-            suite_rows.append(row)
+            (true_mask_rows if case.true_masks else suite_rows).append(row)
     summary = []
-    if suite_rows:
-        photos = sum(r["photos"] for r in suite_rows)
-        within = sum(r.get("within_1deg", 0) for r in suite_rows)
-        turn_within = sum(r.get("turn_within_1deg", 0) for r in suite_rows)
-        stacked_count = sum(r.get("stacked", 0) for r in suite_rows)
-        failed = sum(not r["finished"] for r in suite_rows)
-        summary.append(
-            f"Randomised suite ({len(suite_rows)} captures, {photos} photos): {within} photos "
-            f"({100 * within / photos:.1f} %) placed with their viewing direction within 1 degree, {turn_within} "
-            f"({100 * turn_within / photos:.1f} %) with their turn angle within 1 degree; {stacked_count} stacked, "
-            f"{failed} stages failed."
-        )
-        print(summary[-1])
+    for rows, title in ((suite_rows, "Randomised suite"), (true_mask_rows, "The same with the true masks")):
+        if rows:
+            summary.append(suite_summary(rows, title))
+            print(summary[-1])
     if args.write:
         options = " ".join(o for o in sys.argv[1:] if o != "--write")
         write_real_poses(lines, summary, f".venv/bin/python -m bench.real_poses {options} --write")
