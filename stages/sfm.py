@@ -15,11 +15,11 @@
    photo's angle uncertainty reported; an arc of the ring that matching left apart
    is placed by its silhouettes at once, a photo the features cannot place by its
    board pose, by even steps (a timed table) or by its silhouette, else left out
-   with a warning naming it (pipeline.geometry.turntable_placement). Fewer than ``min_registered_fraction``
-   posed photos is an error naming the others and the likely cause for each. A
-   rerun gives the same model: photos are numbered in sorted order, RANSAC and
-   the mapper are seeded, and bundle adjustment runs on one thread (with COLMAP's
-   threaded defaults, reruns gave different poses).
+   with a warning naming it (pipeline.geometry.turntable_placement). Fewer than
+   ``min_registered_fraction`` posed photos is an error naming the others and the
+   likely cause for each. A rerun gives the same model: photos are numbered in
+   sorted order, RANSAC and the mapper are seeded, and bundle adjustment runs on
+   one thread (with COLMAP's threaded defaults, reruns gave different poses).
 3. **World frame** (``frame``): from the ChArUco board when it is seen in at least
    three registered photos whose SfM centres agree with it (PnP per photo,
    similarity to the SfM centres; metres, z up, origin at the board's centre as
@@ -48,8 +48,8 @@ sfm.json            registered and unregistered photos (with causes), metrics,
 Limitations: SIFT needs texture. A plain specimen on a plain set registers only
 through the board (or, on a turntable, its shading's matches, which the outlines
 correct, and its silhouette). Without a board the scale is arbitrary. A handheld
-photo SfM cannot register is dropped. Self-calibrated radial distortion improves the poses and is
-reported, but the photos stay as undistort made them (pinhole, without it): the
+photo SfM cannot register is dropped. Self-calibrated radial distortion improves
+the poses and is reported, but the photos stay as undistort made them (pinhole, without it): the
 stage warns when it displaces the specimen's outline by more than half a pixel
 (board shots in calibration/ let undistort remove it).
 """
