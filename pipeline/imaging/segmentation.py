@@ -192,11 +192,13 @@ class SetColours:
         spread = np.min(np.linalg.norm(members[:, None] - centres[kept][None], axis=-1), axis=1)
         return cls(centres[kept], max(float(np.quantile(spread, 0.95)), COLOUR_NOISE_FLOOR))
 
-    def distance(self, srgb: np.ndarray) -> np.ndarray:
-        """Each pixel's distance to the nearest set colour, in units of ``noise``."""
-        lab = _weighted_lab(srgb).reshape(-1, 1, 3)
+    def distance(self, srgb: np.ndarray, hue_only: bool = False) -> np.ndarray:
+        """Each pixel's distance to the nearest set colour, in units of ``noise``;
+        ``hue_only``: lightness left out (a shadow on the set is near its colour)."""
+        first = 1 if hue_only else 0
+        lab = _weighted_lab(srgb).reshape(-1, 1, 3)[..., first:]
         nearest = np.full(lab.shape[0], np.inf, np.float32)
-        for colour in self.colours:  # one colour at a time: memory stays one image
+        for colour in self.colours[:, first:]:  # one colour at a time: memory stays one image
             nearest = np.minimum(nearest, np.linalg.norm(lab[:, 0] - colour, axis=-1))
         return (nearest / self.noise).reshape(srgb.shape[:2])
 
@@ -218,10 +220,65 @@ sure (the room); one still less often may be a plain specimen's middle, which lo
 alike from every side, and is left to GrabCut."""
 
 
+def _solid(pixels: np.ndarray) -> np.ndarray:
+    """``pixels`` without thin lines: a set's edge that shifts by a pixel between photos
+    (a table wobbling as it turns) changes, and its blend of two set colours is neither's
+    nor the specimen's."""
+    return cv2.morphologyEx(pixels.astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)) > 0
+
+
+def _colours_of(lab: np.ndarray, noise: float, min_share: float = 0.0) -> SetColours | None:
+    """Weighted CIELAB pixels (m x 3) sorted into ``SET_COLOUR_CLUSTERS`` colours with
+    the given noise, those of fewer than ``min_share`` of the pixels left out; None for
+    too few pixels."""
+    if len(lab) < SET_COLOUR_CLUSTERS:
+        return None
+    cv2.setRNGSeed(0)  # k-means++ draws from OpenCV's global random state
+    criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 20, 0.1)
+    _, labels, colours = cv2.kmeans(
+        lab.astype(np.float32), SET_COLOUR_CLUSTERS, None, criteria, 1, cv2.KMEANS_PP_CENTERS
+    )
+    shares = np.bincount(labels.ravel(), minlength=SET_COLOUR_CLUSTERS) / len(lab)
+    return SetColours(colours[shares >= min_share], noise)
+
+
+SPECIMEN_PLATE_MIN_SHARE = 0.05
+"""Least share of the specimen's changed pixels a colour must have to be the colour of
+where it stands most of the time (a large plain part); rarer colours are mostly the set's
+edges caught moving."""
+
+
+def specimen_plate(small: list[np.ndarray], still: np.ndarray, colours: SetColours) -> np.ndarray:
+    """Pixels where a fixed camera's photos (8-bit RGB working copies; ``still``: each
+    one's still pixels) show the specimen most of the time.
+
+    There (the specimen's foot on the turntable's axis, a plain body that looks alike
+    from every side) the photos' median is the specimen, so the specimen's pixels stay
+    as they are and the set's, when it shows, change: stillness and change say the
+    opposite of what they say elsewhere. Such a median is unlike every set colour's hue
+    (a shadow the specimen casts in every photo darkens the set and keeps its hue) and
+    like the specimen's colours, learned where change does mean the specimen: pixels
+    that changed where the median is the set, and are unlike the set themselves. Pixels
+    still in nearly every photo (``ALWAYS_STILL``) are the room for sure and left out.
+    """
+    median = np.median(np.stack(small), axis=0).astype(np.uint8)
+    set_median = colours.distance(median, hue_only=True) <= 3
+    rng = np.random.default_rng(0)
+    passing = []
+    for photo, photo_still in zip(small, still, strict=True):
+        known = _weighted_lab(photo)[_solid(~photo_still & set_median & (colours.distance(photo) > 3))]
+        passing.append(known[rng.choice(len(known), min(2000, len(known)), replace=False)])
+    specimen = _colours_of(np.concatenate(passing), colours.noise, SPECIMEN_PLATE_MIN_SHARE)
+    if specimen is None:
+        return np.zeros(median.shape[:2], bool)
+    return (still.mean(axis=0) < ALWAYS_STILL) & ~set_median & (specimen.distance(median) <= 3)
+
+
 @dataclass(frozen=True)
 class FixedSet:
     """What the photos of one fixed set (a turntable's or a ring's) show of the set: its
-    colours, and for a camera that did not move, each photo's still pixels."""
+    colours, and for a camera that did not move, each photo's still pixels and where the
+    specimen shows most of the time."""
 
     colours: SetColours
     still: np.ndarray | None
@@ -229,6 +286,8 @@ class FixedSet:
     None for a camera that moved."""
     always_still: np.ndarray | None
     """Pixels still in at least ``ALWAYS_STILL`` of the photos."""
+    specimen_plate: np.ndarray | None
+    """Pixels the photos show the specimen in most of the time (``specimen_plate``)."""
 
     @classmethod
     def learn(cls, photos: Iterable[np.ndarray], working_size: int, camera_fixed: bool) -> FixedSet:
@@ -239,9 +298,9 @@ class FixedSet:
         small = [_working_copy(photo, working_size) for photo in photos]
         colours = SetColours.learn(small)
         if not camera_fixed or len({s.shape for s in small}) > 1:
-            return cls(colours, None, None)
+            return cls(colours, None, None, None)
         still = still_pixels(np.stack([cv2.cvtColor(s, cv2.COLOR_RGB2GRAY) for s in small]))
-        return cls(colours, still, still.mean(axis=0) >= ALWAYS_STILL)
+        return cls(colours, still, still.mean(axis=0) >= ALWAYS_STILL, specimen_plate(small, still, colours))
 
     def segment(self, srgb: np.ndarray, index: int, centre_fraction: float, iterations: int, working_size: int):
         """The specimen in photo ``index`` (8-bit RGB).
@@ -249,7 +308,10 @@ class FixedSet:
         Within the noise of a set colour is backdrop for sure, up to twice that probably;
         three times as far (inside the centre prior) is specimen for sure, unless the
         pixel is still, which makes it probably backdrop, or backdrop for sure where it
-        is still in nearly every photo. GrabCut decides the rest.
+        is still in nearly every photo or unlike the specimen. Where the photos show the
+        specimen most of the time (``specimen_plate``) the roles swap: a still pixel as
+        far from the set is specimen for sure, a changed one is left to GrabCut, which
+        decides the rest.
         """
         small = _working_copy(srgb, working_size)
         distance = self.colours.distance(small)
@@ -257,10 +319,11 @@ class FixedSet:
         inside = seeds == cv2.GC_PR_FGD
         seeds[inside & (distance < 2)] = cv2.GC_PR_BGD
         if self.still is not None:
-            still = self.still[index]
-            seeds[inside & (distance > 3) & ~still] = cv2.GC_FGD
-            seeds[still] = cv2.GC_PR_BGD
-            seeds[still & (self.always_still | self._unlike_specimen(small, seeds == cv2.GC_FGD))] = cv2.GC_BGD
+            still, plate = self.still[index], self.specimen_plate
+            seeds[inside & (distance > 3) & (still == plate)] = cv2.GC_FGD
+            set_still = still & ~plate
+            seeds[set_still] = cv2.GC_PR_BGD
+            seeds[set_still & (self.always_still | self._unlike_specimen(small, seeds == cv2.GC_FGD))] = cv2.GC_BGD
         else:
             seeds[inside & (distance > 3)] = cv2.GC_FGD
         seeds[distance < 1] = cv2.GC_BGD
@@ -268,17 +331,11 @@ class FixedSet:
 
     def _unlike_specimen(self, small: np.ndarray, specimen: np.ndarray) -> np.ndarray:
         """Pixels farther than three noise units from every colour of ``specimen`` (the
-        photo's sure specimen pixels, sorted into a few colours): a still pixel of such a
-        colour is the room, even beside the specimen, where the smoothness of GrabCut's
-        cut would take it in."""
-        lab = _weighted_lab(small)
-        known = lab[specimen].astype(np.float32)
-        if len(known) < SET_COLOUR_CLUSTERS:
-            return np.zeros(small.shape[:2], bool)
-        cv2.setRNGSeed(0)
-        criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 20, 0.1)
-        _, _, colours = cv2.kmeans(known, SET_COLOUR_CLUSTERS, None, criteria, 1, cv2.KMEANS_PP_CENTERS)
-        return SetColours(colours, self.colours.noise).distance(small) > 3
+        photo's sure specimen pixels, thin lines left out, sorted into a few colours): a
+        still pixel of such a colour is the room, even beside the specimen, where the
+        smoothness of GrabCut's cut would take it in."""
+        known = _colours_of(_weighted_lab(small)[_solid(specimen)], self.colours.noise)
+        return known.distance(small) > 3 if known is not None else np.zeros(small.shape[:2], bool)
 
 
 def segment_plate_difference(

@@ -58,3 +58,32 @@ def test_auto_learns_the_set_of_turntables_and_rings_keeps_neutral_backdrops_han
     assert resolve_segmenter("auto", "handheld", False) == "neutral_backdrop"
     assert resolve_segmenter("auto", "turntable", True) == "neutral_backdrop"  # the board turns with it
     assert resolve_segmenter("centre_prior", "turntable", False) == "centre_prior"
+
+
+def test_where_a_turning_specimen_shows_in_most_photos_its_still_pixels_are_not_taken_for_the_set():
+    """The ellipse turns about its own centre, brighter or darker as the light falls on
+    it, over its shadow, which stays on the table in every photo: the photos' median is
+    the specimen in its middle (still there, it is no evidence of the set), and the set
+    in the shadow and the room."""
+    photos, truths = [], []
+    shadow = np.zeros((72, 96), bool)
+    cv2.ellipse(shadow.view(np.uint8), (48, 56), (20, 5), 0, 0, 360, 1, -1)
+    for index, angle in enumerate(range(0, 360, 20)):
+        photo, truth = _photo(angle, noise_seed=index)
+        photo[shadow & ~truth] = np.array(TABLE) // 2
+        shade = 1.0 + 0.15 * np.sin(np.radians(3 * angle))
+        photo[truth] = np.clip(photo[truth] * shade, 0, 255).astype(np.uint8)
+        photo[4:22, 74:94] = CYAN
+        photos.append(photo)
+        truths.append(truth)
+    learned = FixedSet.learn(photos, working_size=192, camera_fixed=True)
+    middle = np.zeros((72, 96), bool)
+    cv2.circle(middle.view(np.uint8), (48, 40), 7, 1, -1)
+    plate = learned.specimen_plate[::2, ::2]  # at twice the photo's size
+    assert plate[middle].all()
+    seen_shadow = shadow & ~np.any(truths, axis=0)
+    assert not plate[seen_shadow].any() and not plate[4:22, 74:94].any()
+    for index, photo in enumerate(photos):
+        mask = clean(learned.segment(photo, index, 0.9, 5, 192), 0.1, 1.0)
+        assert mask[middle].all(), index
+        assert not mask[4:22, 74:94].any()
