@@ -433,6 +433,56 @@ def resolve_segmenter(segmenter: str, rig: str, board: bool) -> str:
     return "set_colours" if rig in ("turntable", "ring") and not board else "neutral_backdrop"
 
 
+OUTLINE_MIN_CONTRAST = 12.0
+"""Least difference (8-bit levels, RGB distance) between the specimen's and the set's
+colours beside an outline pixel for ``snap_outline`` to re-decide it: with sensor noise of
+a few levels, a pixel's share of each is then known to about a quarter."""
+
+OUTLINE_MAX_OFF_LINE = 0.2
+"""Largest distance of an outline pixel's colour from the line between the local
+specimen's and set's colours, as a fraction of their difference, for ``snap_outline`` to
+re-decide it: farther, the pixel is no blend of the two (a shaded rim, a texture)."""
+
+
+def snap_outline(srgb: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``mask`` with the pixels on either side of its outline re-decided by their colour.
+
+    A segmenter's cut is a pixel or so off the outline, mostly outward: the photo's blur
+    mixes the specimen's colour into the set's over a pixel or two, and a pixel that is
+    mostly set but far from its colour is taken in. Each outline pixel's colour is
+    projected onto the line between the local specimen's (the mask's pixels 2-4 px
+    inside) and the local set's (2-4 px outside); it is specimen where it is at least
+    half-way, as the outline of a sharp photo would be. Pixels where the two differ by
+    less than ``OUTLINE_MIN_CONTRAST``, or whose colour is no blend of them
+    (``OUTLINE_MAX_OFF_LINE``), keep their label.
+
+    Limitations: a textured or shaded specimen's colour 2-4 px inside is not always the
+    colour at its outline; on such a specimen on the printed board the masks came out
+    slightly worse, so only the set_colours segmenter snaps (docs/decisions.md, "Masks").
+    """
+    image = srgb.astype(np.float32)
+    blurred = cv2.GaussianBlur(image, (0, 0), 0.7)
+    labels = mask.astype(np.uint8)
+
+    def local_mean(pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        weight = cv2.boxFilter(pixels.astype(np.float32), -1, (9, 9), normalize=False)
+        total = cv2.boxFilter(blurred * pixels[..., None], -1, (9, 9), normalize=False)
+        return total / np.maximum(weight, 1e-6)[..., None], weight > 0
+
+    specimen, has_specimen = local_mean(cv2.erode(labels, np.ones((5, 5), np.uint8)) > 0)
+    backdrop, has_backdrop = local_mean(~(cv2.dilate(labels, np.ones((5, 5), np.uint8)) > 0))
+    outline = (cv2.dilate(labels, np.ones((3, 3), np.uint8)) > 0) & ~(cv2.erode(labels, np.ones((3, 3), np.uint8)) > 0)
+    contrast = specimen - backdrop
+    squared = np.sum(contrast * contrast, axis=-1)
+    share = np.sum((image - backdrop) * contrast, axis=-1) / np.maximum(squared, 1e-6)
+    off_line = np.linalg.norm(image - backdrop - share[..., None] * contrast, axis=-1)
+    decided = outline & has_specimen & has_backdrop & (squared > OUTLINE_MIN_CONTRAST**2)
+    decided &= off_line <= OUTLINE_MAX_OFF_LINE * np.sqrt(squared)
+    snapped = mask.copy()
+    snapped[decided] = share[decided] >= 0.5
+    return snapped
+
+
 def segment(
     srgb: np.ndarray,
     segmenter: str,
@@ -444,10 +494,11 @@ def segment(
 ) -> np.ndarray:
     """The automatic segmenter ``segmenter`` (resolved: not auto) on an 8-bit RGB photo,
     before cleaning; set_colours needs ``fixed_set``: the set learned from the photo's
-    camera setting and the photo's index among them."""
+    camera setting and the photo's index among them, and its outline is snapped to the
+    photo (``snap_outline``)."""
     if segmenter == "neutral_backdrop":
         return segment_neutral_backdrop(srgb, backdrop_chroma, centre_fraction, grabcut_iterations, working_size)
     if segmenter == "set_colours":
         learned, index = fixed_set
-        return learned.segment(srgb, index, centre_fraction, grabcut_iterations, working_size)
+        return snap_outline(srgb, learned.segment(srgb, index, centre_fraction, grabcut_iterations, working_size))
     return segment_centre_prior(srgb, centre_fraction, grabcut_iterations, working_size)
