@@ -300,7 +300,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="masks",
-    version=5,
+    version=6,
     config=Config,
     main=main,
     needs=("undistort.pinhole",),
