@@ -221,9 +221,9 @@ alike from every side, and is left to GrabCut."""
 
 
 def _solid(pixels: np.ndarray) -> np.ndarray:
-    """``pixels`` without thin lines: a set's edge that shifts by a pixel between photos
-    (a table wobbling as it turns) changes, and its blend of two set colours is neither's
-    nor the specimen's."""
+    """``pixels`` without lines a pixel or two thin: a set's edge that shifts by a pixel
+    between photos (a table wobbling as it turns) is not still, yet it is no specimen but
+    a blend of two set colours."""
     return cv2.morphologyEx(pixels.astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)) > 0
 
 
@@ -261,7 +261,8 @@ def specimen_plate(small: list[np.ndarray], still: np.ndarray, colours: SetColou
     that changed where the median is the set, and are unlike the set themselves. Pixels
     still in nearly every photo (``ALWAYS_STILL``) are the room for sure and left out.
     """
-    median = np.median(np.stack(small), axis=0).astype(np.uint8)
+    stack = np.stack(small)  # one channel at a time: np.median works in float64
+    median = np.dstack([np.median(stack[..., c], axis=0) for c in range(3)]).astype(np.uint8)
     set_median = colours.distance(median, hue_only=True) <= 3
     rng = np.random.default_rng(0)
     passing = []
@@ -320,7 +321,8 @@ class FixedSet:
         seeds[inside & (distance < 2)] = cv2.GC_PR_BGD
         if self.still is not None:
             still, plate = self.still[index], self.specimen_plate
-            seeds[inside & (distance > 3) & (still == plate)] = cv2.GC_FGD
+            says_specimen = np.where(plate, still, ~still)
+            seeds[inside & (distance > 3) & says_specimen] = cv2.GC_FGD
             set_still = still & ~plate
             seeds[set_still] = cv2.GC_PR_BGD
             seeds[set_still & (self.always_still | self._unlike_specimen(small, seeds == cv2.GC_FGD))] = cv2.GC_BGD
