@@ -13,7 +13,9 @@ Where the masks come from, first match wins (``masks.source = "auto"``):
 3. Automatic segmentation, ``masks.segmenter``: ``set_colours`` for a turntable or a
    ring without the printed board (the default there): the colours along the borders
    of most photos are the set's, whatever they are, and for a turntable's fixed camera
-   the pixels that stay as they are while the specimen turns are too (the room);
+   the pixels that stay as they are while the specimen turns are too (the room), but
+   where the photos show the specimen most of the time (its foot on the axis); its
+   outline is then snapped to the photo's edge;
    ``neutral_backdrop`` for a specimen on a grey, white or black set (the default
    otherwise, the printed board included, which turns with the specimen): greyness
    says backdrop, colour says specimen; ``centre_prior`` for anything else: GrabCut
