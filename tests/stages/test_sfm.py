@@ -13,6 +13,7 @@ import trimesh
 from pipeline.core.errors import PipelineError
 from pipeline.formats.cameras import read_cameras, read_views
 from pipeline.synthetic.score import score_cameras
+from tests.support.real_captures import SHARED_CAPTURES
 
 pytestmark = pytest.mark.slow
 
@@ -20,8 +21,8 @@ pytestmark = pytest.mark.slow
 SAMPLE = Path(__file__).parents[2] / "sample_captures" / "bird"
 
 
-POROUS_CUBE = Path(__file__).resolve().parents[3] / "shared" / "captures" / "porous-cube"
-DINO_SPARSE_RING = POROUS_CUBE.parent / "dino-sparse-ring"
+POROUS_CUBE = SHARED_CAPTURES / "porous-cube"
+DINO_SPARSE_RING = SHARED_CAPTURES / "dino-sparse-ring"
 
 
 def test_sfm_registers_every_photo_in_the_board_frame(bird_until_uv):

@@ -12,9 +12,10 @@ from pipeline.cli import main
 from pipeline.core.config import load_config
 from pipeline.core.sections import schema
 from stages import STAGES
+from tests.support.real_captures import SHARED_CAPTURES
 
 pytestmark = pytest.mark.slow
-POROUS_CUBE = Path(__file__).resolve().parents[3] / "shared" / "captures" / "porous-cube"
+POROUS_CUBE = SHARED_CAPTURES / "porous-cube"
 
 
 def _config(capture: Path):
