@@ -132,11 +132,40 @@ FILM_PIXEL_COUNTS = ("width", "height", "crop_width", "crop_height", "crop_offse
 """A film's integers that count pixels (and scale with it)."""
 
 
+DEFAULT_FILTER_STDDEV = 0.5
+"""Mitsuba's default reconstruction filter: a Gaussian of this standard deviation (px)."""
+
+
+def _filter_variance(film: ET.Element, defaults: dict[str, str]) -> float | None:
+    """The variance (px^2) of the film's reconstruction filter: a Gaussian's, a box's
+    (1/12) or a tent's (radius^2 / 6); None for another kind, which is kept as it is."""
+    element = film.find("rfilter")
+    if element is None:
+        return DEFAULT_FILTER_STDDEV**2
+    values = {child.get("name"): float(_substituted(child.get("value"), defaults)) for child in element}
+    kind = element.get("type")
+    if kind == "gaussian":
+        return values.get("stddev", DEFAULT_FILTER_STDDEV) ** 2
+    if kind == "box":
+        return 1 / 12
+    if kind == "tent":
+        return values.get("radius", 1.0) ** 2 / 6
+    return None
+
+
 def reduce_films(tree: ET.ElementTree, max_size: int) -> list[tuple[int, int]]:
     """Scale every sensor's film in ``tree`` (in place; a sensor without one gets
     Mitsuba's default film first) so that its longer side has at most ``max_size``
     pixels, crop windows with it; 0 keeps them. Returns each sensor's crop size
-    before, in document order (the order of ``scene.sensors()``)."""
+    before, in document order (the order of ``scene.sensors()``).
+
+    A reduced film's reconstruction filter becomes the blur of its reference image
+    averaged down to it (``cv2.INTER_AREA``): a Gaussian with the variance of a pixel's
+    square (1/12 px^2) plus the full film's own filter's, scaled. Mitsuba's default
+    (0.5 px at any size) would blur a small film's render past its reference, and the
+    fit would answer with sharper highlights: on a glossy specimen fitted at 64 px of
+    560, roughness 0.07-0.09 for a true 0.35. A filter other than a Gaussian, box or
+    tent is kept."""
     defaults = {d.get("name"): d.get("value") for d in tree.getroot().iter("default")}
     sizes = []
     for sensor in tree.getroot().iter("sensor"):
@@ -152,6 +181,12 @@ def reduce_films(tree: ET.ElementTree, max_size: int) -> list[tuple[int, int]]:
         scale = min(1.0, max_size / max(pixels["width"], pixels["height"])) if max_size else 1.0
         for name, element in elements.items():
             element.set("value", str(max(0 if name.startswith("crop_offset") else 1, round(pixels[name] * scale))))
+        variance = _filter_variance(film, defaults)
+        if scale < 1.0 and variance is not None:
+            for old in film.findall("rfilter"):
+                film.remove(old)
+            rfilter = ET.SubElement(film, "rfilter", type="gaussian")
+            ET.SubElement(rfilter, "float", name="stddev", value=repr(float(np.sqrt(1 / 12 + variance * scale**2))))
     return sizes
 
 

@@ -194,6 +194,42 @@ def test_films_are_reduced_with_their_crop_windows_and_defaults(mi):
     assert tuple(sensors[0].film().crop_offset()) == (25, 0)
 
 
+def test_a_reduced_film_is_blurred_as_its_reference_averaged_down_to_it(mi):
+    """A pixel's square (1/12 px^2) plus the full film's filter scaled: Mitsuba's default
+    Gaussian (0.5 px), a box, a tent; another kind and a film kept at its size keep theirs."""
+    import xml.etree.ElementTree as ET
+
+    from pipeline.render.user_scene import reduce_films
+
+    def film(rfilter: str, width: int = 400, height: int = 300) -> str:
+        return (
+            f'<sensor type="perspective"><film type="hdrfilm"><integer name="width" value="{width}"/>'
+            f'<integer name="height" value="{height}"/>{rfilter}</film></sensor>'
+        )
+
+    tree = ET.ElementTree(
+        ET.fromstring(
+            '<scene version="3.0.0">'
+            + film("")
+            + film('<rfilter type="box"/>')
+            + film('<rfilter type="tent"><float name="radius" value="2"/></rfilter>')
+            + film('<rfilter type="mitchell"/>')
+            + film("", width=80, height=60)
+            + "</scene>"
+        )
+    )
+    reduce_films(tree, 100)
+    filters = [sensor.find("film/rfilter") for sensor in tree.getroot().iter("sensor")]
+    stddevs = [float(f.find("float").get("value")) for f in filters[:3]]
+    scale = 100 / 400
+    expected = [np.sqrt(1 / 12 + v * scale**2) for v in (0.25, 1 / 12, 4 / 6)]
+    assert all(f.get("type") == "gaussian" for f in filters[:3])
+    assert np.allclose(stddevs, expected)
+    assert filters[3].get("type") == "mitchell" and filters[4] is None
+    sensors = mi.load_string(ET.tostring(tree.getroot(), encoding="unicode")).sensors()
+    assert [round(s.film().rfilter().radius(), 3) for s in sensors[:3]] == [round(4 * v, 3) for v in stddevs]
+
+
 def test_a_fit_at_reduced_films_writes_the_scene_with_its_own(mi, references, tmp_path):
     scene = _write_scene(tmp_path / "start", rough=0.7, colour="0.5, 0.5, 0.5", floor="0.6, 0.6, 0.6")
     out = tmp_path / "out"
