@@ -142,7 +142,11 @@ def _filter_variance(film: ET.Element, defaults: dict[str, str]) -> float | None
     element = film.find("rfilter")
     if element is None:
         return DEFAULT_FILTER_STDDEV**2
-    values = {child.get("name"): float(_substituted(child.get("value"), defaults)) for child in element}
+    values = {
+        child.get("name"): float(_substituted(child.get("value"), defaults))
+        for child in element
+        if child.get("name") in ("stddev", "radius")
+    }
     kind = element.get("type")
     if kind == "gaussian":
         return values.get("stddev", DEFAULT_FILTER_STDDEV) ** 2
@@ -163,9 +167,9 @@ def reduce_films(tree: ET.ElementTree, max_size: int) -> list[tuple[int, int]]:
     averaged down to it (``cv2.INTER_AREA``): a Gaussian with the variance of a pixel's
     square (1/12 px^2) plus the full film's own filter's, scaled. Mitsuba's default
     (0.5 px at any size) would blur a small film's render past its reference, and the
-    fit would answer with sharper highlights: on a glossy specimen fitted at 64 px of
-    560, roughness 0.07-0.09 for a true 0.35. A filter other than a Gaussian, box or
-    tent is kept."""
+    fit would answer with sharper highlights, a roughness too low (docs/decisions.md,
+    "The fitting loop's stop and schedule"). A filter other than a Gaussian, box or tent
+    is kept."""
     defaults = {d.get("name"): d.get("value") for d in tree.getroot().iter("default")}
     sizes = []
     for sensor in tree.getroot().iter("sensor"):
