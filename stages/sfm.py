@@ -381,7 +381,7 @@ def _too_few(conf: Config, posed: set[str], order: list[str], causes: dict[str, 
 
 STAGE = Stage(
     name="sfm",
-    version=12,
+    version=13,
     config=Config,
     main=main,
     needs=("undistort.pinhole", "masks.masks_json"),

@@ -73,8 +73,9 @@ class FeatureSettings:
     matcher: Literal["auto", "exhaustive", "sequential", "ring"] = "auto"
     """exhaustive: every pair; sequential: each photo with the next sequential_overlap in
     file order; ring: with the next ring_neighbours, wrapping round (a turntable's
-    revolution). auto: ring for a turntable, else exhaustive up to exhaustive_max_images
-    photos and sequential beyond (a ring rig's photos need not be in order). Exhaustive
+    revolution), and with the outline_neighbours whose outlines look alike. auto: ring
+    for a turntable, else exhaustive up to exhaustive_max_images photos and sequential
+    beyond (a ring rig's photos need not be in order). Exhaustive
     matching of a turntable finds false pairs between opposite sides of a repetitive set
     (a checkerboard from 180 degrees away)."""
     exhaustive_max_images: Annotated[int, Range(2, None)] = 150
@@ -83,6 +84,12 @@ class FeatureSettings:
     """Sequential matching: each photo is matched with this many following ones."""
     ring_neighbours: Annotated[int, Range(1, None)] = 6
     """Ring matching: each photo is matched with this many following ones, cyclically."""
+    outline_neighbours: Annotated[int, Range(0, None)] = 3
+    """Ring matching: each photo is also matched with up to this many others whose
+    specimen outline looks more like its own than its neighbours' in file order do
+    (outline_neighbours), wherever they are in file order: a turntable's camera is
+    fixed, so a second turn's photo shows the outline of the first turn's photo at
+    nearly the same angle."""
 
 
 @dataclass(frozen=True)
@@ -101,8 +108,8 @@ class FeaturePlan:
     """Which pairs are matched."""
     sequential_overlap: int
     """Sequential matching: following photos each photo is matched with."""
-    ring_neighbours: int
-    """Ring matching: following photos each photo is matched with, cyclically."""
+    pairs: tuple[tuple[str, str], ...]
+    """Ring matching: the photo file names' pairs to match (ring_pairs)."""
     still_camera: bool
     """Matches that do not move are dropped (a turntable's room)."""
 
@@ -133,7 +140,9 @@ class FeaturePlan:
             mask_dir=feature_masks(mode, settings.mask_dilation, photos, masks, work),
             matcher=matcher,
             sequential_overlap=settings.sequential_overlap,
-            ring_neighbours=settings.ring_neighbours,
+            pairs=ring_pairs(photos, masks, settings.ring_neighbours, settings.outline_neighbours)
+            if matcher == "ring"
+            else (),
             still_camera=rig == "turntable",
         )
 
@@ -212,20 +221,67 @@ def _match(plan: FeaturePlan, photos: dict[str, dict], database: Path) -> None:
             database, matching, pairing_options=pairing, verification_options=verification, device=device
         )
     else:
-        names = sorted(Path(p["srgb"]).name for p in photos.values())
-        neighbours = min(plan.ring_neighbours, len(names) // 2)
-        pairs = {
-            tuple(sorted((names[i], names[(i + k) % len(names)])))
-            for i in range(len(names))
-            for k in range(1, neighbours + 1)
-        }
         pairs_file = database.with_name("pairs.txt")
-        pairs_file.write_text("".join(f"{a} {b}\n" for a, b in sorted(pairs)))
+        pairs_file.write_text("".join(f"{a} {b}\n" for a, b in plan.pairs))
         pairing = pycolmap.ImportedPairingOptions()
         pairing.match_list_path = pairs_file
         pycolmap.match_image_pairs(
             database, matching, pairing_options=pairing, verification_options=verification, device=device
         )
+
+
+OUTLINE_SIZE = 64
+"""Pixels along the longer side of the masks compared by outline_neighbours: the
+outline's shape, not its pixel-level noise."""
+
+
+def outline_neighbours(masks: list[Path], count: int, excluded: set[tuple[int, int]]) -> set[tuple[int, int]]:
+    """Pairs (i, j), i < j, of each mask (in file order) with up to ``count`` others more
+    like it than either of its neighbours in file order (by the mean difference of the
+    masks shrunk to OUTLINE_SIZE), leaving out the ``excluded`` pairs. A retrieval by a
+    global descriptor, as hloc's, for a fixed camera: another photo at the same angle
+    shows the same outline, and the next photo's outline, one step of the turn away,
+    says how alike is alike. A body that looks alike from opposite sides gives pairs
+    whose matches no single turn explains, which the turntable's solver leaves out
+    (pipeline.geometry.circular_motion)."""
+    if count == 0 or len(masks) < 3:
+        return set()
+    shrunk = []
+    for path in masks:
+        mask = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE).astype(np.float32) / 255
+        scale = OUTLINE_SIZE / max(mask.shape)
+        size = (max(round(mask.shape[1] * scale), 1), max(round(mask.shape[0] * scale), 1))
+        shrunk.append(cv2.resize(mask, size, interpolation=cv2.INTER_AREA).ravel())
+    outlines = np.stack(shrunk)
+    n = len(outlines)
+    pairs: set[tuple[int, int]] = set()
+    for i, outline in enumerate(outlines):
+        difference = np.abs(outlines - outline).mean(axis=1)
+        step = min(difference[(i - 1) % n], difference[(i + 1) % n])
+        candidates = [
+            j for j in np.argsort(difference, kind="stable") if j != i and (min(i, j), max(i, j)) not in excluded
+        ]
+        pairs |= {(min(i, int(j)), max(i, int(j))) for j in candidates[:count] if difference[j] < step}
+    return pairs
+
+
+def ring_pairs(
+    photos: dict[str, dict], masks: dict[str, Path], neighbours: int, alike: int
+) -> tuple[tuple[str, str], ...]:
+    """A turntable's pairs to match: each photo with its ``neighbours`` following ones in
+    file order, wrapping round, and with up to ``alike`` photos whose outlines look more
+    like its own than its file-order neighbours' (outline_neighbours); as sorted pairs
+    of the photos' file names."""
+    order = sorted(photos, key=lambda name: Path(photos[name]["srgb"]).name)
+    files = [Path(photos[name]["srgb"]).name for name in order]
+    neighbours = min(neighbours, len(order) // 2)
+    pairs = {
+        (min(i, (i + k) % len(order)), max(i, (i + k) % len(order)))
+        for i in range(len(order))
+        for k in range(1, neighbours + 1)
+    }
+    pairs |= outline_neighbours([masks[name] for name in order], alike, pairs)
+    return tuple(sorted(tuple(sorted((files[i], files[j]))) for i, j in pairs))
 
 
 def unregistered_causes(database: Path, unregistered: list[str], stem_of: dict[str, str]) -> dict[str, str]:
