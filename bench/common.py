@@ -29,10 +29,11 @@ def machine() -> str:
     return f"Machine: {os.cpu_count()} cores, {memory:.0f} GiB, {gpu or 'no GPU'}."
 
 
-def code_version(*paths: str) -> str:
+def code_version(*paths: str, label: str | None = None) -> str:
     """The code a benchmark runs: HEAD's short commit and the git tree of ``paths`` in it
     (a later commit that changes nothing there keeps the tree), with "+changes" when
-    the work tree differs from HEAD there, a new file included."""
+    the work tree differs from HEAD there, a new file included; ``label`` names the
+    paths in the text (default: the paths joined by slashes)."""
 
     def git(*arguments: str) -> str:
         return subprocess.run(["git", *arguments], cwd=ROOT, capture_output=True, text=True, check=True).stdout
@@ -40,7 +41,7 @@ def code_version(*paths: str) -> str:
     trees = git("rev-parse", *(f"HEAD:{path}" for path in paths)).split()
     changed = bool(git("status", "--porcelain", "--", *paths).strip())  # untracked files too
     tree = hashlib.sha1(" ".join(trees).encode()).hexdigest()[:12]
-    return f"commit {git('rev-parse', '--short', 'HEAD').strip()}, {'/'.join(paths)} tree {tree}" + (
+    return f"commit {git('rev-parse', '--short', 'HEAD').strip()}, {label or '/'.join(paths)} tree {tree}" + (
         " +changes" if changed else ""
     )
 

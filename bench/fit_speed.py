@@ -38,11 +38,12 @@ Runs:
 
 Each run is repeated ``--repeat`` times and the last is reported (later runs find
 Dr.Jit's kernels compiled). A run's outcome is stored in its kit's folder under
-``--work``; a later call with the same folder reuses it when pipeline/ and bench/
-are as committed then (no uncommitted change there), on the same machine and
-variant, with the same budget and repeats: a suite too long for one sitting is run
-in parts (``--kits``, ``--first-seed``, ``--materials``) and written whole by a last
-call over every kit.
+``--work``; a later call with the same folder reuses it when the code a fit runs
+(``FIT_CODE``) is as committed then (no uncommitted change there), on the same
+machine and variant, with the same budget and repeats: a suite too long for one
+sitting is run in parts (``--kits``, ``--first-seed``, ``--materials``), over
+sessions that change other parts of the pipeline, and written whole by a last call
+over every kit.
 
 The table has one row per kit and run; the summary per material and configuration:
 the share of kits whose result meets every target, the median ratio of the original
@@ -117,6 +118,23 @@ REFERENCE_SPP = 512
 DEFAULT_SIZES = FilmSizes(
     FitOptions.__dataclass_fields__["max_size"].default, FitOptions.__dataclass_fields__["coarse_to_fine"].default
 )
+
+FIT_CODE = (
+    "pipeline/__init__.py",
+    "pipeline/camera",
+    "pipeline/core",
+    "pipeline/fit",
+    "pipeline/formats",
+    "pipeline/imaging",
+    "pipeline/render",
+    "pipeline/cli/fit.py",
+    "pipeline/cli/options.py",
+    "pipeline/cli/registry.py",
+    "bench/common.py",
+    "bench/fit_speed.py",
+)
+"""What a kit's runs execute (the packages `pipeline fit` imports, and this bench):
+a stored outcome is reused while these are unchanged."""
 
 CONFIGS = {
     "defaults": (engine.FitSettings(), DEFAULT_SIZES),
@@ -445,8 +463,8 @@ class Outcome:
 
 def run(kit: Kit, folder: Path, name: str, budget: float, repeat: int, conditions: dict, mi, dr) -> Outcome:
     """The run ``name`` on the kit in ``folder``, or its outcome stored there by an earlier
-    run under the same ``conditions`` (the same committed pipeline/ and bench/, machine
-    and variant) and with the same budget and repeats."""
+    run under the same ``conditions`` (the same committed FIT_CODE, machine and
+    variant) and with the same budget and repeats."""
     stored = folder / f"outcome-{re.sub(r'[^a-z0-9]+', '-', name)}.json"
     key = conditions | {"budget": budget if name == "original" else None, "repeat": repeat}
     if stored.is_file() and not key["code"].endswith("+changes"):
@@ -505,7 +523,7 @@ def main() -> None:
     import drjit as dr
     import mitsuba as mi
 
-    version = code_version("pipeline", "bench")
+    version = code_version(*FIT_CODE, label="fitting code")
     conditions = {"code": version.partition(", ")[2], "machine": machine(), "variant": variant}
     print(f"variant {variant}, {version}")
     lines = [
