@@ -3,7 +3,8 @@
 1. **Features and matches** (pipeline.colmap.features): SIFT on
    undistort's 8-bit photos, upsampled and DSP-SIFT on small photos; for a
    turntable only from what changes between photos (the still room masked out) and
-   matched with ring neighbours, else exhaustively (sequentially past 150 photos).
+   matched with ring neighbours and with the photos whose outlines look alike (a
+   second turn), else exhaustively (sequentially past 150 photos).
 2. **Poses.** Handheld: COLMAP's incremental mapping; a camera the board
    calibrated stays fixed, a guessed one (EXIF, prior) has its focal length
    refined, and principal point and radial distortion when the photos constrain
