@@ -75,9 +75,9 @@ class FeatureSettings:
     file order; ring: with the next ring_neighbours, wrapping round (a turntable's
     revolution), and with the outline_neighbours whose outlines look alike. auto: ring
     for a turntable, else exhaustive up to exhaustive_max_images photos and sequential
-    beyond (a ring rig's photos need not be in order). Exhaustive
-    matching of a turntable finds false pairs between opposite sides of a repetitive set
-    (a checkerboard from 180 degrees away)."""
+    beyond (a ring rig's photos need not be in order). Exhaustive matching of a
+    turntable finds false pairs between opposite sides of a repetitive set (a
+    checkerboard from 180 degrees away)."""
     exhaustive_max_images: Annotated[int, Range(2, None)] = 150
     """Largest capture matched exhaustively (pairs grow with the square of the count)."""
     sequential_overlap: Annotated[int, Range(1, None)] = 20
@@ -109,7 +109,8 @@ class FeaturePlan:
     sequential_overlap: int
     """Sequential matching: following photos each photo is matched with."""
     pairs: tuple[tuple[str, str], ...]
-    """Ring matching: the photo file names' pairs to match (ring_pairs)."""
+    """Ring matching: the pairs of photo file names to match (ring_pairs); empty for
+    the other matchers."""
     still_camera: bool
     """Matches that do not move are dropped (a turntable's room)."""
 

@@ -36,12 +36,10 @@ def test_a_second_turn_is_matched_with_the_first_turns_photos_at_its_angles(tmp_
     first, second = [30.0 * i for i in range(12)], [5.0, 35.0, 65.0, 95.0]
     masks = _masks(tmp_path, first + second)
     pairs = set(ring_pairs(_photos(masks), masks, neighbours=2, alike=3))
-    names = sorted(masks)
     for k in range(4):
         assert tuple(sorted((f"view_{k:03d}.png", f"view_{12 + k:03d}.png"))) in pairs
     # the file-order ring is there too, wrapping round
     assert ("view_000.png", "view_015.png") in pairs and ("view_000.png", "view_001.png") in pairs
-    assert len(names) == 16
 
 
 def test_one_turn_adds_no_pair_beyond_the_ring(tmp_path):
