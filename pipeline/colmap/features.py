@@ -275,12 +275,8 @@ def ring_pairs(
     of the photos' file names."""
     order = sorted(photos, key=lambda name: Path(photos[name]["srgb"]).name)
     files = [Path(photos[name]["srgb"]).name for name in order]
-    neighbours = min(neighbours, len(order) // 2)
-    pairs = {
-        (min(i, (i + k) % len(order)), max(i, (i + k) % len(order)))
-        for i in range(len(order))
-        for k in range(1, neighbours + 1)
-    }
+    n = len(order)
+    pairs = {tuple(sorted((i, (i + k) % n))) for i in range(n) for k in range(1, min(neighbours, n // 2) + 1)}
     pairs |= outline_neighbours([masks[name] for name in order], alike, pairs)
     return tuple(sorted(tuple(sorted((files[i], files[j]))) for i, j in pairs))
 
