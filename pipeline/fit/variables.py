@@ -46,6 +46,16 @@ def _channels(texture: np.ndarray) -> np.ndarray:
     return texture.reshape(-1, texture.shape[-1])
 
 
+COMPLEMENT_FLOOR = 1e-3
+"""The least complement a product is divided by (FitParameter.times_complement_of): at
+c = 1 the product is held at 0 and the value is free."""
+
+
+def complement(value):
+    """1 - ``value``, at least COMPLEMENT_FLOOR (a number or a NumPy array)."""
+    return np.maximum(1 - value, COMPLEMENT_FLOOR)
+
+
 def neighbour_pairs(shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
     """Flat indices (i, j) of every pair of texels adjacent along a spatial axis,
     channel by channel, of a C-ordered array of ``shape`` (spatial..., channels)."""
@@ -94,12 +104,16 @@ class MaterialVariables:
         """The latents in the optimiser, from the first scene's values."""
         dr, optimizer = self.dr, self.optimizer
         first = next(iter(self.traversed.values()))
+        self.check_complements()
         self.start_means, self.mean_weights = {}, {}
         for parameter in self.parameters:
             value = first[parameter.key]
             if parameter.layout is not None:
                 taken = np.ravel(np.array(value, dtype=np.float32))[list(parameter.layout.take)]
                 value = self.mi.TensorXf(taken.reshape(parameter.layout.shape))
+            if parameter.times_complement_of is not None:
+                other = self.by_name[parameter.times_complement_of]
+                value = value * complement(float(np.ravel(np.array(first[other.key]))[0]))
             latent = dr.log(value) if parameter.log else type(value)(value)
             # A start value read from a scene file is a literal, which Dr.Jit would bake
             # into the first renders' kernels (compiled anew for every start value).
@@ -121,6 +135,22 @@ class MaterialVariables:
                 self.priors.append((parameter, self.mi.UInt32(first_index), self.mi.UInt32(second_index)))
         self.clamp()
 
+    def check_complements(self) -> None:
+        """Each ``times_complement_of`` names another fitted plain parameter, and the
+        parameter that names it has neither a layout nor fixed channel means."""
+        self.by_name = {p.name: p for p in self.parameters}
+        for parameter in self.parameters:
+            other = self.by_name.get(parameter.times_complement_of or "")
+            if parameter.times_complement_of is None:
+                continue
+            if other is None or other.times_complement_of is not None or other.layout is not None:
+                raise PipelineError(
+                    f"parameter {parameter.name}: times_complement_of {parameter.times_complement_of} is not "
+                    "another fitted plain parameter"
+                )
+            if parameter.layout is not None or parameter.mean_weights is not None:
+                raise PipelineError(f"parameter {parameter.name}: times_complement_of with a layout or fixed means")
+
     def check_keys(self, views) -> None:
         """Every parameter's key in every view's scene, or a PipelineError naming the views."""
         for parameter in self.parameters:
@@ -131,14 +161,25 @@ class MaterialVariables:
                 )
 
     def clamp(self) -> None:
-        for parameter in self.parameters:
+        # a product's bounds are its parameter's times the complement, once that is clamped
+        for parameter in sorted(self.parameters, key=lambda p: p.times_complement_of is not None):
             lo, hi = (parameter.lower, parameter.upper)
+            if parameter.times_complement_of is not None:
+                other = self.by_name[parameter.times_complement_of]
+                factor = complement(float(np.ravel(self.value_of(other))[0]))
+                lo, hi = lo * factor, hi * factor
             if parameter.log:
                 lo, hi = np.log(lo), np.log(hi)
             self.optimizer[parameter.name] = self.dr.clip(self.optimizer[parameter.name], lo, hi)
 
+    def value_of(self, parameter: FitParameter) -> np.ndarray:
+        """A plain parameter's value as its latent stands (not a product's)."""
+        latent = np.array(self.optimizer[parameter.name], dtype=np.float64)
+        return np.exp(latent) if parameter.log else latent
+
     def apply(self, scene_key: int) -> None:
         dr, params = self.dr, self.traversed[scene_key]
+        values = {}
         for parameter in self.parameters:
             latent = self.optimizer[parameter.name]
             if parameter.mean_weights is not None:
@@ -149,6 +190,14 @@ class MaterialVariables:
                 # is zero there, which would pin the parameter to its bound for good)
                 value = dr.exp(latent)
                 latent = value + dr.detach(dr.clip(value, parameter.lower, parameter.upper) - value)
+            values[parameter.name] = latent
+        for parameter in self.parameters:
+            latent = values[parameter.name]
+            if parameter.times_complement_of is not None:
+                factor = dr.maximum(1 - values[parameter.times_complement_of], COMPLEMENT_FLOOR)
+                latent = (
+                    type(latent)(latent.array / factor, latent.shape) if dr.is_tensor_v(latent) else latent / factor
+                )
             if parameter.layout is not None:
                 spread = dr.gather(self.mi.Float, latent.array, self.gives[parameter.name])
                 latent = type(params[parameter.key])(spread, params[parameter.key].shape)
@@ -193,10 +242,11 @@ class MaterialVariables:
                 mean = np.asarray(parameter.mean_weights) @ _channels(np.exp(latent))
                 arrays[parameter.name] = latent + np.log(start / mean)
         arrays = {n: a if n in self.textured else np.ravel(a) for n, a in arrays.items()}
-        return {
-            p.name: np.clip(np.exp(arrays[p.name]), p.lower, p.upper) if p.log else arrays[p.name]
-            for p in self.parameters
-        }
+        values = {p.name: np.exp(arrays[p.name]) if p.log else arrays[p.name] for p in self.parameters}
+        for parameter in self.parameters:
+            if parameter.times_complement_of is not None:
+                values[parameter.name] = values[parameter.name] / complement(values[parameter.times_complement_of])
+        return {p.name: np.clip(values[p.name], p.lower, p.upper) if p.log else values[p.name] for p in self.parameters}
 
     def summary(self) -> dict[str, list[float]]:
         """Each parameter's value for the log: a texture's per-channel mean."""
@@ -205,6 +255,8 @@ class MaterialVariables:
     def restore(self, values: dict[str, np.ndarray]) -> None:
         for parameter in self.parameters:
             value = values[parameter.name]
+            if parameter.times_complement_of is not None:
+                value = value * complement(values[parameter.times_complement_of])
             latent = (np.log(value) if parameter.log else value).astype(np.float32)
             kind = type(self.optimizer[parameter.name])
             self.optimizer[parameter.name] = kind(latent) if value.ndim > 1 else kind(*[float(v) for v in latent])

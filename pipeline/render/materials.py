@@ -33,7 +33,7 @@ where a highlight too sharp for the samples gives no gradient back.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal, Mapping
 
 from pipeline.formats.scene_description import Integrator
@@ -209,16 +209,32 @@ def fit_parameters(model: MaterialModel, bounds: Mapping[str, tuple[float, float
     """The model's parameters for pipeline.fit.engine, ``bounds`` overriding the defaults
     by name (names that are not the model's are ignored: callers check them)."""
     bounds = bounds or {}
-    return [
-        FitParameter(
-            n,
-            PARAMETERS[n].key,
-            *bounds.get(n, (PARAMETERS[n].lower, PARAMETERS[n].upper)),
-            PARAMETERS[n].log,
-            PARAMETERS[n].learning_rate,
-        )
-        for n in MODEL_PARAMETERS[model]
-    ]
+    return diffuse_weight_fitted(
+        [
+            FitParameter(
+                n,
+                PARAMETERS[n].key,
+                *bounds.get(n, (PARAMETERS[n].lower, PARAMETERS[n].upper)),
+                PARAMETERS[n].log,
+                PARAMETERS[n].learning_rate,
+            )
+            for n in MODEL_PARAMETERS[model]
+        ]
+    )
+
+
+def diffuse_weight_fitted(parameters: list[FitParameter]) -> list[FitParameter]:
+    """``parameters`` with each base colour whose BSDF's spec_trans is fitted beside it
+    fitted as its diffuse lobe's weight, base_color (1 - spec_trans)
+    (FitParameter.times_complement_of; keys ``<bsdf>.base_color...`` and
+    ``<bsdf>.spec_trans.value``)."""
+    by_key = {p.key: p for p in parameters}
+    fitted = []
+    for parameter in parameters:
+        bsdf, found, _ = parameter.key.partition(".base_color.")
+        spec_trans = by_key.get(f"{bsdf}.spec_trans.value") if found else None
+        fitted.append(replace(parameter, times_complement_of=spec_trans.name) if spec_trans else parameter)
+    return fitted
 
 
 def refit_parameters(
@@ -237,7 +253,7 @@ def refit_parameters(
         parameters.append(FitParameter(slot.parameter, slot.key, lower, upper, False, *texture))
     if constants:
         parameters += [p for p in fit_parameters(model, bounds) if texture is None or p.name != slot.parameter]
-    return parameters
+    return diffuse_weight_fitted([replace(p, times_complement_of=None) for p in parameters])
 
 
 def opaque_from_principled(values: dict) -> dict:
