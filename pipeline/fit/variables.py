@@ -13,9 +13,12 @@ kind               latents                                                      
 =================  ===========================================================  ==========================
 MaterialVariables  one per FitParameter: the value, or its logarithm for        box per parameter;
                    positive quantities spanning decades; plain values, or a     smoothness on textures
-                   texture's data tensor; optionally a gain per view (exposure,
-                   or exposure and white balance: one per channel), not a
-                   latent: matched in closed form at every render
+                   texture's data tensor; a value times the complement of
+                   another (``times_complement_of``: a base colour as its
+                   diffuse weight beside spec_trans); optionally a gain per
+                   view (exposure, or exposure and white balance: one per
+                   channel), not a latent: matched in closed form at every
+                   render
 ShapeVariables     a mesh's vertices as LargeSteps' differential coordinates    none (the Laplacian
                    (Nicolet et al. 2021, seams welded)                          spreads each step)
 =================  ===========================================================  ==========================
@@ -53,7 +56,7 @@ c = 1 the product is held at 0 and the value is free."""
 
 def complement(value):
     """1 - ``value``, at least COMPLEMENT_FLOOR (a number or a NumPy array)."""
-    return np.maximum(1 - value, COMPLEMENT_FLOOR)
+    return np.maximum(1 - np.asarray(value, np.float64), COMPLEMENT_FLOOR)
 
 
 def neighbour_pairs(shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
@@ -161,13 +164,15 @@ class MaterialVariables:
                 )
 
     def clamp(self) -> None:
-        # a product's bounds are its parameter's times the complement, once that is clamped
+        # a product's lower bound is its parameter's times the complement, once that is
+        # clamped; its upper bound is its parameter's (the value is capped where it is
+        # applied): clipping the product to the upper bound times the complement would
+        # let each step of the complement's parameter upwards darken it for good
         for parameter in sorted(self.parameters, key=lambda p: p.times_complement_of is not None):
             lo, hi = (parameter.lower, parameter.upper)
             if parameter.times_complement_of is not None:
                 other = self.by_name[parameter.times_complement_of]
-                factor = complement(float(np.ravel(self.value_of(other))[0]))
-                lo, hi = lo * factor, hi * factor
+                lo = lo * complement(float(np.ravel(self.value_of(other))[0]))
             if parameter.log:
                 lo, hi = np.log(lo), np.log(hi)
             self.optimizer[parameter.name] = self.dr.clip(self.optimizer[parameter.name], lo, hi)
@@ -194,10 +199,13 @@ class MaterialVariables:
         for parameter in self.parameters:
             latent = values[parameter.name]
             if parameter.times_complement_of is not None:
+                # capped at the upper bound, where neither the product nor the complement
+                # gets a gradient through it
                 factor = dr.maximum(1 - values[parameter.times_complement_of], COMPLEMENT_FLOOR)
-                latent = (
-                    type(latent)(latent.array / factor, latent.shape) if dr.is_tensor_v(latent) else latent / factor
-                )
+                if dr.is_tensor_v(latent):
+                    latent = type(latent)(dr.minimum(latent.array / factor, parameter.upper), latent.shape)
+                else:
+                    latent = dr.minimum(latent / factor, parameter.upper)
             if parameter.layout is not None:
                 spread = dr.gather(self.mi.Float, latent.array, self.gives[parameter.name])
                 latent = type(params[parameter.key])(spread, params[parameter.key].shape)
@@ -245,7 +253,8 @@ class MaterialVariables:
         values = {p.name: np.exp(arrays[p.name]) if p.log else arrays[p.name] for p in self.parameters}
         for parameter in self.parameters:
             if parameter.times_complement_of is not None:
-                values[parameter.name] = values[parameter.name] / complement(values[parameter.times_complement_of])
+                product = values[parameter.name] / complement(values[parameter.times_complement_of])
+                values[parameter.name] = np.minimum(product, parameter.upper)
         return {p.name: np.clip(values[p.name], p.lower, p.upper) if p.log else values[p.name] for p in self.parameters}
 
     def summary(self) -> dict[str, list[float]]:

@@ -13,7 +13,10 @@ volumetric   roughdielectric + homogeneous medium  prbvolpath, 32   alpha, eta, 
 
 Mitsuba's principled BSDF derives ``specular`` from ``eta`` when it transmits
 (specular = ((eta - 1) / (eta + 1))^2 / 0.08) and rejects both at once, so the
-translucent model fits eta and the opaque one specular.
+translucent model fits eta and the opaque one specular. Where spec_trans is fitted,
+the base colour is fitted as the diffuse lobe's weight, base_color (1 - spec_trans),
+which the photos pin down (``diffuse_weight_fitted``); params.json and the scenes hold
+the base colour.
 
 Bounds (physically sensible, overridable in the fit stages' config): base_color
 and albedo in [0.001, 1], specular and spec_trans in [0, 1]; roughness and alpha
