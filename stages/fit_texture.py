@@ -328,7 +328,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_texture",
-    version=25,
+    version=24,
     config=Config,
     main=main,
     needs=(

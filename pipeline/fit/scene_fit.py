@@ -146,7 +146,7 @@ def select_parameters(
         raise PipelineError(
             f"no fittable parameter matches {' '.join(patterns)}; `pipeline fit SCENE --list` shows the scene's keys"
         )
-    return materials.diffuse_weight_fitted(selected)
+    return selected
 
 
 def describe_parameters(scene_path: Path, variant: str) -> list[dict]:

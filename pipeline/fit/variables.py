@@ -13,12 +13,9 @@ kind               latents                                                      
 =================  ===========================================================  ==========================
 MaterialVariables  one per FitParameter: the value, or its logarithm for        box per parameter;
                    positive quantities spanning decades; plain values, or a     smoothness on textures
-                   texture's data tensor; a value times the complement of
-                   another (``times_complement_of``: a base colour as its
-                   diffuse weight beside spec_trans); optionally a gain per
-                   view (exposure, or exposure and white balance: one per
-                   channel), not a latent: matched in closed form at every
-                   render
+                   texture's data tensor; optionally a gain per view (exposure,
+                   or exposure and white balance: one per channel), not a
+                   latent: matched in closed form at every render
 ShapeVariables     a mesh's vertices as LargeSteps' differential coordinates    none (the Laplacian
                    (Nicolet et al. 2021, seams welded)                          spreads each step)
 =================  ===========================================================  ==========================
@@ -47,16 +44,6 @@ def summarize(value: np.ndarray) -> list[float]:
 def _channels(texture: np.ndarray) -> np.ndarray:
     """A texture (..., channels) as (texels, channels)."""
     return texture.reshape(-1, texture.shape[-1])
-
-
-COMPLEMENT_FLOOR = 1e-3
-"""The least complement a product is divided by (FitParameter.times_complement_of): at
-c = 1 the product is held at 0 and the value is free."""
-
-
-def complement(value):
-    """1 - ``value``, at least COMPLEMENT_FLOOR (a number or a NumPy array)."""
-    return np.maximum(1 - np.asarray(value, np.float64), COMPLEMENT_FLOOR)
 
 
 def neighbour_pairs(shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
@@ -107,16 +94,12 @@ class MaterialVariables:
         """The latents in the optimiser, from the first scene's values."""
         dr, optimizer = self.dr, self.optimizer
         first = next(iter(self.traversed.values()))
-        self.check_complements()
         self.start_means, self.mean_weights = {}, {}
         for parameter in self.parameters:
             value = first[parameter.key]
             if parameter.layout is not None:
                 taken = np.ravel(np.array(value, dtype=np.float32))[list(parameter.layout.take)]
                 value = self.mi.TensorXf(taken.reshape(parameter.layout.shape))
-            if parameter.times_complement_of is not None:
-                other = self.by_name[parameter.times_complement_of]
-                value = value * complement(float(np.ravel(np.array(first[other.key]))[0]))
             latent = dr.log(value) if parameter.log else type(value)(value)
             # A start value read from a scene file is a literal, which Dr.Jit would bake
             # into the first renders' kernels (compiled anew for every start value).
@@ -138,22 +121,6 @@ class MaterialVariables:
                 self.priors.append((parameter, self.mi.UInt32(first_index), self.mi.UInt32(second_index)))
         self.clamp()
 
-    def check_complements(self) -> None:
-        """Each ``times_complement_of`` names another fitted plain parameter, and the
-        parameter that names it has neither a layout nor fixed channel means."""
-        self.by_name = {p.name: p for p in self.parameters}
-        for parameter in self.parameters:
-            other = self.by_name.get(parameter.times_complement_of or "")
-            if parameter.times_complement_of is None:
-                continue
-            if other is None or other.times_complement_of is not None or other.layout is not None:
-                raise PipelineError(
-                    f"parameter {parameter.name}: times_complement_of {parameter.times_complement_of} is not "
-                    "another fitted plain parameter"
-                )
-            if parameter.layout is not None or parameter.mean_weights is not None:
-                raise PipelineError(f"parameter {parameter.name}: times_complement_of with a layout or fixed means")
-
     def check_keys(self, views) -> None:
         """Every parameter's key in every view's scene, or a PipelineError naming the views."""
         for parameter in self.parameters:
@@ -164,27 +131,14 @@ class MaterialVariables:
                 )
 
     def clamp(self) -> None:
-        # a product's lower bound is its parameter's times the complement, once that is
-        # clamped; its upper bound is its parameter's (the value is capped where it is
-        # applied): clipping the product to the upper bound times the complement would
-        # let each step of the complement's parameter upwards darken it for good
-        for parameter in sorted(self.parameters, key=lambda p: p.times_complement_of is not None):
+        for parameter in self.parameters:
             lo, hi = (parameter.lower, parameter.upper)
-            if parameter.times_complement_of is not None:
-                other = self.by_name[parameter.times_complement_of]
-                lo = lo * complement(float(np.ravel(self.value_of(other))[0]))
             if parameter.log:
                 lo, hi = np.log(lo), np.log(hi)
             self.optimizer[parameter.name] = self.dr.clip(self.optimizer[parameter.name], lo, hi)
 
-    def value_of(self, parameter: FitParameter) -> np.ndarray:
-        """A plain parameter's value as its latent stands (not a product's)."""
-        latent = np.array(self.optimizer[parameter.name], dtype=np.float64)
-        return np.exp(latent) if parameter.log else latent
-
     def apply(self, scene_key: int) -> None:
         dr, params = self.dr, self.traversed[scene_key]
-        values = {}
         for parameter in self.parameters:
             latent = self.optimizer[parameter.name]
             if parameter.mean_weights is not None:
@@ -195,17 +149,6 @@ class MaterialVariables:
                 # is zero there, which would pin the parameter to its bound for good)
                 value = dr.exp(latent)
                 latent = value + dr.detach(dr.clip(value, parameter.lower, parameter.upper) - value)
-            values[parameter.name] = latent
-        for parameter in self.parameters:
-            latent = values[parameter.name]
-            if parameter.times_complement_of is not None:
-                # capped at the upper bound, where neither the product nor the complement
-                # gets a gradient through it
-                factor = dr.maximum(1 - values[parameter.times_complement_of], COMPLEMENT_FLOOR)
-                if dr.is_tensor_v(latent):
-                    latent = type(latent)(dr.minimum(latent.array / factor, parameter.upper), latent.shape)
-                else:
-                    latent = dr.minimum(latent / factor, parameter.upper)
             if parameter.layout is not None:
                 spread = dr.gather(self.mi.Float, latent.array, self.gives[parameter.name])
                 latent = type(params[parameter.key])(spread, params[parameter.key].shape)
@@ -250,12 +193,10 @@ class MaterialVariables:
                 mean = np.asarray(parameter.mean_weights) @ _channels(np.exp(latent))
                 arrays[parameter.name] = latent + np.log(start / mean)
         arrays = {n: a if n in self.textured else np.ravel(a) for n, a in arrays.items()}
-        values = {p.name: np.exp(arrays[p.name]) if p.log else arrays[p.name] for p in self.parameters}
-        for parameter in self.parameters:
-            if parameter.times_complement_of is not None:
-                product = values[parameter.name] / complement(values[parameter.times_complement_of])
-                values[parameter.name] = np.minimum(product, parameter.upper)
-        return {p.name: np.clip(values[p.name], p.lower, p.upper) if p.log else values[p.name] for p in self.parameters}
+        return {
+            p.name: np.clip(np.exp(arrays[p.name]), p.lower, p.upper) if p.log else arrays[p.name]
+            for p in self.parameters
+        }
 
     def summary(self) -> dict[str, list[float]]:
         """Each parameter's value for the log: a texture's per-channel mean."""
@@ -264,8 +205,6 @@ class MaterialVariables:
     def restore(self, values: dict[str, np.ndarray]) -> None:
         for parameter in self.parameters:
             value = values[parameter.name]
-            if parameter.times_complement_of is not None:
-                value = value * complement(values[parameter.times_complement_of])
             latent = (np.log(value) if parameter.log else value).astype(np.float32)
             kind = type(self.optimizer[parameter.name])
             self.optimizer[parameter.name] = kind(latent) if value.ndim > 1 else kind(*[float(v) for v in latent])

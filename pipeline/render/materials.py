@@ -13,10 +13,7 @@ volumetric   roughdielectric + homogeneous medium  prbvolpath, 32   alpha, eta, 
 
 Mitsuba's principled BSDF derives ``specular`` from ``eta`` when it transmits
 (specular = ((eta - 1) / (eta + 1))^2 / 0.08) and rejects both at once, so the
-translucent model fits eta and the opaque one specular. Where spec_trans is fitted,
-the base colour is fitted as the diffuse lobe's weight, base_color (1 - spec_trans),
-which the photos pin down (``diffuse_weight_fitted``); params.json and the scenes hold
-the base colour.
+translucent model fits eta and the opaque one specular.
 
 Bounds (physically sensible, overridable in the fit stages' config): base_color
 and albedo in [0.001, 1], specular and spec_trans in [0, 1]; roughness and alpha
@@ -36,7 +33,7 @@ where a highlight too sharp for the samples gives no gradient back.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Literal, Mapping
 
 from pipeline.formats.scene_description import Integrator
@@ -212,32 +209,16 @@ def fit_parameters(model: MaterialModel, bounds: Mapping[str, tuple[float, float
     """The model's parameters for pipeline.fit.engine, ``bounds`` overriding the defaults
     by name (names that are not the model's are ignored: callers check them)."""
     bounds = bounds or {}
-    return diffuse_weight_fitted(
-        [
-            FitParameter(
-                n,
-                PARAMETERS[n].key,
-                *bounds.get(n, (PARAMETERS[n].lower, PARAMETERS[n].upper)),
-                PARAMETERS[n].log,
-                PARAMETERS[n].learning_rate,
-            )
-            for n in MODEL_PARAMETERS[model]
-        ]
-    )
-
-
-def diffuse_weight_fitted(parameters: list[FitParameter]) -> list[FitParameter]:
-    """``parameters`` with each base colour whose BSDF's spec_trans is fitted beside it
-    fitted as its diffuse lobe's weight, base_color (1 - spec_trans)
-    (FitParameter.times_complement_of; keys ``<bsdf>.base_color...`` and
-    ``<bsdf>.spec_trans.value``)."""
-    by_key = {p.key: p for p in parameters}
-    fitted = []
-    for parameter in parameters:
-        bsdf, found, _ = parameter.key.partition(".base_color.")
-        spec_trans = by_key.get(f"{bsdf}.spec_trans.value") if found else None
-        fitted.append(replace(parameter, times_complement_of=spec_trans.name) if spec_trans else parameter)
-    return fitted
+    return [
+        FitParameter(
+            n,
+            PARAMETERS[n].key,
+            *bounds.get(n, (PARAMETERS[n].lower, PARAMETERS[n].upper)),
+            PARAMETERS[n].log,
+            PARAMETERS[n].learning_rate,
+        )
+        for n in MODEL_PARAMETERS[model]
+    ]
 
 
 def refit_parameters(
@@ -256,7 +237,7 @@ def refit_parameters(
         parameters.append(FitParameter(slot.parameter, slot.key, lower, upper, False, *texture))
     if constants:
         parameters += [p for p in fit_parameters(model, bounds) if texture is None or p.name != slot.parameter]
-    return diffuse_weight_fitted([replace(p, times_complement_of=None) for p in parameters])
+    return parameters
 
 
 def opaque_from_principled(values: dict) -> dict:

@@ -33,14 +33,6 @@ class FitParameter:
     parameters only."""
     layout: Layout | None = None
     """How the latent maps onto the scene's value when their shapes differ; None: the same."""
-    times_complement_of: str | None = None
-    """The name of another fitted parameter, a plain number c in [0, 1]: this one is then
-    fitted as its value times (1 - c), and c is stepped with that product held. For a
-    principled BSDF's base colour beside its spec_trans: Mitsuba weighs the diffuse lobe
-    by base_color (1 - spec_trans), which the photos pin down, and fitted apart the two
-    trade off along a diagonal valley that Adam's per-parameter steps do not follow
-    (docs/decisions.md, "The fitting loop's stop and schedule"). Not with ``layout`` or
-    ``mean_weights``."""
 
 
 @dataclass(frozen=True)
