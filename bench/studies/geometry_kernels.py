@@ -33,9 +33,9 @@ from bench.common import ROOT, code_version, machine, run_stages, write_section
 from pipeline.render import mitsuba_variant
 
 DRAINED = ("execution_time", "codegen_time", "backend_time")
-
-
+"""The history's times (milliseconds) summed per row."""
 OUTSIDE = "rest of the stage"
+"""Where the work outside every fitting loop counts."""
 
 
 def row_of(entry: dict) -> str:
