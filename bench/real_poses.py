@@ -11,7 +11,9 @@ Cases (``--only`` picks some by name):
   its own reference: ``oxford-dino`` (turntable; Oxford's projective turntable
   reconstruction: turntable angles and centres against reference/cameras.txt, viewing
   directions against reference/cameras_upgraded.txt, see its README), ``dino-sparse-ring``
-  (ring; Middlebury's calibrated cameras), ``temple-ring`` (handheld) and
+  (ring; Middlebury's calibrated cameras), ``dino-sparse-ring-known-intrinsics`` (the
+  same with Middlebury's K given as ``calibrate.known_intrinsics``, held fixed, as a user
+  with a calibrated rig would run it), ``temple-ring`` (handheld) and
   ``temple-ring-ring`` (ring; Middlebury's calibrated cameras), ``porous-cube`` (handheld,
   76 phone photos with one stray room shot; no reference).
 - ``suite-SEED``: synthetic turntables drawn from seeds (``suite_options``): resolution
@@ -59,6 +61,7 @@ import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from bench.common import ROOT, machine, write_section
@@ -66,6 +69,8 @@ from pipeline.camera.model import Pose
 from pipeline.formats.cameras import read_cameras
 from pipeline.synthetic.score import score_cameras, score_masks
 
+KNOWN_INTRINSICS = "known_intrinsics.json"
+"""Where a ``known_intrinsics`` case's calibration is written, in the capture folder."""
 TURN = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 """The reference camera's axes turned about its optical axis: x' = y, y' = -x."""
 
@@ -81,11 +86,21 @@ class Case:
     true_masks: bool = False
     """A synthetic capture with its true masks given as the user's (masks/): what its
     poses would be with perfect masks."""
+    known_intrinsics: bool = False
+    """A real capture with its reference calibration given (calibrate.known_intrinsics),
+    as a user with a calibrated rig would: what its poses are with the intrinsics known."""
 
 
 REAL = [
     Case("oxford-dino", "shared:oxford-dino", "turntable", ("board.kind=none",)),
     Case("dino-sparse-ring", "shared:dino-sparse-ring", "ring", ("board.kind=none",)),
+    Case(
+        "dino-sparse-ring-known-intrinsics",
+        "shared:dino-sparse-ring",
+        "ring",
+        ("board.kind=none",),
+        known_intrinsics=True,
+    ),
     Case("temple-ring", "shared:temple-ring", "handheld", ("board.kind=none",)),
     Case("temple-ring-ring", "shared:temple-ring", "ring", ("board.kind=none",)),
     Case("porous-cube", "shared:porous-cube", "handheld", ("board.kind=none",)),
@@ -145,6 +160,17 @@ def middlebury_poses(par: Path, turned: bool) -> dict[str, Pose]:
         R, t = numbers[9:18].reshape(3, 3), numbers[18:21]
         poses[name] = Pose(TURN @ R, TURN @ t) if turned else Pose(R, t)
     return poses
+
+
+def middlebury_intrinsics(par: Path, images: Path) -> dict:
+    """The K shared by every line of a Middlebury par file, as calibrate's intrinsics.json
+    (Middlebury's pixel origin is the first pixel's centre, as OpenCV's)."""
+    matrices = {tuple(line.split()[1:10]) for line in par.read_text().splitlines()[1:] if line.strip()}
+    if len(matrices) != 1:
+        raise ValueError(f"{par} has {len(matrices)} different K; the capture needs one calibration")
+    K = np.array(matrices.pop(), float).reshape(3, 3)
+    height, width = cv2.imread(str(next(iter(sorted(images.iterdir()))))).shape[:2]
+    return {"width": width, "height": height, "fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2]}
 
 
 def oxford_poses(path: Path) -> dict[str, Pose]:
@@ -246,6 +272,9 @@ def prepare(case: Case, captures: Path, work: Path) -> Path:
         subprocess.run(_pipeline("new", str(capture), "--rig", case.rig), check=True)
         for photo in sorted((captures / name / "images").iterdir()):
             shutil.copy2(photo, capture / "images" / photo.name)
+        if case.known_intrinsics:
+            par = next((captures / name / "reference").glob("*_par.txt"))
+            (capture / KNOWN_INTRINSICS).write_text(json.dumps(middlebury_intrinsics(par, capture / "images")))
         return capture
     if kind == "sample":
         shutil.copytree(ROOT / "sample_captures" / name, capture, ignore=shutil.ignore_patterns(".pipeline", "output"))
@@ -302,6 +331,8 @@ def run_case(case: Case, captures: Path, work: Path) -> dict:
         command += ["-s", f"capture.rig={case.rig}"]
     for override in case.overrides:
         command += ["-s", override]
+    if case.known_intrinsics:
+        command += ["-s", f"calibrate.known_intrinsics={KNOWN_INTRINSICS}"]
     started = time.perf_counter()
     log = work / f"{case.name}.log"
     with log.open("w") as stream:
@@ -444,6 +475,7 @@ def main() -> None:
             continue
         description = suite_options(int(case.source.split(":")[1]))[1] if case.source.startswith("suite:") else case.rig
         description += ", true masks" if case.true_masks else ""
+        description += ", known intrinsics" if case.known_intrinsics else ""
         row = run_case(case, args.captures, args.work)
         lines.append(table_row(row, description))
         print(lines[-1], flush=True)

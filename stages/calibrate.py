@@ -5,7 +5,8 @@ image size): each group gets its own intrinsics. A group is calibrated from the
 board shots in ``calibration/`` taken with the same setting; without enough of
 them it falls back to the EXIF focal length, and without that to COLMAP's prior
 (focal = 1.2 x the longer side), leaving the refinement to structure-from-motion.
-``calibration.json`` says which source each group used.
+``calibration.json`` says which source each group used. A calibration made elsewhere
+(``known_intrinsics``) replaces all of that for a capture of one camera setting.
 
 =====================  ==========================================================
 output                 content
@@ -39,11 +40,12 @@ from pipeline import logger
 from pipeline.camera.board import BoardDetection, BoardDetector
 from pipeline.camera.model import Intrinsics
 from pipeline.core import progress
-from pipeline.core.config import Range, input_file_path
+from pipeline.core.config import InputFile, Range, input_file_path
 from pipeline.core.errors import PipelineError
 from pipeline.core.sections import BoardSection, CamerasSection
 from pipeline.core.stage import Stage, StageInputs, StageResult
 from pipeline.formats.external_cameras import read_external_cameras
+from pipeline.formats.known_intrinsics import fitted_to, read_known_intrinsics
 from pipeline.imaging.photo_io import (
     PHOTO_SUFFIXES,
     camera_setting,
@@ -80,6 +82,12 @@ class Config:
     sensor_width_mm: Annotated[float, Range(0.0, None)] = 0.0
     """Long side of the sensor in mm, for the EXIF fallback when the photos carry a focal
     length in mm but no focal-plane resolution; 0 when unknown."""
+    known_intrinsics: Annotated[str, InputFile()] = ""
+    """A calibration made elsewhere (a lab's, or another capture's intrinsics.json) for
+    every photo in images/, relative to the capture folder: JSON or OpenCV YAML/XML
+    (pipeline/formats/known_intrinsics.py). It replaces board shots and EXIF, is scaled
+    to photos of the same frame at another resolution, and sfm holds it fixed. Empty:
+    the board, EXIF or self-calibration as above."""
 
 
 @dataclass
@@ -231,6 +239,23 @@ def calibrate_group(
     return group | {"source": source, "how": how, "refine_in_sfm": True, "intrinsics": intrinsics.to_json()}
 
 
+def known_group(setting: str, photos: list[tuple[Path, dict]], shots: int, known: Intrinsics, source: Path) -> dict:
+    """A camera setting with the given calibration, fitted to its photos' size."""
+    intrinsics = fitted_to(known, photos[0][1]["size"], source, "calibrate.known_intrinsics")
+    if shots:
+        logger.warning("%s: %d board shots not used: calibrate.known_intrinsics gives the intrinsics", setting, shots)
+    logger.info("%s: intrinsics from %s (focal %.1f px), held fixed", setting, source, intrinsics.fx)
+    return {
+        "camera": setting,
+        "images": [p.name for p, _ in photos],
+        "board_shots": shots,
+        "source": "known",
+        "how": f"calibrate.known_intrinsics = {source}",
+        "refine_in_sfm": False,
+        "intrinsics": intrinsics.to_json(),
+    }
+
+
 def _external_groups(
     source: str, capture_dir: Path, photo_groups: dict[str, list[tuple[Path, dict]]]
 ) -> tuple[list[dict], dict[str, list[tuple[Path, dict]]]]:
@@ -299,10 +324,23 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     groups = []
     if cameras.source:
         groups, photo_groups = _external_groups(cameras.source, inputs.capture_dir, photo_groups)
-    groups += [
-        calibrate_group(setting, members, shot_groups.get(setting, []), board, conf)
-        for setting, members in sorted(photo_groups.items(), key=lambda item: -len(item[1]))
-    ]
+    largest_first = sorted(photo_groups.items(), key=lambda item: -len(item[1]))
+    if conf.known_intrinsics and largest_first:
+        source = input_file_path(inputs.capture_dir, conf.known_intrinsics)
+        known = read_known_intrinsics(source, "calibrate.known_intrinsics")
+        if len(largest_first) > 1:
+            raise PipelineError(
+                f"calibrate.known_intrinsics gives one camera, but images/ holds photos of {len(largest_first)} camera "
+                f"settings ({'; '.join(setting for setting, _ in largest_first)}): keep the photos of the calibrated "
+                "setting only, or leave calibrate.known_intrinsics empty"
+            )
+        ((setting, members),) = largest_first
+        groups.append(known_group(setting, members, len(shot_groups.get(setting, [])), known, source))
+    else:
+        groups += [
+            calibrate_group(setting, members, shot_groups.get(setting, []), board, conf)
+            for setting, members in largest_first
+        ]
     calibration = out_dir / "calibration.json"
     calibration.write_text(json.dumps({"groups": groups}, indent=1))
     intrinsics = out_dir / "intrinsics.json"

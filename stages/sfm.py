@@ -5,10 +5,10 @@
    turntable only from what changes between photos (the still room masked out) and
    matched with ring neighbours and with the photos whose outlines look alike (a
    second turn), else exhaustively (sequentially past 150 photos).
-2. **Poses.** Handheld: COLMAP's incremental mapping; a camera the board
-   calibrated stays fixed, a guessed one (EXIF, prior) has its focal length
-   refined, and principal point and radial distortion when the photos constrain
-   them (pipeline.camera.self_calibration; values, deviations and decisions in
+2. **Poses.** Handheld: COLMAP's incremental mapping; a calibrated camera
+   (board, ``calibrate.known_intrinsics``) stays fixed, a guessed one (EXIF,
+   prior) has its focal length refined, and principal point and radial
+   distortion when the photos constrain them (pipeline.camera.self_calibration; values, deviations and decisions in
    sfm.json). Turntable and ring (``capture.rig``): the rig is the model
    (pipeline.geometry.circular_motion): one axis, one camera offset, one angle per
    photo, bundle-adjusted with the focal length and distortion and with the
@@ -213,8 +213,9 @@ def _pose(
     conf: Config, inputs: StageInputs, rig: str, photos: _Photos, board_found: dict[str, Pose], work: Path
 ) -> _Posed:
     """2. The poses: another tool's, the rig's circular motion, or COLMAP's incremental model."""
-    # A camera the board calibrated stays as it is; a guessed one (EXIF, prior) is refined.
-    refine_focal = any(c["calibrated_by"] not in ("board", "external") for c in photos.cameras)
+    # A calibrated camera (board, known intrinsics, another tool's) stays as it is; a
+    # guessed one (EXIF, prior) is refined.
+    refine_focal = any(c["calibrated_by"] not in ("board", "known", "external") for c in photos.cameras)
     external: CamerasSection = inputs.shared["cameras"]
     work.mkdir()
     if external.source:

@@ -34,8 +34,9 @@ class SelfCalibrationSettings:
 
     self_calibrate: bool = True
     """Adjust principal point and radial distortion in bundle adjustment when the photos
-    constrain them (a camera calibrated with the board is never adjusted; a turntable's or
-    ring's principal point never: one circular motion does not determine it)."""
+    constrain them (a camera calibrated by the board or calibrate.known_intrinsics is
+    never adjusted; a turntable's or ring's principal point never: one circular motion
+    does not determine it)."""
     max_calibration_std_px: Annotated[float, Range(0.0, None, exclusive_lo=True)] = 1.0
     """A parameter is adjusted only when its standard deviation moves points by less than
     this many pixels (radial distortion: at the frame's farthest corner)."""

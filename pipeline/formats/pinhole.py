@@ -1,7 +1,7 @@
 """pinhole.json (stage undistort): the undistorted photos and their cameras.
 
 ``cameras`` lists one entry per camera setting, ``{"camera", "calibrated_by",
-"source", "intrinsics"}`` (what calibrated it: board, exif, prior or external; the
+"source", "intrinsics"}`` (what calibrated it: board, known, exif, prior or external; the
 calibrated camera and the ideal pinhole the photos were remapped to); ``images``
 and ``background`` map each photo or plate name to
 ``{"camera": index, "srgb": PNG, "linear": EXR, "encoding", "bits"}``, the paths

@@ -93,20 +93,66 @@ def test_without_usable_board_shots_exif_gives_the_focal_length(run_stages, tiny
     )
 
 
-def test_each_zoom_setting_gets_its_own_intrinsics(run_stages, tiny_capture, tmp_path):
-    capture = tmp_path / "bird"
-    shutil.copytree(tiny_capture, capture, ignore=shutil.ignore_patterns(".pipeline", "output"))
-    for name in ("view_004.jpg", "view_005.jpg"):
+def zoom_in(capture: Path, *names: str) -> None:
+    """Rewrite the photos' EXIF as if shot at twice the focal length (another camera setting)."""
+    for name in names:
         photo = read_photo(capture / "images" / name)
         zoomed = {k: v for k, v in photo.metadata.items() if k.startswith(("Exif:", "Make", "Model"))}
         zoomed["Exif:FocalLength"] = 2 * float(photo.metadata["Exif:FocalLength"])
         buf = oiio.ImageBuf(str(capture / "images" / name))
         write_image(capture / "images" / name, buf.get_pixels(oiio.UINT8), zoomed)
+
+
+def test_each_zoom_setting_gets_its_own_intrinsics(run_stages, tiny_capture, tmp_path):
+    capture = tmp_path / "bird"
+    shutil.copytree(tiny_capture, capture, ignore=shutil.ignore_patterns(".pipeline", "output"))
+    zoom_in(capture, "view_004.jpg", "view_005.jpg")
     outputs = run_stages(capture, "calibrate")["calibrate"]
     groups = json.loads(outputs["calibration"].read_text())["groups"]
     assert [len(g["images"]) for g in groups] == [4, 2]
     assert groups[1]["images"] == ["view_004.jpg", "view_005.jpg"]
     assert groups[1]["intrinsics"]["fx"] == pytest.approx(2 * groups[0]["intrinsics"]["fx"], rel=1e-3)
+
+
+def test_known_intrinsics_replace_board_and_exif_and_are_held(run_stages, tiny_capture, tmp_path, caplog):
+    """A lab calibration of the same camera at twice the photos' resolution: halved,
+    used for every photo and marked as not to be refined; the board shots go unused."""
+    capture = Path(
+        shutil.copytree(tiny_capture, tmp_path / "bird", ignore=shutil.ignore_patterns(".pipeline", "output"))
+    )
+    truth, _ = read_cameras(capture / "ground_truth" / "cameras.json")
+    # Twice the resolution: pixel centres at 2 x + 0.5.
+    lab = Intrinsics(
+        2 * truth.width,
+        2 * truth.height,
+        2 * truth.fx,
+        2 * truth.fy,
+        2 * truth.cx + 0.5,
+        2 * truth.cy + 0.5,
+        truth.dist,
+    )
+    (capture / "lab.json").write_text(json.dumps(lab.to_json()))
+    outputs = run_stages(capture, "calibrate", "calibrate.known_intrinsics='lab.json'")["calibrate"]
+    (group,) = json.loads(outputs["calibration"].read_text())["groups"]
+    assert group["source"] == "known" and not group["refine_in_sfm"]
+    assert group["images"] == sorted(p.name for p in (capture / "images").iterdir())
+    given = Intrinsics.from_json(group["intrinsics"])
+    for key in ("width", "height", "fx", "fy", "cx", "cy"):
+        assert getattr(given, key) == pytest.approx(getattr(truth, key), abs=1e-9), key
+    assert "board shots not used" in caplog.text
+
+
+def test_known_intrinsics_for_photos_of_two_camera_settings_are_refused(run_stages, tiny_capture, tmp_path):
+    capture = Path(
+        shutil.copytree(tiny_capture, tmp_path / "bird", ignore=shutil.ignore_patterns(".pipeline", "output"))
+    )
+    truth, _ = read_cameras(capture / "ground_truth" / "cameras.json")
+    (capture / "lab.json").write_text(json.dumps(truth.to_json()))
+    zoom_in(capture, "view_004.jpg")
+    with pytest.raises(
+        PipelineError, match="calibrate.known_intrinsics gives one camera, but images/ holds photos of 2"
+    ):
+        run_stages(capture, "calibrate", "calibrate.known_intrinsics='lab.json'")
 
 
 def test_a_capture_without_photos_is_a_clear_error(run_stages, tmp_path):

@@ -10,6 +10,7 @@ import pycolmap
 import pytest
 import trimesh
 
+from pipeline.camera.model import Pose, similarity_umeyama
 from pipeline.core.errors import PipelineError
 from pipeline.formats.cameras import read_cameras, read_views
 from pipeline.synthetic.score import score_cameras
@@ -155,6 +156,40 @@ def test_dino_sparse_ring_closes_its_broken_ring_through_the_arcs_silhouettes(ru
         if np.median(errors) < 5:
             break
     assert np.median(errors) < 0.5 and errors.max() < 1.5
+
+
+@pytest.mark.real_data
+@pytest.mark.skipif(not DINO_SPARSE_RING.is_dir(), reason="../shared/captures/dino-sparse-ring is not here")
+def test_dino_sparse_ring_with_its_calibration_given_places_every_viewing_direction_within_a_degree(
+    run_stages, tmp_path
+):
+    """Its principal point sits 40 px above the centre row, which one circular motion cannot
+    find; given Middlebury's K as calibrate.known_intrinsics, sfm holds it and every photo's
+    viewing direction lands within a degree of the reference (similarity-aligned centres)."""
+    (tmp_path / "images").mkdir()
+    for photo in sorted((DINO_SPARSE_RING / "images").glob("*.png")):
+        (tmp_path / "images" / photo.name).symlink_to(photo)
+    reference = {}
+    for line in (DINO_SPARSE_RING / "reference" / "dinoSR_par.txt").read_text().splitlines()[1:]:
+        name, *values = line.split()
+        K, R, t = (np.array(values[a:b], float) for a, b in ((0, 9), (9, 18), (18, 21)))
+        reference[name] = Pose(R.reshape(3, 3), t)
+    K = K.reshape(3, 3)  # every line has the same K
+    known = {"width": 640, "height": 480, "fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2]}
+    (tmp_path / "known.json").write_text(json.dumps(known))
+    (tmp_path / "capture.toml").write_text(
+        '[capture]\nrig = "ring"\n\n[board]\nkind = "none"\n\n[calibrate]\nknown_intrinsics = "known.json"\n'
+    )
+    outputs = run_stages(tmp_path, "sfm")
+    intrinsics, poses = read_cameras(outputs["sfm"]["cameras"])
+    assert intrinsics.cx == pytest.approx(K[0, 2]) and intrinsics.cy == pytest.approx(K[1, 2])
+    assert len(poses) == 16
+    names = sorted(poses)
+    _, R, _ = similarity_umeyama(
+        np.array([poses[n].center for n in names]), np.array([reference[n].center for n in names])
+    )
+    directions = [np.degrees(np.arccos(np.clip(reference[n].R[2] @ (R @ poses[n].R[2]), -1, 1))) for n in names]
+    assert max(directions) < 1.0
 
 
 def test_cameras_from_another_tool_replace_calibration_and_sfm(run_stages, tiny_capture, tmp_path):
