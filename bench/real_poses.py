@@ -25,6 +25,11 @@ Cases (``--only`` picks some by name):
   ``suite-SEED-true-masks``, its true masks given as the user's (``masks/``): the same
   photos with perfect masks (the outlines fitted and placed, and where features may
   come from), which separates what the masks cost from what the solver does.
+- ``twin-NAME`` (``TWINS``): handheld synthetic twins of a small specimen centred on white,
+  whose features cover under a third of the frame (a 42 or 20 degree lens, without or with
+  the EXIF focal length); each also as ``twin-NAME-start-held``, the intrinsics calibrate
+  starts from (EXIF or COLMAP's prior) given as ``calibrate.known_intrinsics`` and held:
+  what self-calibration is judged against.
 - ``bird``: the bundled sample (handheld rings, the board).
 
 Each becomes a pipeline capture in ``--work`` and runs `pipeline run --until sfm --force
@@ -60,6 +65,7 @@ import sys
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -86,9 +92,11 @@ class Case:
     true_masks: bool = False
     """A synthetic capture with its true masks given as the user's (masks/): what its
     poses would be with perfect masks."""
-    known_intrinsics: bool = False
-    """A real capture with its reference calibration given (calibrate.known_intrinsics),
-    as a user with a calibrated rig would: what its poses are with the intrinsics known."""
+    given_intrinsics: Literal["", "reference", "start"] = ""
+    """Intrinsics given as calibrate.known_intrinsics and held: ``reference``, a real
+    capture's reference calibration, as a user with a calibrated rig would give it;
+    ``start``, the intrinsics calibrate starts from without it (EXIF or COLMAP's prior),
+    what self-calibration is judged against."""
 
 
 REAL = [
@@ -99,13 +107,41 @@ REAL = [
         "shared:dino-sparse-ring",
         "ring",
         ("board.kind=none",),
-        known_intrinsics=True,
+        given_intrinsics="reference",
     ),
     Case("temple-ring", "shared:temple-ring", "handheld", ("board.kind=none",)),
     Case("temple-ring-ring", "shared:temple-ring", "ring", ("board.kind=none",)),
     Case("porous-cube", "shared:porous-cube", "handheld", ("board.kind=none",)),
 ]
 OTHERS = [Case("bird", "sample:bird")]
+
+_SMALL_ON_WHITE = ["--rig", "handheld", "--views", "37", "--width", "1000", "--height", "750", "--rings", "15", "30", "--table", "grey",
+                   "--backdrop", "white", "--texture", "speckles", "--calibration-shots", "0", "--spp", "8", "--seed", "7"]  # fmt: skip
+TWINS = {
+    "small-wide": (
+        [*_SMALL_ON_WHITE, "--hfov", "42", "--distance", "0.45", "--no-exif-focal"],
+        "1000 px, 37 views, speckled bird small on white, 42 deg lens, no EXIF",
+    ),
+    "small-long": (
+        [*_SMALL_ON_WHITE, "--hfov", "20", "--distance", "0.98", "--no-exif-focal"],
+        "1000 px, 37 views, speckled bird small on white, 20 deg lens, no EXIF",
+    ),
+    "small-exif": (
+        [*_SMALL_ON_WHITE, "--hfov", "42", "--distance", "0.45"],
+        "1000 px, 37 views, speckled bird small on white, 42 deg lens, true focal in EXIF",
+    ),
+}
+"""Handheld synthetic twins of a small specimen centred on white (features on under a
+third of the frame): `pipeline synth` arguments and a description. Each runs as it is
+(self-calibration) and with the focal length calibrate starts from held."""
+TWIN_CASES = [
+    case
+    for name in TWINS
+    for case in (
+        Case(f"twin-{name}", f"twin:{name}", overrides=("board.kind=none",)),
+        Case(f"twin-{name}-start-held", f"twin:{name}", overrides=("board.kind=none",), given_intrinsics="start"),
+    )
+]
 
 
 def suite_options(seed: int) -> tuple[list[str], str]:
@@ -272,7 +308,7 @@ def prepare(case: Case, captures: Path, work: Path) -> Path:
         subprocess.run(_pipeline("new", str(capture), "--rig", case.rig), check=True)
         for photo in sorted((captures / name / "images").iterdir()):
             shutil.copy2(photo, capture / "images" / photo.name)
-        if case.known_intrinsics:
+        if case.given_intrinsics == "reference":
             par = next((captures / name / "reference").glob("*_par.txt"))
             (capture / KNOWN_INTRINSICS).write_text(json.dumps(middlebury_intrinsics(par, capture / "images")))
         return capture
@@ -282,10 +318,15 @@ def prepare(case: Case, captures: Path, work: Path) -> Path:
     rendered = work / f"rendered-{name}"
     if not (rendered / "capture.toml").is_file():
         shutil.rmtree(rendered, ignore_errors=True)
-        subprocess.run(_pipeline("synth", str(rendered), *suite_options(int(name))[0]), check=True)
+        arguments = suite_options(int(name))[0] if kind == "suite" else TWINS[name][0]
+        subprocess.run(_pipeline("synth", str(rendered), *arguments), check=True)
     shutil.copytree(rendered, capture, ignore=shutil.ignore_patterns(".pipeline", "output"))
     if case.true_masks:
         shutil.copytree(rendered / "ground_truth" / "masks", capture / "masks", dirs_exist_ok=True)
+    if case.given_intrinsics == "start":
+        overrides = [argument for override in case.overrides for argument in ("-s", override)]
+        subprocess.run(_pipeline("run", str(capture), "--until", "calibrate", *overrides), check=True)
+        shutil.copy2(capture / "output" / "stages" / "calibrate" / "intrinsics.json", capture / KNOWN_INTRINSICS)
     return capture
 
 
@@ -331,7 +372,7 @@ def run_case(case: Case, captures: Path, work: Path) -> dict:
         command += ["-s", f"capture.rig={case.rig}"]
     for override in case.overrides:
         command += ["-s", override]
-    if case.known_intrinsics:
+    if case.given_intrinsics:
         command += ["-s", f"calibrate.known_intrinsics={KNOWN_INTRINSICS}"]
     started = time.perf_counter()
     log = work / f"{case.name}.log"
@@ -346,7 +387,7 @@ def run_case(case: Case, captures: Path, work: Path) -> dict:
         row["error"] = lines[-1].split(". Unregistered")[0].removeprefix("E ")[:160] if lines else "failed"
         return row
     output = capture / "output"
-    poses = read_cameras(output / "stages" / "sfm" / "cameras.json")[1]
+    intrinsics, poses = read_cameras(output / "stages" / "sfm" / "cameras.json")
     key = json.loads((output / "manifest.json").read_text())["stages/sfm/cameras.json"]["key"]
     report = json.loads((capture / ".pipeline" / "cache" / "sfm" / key / "sfm.json").read_text())
     circular = report.get("circular", {})
@@ -354,7 +395,7 @@ def run_case(case: Case, captures: Path, work: Path) -> dict:
         "rig": report.get("poses_from", ""),
         "placed": len(poses),
         "by": {k: len(v) for k, v in circular.get("pose_source", {}).items() if v} or {"SfM": len(poses)},
-        "calibration": calibration_summary(report),
+        "calibration": f"f {intrinsics.fx:.4g}, given (held)" if case.given_intrinsics else calibration_summary(report),
         "angle_std": list(circular.get("angle_std_deg", {}).values()),
         "coherence": circular.get("silhouette_coherence") or {},
     }
@@ -452,6 +493,32 @@ def suite_summary(rows: list[dict], title: str) -> str:
     )
 
 
+def describe(case: Case) -> str:
+    """The table's "what" cell: the rig, or the synthetic capture's description, and what
+    the case adds."""
+    kind, _, name = case.source.partition(":")
+    description = suite_options(int(name))[1] if kind == "suite" else TWINS[name][1] if kind == "twin" else case.rig
+    given = {"": "", "reference": ", reference intrinsics given", "start": ", start focal held"}
+    return description + (", true masks" if case.true_masks else "") + given[case.given_intrinsics]
+
+
+def twin_summary(rows: dict[str, dict]) -> str:
+    """Each twin's median direction error with self-calibration against the start focal held."""
+
+    def median(row: dict | None) -> str:
+        return f"{row['direction'][0]:.2f}" if row and row.get("direction") else "failed"
+
+    pairs = [
+        f"{name} {median(rows.get(f'twin-{name}'))} against {median(rows.get(f'twin-{name}-start-held'))}"
+        for name in TWINS
+        if f"twin-{name}" in rows or f"twin-{name}-start-held" in rows
+    ]
+    return (
+        "Small specimens on white, median direction error (degrees) with self-calibration against the focal "
+        f"length calibrate starts from held: {'; '.join(pairs)}."
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--captures", type=Path, default=ROOT.parent / "shared" / "captures")
@@ -467,25 +534,28 @@ def main() -> None:
     suite = [Case(f"suite-{seed:02d}", f"suite:{seed}", "turntable") for seed in range(args.suite)]
     if args.true_masks:
         suite += [replace(c, name=f"{c.name}-true-masks", true_masks=True) for c in suite]
-    cases = [c for c in REAL + suite + OTHERS if args.only is None or c.name in args.only]
+    cases = [c for c in REAL + suite + TWIN_CASES + OTHERS if args.only is None or c.name in args.only]
     print(HEADER, flush=True)
-    lines, suite_rows, true_mask_rows = [], [], []
+    lines, suite_rows, true_mask_rows, twin_rows = [], [], [], {}
     for case in cases:
         if case.source.startswith("shared:") and not (args.captures / case.source.split(":")[1]).is_dir():
             continue
-        description = suite_options(int(case.source.split(":")[1]))[1] if case.source.startswith("suite:") else case.rig
-        description += ", true masks" if case.true_masks else ""
-        description += ", known intrinsics" if case.known_intrinsics else ""
+        kind = case.source.partition(":")[0]
         row = run_case(case, args.captures, args.work)
-        lines.append(table_row(row, description))
+        lines.append(table_row(row, describe(case)))
         print(lines[-1], flush=True)
-        if case.source.startswith("suite:"):
+        if kind == "suite":
             (true_mask_rows if case.true_masks else suite_rows).append(row)
+        if kind == "twin":
+            twin_rows[case.name] = row
     summary = []
     for rows, title in ((suite_rows, "Randomised suite"), (true_mask_rows, "The same with the true masks")):
         if rows:
             summary.append(suite_summary(rows, title))
             print(summary[-1])
+    if twin_rows:
+        summary.append(twin_summary(twin_rows))
+        print(summary[-1])
     if args.write:
         options = " ".join(o for o in sys.argv[1:] if o != "--write")
         write_real_poses(lines, summary, f".venv/bin/python -m bench.real_poses {options} --write")

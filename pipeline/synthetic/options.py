@@ -32,8 +32,9 @@ class SynthOptions:
     """principled: Disney BSDF with specular transmission; volumetric: rough dielectric
     boundary around a homogeneous scattering medium; glossy_paint: an opaque painted
     figurine (principled, no transmission, low roughness: highlights that move over it)."""
-    texture: Literal["blotches", "plain"] = "blotches"
-    """blotches: mottled base colour that gives feature points; plain: a low-texture specimen.
+    texture: Literal["blotches", "speckles", "plain"] = "blotches"
+    """blotches: mottled base colour that gives feature points; speckles: the same pattern
+    at a third of the size, for a specimen small in the frame; plain: a low-texture specimen.
     Principled and glossy_paint only: the volumetric specimen is a homogeneous medium, untextured."""
     table: Literal["board", "dots", "grey"] = "board"
     """What the specimen stands on: board, the capture's ChArUco board printed on a grey plate;

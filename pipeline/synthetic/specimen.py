@@ -108,8 +108,13 @@ def bird_mesh(size: float = 0.09, resolution: int = 112, faces: int = 20000) -> 
     return mesh
 
 
-def blotch_colours(points: np.ndarray, base: np.ndarray, seed: int, scale: float = 0.003) -> np.ndarray:
-    """Linear-RGB albedo with blotches a few millimetres across: features for SIFT.
+BLOTCH_SCALE = 0.003
+"""Length scale of ``blotch_colours``' pattern, metres."""
+
+
+def blotch_colours(points: np.ndarray, base: np.ndarray, seed: int, scale: float = BLOTCH_SCALE) -> np.ndarray:
+    """Linear-RGB albedo with blotches one to two centimetres across at the default
+    ``scale`` (smaller in proportion to it): features for SIFT.
 
     A sum of random-phase sinusoids in 3D (band-limited noise), so the pattern is
     continuous on the surface whatever its parameterisation, thresholded into

@@ -47,7 +47,7 @@ from pipeline.render import mitsuba_variant
 from pipeline.render.capture_scene import environment_to_world
 from pipeline.synthetic import set_pieces
 from pipeline.synthetic.options import SynthOptions
-from pipeline.synthetic.specimen import bird_mesh, blotch_colours
+from pipeline.synthetic.specimen import BLOTCH_SCALE, bird_mesh, blotch_colours
 
 SENSOR_WIDTH_MM = 6.4
 """Sensor width written to EXIF, so that focal length in mm is meaningful."""
@@ -417,8 +417,9 @@ def synthesize(out_dir: Path, options: SynthOptions, board: BoardSection = Board
     rng = np.random.default_rng(options.seed)
     mesh = bird_mesh()
     material = dict(TRUTHS[options.material])
-    textured = options.texture == "blotches" and options.material != "volumetric"
-    albedo = blotch_colours(mesh.vertices, np.array(material["base_color"]), options.seed) if textured else None
+    textured = options.texture != "plain" and options.material != "volumetric"
+    scale = BLOTCH_SCALE / 3 if options.texture == "speckles" else BLOTCH_SCALE
+    albedo = blotch_colours(mesh.vertices, np.array(material["base_color"]), options.seed, scale) if textured else None
     if albedo is not None:
         material["base_color_mean"] = albedo.mean(axis=0).tolist()
     poses = specimen_poses(options, rng)
