@@ -5,13 +5,13 @@
    turntable only from what changes between photos (the still room masked out) and
    matched with ring neighbours and with the photos whose outlines look alike (a
    second turn), else exhaustively (sequentially past 150 photos).
-2. **Poses.** Handheld: COLMAP's incremental mapping; a calibrated camera
-   (board, ``calibrate.known_intrinsics``) stays fixed, a guessed one (EXIF,
-   prior) has its focal length refined, and principal point and radial
-   distortion when the photos constrain them (pipeline.camera.self_calibration; values, deviations and decisions in
-   sfm.json). Turntable and ring (``capture.rig``): the rig is the model
-   (pipeline.geometry.circular_motion): one axis, one camera offset, one angle per
-   photo, bundle-adjusted with the focal length and distortion and with the
+2. **Poses.** Handheld: COLMAP's incremental mapping; a calibrated camera (board,
+   ``calibrate.known_intrinsics``) stays fixed, a guessed one (EXIF, prior) has its
+   focal length refined, and principal point and radial distortion when the photos
+   constrain them (pipeline.camera.self_calibration; values, deviations and
+   decisions in sfm.json). Turntable and ring (``capture.rig``): the rig is the
+   model (pipeline.geometry.circular_motion): one axis, one camera offset, one angle
+   per photo, bundle-adjusted with the focal length and distortion and with the
    silhouette coherence of the photos' outlines (``silhouette_coherence``), each
    photo's angle uncertainty reported; an arc of the ring that matching left apart
    is placed by its silhouettes at once, a photo the features cannot place by its
@@ -19,8 +19,8 @@
    with a warning naming it (pipeline.geometry.turntable_placement). Fewer than
    ``min_registered_fraction`` posed photos is an error naming the others and the
    likely cause for each. A rerun gives the same model: photos are numbered in
-   sorted order, RANSAC and the mapper are seeded, and bundle adjustment runs on
-   one thread (with COLMAP's threaded defaults, reruns gave different poses).
+   sorted order, RANSAC and the mapper are seeded, and bundle adjustment runs on one
+   thread (with COLMAP's threaded defaults, reruns gave different poses).
 3. **World frame** (``frame``): from the ChArUco board when it is seen in at least
    three registered photos whose SfM centres agree with it (PnP per photo,
    similarity to the SfM centres; metres, z up, origin at the board's centre as

@@ -787,7 +787,9 @@ def _self_calibration(solver: _Solver, tracks, base_free: np.ndarray, observatio
         "principal_point": "held: a single circular motion does not determine it",
     }
     if not solver.settings.self_calibrate:
-        report["skipped"] = "the camera was calibrated (the board or calibrate.known_intrinsics), or sfm.self_calibrate is off"
+        report["skipped"] = (
+            "the camera was calibrated (the board or calibrate.known_intrinsics), or sfm.self_calibrate is off"
+        )
         return base_free, report
     if report["frame_coverage"] < solver.settings.min_frame_coverage:
         report["skipped"] = (
