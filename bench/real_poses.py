@@ -76,7 +76,7 @@ from pipeline.formats.cameras import read_cameras
 from pipeline.synthetic.score import score_cameras, score_masks
 
 KNOWN_INTRINSICS = "known_intrinsics.json"
-"""Where a ``known_intrinsics`` case's calibration is written, in the capture folder."""
+"""Where a case's given intrinsics (``Case.given_intrinsics``) are written, in the capture folder."""
 TURN = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 """The reference camera's axes turned about its optical axis: x' = y, y' = -x."""
 
@@ -85,8 +85,8 @@ TURN = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 class Case:
     name: str
     source: str
-    """'shared:NAME' (a folder of ``--captures``), 'suite:SEED' (a drawn synthetic turntable)
-    or 'sample:NAME'."""
+    """'shared:NAME' (a folder of ``--captures``), 'suite:SEED' (a drawn synthetic turntable),
+    'twin:NAME' (one of ``TWINS``) or 'sample:NAME'."""
     rig: str = "handheld"
     overrides: tuple[str, ...] = field(default_factory=tuple)
     true_masks: bool = False
@@ -115,8 +115,10 @@ REAL = [
 ]
 OTHERS = [Case("bird", "sample:bird")]
 
-_SMALL_ON_WHITE = ["--rig", "handheld", "--views", "37", "--width", "1000", "--height", "750", "--rings", "15", "30", "--table", "grey",
-                   "--backdrop", "white", "--texture", "speckles", "--calibration-shots", "0", "--spp", "8", "--seed", "7"]  # fmt: skip
+_SMALL_ON_WHITE = (
+    "--rig handheld --views 37 --width 1000 --height 750 --rings 15 30 --table grey --backdrop white "
+    "--texture speckles --calibration-shots 0 --spp 8 --seed 7"
+).split()
 TWINS = {
     "small-wide": (
         [*_SMALL_ON_WHITE, "--hfov", "42", "--distance", "0.45", "--no-exif-focal"],
