@@ -10,9 +10,10 @@ import pycolmap
 import pytest
 import trimesh
 
-from pipeline.camera.model import Pose, similarity_umeyama
+from pipeline.camera.model import Intrinsics, Pose, similarity_umeyama
 from pipeline.core.errors import PipelineError
 from pipeline.formats.cameras import read_cameras, read_views
+from pipeline.formats.pinhole import read_camera_settings
 from pipeline.synthetic.score import score_cameras
 from tests.support.real_captures import SHARED_CAPTURES
 
@@ -66,13 +67,11 @@ def test_too_few_registered_photos_names_them(run_stages, tmp_path):
         run_stages(capture, "sfm", "masks.source=segment", "undistort.max_size=280")
 
 
-def test_turntable_of_a_plain_specimen_poses_every_photo_within_a_degree(run_stages, synth_capture, tmp_path_factory):
+@pytest.fixture(scope="module")
+def plain_turntable(synth_capture) -> Path:
     """Twelve photos at 384x288 of a plain bird on a hand-turned table (steps 30 degrees
-    +-50 %, too far apart for some neighbours to match, and the board's squares match
-    themselves from the other side): the board's poses start the circle, features
-    place most photos, the rest by board pose or silhouette; none is left out or stacked."""
-
-    capture = synth_capture(
+    +-50 %), with board shots."""
+    return synth_capture(
         "turntable",
         views=12,
         rings=(30.0,),
@@ -85,6 +84,13 @@ def test_turntable_of_a_plain_specimen_poses_every_photo_within_a_degree(run_sta
         calibration_shots=12,
         seed=3,
     )
+
+
+def test_turntable_of_a_plain_specimen_poses_every_photo_within_a_degree(run_stages, plain_turntable):
+    """Some steps are too far apart for neighbours to match, and the board's squares match
+    themselves from the other side: the board's poses start the circle, features
+    place most photos, the rest by board pose or silhouette; none is left out or stacked."""
+    capture = plain_turntable
     outputs = run_stages(capture, "sfm")
     _, truth = read_cameras(capture / "ground_truth" / "cameras.json")
     views = read_views(outputs["sfm"]["cameras"])
@@ -98,6 +104,25 @@ def test_turntable_of_a_plain_specimen_poses_every_photo_within_a_degree(run_sta
     # The outlines were fitted with the features, and the report says how well each agreed.
     coherence = report["silhouette_coherence"]
     assert coherence["pairs"] > 0 and 0 < coherence["tangency_sigma_px"] < 2.0
+
+
+def test_a_turntables_given_intrinsics_are_held_by_sfm(run_stages, plain_turntable):
+    """calibrate.known_intrinsics with the focal length 5 % off on purpose: the board shots
+    go unused and sfm keeps that focal length (undistort's pinhole of it), where a guessed
+    one would have been refined."""
+    truth, _ = read_cameras(plain_turntable / "ground_truth" / "cameras.json")
+    given = Intrinsics(truth.width, truth.height, 1.05 * truth.fx, 1.05 * truth.fy, truth.cx, truth.cy, truth.dist)
+    (plain_turntable / "given.json").write_text(json.dumps(given.to_json()))
+    outputs = run_stages(plain_turntable, "sfm", "calibrate.known_intrinsics='given.json'")
+    (group,) = json.loads(outputs["calibrate"]["calibration"].read_text())["groups"]
+    assert group["source"] == "known"
+    (camera,) = read_camera_settings(outputs["undistort"]["pinhole"])
+    pinhole = Intrinsics.from_json(camera["intrinsics"])  # the given camera, undistorted
+    held, poses = read_cameras(outputs["sfm"]["cameras"])
+    assert len(poses) >= 10
+    assert held.fx == pytest.approx(pinhole.fx, rel=1e-9) and held.cx == pytest.approx(pinhole.cx, abs=1e-9)
+    report = json.loads(outputs["sfm"]["report"].read_text())["circular"]["self_calibration"]
+    assert "calibrate.known_intrinsics" in report["skipped"]
 
 
 @pytest.mark.real_data
