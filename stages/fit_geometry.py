@@ -296,7 +296,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_geometry",
-    version=27,
+    version=28,
     config=Config,
     main=main,
     needs=(

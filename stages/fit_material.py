@@ -199,6 +199,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
                 "depth": choice.depth,
             },
             "best_iteration": result.best_iteration,
+            "averaged": result.averaged,
             "iterations": len(result.log),
             "validation_mse": result.validation_error,
             "stopped": result.stopped,
@@ -220,7 +221,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_material",
-    version=25,
+    version=26,
     config=Config,
     main=main,
     needs=("scene.scene_dir", "scene.description", "sfm.cameras", "undistort.pinhole", "masks.masks_json"),

@@ -328,7 +328,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="fit_texture",
-    version=24,
+    version=25,
     config=Config,
     main=main,
     needs=(

@@ -47,6 +47,8 @@ class FitResult:
     """Best-validation arrays of texture parameters, (..., channels)."""
     skipped_gradients: int = 0
     """Non-finite gradient entries zeroed before a step."""
+    averaged: bool = False
+    """The values are the average of the last steps (pipeline.fit.loop.TailAverage)."""
 
 
 @dataclass
@@ -59,6 +61,8 @@ class ShapeResult:
     log: list[dict] = field(default_factory=list)
     skipped_gradients: int = 0
     """Non-finite gradient entries zeroed before a step."""
+    averaged: bool = False
+    """The positions are the average of the last steps (pipeline.fit.loop.TailAverage)."""
 
 
 def _with_pixels(views: list[FitView]) -> list[FitView]:
@@ -109,6 +113,7 @@ def fit(
         result.start_error,
         textures,
         result.skipped_gradients,
+        result.averaged,
     )
 
 
@@ -133,6 +138,7 @@ def fit_shape(
         result.start_error,
         result.log,
         result.skipped_gradients,
+        result.averaged,
     )
 
 

@@ -14,14 +14,23 @@ Per step:
 4. every ``validate_every`` steps the held-out views are rendered with fixed seeds
    and their error (the dual estimator: plain MSE would reward parameters that
    merely render with less noise) recorded; the state with the lowest one is kept
-   and the variables end in it.
+   and the variables end in it;
+5. (``average``) the values join a running average that weighs the latest steps most
+   (TailAverage: about the last half of the fit).
 
 It stops at ``iterations``, when the time budget is spent, or when nothing moves
 beyond its noise any more (pipeline.fit.stopping: no fitted value and not the
 training loss trends over the second half of the fit so far) and the held-out error
 has stopped falling (its latest render is not the best so far); each view's loss
 counts relative to its first, so that a batch of bright views does not look like a
-setback.
+setback. At its stop, where the best held-out score came in the last half of the
+steps (the fit settled about its best, not away from it), the average is rendered on
+the held-out views and replaces the best state where its error is within the held-out
+scores' own jitter of the best (jitter_of); without held-out views it replaces the
+last state where the fit stopped still. Adam's fixed steps keep a value jittering about
+its optimum, and with momentum the jitter is a slow wander of several steps; the
+best of a few noisy held-out scores picks one point of that wander, the average
+its centre.
 
 What the loop costs, and why it is written this way (docs/benchmarks.md, "Fitting
 speed"): render seeds are passed as opaque Dr.Jit variables, so the kernels
@@ -93,6 +102,8 @@ class LoopResult:
     log: list[dict] = field(default_factory=list)
     skipped_gradients: int = 0
     """Non-finite gradient entries zeroed before a step."""
+    averaged: bool = False
+    """``best`` is the running average of the last steps (TailAverage), not one step's values."""
 
 
 def seed(value: int):
@@ -415,7 +426,10 @@ class _Loop:
             "relative_loss": state.relative_losses[-1],
             "seconds": time.perf_counter() - started,
         }
-        summary = variables.summary()
+        values = variables.snapshot() if self.settings.average else None
+        if values is not None:
+            state.average.add(values)
+        summary = variables.summary(values)
         if summary is not None:
             entry["params"] = summary
         return entry
@@ -450,6 +464,29 @@ def validation_error(
 
 
 @dataclass
+class TailAverage:
+    """A running average of the fitted values that weighs step i of t by about
+    (i / t)^POWER (polynomial-decay averaging, Shamir and Zhang 2013): most of its
+    weight on the last half of the steps, however long the fit, in one copy of the
+    values. Values are averaged as the variables give them (pipeline.fit.variables:
+    snapshot), inside their bounds, so the average is too."""
+
+    values: dict[str, np.ndarray] = field(default_factory=dict)
+    count: int = 0
+
+    POWER = 3
+    """94 % of the weight on the last half of the steps; a uniform average of the whole
+    fit would keep the start's values, one of its last steps the jitter."""
+
+    def add(self, values: dict[str, np.ndarray]) -> None:
+        self.count += 1
+        rate = (self.POWER + 1) / (self.count + self.POWER)
+        for name, value in values.items():
+            kept = self.values.setdefault(name, np.array(value, np.float64))
+            kept += rate * (value - kept)
+
+
+@dataclass
 class BestState:
     """The state the loop returns to: the variables' values at the lowest held-out error."""
 
@@ -457,6 +494,8 @@ class BestState:
     iteration: int
     error: float | None
     """Its held-out error (None without held-out views: then the last state)."""
+    averaged: bool = False
+    """The values are the running average's (TailAverage), not one step's."""
 
 
 @dataclass
@@ -475,6 +514,8 @@ class LoopState:
     stopped: str | None = None
     gain_estimates: dict[str, list] = field(default_factory=dict)
     """The gains matched to each view so far (pipeline.fit.variables)."""
+    average: TailAverage = field(default_factory=TailAverage)
+    """The running average of the values (``average``); checkpointed as arrays."""
 
     RECORD_KEYS = {"relative_losses": "losses"}
     """Names in the checkpoint's record that differ from the field's."""
@@ -482,14 +523,32 @@ class LoopState:
     def record(self, best: BestState) -> dict:
         """The checkpoint's JSON record."""
         record = {self.RECORD_KEYS.get(f.name, f.name): getattr(self, f.name) for f in fields(self)}
-        return record | {"best_iteration": best.iteration, "best_error": best.error}
+        del record["average"]
+        return record | {
+            "best_iteration": best.iteration,
+            "best_error": best.error,
+            "best_averaged": best.averaged,
+            "averaged": self.average.count,
+        }
+
+    def arrays(self, best: BestState) -> dict[str, np.ndarray]:
+        """The checkpoint's arrays: the best values and the running average."""
+        return {f"best/{n}": v for n, v in best.values.items()} | {
+            f"average/{n}": v for n, v in self.average.values.items()
+        }
 
     @staticmethod
     def resumed(record: dict, arrays: dict[str, np.ndarray]) -> tuple[LoopState, BestState]:
         names = {LoopState.RECORD_KEYS.get(f.name, f.name): f.name for f in fields(LoopState)}
-        state = LoopState(**{names[key]: value for key, value in record.items() if key in names})
-        values = {name[len("best/") :]: array for name, array in arrays.items() if name.startswith("best/")}
-        return state, BestState(values, record["best_iteration"], record["best_error"])
+        state = LoopState(**{names[key]: value for key, value in record.items() if key in names and key != "average"})
+        state.average = TailAverage(_prefixed(arrays, "average/"), record.get("averaged", 0))
+        best = BestState(_prefixed(arrays, "best/"), record["best_iteration"], record["best_error"])
+        best.averaged = record.get("best_averaged", False)
+        return state, best
+
+
+def _prefixed(arrays: dict[str, np.ndarray], prefix: str) -> dict[str, np.ndarray]:
+    return {name[len(prefix) :]: array for name, array in arrays.items() if name.startswith(prefix)}
 
 
 def run(
@@ -516,7 +575,7 @@ def run(
     def save(why: str | None) -> None:
         state.seconds, state.stopped = time.perf_counter() - started, why
         state.gain_estimates = variables.gain_estimates
-        checkpoint.save(variables.optimizer, {f"best/{n}": v for n, v in best.values.items()}, state.record(best))
+        checkpoint.save(variables.optimizer, state.arrays(best), state.record(best))
 
     last = settings.iterations if state.stopped is None else state.iteration
     with progress.steps(last - state.iteration, label) as advance:
@@ -540,6 +599,7 @@ def run(
             if checkpoint is not None and checkpoint.due():
                 save(None)
     state.stopped = state.stopped or "iterations"
+    best = _averaged(loop, state, best)
     if checkpoint is not None:
         state.iteration = len(state.log)
         save(state.stopped)
@@ -555,7 +615,14 @@ def run(
         _number(best.error),
     )
     return LoopResult(
-        best.values, best.iteration, best.error, state.start_error, state.stopped, state.log, loop.skipped
+        best.values,
+        best.iteration,
+        best.error,
+        state.start_error,
+        state.stopped,
+        state.log,
+        loop.skipped,
+        best.averaged,
     )
 
 
@@ -573,6 +640,50 @@ def _start(loop: _Loop, checkpoint) -> tuple[LoopState, BestState]:
     for iteration in range(1, state.iteration + 1):
         loop.batches.draw(iteration)
     return state, best
+
+
+def _averaged(loop: _Loop, state: LoopState, best: BestState) -> BestState:
+    """The running average as the best state where the best step is among those it
+    weighs most (the last half) and it scores on the held-out views within their jitter
+    of that step (jitter_of), or, without held-out views, where the fit stopped still
+    (nothing trended over about the steps the average weighs); else ``best``."""
+    settings, average = loop.settings, state.average
+    if not average.count or best.averaged:
+        return best
+    if not loop.validation:
+        if still(state.log, settings.window, settings.still_threshold) is None:
+            return best
+        return BestState(average.values, state.iteration, None, averaged=True)
+    tail = state.log[len(state.log) // 2 :]
+    if not tail or best.iteration < tail[0]["iteration"]:
+        return best  # the fit moved away from its best: its average is of worse states
+    loop.variables.restore(average.values)
+    error = loop.validate()
+    jitter = jitter_of([e["validation_error"] for e in tail if "validation_error" in e])
+    logger.info(
+        "%s: held-out error of the last steps' average %.4g, of the best step %.4g (jitter %.2g)",
+        loop.label,
+        error,
+        best.error,
+        jitter,
+    )
+    if error <= best.error + jitter:
+        return BestState(average.values, state.iteration, error, averaged=True)
+    return best
+
+
+def jitter_of(errors: list[float]) -> float:
+    """How much held-out errors scored in turn (the last half of a fit's) move from one
+    score to the next beyond a steady trend: the standard deviation from their second
+    differences (x[i+1] - 2 x[i] + x[i-1] has variance 6 sigma^2 for independent
+    scores, and a straight fall adds nothing); 0 for fewer than three. The held-out
+    renders have fixed seeds, so this is the values' jitter as the held-out views see
+    it. The best of several such scores leads the average by up to this much by the
+    draw alone: where the average is within it, the best step's lead is no evidence
+    (the one-standard-error rule of model selection)."""
+    if len(errors) < 3:
+        return 0.0
+    return float(np.sqrt(np.mean(np.square(np.diff(errors, 2))) / 6))
 
 
 def _stop_reason(settings: LoopSettings, log: list[dict], entry: dict, best: BestState) -> str | None:

@@ -209,6 +209,7 @@ def pass_summary(result: engine.ShapeResult | engine.FitResult) -> dict:
     return {
         "iterations": len(result.log),
         "best_iteration": result.best_iteration,
+        "averaged": result.averaged,
         "validation_start": result.start_validation_error,
         "validation": result.validation_error,
         "skipped_gradients": result.skipped_gradients,

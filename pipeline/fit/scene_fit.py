@@ -380,6 +380,7 @@ def fit_scene(request: SceneFit, watcher: FitWatcher | None = None) -> Path:
         "final_loss": log[-1]["loss"] if log else None,
         "heldout": list(request.heldout),
         "best_iteration": result.best_iteration if request.heldout else None,
+        "averaged": result.averaged,
         "heldout_error": result.validation_error,
         "stopped": result.stopped,
         "seconds": seconds,

@@ -38,6 +38,11 @@ class LoopSettings:
     early): a drift a few times the noise shows over about this many steps."""
     time_budget_s: Annotated[float, Range(0.0, None)] = 0.0
     """Stop after this many seconds of fitting; 0 for no limit."""
+    average: bool = True
+    """Keep a running average of the values over about the last half of the steps and
+    end in it where the best single step came in that half and it scores on the held-out
+    views within their own jitter of that step (without them: where the fit stopped
+    still; pipeline.fit.loop)."""
     seed: int = 0
     """Seed of the batch order and the renders."""
     freeze: bool = True
@@ -90,6 +95,10 @@ class ShapeSettings(LoopSettings):
     freeze: bool = False
     """Replay recorded renders (``dr.freeze``): not measured on shape fits, whose
     vertices change the scene's geometry every step."""
+    average: bool = False
+    """Average the vertex positions of the last steps (pipeline.fit.loop.TailAverage):
+    not measured on shape fits, and reading every vertex at every step costs a device
+    sync."""
     symbolic_loops: bool = True
     """False renders with evaluated loops: Dr.Jit 1.5's LLVM backend cannot compile
     ``prbvolpath``'s symbolic loop once vertex positions carry gradients ("module could

@@ -119,6 +119,7 @@ def fit_constants_then_levels(
             "resolution": shape and list(shape),
             "iterations": len(result.log),
             "best_iteration": result.best_iteration,
+            "averaged": result.averaged,
             "start_validation_mse": result.start_validation_error,
             "validation_mse": result.validation_error,
             "stopped": result.stopped,

@@ -198,9 +198,10 @@ class MaterialVariables:
             for p in self.parameters
         }
 
-    def summary(self) -> dict[str, list[float]]:
-        """Each parameter's value for the log: a texture's per-channel mean."""
-        return {name: summarize(value) for name, value in self.snapshot().items()}
+    def summary(self, values: dict[str, np.ndarray] | None = None) -> dict[str, list[float]]:
+        """Each parameter's value for the log (``values``, a snapshot just taken, or the
+        current ones): a texture's per-channel mean."""
+        return {name: summarize(value) for name, value in (values or self.snapshot()).items()}
 
     def restore(self, values: dict[str, np.ndarray]) -> None:
         for parameter in self.parameters:
@@ -254,7 +255,7 @@ class ShapeVariables:
     def add_priors(self) -> None:
         pass
 
-    def summary(self) -> None:
+    def summary(self, values: dict[str, np.ndarray] | None = None) -> None:
         """Nothing per step for the log: reading every vertex would cost a device sync."""
         return None
 

@@ -12,6 +12,7 @@ from pipeline.camera.model import Intrinsics, Pose
 from pipeline.cli import main as cli_main
 from pipeline.core.errors import PipelineError
 from pipeline.fit import engine
+from pipeline.fit.loop import TailAverage, jitter_of
 from pipeline.imaging.photo_io import write_image
 from pipeline.render import scene_xml
 
@@ -132,10 +133,68 @@ def test_validation_keeps_the_best_state(mi, references, tmp_path):
     settings = engine.FitSettings(
         iterations=8, batch=2, spp=4, validate_every=2, validation_spp=16, still_threshold=0.0
     )
-    result = engine.fit(PARAMETERS, views[:2], views[2:], settings)
+    result = engine.fit(PARAMETERS, views[:2], views[2:], replace(settings, average=False))
     validated = [e for e in result.log if "validation_error" in e]
     best = min(validated, key=lambda e: e["validation_error"])
     assert result.best_iteration == best["iteration"] and result.values == best["params"]
+    assert not result.averaged
+
+
+def test_the_tail_average_weighs_the_last_half_of_the_steps():
+    average = TailAverage()
+    for step in range(100):
+        average.add({"value": np.array([0.0 if step < 50 else 1.0, 0.25])})
+    # most weight on the last half, a constant kept exactly, the values' range kept
+    assert 0.9 < average.values["value"][0] < 1.0
+    assert average.values["value"][1] == 0.25 and average.count == 100
+
+
+def test_the_held_out_jitter_ignores_a_steady_fall_and_counts_the_scatter():
+    assert jitter_of([0.5, 0.4]) == 0.0  # too few to tell
+    assert jitter_of([0.9, 0.8, 0.7, 0.6, 0.5]) == pytest.approx(0.0, abs=1e-12)
+    rng = np.random.default_rng(0)
+    scatter = 0.01 * rng.standard_normal(2000)
+    assert jitter_of(list(np.linspace(1.0, 0.5, 2000) + scatter)) == pytest.approx(0.01, rel=0.05)
+
+
+def _average_of(log):
+    average = TailAverage()
+    for entry in log:
+        average.add({name: np.asarray(value, np.float64) for name, value in entry["params"].items()})
+    return {name: value.tolist() for name, value in average.values.items()}
+
+
+def test_a_jittering_fit_ends_in_its_average_where_that_scores_lower(mi, references, tmp_path):
+    # A learning rate four times the usual keeps the values jittering about the
+    # truth: the average of the last steps is nearer than any one step.
+    scene = _scene_file(tmp_path, [0.5, 0.5, 0.5], [0.7])
+    views = _views(mi, scene, references / "references")
+    settings = engine.FitSettings(
+        iterations=40, batch=2, spp=4, validate_every=5, validation_spp=16, still_threshold=0.0, learning_rate_scale=8.0
+    )
+    result = engine.fit(PARAMETERS, views[:2], views[2:], settings)
+    validated = [e["validation_error"] for e in result.log if "validation_error" in e]
+    assert result.averaged and result.validation_error < min(validated)
+    for name, value in _average_of(result.log).items():
+        np.testing.assert_allclose(result.values[name], value, rtol=1e-5)
+    views = _views(mi, scene, references / "references")  # a fit leaves its scene fitted
+    plain = engine.fit(PARAMETERS, views[:2], views[2:], replace(settings, average=False))
+    for name, truth in TRUTH.items():
+        assert (
+            np.abs(np.subtract(result.values[name], truth)).max() < np.abs(np.subtract(plain.values[name], truth)).max()
+        )
+
+
+def test_without_held_out_views_the_average_is_taken_only_where_the_fit_stopped_still(mi, references, tmp_path):
+    views = _views(mi, _scene_file(tmp_path, [0.5, 0.5, 0.5], [0.7]), references / "references")
+    settings = engine.FitSettings(iterations=400, batch=2, spp=4, window=12, learning_rate_scale=4.0)
+    still = engine.fit(PARAMETERS, views, [], settings)
+    assert still.stopped.startswith("nothing moved") and still.averaged
+    for name, value in _average_of(still.log).items():
+        np.testing.assert_allclose(still.values[name], value, rtol=1e-5)
+    capped = engine.fit(PARAMETERS, views, [], replace(settings, iterations=10, still_threshold=0.0))
+    assert capped.stopped == "iterations" and not capped.averaged
+    assert capped.values == capped.log[-1]["params"]
 
 
 def test_set_values_writes_back_and_keeps_files_reachable(mi, tmp_path):
@@ -357,6 +416,34 @@ def test_an_interrupted_fit_resumes_from_its_checkpoint(mi, references, tmp_path
     with resumable(tmp_path / "checkpoints", every_s=0.0):
         again = engine.fit(PARAMETERS, _views(mi, scene, references / "references"), [], settings, seen.append)
     assert seen == [7, 8, 9, 10] and again.values == resumed.values
+
+
+def test_a_resumed_fit_ends_in_the_average_the_uninterrupted_one_does(mi, references, tmp_path):
+    from pipeline.fit.checkpoint import resumable
+
+    scene = _scene_file(tmp_path, [0.5, 0.5, 0.5], [0.7])
+    settings = engine.FitSettings(
+        iterations=20, batch=2, spp=4, validate_every=5, validation_spp=16, still_threshold=0.0, learning_rate_scale=8.0
+    )
+
+    def fit(on_iteration=None):
+        views = _views(mi, scene, references / "references")
+        return engine.fit(PARAMETERS, views[:2], views[2:], settings, on_iteration)
+
+    whole = fit()
+
+    def interrupt_at_12(entry):
+        if entry["iteration"] == 12:
+            raise Interrupted
+
+    with resumable(tmp_path / "checkpoints", every_s=0.0), pytest.raises(Interrupted):
+        fit(interrupt_at_12)
+    with resumable(tmp_path / "checkpoints", every_s=0.0):
+        resumed = fit()
+    # the average of steps 1-11 came back with Adam's state: the same average at the end
+    assert whole.averaged and resumed.averaged
+    for name in ("base_color", "roughness"):
+        np.testing.assert_allclose(resumed.values[name], whole.values[name], atol=2e-3)
 
 
 def test_a_checkpoint_restores_adam_state_exactly(mi, tmp_path):
