@@ -605,12 +605,12 @@ def run(
         save(state.stopped)
     loop.finish(best)
     logger.info(
-        "%s stopped (%s) after %d steps in %.0f s; best at step %d (held-out error %s -> %s)",
+        "%s stopped (%s) after %d steps in %.0f s; ends in %s (held-out error %s -> %s)",
         label,
         state.stopped,
         len(state.log),
         time.perf_counter() - started,
-        best.iteration,
+        "the average of the last steps" if best.averaged else f"step {best.iteration}",
         _number(state.start_error),
         _number(best.error),
     )
