@@ -41,7 +41,7 @@ Outputs, in geometry/ (exported to CAPTURE/output/stages/fit_geometry/ and, as t
 final scene, to the top of CAPTURE/output/), a scene folder
 (pipeline.formats.scene_folder): the scene with the refined mesh.ply (UVs kept)
 and material; params.json (loss, start, per round each pass's held-out error
-before and after, best iteration, non-finite gradient entries dropped
+before and after, best iteration (or averaged), non-finite gradient entries dropped
 (skipped_gradients), whether the pass was kept;
 ``params`` and ``bounds`` as in fit_texture's; vertices, seconds); log.jsonl
 (every iteration with its round and pass); loss.png; heldout/ rendered with

@@ -43,7 +43,8 @@ scene.xml, ...      the scene folder with the fitted values written into
 params.json         model (and model_choice: every candidate's held-out error and
                     seconds, why the winner won, and the depth check), the
                     integrator fitted with, fitted values, bounds, units, best
-                    iteration, validation error, why it stopped, photo_gains (each training
+                    iteration (averaged: the average of the last steps instead),
+                    validation error, why it stopped, photo_gains (each training
                     photo's RGB gain, when exposure or white_balance is fitted: the
                     render times it is the photo; fit_texture, fit_geometry divide by it;
                     gain_channels: the held-out photos' matched gains;

@@ -47,7 +47,7 @@ base_color.exr/.png  the bitmap, linear EXR (what the scene loads) and sRGB PNG
 albedo.vol/.png      the grid volume (Mitsuba's format) and its z slices as PNG
 params.json          kept or not and why, validation error with and without the
                      texture, per level (and for the constants alone):
-                     resolution, iterations, best iteration, held-out error at
+                     resolution, iterations, best iteration (or averaged), held-out error at
                      the start and the best, non-finite gradient entries
                      dropped (skipped_gradients); ``baked``: the bake's window, samples,
                      share of texels seen and light_scale (``light``: the raised light); ``params`` and
