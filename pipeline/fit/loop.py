@@ -306,6 +306,8 @@ class _Loop:
         # Frozen functions per loop: their recordings belong to this loop's scenes.
         self.frozen: dict[int, Callable] = {}
         self.skipped = 0
+        self.values: dict[str, np.ndarray] | None = None
+        """The last step's values, where the average took them (``average``)."""
         replays = settings.iterations * self.batches.size / max(len(self.training), 1)
         if settings.freeze and replays < settings.freeze_min_replays:
             logger.info(
@@ -429,6 +431,7 @@ class _Loop:
         values = variables.snapshot() if self.settings.average else None
         if values is not None:
             state.average.add(values)
+        self.values = values
         summary = variables.summary(values)
         if summary is not None:
             entry["params"] = summary
@@ -586,7 +589,8 @@ def run(
                 if entry["validation_error"] < best.error:
                     best = BestState(variables.snapshot(), iteration, entry["validation_error"])
             elif not loop.validation:
-                best = BestState(variables.snapshot(), iteration, None)
+                # the step's snapshot where the average took one: read the device once
+                best = BestState(loop.values if loop.values is not None else variables.snapshot(), iteration, None)
             state.log.append(entry)
             state.iteration = iteration
             advance(_status(entry, state.log, best))
