@@ -434,11 +434,7 @@ def table_row(row: dict, description: str) -> str:
     centre = f"{100 * row['centre']:.2f} %" if "centre" in row else "-"
     within, turn_within = str(row.get("within_1deg", "-")), str(row.get("turn_within_1deg", "-"))
     coherence = row.get("coherence") or {}
-    noises = (
-        f"{', '.join(f'{end:.2f}' for end in coherence['tangency_sigma_px'])} / {coherence['feature_sigma_px']:.2f} px"
-        if coherence
-        else "-"
-    )
+    noises = f"{coherence['tangency_sigma_px']:.2f} / {coherence['feature_sigma_px']:.2f} px" if coherence else "-"
     return (
         f"| {row['case']} | {description} | {row['photos']} | {row['placed']} ({by}) | {within} | {turn_within} | "
         f"{row.get('stacked', '-')} | {pair(row.get('direction'))} | {pair(row.get('angle'))} | {centre} | "

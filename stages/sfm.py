@@ -90,12 +90,8 @@ class Config(features.FeatureSettings, RigSettings, SelfCalibrationSettings):
 
     min_pose_inliers: Annotated[int, Range(6, None)] = 15
     """2D-3D inliers a photo needs to be registered (COLMAP's default, 30, leaves out
-    photos of low-texture specimens that share only a few dozen points)."""
-    min_angle_inliers: Annotated[int, Range(3, None)] = 6
-    """Turntable or ring: inlier observations that place a photo by its features. A
-    photo there has one unknown, its angle, where a free pose has six: a small or plain
-    specimen's photos at the seams of a turn share a handful of points, and whether they
-    fit is the misfit test's and the reported uncertainty's to say."""
+    photos of low-texture specimens that share only a few dozen points); on a turntable
+    or ring, the inlier observations that place a photo by its features."""
     min_registered_fraction: Annotated[float, Range(0.0, 1.0)] = 0.5
     """Below this fraction of registered photos the stage fails; above, it warns."""
     frame: Literal["auto", "board", "turntable", "ground_plane", "normalised"] = "auto"
@@ -231,12 +227,9 @@ def _pose(
     database = features.features_and_matches(plan, photos.records, photos.cameras, work)
     if rig in ("turntable", "ring"):
         keypoints, matches = features.verified_matches(database, photos.order, photos.stem_of)
-        # A still camera's matches that do not move are its room's and its highlights'.
-        still_px = features.STATIONARY_PX if plan.still_camera else 0.0
-        unverified = features.unverified_matches(database, photos.order, photos.stem_of, still_px)
-        settings = PlacementSettings.of(conf, conf, rig == "turntable", conf.min_angle_inliers, refine_focal)
+        settings = PlacementSettings.of(conf, conf, rig == "turntable", conf.min_pose_inliers, refine_focal)
         table, poses, solution, circular = circular_poses(
-            settings, photos.order, photos.intrinsics, photos.masks, keypoints, matches, board_found, unverified
+            settings, photos.order, photos.intrinsics, photos.masks, keypoints, matches, board_found
         )
         K = solution.intrinsics
         return _Posed(
@@ -390,7 +383,7 @@ def _too_few(conf: Config, posed: set[str], order: list[str], causes: dict[str, 
 
 STAGE = Stage(
     name="sfm",
-    version=14,
+    version=13,
     config=Config,
     main=main,
     needs=("undistort.pinhole", "masks.masks_json"),

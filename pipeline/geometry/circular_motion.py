@@ -20,16 +20,11 @@ The solver:
    synthetic turntable their relative rotations were 3 degrees off, their average
    axis 16 degrees).
 2. **Each pair's turn** under that axis (a 1-degree grid, then 0.05 degrees); pairs
-   whose matches one turn does not explain better than chance (a binomial test,
-   ``pair_significance``) are left out. Pairs two-view verification found no
-   geometry for (a dozen matches fail five degrees of freedom) are tested the same
-   way, and join where one turn explains them.
+   whose matches one turn does not explain (a repeated pattern joined them) are
+   left out.
 3. **Angles**: synchronised over the graph of pairs (the leading eigenvector of the
    pairs' unit phasors, then robust least squares), so any matched pair counts and
    the photos need not be in order (a restarted or second turn is no exception).
-   Pairs whose turn disagrees with the others' by more than 3 degrees (a repeated
-   pattern joined them) are left out, judged against the synchronised angles of
-   the pairs that agree (a single spanning tree's angles carry its pairs' errors).
    The largest connected set of photos is the ring; each other connected set (a
    ring broken by a gap in matching) is a group whose angles are known up to one
    offset, which the sfm stage finds from the group's silhouettes
@@ -44,8 +39,7 @@ The solver:
    timed turntable). Where the photos' outlines are given, their silhouette
    coherence (pipeline.geometry.silhouette_coherence: the epipolar tangency errors
    of pairs of the ring's photos) is fitted with the features, each in its own
-   measured noise (the outlines' two ends along the axis apart: where the specimen
-   meets the table, masks take in shadow), re-measured until it settles: features on a plain or glossy
+   measured noise, re-measured until it settles: features on a plain or glossy
    specimen are shading that stays with the light, and the outlines decide what
    they leave loose.
 5. **Which photos it placed**: no threshold in degrees or pixels, since what a photo's
@@ -65,7 +59,6 @@ only a rotation of the image).
 
 from __future__ import annotations
 
-import copy
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -85,10 +78,6 @@ GLOBAL_NAMES = ("axis_a", "axis_b", "psi", "f", "cx", "cy", "k1")
 from its initial estimate), the angle of ``p`` about the axis, focal length,
 principal point, radial distortion."""
 FOCAL, CX, CY, K1 = 3, 4, 5, 6
-PAIR_MIN_MATCHES = 6
-"""Pairs with fewer matches are not tested: where a third of a pair's matches fit any turn
-by chance (a small specimen), all five of five fitting one turn is not significant at the
-default ``pair_significance`` ((1/3) ** 5 = 4e-3)."""
 KNOWN_TURN_STD_DEG = 0.1
 """How closely the bundle adjustment holds the turns between photos with known poses (a
 board's, from its many corners) to what those poses say."""
@@ -98,17 +87,8 @@ board's, from its many corners) to what those poses say."""
 class CircularSettings:
     """How the circular-motion solver places photos (the sfm stage's settings)."""
 
-    min_observations: int = 6
+    min_observations: int = 15
     """Inlier observations a photo needs to be placed by its features."""
-    pair_significance: float = 1e-3
-    """A matched pair counts when one turn explains more of its matches than chance would
-    at this level (a one-sided binomial test against the share its matches fit at the
-    turns it does not have) and at least half of them: a pair of photos of a small or
-    plain specimen shares a dozen matches, which one turn about a known axis tests as
-    surely as hundreds test five degrees of freedom. A pair with under half the inliers
-    of the capture's median pair counts only where one of its photos has fewer than two
-    stronger pairs (the seams of a small specimen's turn): elsewhere such pairs are
-    mostly highlights, which pull the angles off."""
     misfit_significance: float = 1e-3
     """A photo whose residuals exceed the pooled median more often than chance allows at
     this level (a one-sided sign test, divided among the photos) fits the circle worse
@@ -278,22 +258,20 @@ def facing_point(axis: np.ndarray) -> np.ndarray:
 
 def pair_turns(
     axis: np.ndarray, pairs: list[PairRays], turns: np.ndarray, threshold: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each pair's turn among ``turns`` under the model with ``axis`` (the camera
     facing it), by the truncated sum of squared Sampson distances (``threshold`` in
-    normalised units). Returns the best turn, its cost and its inlier count per pair,
-    and the median inlier count over all ``turns`` (what its matches fit by chance,
-    when the turns span far more than the pair's own)."""
+    normalised units). Returns the best turn, its cost and its inlier count per pair."""
     x1 = np.vstack([np.column_stack([p.rays_i, np.ones(len(p.rays_i))]) for p in pairs])
     x2 = np.vstack([np.column_stack([p.rays_j, np.ones(len(p.rays_j))]) for p in pairs])
     sizes = [len(p.rays_i) for p in pairs]
     starts = np.cumsum([0] + sizes)[:-1]
     distances = sampson_sq(essentials(axis, facing_point(axis), turns), x1, x2)
     costs = np.add.reduceat(np.minimum(distances, threshold**2), starts, axis=1)
-    counts = np.add.reduceat((distances < threshold**2).astype(int), starts, axis=1)
     best = np.argmin(costs, axis=0)
-    columns = np.arange(len(pairs))
-    return turns[best], costs[best, columns], counts[best, columns], np.median(counts, axis=0)
+    at_best = distances[np.repeat(best, sizes), np.arange(len(x1))]
+    inliers = np.add.reduceat((at_best < threshold**2).astype(int), starts)
+    return turns[best], costs[best, np.arange(len(pairs))], inliers
 
 
 def _axis_from(elevation: np.ndarray, roll: np.ndarray) -> np.ndarray:
@@ -354,30 +332,7 @@ def consistent_pairs(
         score = float(weights[agree].sum())
         if score > best_score:
             best, best_score = agree, score
-    if not best.any():
-        return best
-    # A tree's angles carry the error of every pair on their paths, so a true pair whose
-    # turn is off by most of the tolerance disagrees with them; the agreeing pairs'
-    # angles synchronised average those errors, and every pair is judged again against
-    # them.
-    angles = synchronised_components(n, pairs[best], turns[best], weights[best])
-    residuals = np.angle(np.exp(1j * (angles[pairs[:, 1]] - angles[pairs[:, 0]] - turns)))
-    return np.isfinite(residuals) & (np.abs(residuals) < tolerance)
-
-
-def synchronised_components(n: int, pairs: np.ndarray, turns: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """``synchronise_angles`` of each connected set of photos, each from its first
-    photo's angle 0; nan for photos in no pair."""
-    graph = coo_matrix((np.ones(len(pairs)), tuple(pairs.T)), shape=(n, n))
-    _, labels = connected_components(graph, directed=False)
-    angles = np.full(n, np.nan)
-    for label in np.unique(labels[pairs.ravel()]):
-        members = np.flatnonzero(labels == label)
-        keep = labels[pairs[:, 0]] == label
-        local = -np.ones(n, int)
-        local[members] = np.arange(len(members))
-        angles[members] = synchronise_angles(len(members), local[pairs[keep]], turns[keep], weights[keep], 0)
-    return angles
+    return best
 
 
 def _spanning_tree(n: int, pairs: np.ndarray, edge_order: np.ndarray) -> np.ndarray:
@@ -532,13 +487,12 @@ class _Solver:
         return R, p - R @ p
 
 
-def _pair_rays(solver: _Solver, matches) -> list[PairRays]:
-    """The pairs with ``PAIR_MIN_MATCHES`` matches, as rays."""
+def _pair_rays(solver: _Solver, matches, min_matches: int) -> list[PairRays]:
     model = Model(np.array([0.0, -1.0, 0.0]))
     pairs = []
     for (a, b), matched in sorted(matches.items()):
         i, j = solver.index[a], solver.index[b]
-        if i < j and len(matched) >= PAIR_MIN_MATCHES:
+        if i < j and len(matched) >= min_matches:
             mine, theirs = np.array(list(matched.items())).T
             rays = [model.undistorted_rays(solver.g, solver.keypoints[n][k]) for n, k in ((a, mine), (b, theirs))]
             pairs.append(PairRays(i, j, *rays))
@@ -554,57 +508,6 @@ def _known_turns(solver: _Solver, known: dict[str, Pose]) -> tuple[np.ndarray, l
             pairs.append((solver.index[name_a], solver.index[name_b]))
             rotations.append(known[name_b].R @ known[name_a].R.T)
     return np.array(pairs, int).reshape(-1, 2), rotations
-
-
-def _turns_of_pairs(
-    solver: _Solver, axis: np.ndarray, pairs: list[PairRays], threshold: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each pair's turn about ``axis`` (a 1-degree grid, then 0.05 degrees), its inlier
-    count, and whether the turn explains the pair (``CircularSettings.pair_significance``)."""
-    turns, _, inliers, chance = pair_turns(axis, pairs, np.radians(np.arange(-90, 90, 1.0)), threshold)
-    for k, pair in enumerate(pairs):
-        fine = turns[k] + np.radians(np.arange(-1, 1.01, 0.05))
-        found, _, count, _ = pair_turns(axis, [pair], fine, threshold)
-        turns[k], inliers[k] = found[0], count[0]
-    sizes = np.array([len(p.rays_i) for p in pairs])
-    # At least one match fits by chance: a pair whose matches fit no other turn at all
-    # is not thereby certain.
-    chance_share = np.maximum(chance, 1) / sizes
-    significant = binom.sf(inliers - 1, sizes, chance_share) < solver.settings.pair_significance
-    explained = significant & (inliers >= 0.5 * sizes)
-    typical = float(np.median(inliers[explained])) if explained.any() else 0.0
-    strong = explained & (inliers >= 0.5 * typical)
-    index = np.array([(p.i, p.j) for p in pairs]).reshape(-1, 2)
-    strong_pairs = np.bincount(index[strong].ravel(), minlength=len(solver.order))
-    needed = np.any(strong_pairs[index] < 2, axis=1)
-    return turns, inliers, strong | (explained & needed)
-
-
-def _explained_by_one_turn(
-    solver: _Solver, verified: list[PairRays], candidates: dict[tuple[str, str], dict[int, int]]
-) -> dict[tuple[str, str], dict[int, int]]:
-    """The inlier matches of each candidate pair (matches two-view verification left
-    without a geometry) that one turn about the solver's axis explains, judged by
-    ``_turns_of_pairs`` among the ``verified`` pairs; a pair it does not explain is left out."""
-    pairs = _pair_rays(solver, candidates)
-    if not pairs:
-        return {}
-    axis = solver.model.axis_and_point(solver.g)[0]
-    threshold = 2.0 / solver.g[FOCAL]
-    turns, _, explained = _turns_of_pairs(solver, axis, verified + pairs, threshold)
-    turns, explained = turns[len(verified) :], explained[len(verified) :]
-    found = {}
-    for pair, turn in ((pair, turn) for pair, turn, kept in zip(pairs, turns, explained) if kept):
-        rays = [np.column_stack([r, np.ones(len(r))]) for r in (pair.rays_i, pair.rays_j)]
-        inlier = sampson_sq(essentials(axis, facing_point(axis), np.array([turn])), *rays)[0] < threshold**2
-        a, b = solver.order[pair.i], solver.order[pair.j]
-        kept = [(k, m) for (k, m), keep in zip(candidates[a, b].items(), inlier) if keep]
-        found[a, b] = dict(kept)
-        found[b, a] = {m: k for k, m in kept}
-    logger.info(
-        "circular motion: %d of %d pairs without a verified geometry explained by one turn", len(found) // 2, len(pairs)
-    )
-    return found
 
 
 def _initial_axis_and_angles(
@@ -623,9 +526,15 @@ def _initial_axis_and_angles(
         axis = np.linalg.svd(rotvecs, full_matrices=False)[2][0]
     elif axis is None:
         axis = search_axis(pairs, threshold)
-    turns, inliers, explained = _turns_of_pairs(solver, axis, pairs, threshold)
+    turns, _, inliers = pair_turns(axis, pairs, np.radians(np.arange(-90, 90, 1.0)), threshold)
+    for k, pair in enumerate(pairs):
+        fine = turns[k] + np.radians(np.arange(-1, 1.01, 0.05))
+        found, _, count = pair_turns(axis, [pair], fine, threshold)
+        turns[k], inliers[k] = found[0], count[0]
+    sizes = np.array([len(p.rays_i) for p in pairs])
     # A pair whose matches the model does not explain, or whose turn disagrees with the
     # other pairs' (a repeated pattern joined it), is left out.
+    explained = (inliers >= solver.settings.min_observations) & (inliers >= 0.5 * sizes)
     index = np.vstack([np.array([(p.i, p.j) for p in pairs]).reshape(-1, 2), known_pairs])
     turns = np.concatenate([turns, rotvecs @ axis])
     weights = np.concatenate([inliers, np.full(len(known_pairs), max(inliers.sum(), 1))]).astype(float)
@@ -642,20 +551,21 @@ def _initial_axis_and_angles(
     graph = coo_matrix((np.ones(int(consistent.sum())), tuple(index[consistent].T)), shape=(n, n))
     _, labels = connected_components(graph, directed=False)
     linked = np.bincount(labels[index[consistent].ravel()], minlength=labels.max() + 1)
-    angles = synchronised_components(n, index[consistent], turns[consistent], weights[consistent])
     solver.placed[:] = False
     solver.group[:] = -1
     # The ring is the largest set of linked photos, the groups the other sets (largest first).
     for group, label in enumerate(label for label in np.argsort(-linked, kind="stable") if linked[label]):
         members = np.flatnonzero(labels == label)
-        solver.angles[members] = angles[members]
+        keep = consistent & (labels[index[:, 0]] == label)
+        local = -np.ones(n, int)
+        local[members] = np.arange(len(members))
+        solver.angles[members] = synchronise_angles(len(members), local[index[keep]], turns[keep], weights[keep], 0)
         solver.placed[members] = True
         solver.group[members] = group
     solver.trusted_pairs = {
         (solver.order[i], solver.order[j]) for i, j in index[: len(pairs)][consistent[: len(pairs)]]
     }
     solver.model = Model(axis)
-    solver.g[:2] = 0.0  # the axis' offset from the model's
     p = facing_point(axis)
     u = solver.model.axis_and_point(np.zeros(3))[1]  # the offset at psi = 0
     v = np.cross(axis, u)
@@ -715,30 +625,19 @@ class _Coherence:
         self.pixels = outlines.pixels[rows]
         self.pairs = silhouette_coherence.choose_pairs(solver.angles[self.views])
         self.feature_sigma = feature_sigma
-        self.side = silhouette_coherence.sides(*self._geometry(solver.g, solver.angles[:, None]), self.pairs)
-        self.sigma = self.sigma_at(solver.g, solver.angles[:, None])
-
-    def _geometry(self, g: np.ndarray, views: np.ndarray, turn_step: float = 0.0):
-        """Axis, point, the pairs' turns and the outlines in normalised coordinates."""
-        axis, p = self.model.axis_and_point(g)
-        normalised = self.model.undistorted_rays(g, self.pixels.reshape(-1, 2)).reshape(self.pixels.shape)
-        angles = views[self.views, 0]
-        turns = angles[self.pairs[:, 1]] - angles[self.pairs[:, 0]] + turn_step
-        return axis, p, turns, normalised
+        self.sigma = silhouette_coherence.robust_sigma(self.residuals(solver.g, solver.angles[:, None]))
 
     def residuals(self, g: np.ndarray, views: np.ndarray, turn_step: float = 0.0) -> np.ndarray:
         """(P, 4) tangency errors (pixels) of the pairs at the global parameters and
         angles, every pair's turn increased by ``turn_step``."""
-        return silhouette_coherence.tangency_residuals(*self._geometry(g, views, turn_step), self.pairs, g[FOCAL])
-
-    def sigma_at(self, g: np.ndarray, views: np.ndarray) -> np.ndarray:
-        """(2,) the tangency errors' standard deviation at each end of the outlines."""
-        return silhouette_coherence.sigma_by_side(self.residuals(g, views), self.side)
+        axis, p = self.model.axis_and_point(g)
+        normalised = self.model.undistorted_rays(g, self.pixels.reshape(-1, 2)).reshape(self.pixels.shape)
+        angles = views[self.views, 0]
+        turns = angles[self.pairs[:, 1]] - angles[self.pairs[:, 0]] + turn_step
+        return silhouette_coherence.tangency_residuals(axis, p, turns, normalised, self.pairs, g[FOCAL])
 
     def weighted(self, g: np.ndarray, views: np.ndarray, turn_step: float = 0.0) -> np.ndarray:
-        return silhouette_coherence.weighted(
-            self.residuals(g, views, turn_step), self.sigma[self.side], self.feature_sigma
-        )
+        return silhouette_coherence.weighted(self.residuals(g, views, turn_step), self.sigma, self.feature_sigma)
 
     def view_jacobian(self, g: np.ndarray, views: np.ndarray) -> np.ndarray:
         """(4P, n, 1) derivatives by the angles: a pair's residuals depend on its turn alone,
@@ -757,7 +656,7 @@ class _Coherence:
 
     @property
     def usable(self) -> bool:
-        return len(self.pairs) > 0 and bool(np.all(np.isfinite(self.sigma) & (self.sigma > 0)))
+        return len(self.pairs) > 0 and np.isfinite(self.sigma) and self.sigma > 0
 
 
 def _problem(
@@ -857,16 +756,13 @@ def _coherence(solver: _Solver, feature_sigma: float) -> _Coherence | None:
 def _settled(solver: _Solver, coherence: _Coherence, feature_sigma: float) -> bool:
     """Whether both noises at the solution are within a fifth of those the solve weighted
     by, and records them (sfm.json)."""
-    sigma = coherence.sigma_at(solver.g, solver.angles[:, None])
+    sigma = silhouette_coherence.robust_sigma(coherence.residuals(solver.g, solver.angles[:, None]))
     solver.coherence = {
         "pairs": len(coherence.pairs),
-        "tangency_sigma_px": [round(float(end), 3) for end in sigma],
+        "tangency_sigma_px": round(sigma, 3),
         "feature_sigma_px": round(feature_sigma, 3),
     }
-    return (
-        bool(np.all(np.abs(sigma / coherence.sigma - 1) < 0.2))
-        and abs(feature_sigma / coherence.feature_sigma - 1) < 0.2
-    )
+    return abs(sigma / coherence.sigma - 1) < 0.2 and abs(feature_sigma / coherence.feature_sigma - 1) < 0.2
 
 
 def _angle_std_deg(solver: _Solver, problem: Problem, covariance: np.ndarray) -> np.ndarray:
@@ -991,14 +887,11 @@ def solve(
     matches: dict[tuple[str, str], dict[int, int]],
     known: dict[str, Pose] | None = None,
     outlines: dict[str, np.ndarray] | None = None,
-    unverified: dict[tuple[str, str], dict[int, int]] | None = None,
 ) -> CircularMotion:
     """Circular motion of the photos ``order`` (one camera, initial ``intrinsics``)
     from their keypoints and verified matches, ``known`` poses of some of them (a
-    board's, in any one frame) for the start, the convex ``outlines`` (pixels) of
-    the photos whose silhouette coherence is fitted too, and ``unverified`` matches of
-    pairs two-view verification found no geometry for (a < b), kept where one turn
-    about the axis the verified pairs give explains them; ValueError when fewer than
+    board's, in any one frame) for the start, and the convex ``outlines`` (pixels) of
+    the photos whose silhouette coherence is fitted too; ValueError when fewer than
     three photos are connected by consistent matches."""
     # 1-3. Relative motions, axis, angles and the camera's offset.
     solver = _Solver(settings, order, intrinsics, keypoints)
@@ -1009,25 +902,15 @@ def solve(
     free[:3] = True
     free[FOCAL] = settings.refine_focal
     axis = None
-    first_pass = None
     # Twice when the focal length moved: a wrong one scales every turn, and a ring whose
     # turns do not add up to a full one breaks where the fewest pairs bridge (a prior
     # 28 % too long made 20 steps of 18 degrees add up to 410 and cut a photo off).
     for _ in range(2):
         focal = solver.g[FOCAL]
-        pairs = _pair_rays(solver, matches)
+        pairs = _pair_rays(solver, matches, settings.min_observations)
         if len(pairs) < 2:
-            raise ValueError(f"only {len(pairs)} photo pairs share {PAIR_MIN_MATCHES} verified matches")
+            raise ValueError(f"only {len(pairs)} photo pairs share {settings.min_observations} verified matches")
         _initial_axis_and_angles(solver, pairs, known or {}, axis)
-        if unverified:
-            # Once, with the axis the verified pairs give: a pair's one turn is a far
-            # stronger model than the five degrees of freedom verification fitted.
-            found = _explained_by_one_turn(solver, pairs, unverified)
-            unverified = None
-            if found:
-                matches = matches | found
-                pairs = _pair_rays(solver, matches)
-                _initial_axis_and_angles(solver, pairs, known or {}, solver.model.axis_and_point(solver.g)[0])
         if np.sum(solver.group == 0) < 3:
             raise ValueError("fewer than three photos are connected by consistent matches")
         unplaced = {n: "not matched into the ring of the other photos" for n, p in zip(order, solver.placed) if not p}
@@ -1036,17 +919,8 @@ def solve(
         trusted = {pair: found for pair, found in matches.items() if pair in solver.trusted_pairs}
         tracks = build_tracks(order, keypoints, trusted)
         *_, observations, _, _ = _solve_placing(solver, tracks, free, unplaced)
-        if first_pass is not None and np.sum(solver.placed) < np.sum(first_pass[0].placed):
-            # The pairs' turns are judged afresh at the new focal length; where noisy
-            # pairs of few matches then link fewer photos, the first pass stands.
-            solver, tracks, observations, unplaced = first_pass
-            logger.info(
-                "circular motion: the pairs judged at the refined focal length link fewer photos; kept the first"
-            )
-            break
         if abs(solver.g[FOCAL] / focal - 1) < 0.02:
             break
-        first_pass = copy.deepcopy((solver, tracks, observations, unplaced))
         axis = solver.model.axis_and_point(solver.g)[0]
     free, calibration = _self_calibration(solver, tracks, free, observations)
     result, problem, points, observations, counts, std = _solve_placing(solver, tracks, free, unplaced)

@@ -80,22 +80,6 @@ def tangency_residuals(
     return errors * focal
 
 
-def sides(
-    axis: np.ndarray, point: np.ndarray, turns: np.ndarray, normalised: np.ndarray, pairs: np.ndarray
-) -> np.ndarray:
-    """(P, 4) which end of its outline along the axis each residual's tangent touches:
-    1 where it touches farther along the axis's direction in the image than the other
-    tangent from the same outline, 0 where nearer. The end where the specimen meets the
-    table is where masks take in shadow or lose the feet, so each end is a cue with its
-    own noise."""
-    R = Rotation.from_rotvec(np.outer(turns, axis)).as_matrix()
-    touches = silhouette_tangency.touch_points(R, point - R @ point, normalised[pairs[:, 0]], normalised[pairs[:, 1]])
-    along = touches @ axis[:2]
-    far_a = (along[:, 1] > along[:, 0]).astype(int)
-    far_b = (along[:, 3] > along[:, 2]).astype(int)
-    return np.stack([1 - far_a, far_a, 1 - far_b, far_b], axis=1)
-
-
 def robust_sigma(residuals: np.ndarray) -> float:
     """The residuals' standard deviation from their median absolute value (zeros, the
     pairs without a constraint, left out)."""
@@ -103,14 +87,9 @@ def robust_sigma(residuals: np.ndarray) -> float:
     return float(1.4826 * np.median(used)) if len(used) else np.inf
 
 
-def sigma_by_side(residuals: np.ndarray, side: np.ndarray) -> np.ndarray:
-    """(2,) ``robust_sigma`` of the residuals at each end of the outlines (``sides``)."""
-    return np.array([robust_sigma(residuals[side == end]) for end in (0, 1)])
-
-
-def weighted(residuals: np.ndarray, sigma: np.ndarray | float, feature_sigma: float) -> np.ndarray:
+def weighted(residuals: np.ndarray, sigma: float, feature_sigma: float) -> np.ndarray:
     """Residuals for a least-squares sum beside feature reprojection errors of standard
     deviation ``feature_sigma``: each tangency error in its own standard deviations
-    (``sigma``, one or one per residual) under a Cauchy loss, in the features' pixels."""
+    (``sigma``) under a Cauchy loss, in the features' pixels."""
     n = residuals / sigma
     return feature_sigma * np.sign(n) * LOSS_SCALE * np.sqrt(np.log1p((n / LOSS_SCALE) ** 2))

@@ -88,18 +88,6 @@ def _signed_tangency(lines: np.ndarray, hulls: np.ndarray) -> np.ndarray:
     return np.where(low > 0, low, np.where(high < 0, -high, -np.minimum(high, -low)))
 
 
-def _epipoles(R: np.ndarray, t: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
-    """Camera b's centre seen from a, and a's seen from b: each (P, 2) with whether it lies in front."""
-    return _dehomogenise(-np.einsum("pji,pj->pi", R, t)), _dehomogenise(t)
-
-
-def touch_points(R: np.ndarray, t: np.ndarray, hulls_a: np.ndarray, hulls_b: np.ndarray) -> np.ndarray:
-    """(P, 4, 2) where each of ``tangency_errors``' tangents touches the outline it
-    comes from: a's two, then b's two (normalised camera coordinates)."""
-    (epipole_a, _), (epipole_b, _) = _epipoles(R, t)
-    return np.concatenate([_tangent_points(hulls_a, epipole_a), _tangent_points(hulls_b, epipole_b)], axis=1)
-
-
 def tangency_errors(
     R: np.ndarray, t: np.ndarray, hulls_a: np.ndarray, hulls_b: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -110,7 +98,9 @@ def tangency_errors(
     cuts it. And (P,) whether the pair constrains anything: both epipoles in front of
     their camera and outside their outline."""
     E = _skew(t) @ R
-    (epipole_a, front_a), (epipole_b, front_b) = _epipoles(R, t)
+    # The epipoles: camera b's centre seen from a, and a's seen from b.
+    epipole_a, front_a = _dehomogenise(-np.einsum("pji,pj->pi", R, t))
+    epipole_b, front_b = _dehomogenise(t)
     valid = front_a & front_b & _outside(hulls_a, epipole_a) & _outside(hulls_b, epipole_b)
     ones = np.ones((len(t), 2, 1))
     tangents_a = np.concatenate([_tangent_points(hulls_a, epipole_a), ones], axis=2)

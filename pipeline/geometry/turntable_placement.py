@@ -99,13 +99,10 @@ def circular_poses(
     keypoints: dict[str, np.ndarray],
     matches: dict[tuple[str, str], dict[int, int]],
     board_poses: dict[str, Pose],
-    unverified: dict[tuple[str, str], dict[int, int]] | None = None,
 ) -> tuple[Turntable, dict[str, Pose], CircularMotion, dict]:
     """The circle in the frame of the photo at angle 0, a pose for every photo that
     could be placed, the solver's solution (its points and tracks those of the ring and
-    the groups placed, in the ring's frame), and the report (sfm.json's "circular").
-    ``unverified``: matches of pairs two-view verification found no geometry for, which
-    the solver tests against one turn each."""
+    the groups placed, in the ring's frame), and the report (sfm.json's "circular")."""
     if len({json.dumps(k.to_json(), sort_keys=True) for k in intrinsics.values()}) > 1:
         raise PipelineError(
             "a turntable or ring needs one camera setting, but the photos were taken with several (see "
@@ -122,7 +119,6 @@ def circular_poses(
             matches,
             board_poses,
             outlines=hulls if settings.silhouette_coherence else None,
-            unverified=unverified,
         )
     except ValueError as error:
         raise PipelineError(

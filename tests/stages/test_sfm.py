@@ -103,9 +103,7 @@ def test_turntable_of_a_plain_specimen_poses_every_photo_within_a_degree(run_sta
     assert np.all(np.diff(angles) > 5)  # in turning order, none at another's angle
     # The outlines were fitted with the features, and the report says how well each agreed.
     coherence = report["silhouette_coherence"]
-    assert (
-        coherence["pairs"] > 0 and 0 < min(coherence["tangency_sigma_px"]) <= max(coherence["tangency_sigma_px"]) < 2.0
-    )
+    assert coherence["pairs"] > 0 and 0 < coherence["tangency_sigma_px"] < 2.0
 
 
 def test_a_turntables_given_intrinsics_are_held_by_sfm(run_stages, plain_turntable):

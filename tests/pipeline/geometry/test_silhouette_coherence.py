@@ -97,29 +97,3 @@ def test_the_weighting_is_quadratic_near_zero_and_bounded_far_out():
     np.testing.assert_allclose(small, [0.05, -0.05], rtol=1e-3)
     far = silhouette_coherence.weighted(np.array([100.0, 1000.0]), sigma=1.0, feature_sigma=0.5)
     assert far[1] < 2 * far[0]  # a bad mask's tangent pulls little harder the worse it is
-
-
-def test_a_shadow_at_the_specimen_s_foot_is_the_noise_of_that_end_alone():
-    """Masks that take in a shadow below the specimen: the tangents touching its foot
-    miss by pixels, those touching its top agree, and each end gets its own noise."""
-    axis, point = _motion()
-    angles = np.radians(np.arange(0, 360, 20.0))
-    hulls = []
-    for angle in angles:
-        mask = blob_mask(pose_at(angle), SPHERES, LENS)
-        rows = np.flatnonzero(mask.any(axis=1))
-        foot = np.zeros_like(mask)
-        # A shadow below the foot, cast by a still light: it falls to one side or the other as the table turns.
-        foot[rows[-1] : rows[-1] + 5] = np.roll(mask[rows[-1] - 8 : rows[-1] - 3], round(8 * np.sin(angle)), axis=1)
-        hulls.append(silhouette_tangency.outline(mask | foot))
-    normalised = _normalised(hulls)
-    pairs = silhouette_coherence.choose_pairs(angles)
-    turns = angles[pairs[:, 1]] - angles[pairs[:, 0]]
-    residuals = silhouette_coherence.tangency_residuals(axis, point, turns, normalised, pairs, LENS.fx)
-    side = silhouette_coherence.sides(axis, point, turns, normalised, pairs)
-    # Each outline's two tangents touch opposite ends.
-    np.testing.assert_array_equal(side[:, 0] + side[:, 1], 1)
-    np.testing.assert_array_equal(side[:, 2] + side[:, 3], 1)
-    foot_sigma, top_sigma = silhouette_coherence.sigma_by_side(residuals, side)  # the axis points up
-    assert top_sigma < 0.5 and foot_sigma > 3 * top_sigma
-    assert silhouette_coherence.robust_sigma(residuals) > 1.5 * top_sigma  # one noise for both would blur the top
