@@ -13,7 +13,10 @@
    model (pipeline.geometry.circular_motion): one axis, one camera offset, one angle
    per photo, bundle-adjusted with the focal length and distortion and with the
    silhouette coherence of the photos' outlines (``silhouette_coherence``), each
-   photo's angle uncertainty reported; an arc of the ring that matching left apart
+   photo's angle uncertainty reported. Where pairs of ``min_pose_inliers`` leave
+   photos out of the ring, weak pairs (a dozen matches one turn explains, verified
+   or not) are tried, and their ring kept only where the outlines agree with it
+   (sfm.json ``weak_pairs``); an arc of the ring that matching left apart
    is placed by its silhouettes at once, a photo the features cannot place by its
    board pose, by even steps (a timed table) or by its silhouette, else left out
    with a warning naming it (pipeline.geometry.turntable_placement). Fewer than
@@ -91,7 +94,14 @@ class Config(features.FeatureSettings, RigSettings, SelfCalibrationSettings):
     min_pose_inliers: Annotated[int, Range(6, None)] = 15
     """2D-3D inliers a photo needs to be registered (COLMAP's default, 30, leaves out
     photos of low-texture specimens that share only a few dozen points); on a turntable
-    or ring, the inlier observations that place a photo by its features."""
+    or ring, the inlier observations that place a photo, and that make a pair of photos
+    strong, in the ring of strong pairs."""
+    min_angle_inliers: Annotated[int, Range(3, None)] = 6
+    """Turntable or ring, where the strong pairs leave photos out and weak pairs are
+    tried: inlier observations that place a photo by its features. A photo there has one
+    unknown, its angle, where a free pose has six: a small or plain specimen's photos at
+    the seams of a turn share a handful of points, and whether they fit is the misfit
+    test's and the reported uncertainty's to say."""
     min_registered_fraction: Annotated[float, Range(0.0, 1.0)] = 0.5
     """Below this fraction of registered photos the stage fails; above, it warns."""
     frame: Literal["auto", "board", "turntable", "ground_plane", "normalised"] = "auto"
@@ -227,9 +237,14 @@ def _pose(
     database = features.features_and_matches(plan, photos.records, photos.cameras, work)
     if rig in ("turntable", "ring"):
         keypoints, matches = features.verified_matches(database, photos.order, photos.stem_of)
-        settings = PlacementSettings.of(conf, conf, rig == "turntable", conf.min_pose_inliers, refine_focal)
+        # A still camera's matches that do not move are its room's and its highlights'.
+        still_px = features.STATIONARY_PX if plan.still_camera else 0.0
+        unverified = features.unverified_matches(database, photos.order, photos.stem_of, still_px)
+        settings = PlacementSettings.of(
+            conf, conf, rig == "turntable", conf.min_pose_inliers, conf.min_angle_inliers, refine_focal
+        )
         table, poses, solution, circular = circular_poses(
-            settings, photos.order, photos.intrinsics, photos.masks, keypoints, matches, board_found
+            settings, photos.order, photos.intrinsics, photos.masks, keypoints, matches, board_found, unverified
         )
         K = solution.intrinsics
         return _Posed(
@@ -383,7 +398,7 @@ def _too_few(conf: Config, posed: set[str], order: list[str], causes: dict[str, 
 
 STAGE = Stage(
     name="sfm",
-    version=13,
+    version=16,
     config=Config,
     main=main,
     needs=("undistort.pinhole", "masks.masks_json"),

@@ -204,6 +204,7 @@ def _match(plan: FeaturePlan, photos: dict[str, dict], database: Path) -> None:
     # A fixed camera sees the still room at the same pixels in every photo: matches
     # that do not move say nothing about the turning object.
     verification.filter_stationary_matches = plan.still_camera
+    verification.stationary_matches_max_error = STATIONARY_PX
     # COLMAP seeds RANSAC from the clock by default: the same photos then give
     # different verified matches, and a different model, on every run.
     verification.ransac.random_seed = 0
@@ -230,6 +231,10 @@ def _match(plan: FeaturePlan, photos: dict[str, dict], database: Path) -> None:
             database, matching, pairing_options=pairing, verification_options=verification, device=device
         )
 
+
+STATIONARY_PX = 4.0
+"""A still camera's matches that move this little (pixels) are of the still room or of
+highlights that stay with the light, not of the turning specimen (COLMAP's default)."""
 
 OUTLINE_SIZE = 64
 """Pixels along the longer side of the masks compared by outline_neighbours: the
@@ -305,6 +310,36 @@ def unregistered_causes(database: Path, unregistered: list[str], stem_of: dict[s
             else:
                 causes[name] = f"{matches} verified matches but no consistent pose: a repeated or moving pattern"
     return causes
+
+
+def unverified_matches(
+    database: Path, order: list[str], stem_of: dict[str, str], min_motion_px: float
+) -> dict[tuple[str, str], dict[int, int]]:
+    """The matches of each pair (a < b in ``order``) that two-view verification left
+    without a geometry, those that moved ``min_motion_px`` or less left out (a still
+    camera's highlights and room): a few dozen matches between photos of a plain specimen
+    can fail a five-degree-of-freedom model and still fit a turntable's one turn, which
+    pipeline.geometry.circular_motion tests them for."""
+    index = {name: i for i, name in enumerate(order)}
+    found = {}
+    with pycolmap.Database.open(database) as db:
+        name_of = {db.read_image_with_name(stem_of[name]).image_id: name for name in order}
+        keypoints = {image_id: db.read_keypoints(image_id)[:, :2] for image_id in name_of}
+        verified = {
+            int(pair_id) for pair_id, geometry in zip(*db.read_two_view_geometries()) if len(geometry.inlier_matches)
+        }
+        for pair_id, pairs in zip(*db.read_all_matches()):
+            if int(pair_id) in verified or len(pairs) == 0:
+                continue
+            ids = pycolmap.pair_id_to_image_pair(pair_id)
+            pairs = np.asarray(pairs)
+            moved = np.linalg.norm(keypoints[ids[0]][pairs[:, 0]] - keypoints[ids[1]][pairs[:, 1]], axis=1)
+            pairs = pairs[moved > min_motion_px]
+            a, b = (name_of[i] for i in ids)
+            if index[a] > index[b]:
+                a, b, pairs = b, a, pairs[:, ::-1]
+            found[a, b] = dict(zip(pairs[:, 0].tolist(), pairs[:, 1].tolist()))
+    return found
 
 
 def verified_matches(database: Path, order: list[str], stem_of: dict[str, str]):

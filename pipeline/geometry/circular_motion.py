@@ -19,9 +19,18 @@ The solver:
    photos a few degrees apart fix one angle well but a full rotation poorly (on a
    synthetic turntable their relative rotations were 3 degrees off, their average
    axis 16 degrees).
-2. **Each pair's turn** under that axis (a 1-degree grid, then 0.05 degrees); pairs
-   whose matches one turn does not explain (a repeated pattern joined them) are
-   left out.
+2. **Each pair's turn** under that axis (a 1-degree grid, then 0.05 degrees). Steps
+   2-4 run first with the strong pairs: ``min_observations`` inliers of one turn.
+   Where those leave photos out of the ring (a small or plain specimen's pairs share
+   a dozen matches) and outlines are given, they run again with weak pairs too:
+   pairs one turn explains better than chance (a binomial test,
+   ``pair_significance``), and pairs two-view verification found no geometry for (a
+   dozen matches fail five degrees of freedom) where one turn explains them. A weak
+   pair's turn is a few degrees off where a strong pair's is one or two, and enough
+   of them can pull the ring into another solution the features fit about as well,
+   so the extended ring is kept only where it joins more photos and the outlines
+   agree with it about as well as with the strong ring (``extension_verdict``;
+   sfm.json ``weak_pairs``).
 3. **Angles**: synchronised over the graph of pairs (the leading eigenvector of the
    pairs' unit phasors, then robust least squares), so any matched pair counts and
    the photos need not be in order (a restarted or second turn is no exception).
@@ -44,7 +53,8 @@ The solver:
    they leave loose.
 5. **Which photos it placed**: no threshold in degrees or pixels, since what a photo's
    angle can be known to depends on the photos' size and noise. A photo is placed
-   when it has ``min_observations`` inlier observations and its residuals are no
+   when it has ``min_observations`` inlier observations (``weak_min_observations``
+   in the extended ring) and its residuals are no
    worse than the other photos' (a one-sided sign test against the pooled median, at
    ``misfit_significance`` over the photos, and a median more than ``misfit_ratio``
    times the pooled one), and its angle is determined at all. Its angle's uncertainty
@@ -60,6 +70,7 @@ only a rotation of the image).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -78,6 +89,10 @@ GLOBAL_NAMES = ("axis_a", "axis_b", "psi", "f", "cx", "cy", "k1")
 from its initial estimate), the angle of ``p`` about the axis, focal length,
 principal point, radial distortion."""
 FOCAL, CX, CY, K1 = 3, 4, 5, 6
+PAIR_MIN_MATCHES = 6
+"""Pairs with fewer matches are not tested: where a third of a pair's matches fit any turn
+by chance (a small specimen), all five of five fitting one turn is not significant at the
+default ``pair_significance`` ((1/3) ** 5 = 4e-3)."""
 KNOWN_TURN_STD_DEG = 0.1
 """How closely the bundle adjustment holds the turns between photos with known poses (a
 board's, from its many corners) to what those poses say."""
@@ -88,7 +103,21 @@ class CircularSettings:
     """How the circular-motion solver places photos (the sfm stage's settings)."""
 
     min_observations: int = 15
-    """Inlier observations a photo needs to be placed by its features."""
+    """Inlier observations a photo needs to be placed by its features, and a pair of
+    photos to count, in the ring of strong pairs (step 3)."""
+    weak_min_observations: int = 6
+    """... and a photo in the ring extended by weak pairs: a photo there has one unknown,
+    its angle, where a free pose has six, and whether its few observations fit is the
+    misfit test's and the reported uncertainty's to say."""
+    pair_significance: float = 1e-3
+    """In the extended ring, a matched pair counts when one turn explains more of its
+    matches than chance would at this level (a one-sided binomial test against the share
+    its matches fit at the turns it does not have) and at least half of them: a pair of photos of a small or
+    plain specimen shares a dozen matches, which one turn about a known axis tests as
+    surely as hundreds test five degrees of freedom. A pair with under half the inliers
+    of the capture's median pair counts only where one of its photos has fewer than two
+    stronger pairs (the seams of a small specimen's turn): elsewhere such pairs are
+    mostly highlights, which pull the angles off."""
     misfit_significance: float = 1e-3
     """A photo whose residuals exceed the pooled median more often than chance allows at
     this level (a one-sided sign test, divided among the photos) fits the circle worse
@@ -98,7 +127,8 @@ class CircularSettings:
     with hundreds of observations a slight excess is significant and harmless (a specimen
     that shifted on the table part-way fits the circle somewhat worse, its angles no
     worse), while a photo turned in the image plane or from another camera fits many
-    times worse."""
+    times worse. The ring extended by weak pairs is kept only where its outlines' tangency
+    noise is at most this many times the strong pairs' ring's (``extension_verdict``)."""
     outlier_px: float = 3.0
     """Observations farther than this from their reprojection (or 4 robust standard
     deviations, whichever is larger) are dropped between solves."""
@@ -154,6 +184,9 @@ class CircularMotion:
     silhouette_coherence: dict = field(default_factory=dict)
     """Where outlines were fitted too: the pairs compared and the standard deviations of
     their tangency errors and of the features' reprojection errors at the solution (pixels)."""
+    weak_pairs: dict = field(default_factory=dict)
+    """Where the strong pairs left photos out of the ring and weak pairs were tried: the
+    photos in each ring, its tangency noise, and which ring was kept and why."""
 
 
 def place_group(solution: "CircularMotion", offsets: dict[int, float]) -> tuple[np.ndarray, list[dict[str, int]]]:
@@ -258,20 +291,22 @@ def facing_point(axis: np.ndarray) -> np.ndarray:
 
 def pair_turns(
     axis: np.ndarray, pairs: list[PairRays], turns: np.ndarray, threshold: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Each pair's turn among ``turns`` under the model with ``axis`` (the camera
     facing it), by the truncated sum of squared Sampson distances (``threshold`` in
-    normalised units). Returns the best turn, its cost and its inlier count per pair."""
+    normalised units). Returns the best turn, its cost and its inlier count per pair,
+    and the median inlier count over all ``turns`` (what its matches fit by chance,
+    when the turns span far more than the pair's own)."""
     x1 = np.vstack([np.column_stack([p.rays_i, np.ones(len(p.rays_i))]) for p in pairs])
     x2 = np.vstack([np.column_stack([p.rays_j, np.ones(len(p.rays_j))]) for p in pairs])
     sizes = [len(p.rays_i) for p in pairs]
     starts = np.cumsum([0] + sizes)[:-1]
     distances = sampson_sq(essentials(axis, facing_point(axis), turns), x1, x2)
     costs = np.add.reduceat(np.minimum(distances, threshold**2), starts, axis=1)
+    counts = np.add.reduceat((distances < threshold**2).astype(int), starts, axis=1)
     best = np.argmin(costs, axis=0)
-    at_best = distances[np.repeat(best, sizes), np.arange(len(x1))]
-    inliers = np.add.reduceat((at_best < threshold**2).astype(int), starts)
-    return turns[best], costs[best, np.arange(len(pairs))], inliers
+    columns = np.arange(len(pairs))
+    return turns[best], costs[best, columns], counts[best, columns], np.median(counts, axis=0)
 
 
 def _axis_from(elevation: np.ndarray, roll: np.ndarray) -> np.ndarray:
@@ -454,8 +489,14 @@ def triangulate(rays: list[np.ndarray], rotations: list[np.ndarray], translation
 class _Solver:
     """State shared by the solver's steps: photos, keypoints, the model and its parameters."""
 
-    def __init__(self, settings: CircularSettings, order: list[str], intrinsics: Intrinsics, keypoints):
+    def __init__(self, settings: CircularSettings, order: list[str], intrinsics: Intrinsics, keypoints, weak: bool):
         self.settings = settings
+        self.weak = weak
+        """Weak pairs are admitted (the extended ring, step 3)."""
+        self.min_observations = settings.weak_min_observations if weak else settings.min_observations
+        """Inlier observations a photo needs to be placed by its features."""
+        self.min_pair_matches = PAIR_MIN_MATCHES if weak else settings.min_observations
+        """Matches a pair needs to be tested."""
         self.order = order
         self.index = {name: i for i, name in enumerate(order)}
         self.keypoints = keypoints
@@ -487,12 +528,14 @@ class _Solver:
         return R, p - R @ p
 
 
-def _pair_rays(solver: _Solver, matches, min_matches: int) -> list[PairRays]:
+def _pair_rays(solver: _Solver, matches) -> list[PairRays]:
+    """The pairs with ``min_observations`` matches (``PAIR_MIN_MATCHES`` in the extended
+    ring), as rays."""
     model = Model(np.array([0.0, -1.0, 0.0]))
     pairs = []
     for (a, b), matched in sorted(matches.items()):
         i, j = solver.index[a], solver.index[b]
-        if i < j and len(matched) >= min_matches:
+        if i < j and len(matched) >= solver.min_pair_matches:
             mine, theirs = np.array(list(matched.items())).T
             rays = [model.undistorted_rays(solver.g, solver.keypoints[n][k]) for n, k in ((a, mine), (b, theirs))]
             pairs.append(PairRays(i, j, *rays))
@@ -508,6 +551,60 @@ def _known_turns(solver: _Solver, known: dict[str, Pose]) -> tuple[np.ndarray, l
             pairs.append((solver.index[name_a], solver.index[name_b]))
             rotations.append(known[name_b].R @ known[name_a].R.T)
     return np.array(pairs, int).reshape(-1, 2), rotations
+
+
+def _turns_of_pairs(
+    solver: _Solver, axis: np.ndarray, pairs: list[PairRays], threshold: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each pair's turn about ``axis`` (a 1-degree grid, then 0.05 degrees), its inlier
+    count, and whether the turn explains the pair: ``CircularSettings.min_observations``
+    inliers in the ring of strong pairs, ``pair_significance`` in the extended ring."""
+    turns, _, inliers, chance = pair_turns(axis, pairs, np.radians(np.arange(-90, 90, 1.0)), threshold)
+    for k, pair in enumerate(pairs):
+        fine = turns[k] + np.radians(np.arange(-1, 1.01, 0.05))
+        found, _, count, _ = pair_turns(axis, [pair], fine, threshold)
+        turns[k], inliers[k] = found[0], count[0]
+    sizes = np.array([len(p.rays_i) for p in pairs])
+    if not solver.weak:
+        return turns, inliers, (inliers >= solver.min_observations) & (inliers >= 0.5 * sizes)
+    # At least one match fits by chance: a pair whose matches fit no other turn at all
+    # is not thereby certain.
+    chance_share = np.maximum(chance, 1) / sizes
+    significant = binom.sf(inliers - 1, sizes, chance_share) < solver.settings.pair_significance
+    explained = significant & (inliers >= 0.5 * sizes)
+    typical = float(np.median(inliers[explained])) if explained.any() else 0.0
+    strong = explained & (inliers >= 0.5 * typical)
+    index = np.array([(p.i, p.j) for p in pairs]).reshape(-1, 2)
+    strong_pairs = np.bincount(index[strong].ravel(), minlength=len(solver.order))
+    needed = np.any(strong_pairs[index] < 2, axis=1)
+    return turns, inliers, strong | (explained & needed)
+
+
+def _explained_by_one_turn(
+    solver: _Solver, verified: list[PairRays], candidates: dict[tuple[str, str], dict[int, int]]
+) -> dict[tuple[str, str], dict[int, int]]:
+    """The inlier matches of each candidate pair (matches two-view verification left
+    without a geometry) that one turn about the solver's axis explains, judged by
+    ``_turns_of_pairs`` among the ``verified`` pairs; a pair it does not explain is left out."""
+    pairs = _pair_rays(solver, candidates)
+    if not pairs:
+        return {}
+    axis = solver.model.axis_and_point(solver.g)[0]
+    threshold = 2.0 / solver.g[FOCAL]
+    turns, _, explained = _turns_of_pairs(solver, axis, verified + pairs, threshold)
+    turns, explained = turns[len(verified) :], explained[len(verified) :]
+    found = {}
+    for pair, turn in ((pair, turn) for pair, turn, kept in zip(pairs, turns, explained) if kept):
+        rays = [np.column_stack([r, np.ones(len(r))]) for r in (pair.rays_i, pair.rays_j)]
+        inlier = sampson_sq(essentials(axis, facing_point(axis), np.array([turn])), *rays)[0] < threshold**2
+        a, b = solver.order[pair.i], solver.order[pair.j]
+        kept = [(k, m) for (k, m), keep in zip(candidates[a, b].items(), inlier) if keep]
+        found[a, b] = dict(kept)
+        found[b, a] = {m: k for k, m in kept}
+    logger.info(
+        "circular motion: %d of %d pairs without a verified geometry explained by one turn", len(found) // 2, len(pairs)
+    )
+    return found
 
 
 def _initial_axis_and_angles(
@@ -526,15 +623,9 @@ def _initial_axis_and_angles(
         axis = np.linalg.svd(rotvecs, full_matrices=False)[2][0]
     elif axis is None:
         axis = search_axis(pairs, threshold)
-    turns, _, inliers = pair_turns(axis, pairs, np.radians(np.arange(-90, 90, 1.0)), threshold)
-    for k, pair in enumerate(pairs):
-        fine = turns[k] + np.radians(np.arange(-1, 1.01, 0.05))
-        found, _, count = pair_turns(axis, [pair], fine, threshold)
-        turns[k], inliers[k] = found[0], count[0]
-    sizes = np.array([len(p.rays_i) for p in pairs])
+    turns, inliers, explained = _turns_of_pairs(solver, axis, pairs, threshold)
     # A pair whose matches the model does not explain, or whose turn disagrees with the
     # other pairs' (a repeated pattern joined it), is left out.
-    explained = (inliers >= solver.settings.min_observations) & (inliers >= 0.5 * sizes)
     index = np.vstack([np.array([(p.i, p.j) for p in pairs]).reshape(-1, 2), known_pairs])
     turns = np.concatenate([turns, rotvecs @ axis])
     weights = np.concatenate([inliers, np.full(len(known_pairs), max(inliers.sum(), 1))]).astype(float)
@@ -857,8 +948,8 @@ def _placement_failures(
         median = float(np.median(own)) if len(own) else 0.0
         exceed = int(np.sum(own > pooled))
         significance = float(binom.sf(exceed - 1, len(own), 0.5)) if len(own) else 1.0
-        if counts[i] < settings.min_observations:
-            reasons[i] = f"{counts[i]} inlier observations (needs {settings.min_observations})"
+        if counts[i] < solver.min_observations:
+            reasons[i] = f"{counts[i]} inlier observations (needs {solver.min_observations})"
         elif not np.isfinite(std[i]):
             reasons[i] = "its features leave its angle undetermined (the bundle adjustment's covariance)"
         elif significance < settings.misfit_significance / len(placed) and median > settings.misfit_ratio * pooled:
@@ -879,23 +970,31 @@ def _partners(solver: _Solver) -> dict[str, int]:
     return {name: len(found) for name, found in partners.items()}
 
 
-def solve(
+class _Ring(NamedTuple):
+    """Steps 1-4's state: the solver, its trusted tracks, their inlier observations, the
+    photos left out with the reason, and the global parameters adjusted."""
+
+    solver: _Solver
+    tracks: list[dict[str, int]]
+    observations: Observations
+    unplaced: dict[str, str]
+    free: np.ndarray
+
+
+def _ring(
     settings: CircularSettings,
     order: list[str],
     intrinsics: Intrinsics,
     keypoints: dict[str, np.ndarray],
     matches: dict[tuple[str, str], dict[int, int]],
-    known: dict[str, Pose] | None = None,
-    outlines: dict[str, np.ndarray] | None = None,
-) -> CircularMotion:
-    """Circular motion of the photos ``order`` (one camera, initial ``intrinsics``)
-    from their keypoints and verified matches, ``known`` poses of some of them (a
-    board's, in any one frame) for the start, and the convex ``outlines`` (pixels) of
-    the photos whose silhouette coherence is fitted too; ValueError when fewer than
-    three photos are connected by consistent matches."""
-    # 1-3. Relative motions, axis, angles and the camera's offset.
-    solver = _Solver(settings, order, intrinsics, keypoints)
-    solver.known_rotations = {solver.index[n]: pose.R for n, pose in (known or {}).items() if n in solver.index}
+    known: dict[str, Pose],
+    outlines: dict[str, np.ndarray] | None,
+    unverified: dict[tuple[str, str], dict[int, int]] | None,
+    weak: bool,
+) -> _Ring:
+    """Steps 1-4 with the strong pairs, or with the weak pairs too (``weak``)."""
+    solver = _Solver(settings, order, intrinsics, keypoints, weak)
+    solver.known_rotations = {solver.index[n]: pose.R for n, pose in known.items() if n in solver.index}
     if outlines:
         solver.outlines = silhouette_coherence.Outlines.of({solver.index[n]: hull for n, hull in outlines.items()})
     free = np.zeros(len(GLOBAL_NAMES), bool)
@@ -907,10 +1006,19 @@ def solve(
     # 28 % too long made 20 steps of 18 degrees add up to 410 and cut a photo off).
     for _ in range(2):
         focal = solver.g[FOCAL]
-        pairs = _pair_rays(solver, matches, settings.min_observations)
+        pairs = _pair_rays(solver, matches)
         if len(pairs) < 2:
-            raise ValueError(f"only {len(pairs)} photo pairs share {settings.min_observations} verified matches")
-        _initial_axis_and_angles(solver, pairs, known or {}, axis)
+            raise ValueError(f"only {len(pairs)} photo pairs share {solver.min_pair_matches} verified matches")
+        _initial_axis_and_angles(solver, pairs, known, axis)
+        if unverified:
+            # Once, with the axis the verified pairs give: a pair's one turn is a far
+            # stronger model than the five degrees of freedom verification fitted.
+            found = _explained_by_one_turn(solver, pairs, unverified)
+            unverified = None
+            if found:
+                matches = matches | found
+                pairs = _pair_rays(solver, matches)
+                _initial_axis_and_angles(solver, pairs, known, solver.model.axis_and_point(solver.g)[0])
         if np.sum(solver.group == 0) < 3:
             raise ValueError("fewer than three photos are connected by consistent matches")
         unplaced = {n: "not matched into the ring of the other photos" for n, p in zip(order, solver.placed) if not p}
@@ -922,6 +1030,77 @@ def solve(
         if abs(solver.g[FOCAL] / focal - 1) < 0.02:
             break
         axis = solver.model.axis_and_point(solver.g)[0]
+    return _Ring(solver, tracks, observations, unplaced, free)
+
+
+def _in_ring(solver: _Solver) -> np.ndarray:
+    """Which photos the features placed in the ring."""
+    return solver.placed & (solver.group == 0)
+
+
+def extension_verdict(
+    ring_sizes: tuple[int, int], tangency_sigma_px: tuple[float | None, float | None], ratio: float
+) -> dict:
+    """Whether the ring extended by weak pairs is kept, from the photos in each ring
+    (strong pairs', extended) and the standard deviation of each ring's outline tangency
+    errors: it must join more photos, and its outlines must agree with its angles about
+    as well as the strong ring's do (their noise at most ``ratio`` times). Weak pairs' turns
+    are a few degrees off where strong pairs' are one or two, and enough of them can
+    pull the whole ring into another solution that fits the features about as well;
+    the outlines then disagree by many times their own noise."""
+    strong, extended = tangency_sigma_px
+    verdict: dict = {"ring_photos": {"strong_pairs": ring_sizes[0], "with_weak_pairs": ring_sizes[1]}}
+    if strong is not None and extended is not None:
+        verdict["tangency_sigma_px"] = {"strong_pairs": strong, "with_weak_pairs": extended}
+    kept = False
+    if ring_sizes[1] <= ring_sizes[0]:
+        why = f"weak pairs join {ring_sizes[1]} photos in the ring, the strong pairs {ring_sizes[0]}"
+    elif strong is None or extended is None:
+        why = "the outlines could not judge the ring extended by weak pairs"
+    elif extended > ratio * strong:
+        why = (
+            f"the outlines disagree with the ring extended by weak pairs by {extended:.2f} px against "
+            f"{strong:.2f} px with the strong pairs alone (more than {ratio} times)"
+        )
+    else:
+        why, kept = f"weak pairs join {ring_sizes[1]} photos in the ring, the strong pairs {ring_sizes[0]}", True
+    verdict["kept"] = kept
+    verdict["decision"] = f"{why}: kept the {'weak' if kept else 'strong'} pairs' ring"
+    return verdict
+
+
+def solve(
+    settings: CircularSettings,
+    order: list[str],
+    intrinsics: Intrinsics,
+    keypoints: dict[str, np.ndarray],
+    matches: dict[tuple[str, str], dict[int, int]],
+    known: dict[str, Pose] | None = None,
+    outlines: dict[str, np.ndarray] | None = None,
+    unverified: dict[tuple[str, str], dict[int, int]] | None = None,
+) -> CircularMotion:
+    """Circular motion of the photos ``order`` (one camera, initial ``intrinsics``)
+    from their keypoints and verified matches, ``known`` poses of some of them (a
+    board's, in any one frame) for the start, the convex ``outlines`` (pixels) of
+    the photos whose silhouette coherence is fitted too, and ``unverified`` matches of
+    pairs two-view verification found no geometry for (a < b), kept where one turn
+    about the axis the verified pairs give explains them; ValueError when fewer than
+    three photos are connected by consistent matches."""
+    # 1-4 with the strong pairs; where they leave photos out and the outlines can judge
+    # the result, again with the weak pairs too (step 3).
+    ring = _ring(settings, order, intrinsics, keypoints, matches, known or {}, outlines, None, weak=False)
+    weak_pairs: dict = {}
+    if outlines and not np.all(_in_ring(ring.solver)):
+        extended = _ring(settings, order, intrinsics, keypoints, matches, known or {}, outlines, unverified, weak=True)
+        weak_pairs = extension_verdict(
+            tuple(int(np.sum(_in_ring(r.solver))) for r in (ring, extended)),
+            tuple(r.solver.coherence.get("tangency_sigma_px") for r in (ring, extended)),
+            settings.misfit_ratio,
+        )
+        logger.info("circular motion: %s", weak_pairs["decision"])
+        if weak_pairs["kept"]:
+            ring = extended
+    solver, tracks, observations, unplaced, free = ring
     free, calibration = _self_calibration(solver, tracks, free, observations)
     result, problem, points, observations, counts, std = _solve_placing(solver, tracks, free, unplaced)
     # Tracks from the inlier observations (outliers were dropped from tracks, not from
@@ -970,4 +1149,5 @@ def solve(
         unplaced={n: reason for n, reason in unplaced.items() if not any(n in group for group in groups)},
         groups=groups,
         silhouette_coherence=solver.coherence,
+        weak_pairs=weak_pairs,
     )

@@ -77,11 +77,13 @@ class PlacementSettings:
         calibration: SelfCalibrationSettings,
         turntable: bool,
         min_observations: int,
+        weak_min_observations: int,
         refine_focal: bool,
     ) -> "PlacementSettings":
         """The settings for a turntable (photos in turning order) or a ring."""
         circular = CircularSettings(
             min_observations=min_observations,
+            weak_min_observations=weak_min_observations,
             refine_focal=refine_focal,
             self_calibrate=refine_focal and calibration.self_calibrate,
             max_calibration_std_px=calibration.max_calibration_std_px,
@@ -99,10 +101,13 @@ def circular_poses(
     keypoints: dict[str, np.ndarray],
     matches: dict[tuple[str, str], dict[int, int]],
     board_poses: dict[str, Pose],
+    unverified: dict[tuple[str, str], dict[int, int]] | None = None,
 ) -> tuple[Turntable, dict[str, Pose], CircularMotion, dict]:
     """The circle in the frame of the photo at angle 0, a pose for every photo that
     could be placed, the solver's solution (its points and tracks those of the ring and
-    the groups placed, in the ring's frame), and the report (sfm.json's "circular")."""
+    the groups placed, in the ring's frame), and the report (sfm.json's "circular").
+    ``unverified``: matches of pairs two-view verification found no geometry for, which
+    the solver tests against one turn each."""
     if len({json.dumps(k.to_json(), sort_keys=True) for k in intrinsics.values()}) > 1:
         raise PipelineError(
             "a turntable or ring needs one camera setting, but the photos were taken with several (see "
@@ -119,6 +124,7 @@ def circular_poses(
             matches,
             board_poses,
             outlines=hulls if settings.silhouette_coherence else None,
+            unverified=unverified,
         )
     except ValueError as error:
         raise PipelineError(
@@ -168,6 +174,7 @@ def circular_poses(
         "silhouette": details,
         "self_calibration": solution.calibration,
         "silhouette_coherence": solution.silhouette_coherence,
+        "weak_pairs": solution.weak_pairs,
     }
     return table, poses, solution, report
 

@@ -126,14 +126,17 @@ def test_a_ring_broken_in_two_keeps_the_smaller_arc_as_a_group(views):
     assert set(found.point_groups.tolist()) == {0, 1}
 
 
-def _outlines(views, photos_where: "callable" = lambda index: False) -> dict:
+def _outlines(views, photos_where: "callable" = lambda index: False, shifted: "callable" = lambda index: False) -> dict:
     """The specimen's outline in each photo (pixels); dilated by 2 px where ``photos_where``
-    holds for the photo's index (a mask that takes in a shadow)."""
+    holds for the photo's index (a mask that takes in a shadow), 10 px lower where
+    ``shifted`` holds."""
     found = {}
     for i, name in enumerate(views.names):
         mask = blob_mask(views.poses[name], SPECIMEN, views.intrinsics)
         if photos_where(i):
             mask = cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+        if shifted(i):
+            mask = np.roll(mask, 10, axis=0)
         found[name] = outline(mask)
     return found
 
@@ -171,3 +174,58 @@ def test_outlines_leave_angles_that_true_features_pin_down(views, solution):
     )
     assert _angle_errors_deg(found, views).max() < 0.3
     assert np.abs(_angle_errors_deg(found, views) - _angle_errors_deg(solution, views)).max() < 0.05
+
+
+def test_a_small_specimen_s_pairs_of_a_dozen_matches_place_the_photos_fifteen_leave_out():
+    """Few features: neighbours share 6-25 matches, a tenth of them wrong. 15 inliers per
+    pair and per photo leave photos out of the ring; one turn about the axis explains a
+    dozen matches beyond chance, a photo's one angle needs no more, and the outlines
+    agree with the ring the weak pairs extend."""
+    views = turntable_views(points=80)
+    found = circular_motion.solve(
+        CircularSettings(), views.names, START, views.keypoints, views.matches, outlines=_outlines(views)
+    )
+    verdict = found.weak_pairs
+    assert verdict["kept"] and verdict["ring_photos"]["strong_pairs"] < verdict["ring_photos"]["with_weak_pairs"]
+    # A photo whose pairs leave it too few inliers is left out, with the count, not stacked.
+    assert len(found.angles) >= len(views.names) - 1 and not found.groups
+    assert all("inlier observations" in reason for reason in found.unplaced.values())
+    errors = _angle_errors_deg(found, views)
+    assert np.median(errors) < 0.5 and errors.max() < 1.0
+
+
+def _solve_broken_ring_with_unverified_pairs(views, outlines: dict):
+    """The ring broken after photos 5 and 12, its pairs across the gaps given only as
+    matches without a verified geometry."""
+    verified = _broken_ring(views, (5, 12))
+    unverified = {(a, b): found for (a, b), found in views.matches.items() if (a, b) not in verified and a < b}
+    return circular_motion.solve(
+        CircularSettings(), views.names, START, views.keypoints, verified, outlines=outlines, unverified=unverified
+    )
+
+
+def test_matches_verification_found_no_geometry_for_close_a_broken_ring(views):
+    """The pairs across two gaps come only as matches without a verified geometry: one
+    turn each explains them, and the two arcs are one ring again."""
+    found = _solve_broken_ring_with_unverified_pairs(views, _outlines(views))
+    assert found.weak_pairs["kept"] and found.weak_pairs["ring_photos"] == {"strong_pairs": 13, "with_weak_pairs": 20}
+    assert set(found.angles) == set(views.names) and not found.groups
+    assert _angle_errors_deg(found, views).max() < 0.3
+
+
+def test_a_ring_extended_by_weak_pairs_that_its_outlines_disagree_with_is_refused(views):
+    """The same broken ring, the arc's masks 10 px too low: however well its features
+    fit, the extended ring's outlines disagree far more than the strong ring's (whatever
+    put it off, weak pairs or masks), so the strong ring and its group stand."""
+    found = _solve_broken_ring_with_unverified_pairs(views, _outlines(views, shifted=lambda i: 5 < i <= 12))
+    assert not found.weak_pairs["kept"] and "disagree" in found.weak_pairs["decision"]
+    assert len(found.groups) == 1 and sorted(found.groups[0]) == sorted(views.names[6:13])
+
+
+def test_the_extended_ring_is_kept_only_where_it_joins_more_photos_and_its_outlines_agree():
+    verdict = circular_motion.extension_verdict
+    assert verdict((30, 50), (0.3, 0.7), 2.5)["kept"]
+    assert not verdict((30, 50), (0.3, 0.8), 2.5)["kept"]  # 2.7 times the strong ring's noise
+    assert not verdict((50, 50), (0.3, 0.3), 2.5)["kept"]  # joins no more photos
+    refused = verdict((30, 50), (None, 0.3), 2.5)
+    assert not refused["kept"] and "could not judge" in refused["decision"]
