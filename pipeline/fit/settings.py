@@ -62,6 +62,9 @@ class FitSettings(LoopSettings):
     are `pipeline fit`'s, measured on bench/fit_speed.py's suite of kits; the fit
     stages' presets set their own."""
 
+    iterations: Annotated[int, Range(1, None)] = 400
+    """Most steps (per level of a coarse-to-fine fit): a cap the trend stop
+    (``still_threshold``) ends a fit before, unless the values keep drifting."""
     spp: Annotated[int, Range(1, None)] = 4
     """Samples per pixel of each training render."""
     batch: Annotated[int, Range(1, None)] = 4
