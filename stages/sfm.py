@@ -17,7 +17,9 @@
    photos out of the ring, weak pairs (a dozen matches one turn explains, verified
    or not) are tried, and their ring kept only where the outlines agree with it
    (sfm.json ``weak_pairs``); an arc of the ring that matching left apart
-   is placed by its silhouettes at once, a photo the features cannot place by its
+   is joined to it where its outlines fix its offset and the ring solved with both
+   agrees with them (sfm.json ``joined_groups``), else placed by its silhouettes at
+   once; a photo the features cannot place by its
    board pose, by even steps (a timed table) or by its silhouette, else left out
    with a warning naming it (pipeline.geometry.turntable_placement). Fewer than
    ``min_registered_fraction`` posed photos is an error naming the others and the
@@ -398,7 +400,7 @@ def _too_few(conf: Config, posed: set[str], order: list[str], causes: dict[str, 
 
 STAGE = Stage(
     name="sfm",
-    version=16,
+    version=17,
     config=Config,
     main=main,
     needs=("undistort.pinhole", "masks.masks_json"),

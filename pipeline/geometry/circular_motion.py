@@ -36,8 +36,7 @@ The solver:
    the photos need not be in order (a restarted or second turn is no exception).
    The largest connected set of photos is the ring; each other connected set (a
    ring broken by a gap in matching) is a group whose angles are known up to one
-   offset, which the sfm stage finds from the group's silhouettes
-   (pipeline.geometry.turntable_placement).
+   offset.
 4. **Bundle adjustment** of the model (pipeline.geometry.bundle): axis, ``p``, one
    angle per photo, focal length, radial distortion when the photos constrain it
    (``self_calibrate``; the principal point is held, see ``_self_calibration``),
@@ -50,7 +49,11 @@ The solver:
    of pairs of the ring's photos) is fitted with the features, each in its own
    measured noise, re-measured until it settles: features on a plain or glossy
    specimen are shading that stays with the light, and the outlines decide what
-   they leave loose.
+   they leave loose. A group is then put where its outlines agree best with the
+   ring's and solved with it, and stays joined where no other offset fits its
+   outlines nearly as well and the outlines agree with the joined ring about as well as with the ring alone
+   (``_join_groups``; a group left apart is placed by the sfm stage from its
+   silhouettes, pipeline.geometry.turntable_placement).
 5. **Which photos it placed**: no threshold in degrees or pixels, since what a photo's
    angle can be known to depends on the photos' size and noise. A photo is placed
    when it has ``min_observations`` inlier observations (``weak_min_observations``
@@ -81,7 +84,7 @@ from scipy.stats import binom
 from pipeline import logger
 from pipeline.camera.model import Intrinsics, Pose
 from pipeline.camera.self_calibration import corner_radius, frame_coverage, radial_shift_px
-from pipeline.geometry import silhouette_coherence
+from pipeline.geometry import silhouette_coherence, silhouette_tangency
 from pipeline.geometry.bundle import Observations, Prior, Problem, adjust
 
 GLOBAL_NAMES = ("axis_a", "axis_b", "psi", "f", "cx", "cy", "k1")
@@ -129,6 +132,11 @@ class CircularSettings:
     worse), while a photo turned in the image plane or from another camera fits many
     times worse. The ring extended by weak pairs is kept only where its outlines' tangency
     noise is at most this many times the strong pairs' ring's (``extension_verdict``)."""
+    silhouette_ambiguity: float = 2.0
+    """A group of photos the features leave apart from the ring is joined to it by the
+    outlines (step 4) only where its outlines fit one offset this many times better than
+    any other local minimum of their error more than 5 degrees away (the slope of the
+    best offset's own valley is no rival)."""
     outlier_px: float = 3.0
     """Observations farther than this from their reprojection (or 4 robust standard
     deviations, whichever is larger) are dropped between solves."""
@@ -187,6 +195,10 @@ class CircularMotion:
     weak_pairs: dict = field(default_factory=dict)
     """Where the strong pairs left photos out of the ring and weak pairs were tried: the
     photos in each ring, its tangency noise, and which ring was kept and why."""
+    joined_groups: list[dict] = field(default_factory=list)
+    """Per group of photos the features left apart from the ring, where outlines were
+    fitted: its photos, the offset its outlines gave, the tangency noise before and after
+    joining, and whether it was joined and why."""
 
 
 def place_group(solution: "CircularMotion", offsets: dict[int, float]) -> tuple[np.ndarray, list[dict[str, int]]]:
@@ -523,8 +535,11 @@ class _Solver:
         return np.array([[self.g[FOCAL], 0, self.g[CX]], [0, self.g[FOCAL], self.g[CY]], [0, 0, 1.0]])
 
     def pose(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        return self.pose_at(self.angles[i])
+
+    def pose_at(self, angle: float) -> tuple[np.ndarray, np.ndarray]:
         axis, p = self.model.axis_and_point(self.g)
-        R = Rotation.from_rotvec(axis * self.angles[i]).as_matrix()
+        R = Rotation.from_rotvec(axis * angle).as_matrix()
         return R, p - R @ p
 
 
@@ -1069,6 +1084,104 @@ def extension_verdict(
     return verdict
 
 
+GROUP_OUTLINES = 8
+"""Outlines of a group compared at each candidate offset (twice as many of the ring's):
+more cost time and add little."""
+
+
+def _spread(indices: np.ndarray, count: int) -> np.ndarray:
+    return indices[:: max(1, len(indices) // count)]
+
+
+def _outline_offset(solver: _Solver, members: np.ndarray) -> silhouette_tangency.Placement | None:
+    """Where a group's outlines agree best with the ring's: the angle of its first photo,
+    searched over the whole turn at the ring's axis and intrinsics."""
+    hulls = dict(zip(solver.outlines.views.tolist(), solver.outlines.pixels))
+
+    def rays(i: int) -> np.ndarray:
+        return solver.model.undistorted_rays(solver.g, hulls[i])
+
+    base = solver.angles[members[0]]
+    group = [(rays(i), solver.angles[i] - base) for i in _spread(members, GROUP_OUTLINES) if i in hulls]
+    ring = np.array([i for i in np.flatnonzero(_in_ring(solver)) if i in hulls], int)
+    partners = [(rays(i), solver.pose(i)) for i in _spread(ring, 2 * GROUP_OUTLINES)]
+    if not group or not partners:
+        return None
+    candidates = np.radians(np.arange(0.0, 360.0, 0.5))
+    return silhouette_tangency.place(group, solver.pose_at, partners, candidates, solver.g[FOCAL])
+
+
+def _join_groups(
+    solver: _Solver, tracks, free: np.ndarray, unplaced: dict[str, str], observations: Observations
+) -> tuple[list[dict], Observations]:
+    """Step 4 for the groups, where outlines are fitted: each group (largest first) is put
+    at the offset where its outlines agree best with the ring's and the ring is solved
+    again with the group's features and every outline. A turn whose features are
+    shading breaks the ring where the specimen shows its plainest sides, and each arc
+    fixes the axis and focal length poorly; joined, they fix them as a full turn does.
+    The group stays apart (for the placement's silhouettes) where another offset, a
+    distinct minimum of the outlines' error more than 5 degrees away, fits within
+    ``silhouette_ambiguity`` times as well (the slope of the best offset's own valley
+    is no rival), or where the joined ring's tangency noise is more than
+    ``misfit_ratio`` times the ring's alone, as a wrong offset or a wrong mask makes
+    it. Returns a report per group and the inlier observations of the ring as it stands."""
+    reports: list[dict] = []
+    if solver.outlines is None:
+        return reports, observations
+    for group in np.unique(solver.group[solver.placed & (solver.group > 0)]):
+        members = np.flatnonzero(solver.placed & (solver.group == group))
+        before = solver.coherence.get("tangency_sigma_px")
+        report: dict = {"photos": [solver.order[i] for i in members]}
+        reports.append(report)
+        placement = _outline_offset(solver, members)
+        if placement is None or before is None:
+            report["joined"], report["decision"] = False, "no outline of the ring constrains the group"
+            continue
+        rival = placement.rivals[0][1] if placement.rivals else None
+        report["offset_deg"] = round(float(np.degrees(placement.angle)), 3)
+        report["outline_error_px"] = {"best": round(placement.error_px, 3), "rival": rival and round(rival, 3)}
+        if rival is not None and rival < solver.settings.silhouette_ambiguity * placement.error_px:
+            report["joined"] = False
+            report["decision"] = (
+                f"ambiguous: another offset fits its outlines almost as well ({rival:.2f} px against "
+                f"{placement.error_px:.2f} px)"
+            )
+            continue
+        saved = (
+            solver.g.copy(),
+            solver.angles.copy(),
+            solver.placed.copy(),
+            solver.group.copy(),
+            dict(solver.coherence),
+            dict(unplaced),
+        )
+        ring_before = int(np.sum(_in_ring(solver)))
+        solver.angles[members] += placement.angle - solver.angles[members[0]]
+        solver.group[members] = 0
+        *_, joined_observations, _, _ = _solve_placing(solver, tracks, free, unplaced)
+        after = solver.coherence.get("tangency_sigma_px")
+        report["tangency_sigma_px"] = {"ring": before, "joined": after}
+        ring_after = int(np.sum(_in_ring(solver)))
+        if after is None or after > solver.settings.misfit_ratio * before:
+            why = f"the joined ring's outlines disagree by {after} px against {before:.2f} px for the ring alone"
+        elif ring_after <= ring_before:
+            why = f"the joined ring holds {ring_after} photos, the ring alone {ring_before}"
+        else:
+            report["joined"], report["decision"] = (
+                True,
+                f"joined: {ring_after} photos in the ring (before {ring_before})",
+            )
+            logger.info("circular motion: a group of %d photos %s", len(members), report["decision"])
+            observations = joined_observations
+            continue
+        report["joined"], report["decision"] = False, why
+        logger.info("circular motion: a group of %d photos stays apart: %s", len(members), why)
+        solver.g, solver.angles, solver.placed, solver.group, solver.coherence, restored = saved
+        unplaced.clear()
+        unplaced.update(restored)
+    return reports, observations
+
+
 def solve(
     settings: CircularSettings,
     order: list[str],
@@ -1101,6 +1214,7 @@ def solve(
         if weak_pairs["kept"]:
             ring = extended
     solver, tracks, observations, unplaced, free = ring
+    joined_groups, observations = _join_groups(solver, tracks, free, unplaced, observations)
     free, calibration = _self_calibration(solver, tracks, free, observations)
     result, problem, points, observations, counts, std = _solve_placing(solver, tracks, free, unplaced)
     # Tracks from the inlier observations (outliers were dropped from tracks, not from
@@ -1150,4 +1264,5 @@ def solve(
         groups=groups,
         silhouette_coherence=solver.coherence,
         weak_pairs=weak_pairs,
+        joined_groups=joined_groups,
     )

@@ -126,6 +126,8 @@ class Placement:
     runner_up_px: float
     """The best error at an angle more than ``separation_deg`` away (inf when none)."""
     partners: int
+    rivals: tuple[tuple[float, float], ...] = ()
+    """(angle, error) of the other local minima more than ``separation_deg`` away, best first."""
 
 
 def _errors_px(members, angle: float, pose_at, partners, focal_px: float) -> np.ndarray:
@@ -186,4 +188,8 @@ def place(
     angle = float(fine[int(np.argmin(fine_costs))])
     far = np.abs(np.angle(np.exp(1j * (candidates - angle)))) > np.radians(separation_deg)
     runner_up = float(costs[far].min()) if far.any() else np.inf
-    return Placement(angle, float(min(fine_costs)), runner_up, int(kept.any(axis=1).sum()))
+    lower = costs <= np.roll(costs, 1)
+    upper = costs <= np.roll(costs, -1)
+    minima = np.flatnonzero(lower & upper & far & np.isfinite(costs))
+    rivals = tuple((float(candidates[i]), float(costs[i])) for i in minima[np.argsort(costs[minima])])
+    return Placement(angle, float(min(fine_costs)), runner_up, int(kept.any(axis=1).sum()), rivals)

@@ -23,7 +23,7 @@ from pipeline.camera.self_calibration import SelfCalibrationSettings
 from pipeline.core.config import Range
 from pipeline.core.errors import PipelineError
 from pipeline.geometry import circular_motion, silhouette_tangency
-from pipeline.geometry.circular_motion import CircularMotion, CircularSettings
+from pipeline.geometry.circular_motion import GROUP_OUTLINES, CircularMotion, CircularSettings
 from pipeline.geometry.turntable import Turntable
 from pipeline.geometry.world_frame import robust_similarity
 
@@ -44,7 +44,9 @@ class RigSettings:
     photos the features placed meet each other at their own angles (the masks' and the
     model's own error, measured on every capture)."""
     silhouette_ambiguity: Annotated[float, Range(1.0, None)] = 2.0
-    """... and every angle more than 5 degrees away must fit this many times worse."""
+    """... and every angle more than 5 degrees away must fit this many times worse (and,
+    for an arc of the ring that matching left apart to be joined to it by its outlines,
+    every other minimum of their error)."""
     silhouette_coherence: bool = True
     """Turntable or ring: fit the specimen's outlines with its features (the epipolar
     tangency of pairs of photos, each cue weighted by its own measured noise): features on
@@ -89,6 +91,7 @@ class PlacementSettings:
             max_calibration_std_px=calibration.max_calibration_std_px,
             min_frame_coverage=calibration.min_frame_coverage,
             even_steps_deg=rig.even_step_std_deg if turntable and rig.turntable_steps == "even" else 0.0,
+            silhouette_ambiguity=rig.silhouette_ambiguity,
         )
         return cls(circular, turntable, rig.silhouette_noise_factor, rig.silhouette_ambiguity, rig.silhouette_coherence)
 
@@ -175,12 +178,11 @@ def circular_poses(
         "self_calibration": solution.calibration,
         "silhouette_coherence": solution.silhouette_coherence,
         "weak_pairs": solution.weak_pairs,
+        "joined_groups": solution.joined_groups,
     }
     return table, poses, solution, report
 
 
-GROUP_OUTLINES = 8
-"""Outlines of a group compared at each candidate offset: more cost time and add little."""
 _SOURCES = ("features", "board", "group_silhouette", "even_steps", "silhouette")
 
 
@@ -325,7 +327,9 @@ def _groups_by_silhouette(
         reason = _unreliable(settings, placement, taken, outlines, list(group.values()))
         if reason:
             for name in names:
-                unplaced[name] = f"in a group of {len(names)} photos not matched into the ring; silhouette: {reason}"
+                unplaced[name] = (
+                    f"in a group of {len(names)} photos not matched into the ring; the group's silhouettes: {reason}"
+                )
             continue
         offsets[number] = placement.angle
         for name in names:
@@ -371,7 +375,7 @@ def _by_silhouette(
         taken = list(table.angles.values()) + [f["angle"] for f in found.values()]
         reason = _unreliable(settings, placement, taken, outlines, [0.0])
         if reason:
-            unplaced[name] += f"; silhouette: {reason}"
+            unplaced[name] += f"; its own silhouette: {reason}"
             continue
         found[name] = {
             "angle": placement.angle,

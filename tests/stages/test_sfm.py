@@ -148,17 +148,18 @@ def test_porous_cube_registers_all_but_the_room_shot_and_meshes_a_closed_box(run
 
 @pytest.mark.real_data
 @pytest.mark.skipif(not DINO_SPARSE_RING.is_dir(), reason="../shared/captures/dino-sparse-ring is not here")
-def test_dino_sparse_ring_closes_its_broken_ring_through_the_arcs_silhouettes(run_stages, tmp_path):
+def test_dino_sparse_ring_closes_its_broken_ring_through_the_arcs_outlines(run_stages, tmp_path):
     """Middlebury's 16 photos of a textureless plaster dinosaur, 23.5 degrees apart: matching
-    leaves two arcs of the ring apart, and the smaller is placed by its silhouettes at once.
-    Turn angles against the calibrated reference, their common offset removed."""
+    leaves two arcs of the ring apart, and the smaller is joined to the ring by its outlines
+    and solved with it. Turn angles against the calibrated reference, their common offset
+    removed."""
     (tmp_path / "images").mkdir()
     for photo in sorted((DINO_SPARSE_RING / "images").glob("*.png")):
         (tmp_path / "images" / photo.name).symlink_to(photo)
     (tmp_path / "capture.toml").write_text('[capture]\nrig = "ring"\n\n[board]\nkind = "none"\n')
     outputs = run_stages(tmp_path, "sfm")
     report = json.loads(outputs["sfm"]["report"].read_text())["circular"]
-    assert len(report["pose_source"]["group_silhouette"]) >= 5
+    assert any(group["joined"] and len(group["photos"]) >= 5 for group in report["joined_groups"])
     _, poses = read_cameras(outputs["sfm"]["cameras"])
     assert len(poses) >= 14
     reference = {}

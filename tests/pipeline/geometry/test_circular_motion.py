@@ -126,6 +126,19 @@ def test_a_ring_broken_in_two_keeps_the_smaller_arc_as_a_group(views):
     assert set(found.point_groups.tolist()) == {0, 1}
 
 
+def test_a_ring_broken_in_two_is_joined_by_its_outlines(views):
+    """No feature pair crosses the two gaps: the arc's outlines agree with the ring's at
+    one offset, and the ring solved with both halves' features and every outline holds
+    every photo at its angle."""
+    found = circular_motion.solve(
+        CircularSettings(), views.names, START, views.keypoints, _broken_ring(views, (5, 12)), outlines=_outlines(views)
+    )
+    (joined,) = found.joined_groups
+    assert joined["joined"] and sorted(joined["photos"]) == sorted(views.names[6:13])
+    assert set(found.angles) == set(views.names) and not found.groups
+    assert _angle_errors_deg(found, views).max() < 0.3
+
+
 def _outlines(views, photos_where: "callable" = lambda index: False, shifted: "callable" = lambda index: False) -> dict:
     """The specimen's outline in each photo (pixels); dilated by 2 px where ``photos_where``
     holds for the photo's index (a mask that takes in a shadow), 10 px lower where
@@ -219,6 +232,9 @@ def test_a_ring_extended_by_weak_pairs_that_its_outlines_disagree_with_is_refuse
     put it off, weak pairs or masks), so the strong ring and its group stand."""
     found = _solve_broken_ring_with_unverified_pairs(views, _outlines(views, shifted=lambda i: 5 < i <= 12))
     assert not found.weak_pairs["kept"] and "disagree" in found.weak_pairs["decision"]
+    # Nor is the arc joined by its outlines, which disagree with the ring's at every offset.
+    (joined,) = found.joined_groups
+    assert not joined["joined"]
     assert len(found.groups) == 1 and sorted(found.groups[0]) == sorted(views.names[6:13])
 
 

@@ -25,13 +25,13 @@ def _masks(tmp_path, views, shape) -> dict:
     return masks
 
 
-def _settings(even_steps: float = 0.0) -> PlacementSettings:
+def _settings(even_steps: float = 0.0, coherence: bool = True) -> PlacementSettings:
     return PlacementSettings(
         CircularSettings(even_steps_deg=even_steps),
         True,
         silhouette_noise_factor=2.0,
         silhouette_ambiguity=2.0,
-        silhouette_coherence=True,
+        silhouette_coherence=coherence,
     )
 
 
@@ -78,16 +78,22 @@ def test_even_steps_place_a_photo_of_a_timed_table(tmp_path):
     assert _angle_error_deg(table, views, lonely) < 0.2
 
 
-def test_a_ring_broken_in_two_is_closed_by_the_arcs_silhouettes(tmp_path):
+@pytest.mark.parametrize("coherence", [True, False])
+def test_a_ring_broken_in_two_is_closed_by_the_arcs_silhouettes(tmp_path, coherence):
+    """With the outlines fitted, the solver joins the arc to the ring and solves both
+    with its features; without, the placement puts the arc where its silhouettes fit."""
     views = turntable_views()
     masks = _masks(tmp_path, views, BIRDLIKE)
     matches = _broken_ring(views, (5, 12))
     table, poses, solution, report = circular_poses(
-        _settings(), views.names, _intrinsics(views), masks, views.keypoints, matches, {}
+        _settings(coherence=coherence), views.names, _intrinsics(views), masks, views.keypoints, matches, {}
     )
     arc = views.names[6:13]
     assert set(poses) == set(views.names)
-    assert report["pose_source"]["group_silhouette"] == sorted(arc)
+    if coherence:
+        assert report["joined_groups"][0]["joined"] and report["pose_source"]["features"] == sorted(views.names)
+    else:
+        assert not report["joined_groups"] and report["pose_source"]["group_silhouette"] == sorted(arc)
     assert max(_angle_error_deg(table, views, name) for name in views.names) < 0.5
     # The arc's points are turned into the ring's frame: they project where they were seen.
     assert len(solution.points) == len(solution.tracks) and all(set(t) <= set(poses) for t in solution.tracks)
