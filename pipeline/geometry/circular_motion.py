@@ -51,9 +51,9 @@ The solver:
    specimen are shading that stays with the light, and the outlines decide what
    they leave loose. A group is then put where its outlines agree best with the
    ring's and solved with it, and stays joined where no other offset fits its
-   outlines nearly as well and the outlines agree with the joined ring about as well as with the ring alone
-   (``_join_groups``; a group left apart is placed by the sfm stage from its
-   silhouettes, pipeline.geometry.turntable_placement).
+   outlines nearly as well and the outlines agree with the joined ring about as
+   well as with the ring alone (``_join_groups``; a group left apart is placed by
+   the sfm stage from its silhouettes, pipeline.geometry.turntable_placement).
 5. **Which photos it placed**: no threshold in degrees or pixels, since what a photo's
    angle can be known to depends on the photos' size and noise. A photo is placed
    when it has ``min_observations`` inlier observations (``weak_min_observations``
@@ -1130,12 +1130,19 @@ def _join_groups(
         return reports, observations
     for group in np.unique(solver.group[solver.placed & (solver.group > 0)]):
         members = np.flatnonzero(solver.placed & (solver.group == group))
+        if not len(members):  # an earlier group's joined solve left all its photos out
+            continue
         before = solver.coherence.get("tangency_sigma_px")
         report: dict = {"photos": [solver.order[i] for i in members]}
         reports.append(report)
-        placement = _outline_offset(solver, members)
-        if placement is None or before is None:
-            report["joined"], report["decision"] = False, "no outline of the ring constrains the group"
+        placement = _outline_offset(solver, members) if before is not None else None
+        if placement is None:
+            why = (
+                "no outline of the ring constrains the group"
+                if before is not None
+                else "the ring's outlines were not fitted"
+            )
+            report["joined"], report["decision"] = False, why
             continue
         rival = placement.rivals[0][1] if placement.rivals else None
         report["offset_deg"] = round(float(np.degrees(placement.angle)), 3)
