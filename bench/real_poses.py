@@ -4,6 +4,7 @@ reported uncertainty, self-calibration, time.
 
     .venv/bin/python -m bench.real_poses [--captures ../shared/captures] [--work /tmp/real-poses]
                                          [--suite 12] [--true-masks] [--only NAME ...] [--write]
+    .venv/bin/python -m bench.real_poses --write-from LOG   # the section from a run's printed output
 
 Cases (``--only`` picks some by name):
 
@@ -569,6 +570,16 @@ def twin_summary(rows: dict[str, dict]) -> str:
     )
 
 
+def write_from_log(log: Path) -> None:
+    """The "Real poses" section from a run's printed table and summary, its command read
+    from the log's first line."""
+    printed = log.read_text().splitlines()
+    command = printed[0].removeprefix("command: ")
+    rows = [line for line in printed if line.startswith("| ") and not line.startswith(("| capture |", "|---"))]
+    summary = [line for line in printed if line.startswith(("Randomised suite", "The same with", "Small specimens"))]
+    write_real_poses(rows, summary, command)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--captures", type=Path, default=ROOT.parent / "shared" / "captures")
@@ -579,12 +590,23 @@ def main() -> None:
         "--true-masks", action="store_true", help="run each synthetic turntable again with its true masks"
     )
     parser.add_argument("--write", action="store_true", help="rewrite docs/benchmarks.md's section")
+    parser.add_argument(
+        "--write-from",
+        type=Path,
+        metavar="LOG",
+        help="rewrite docs/benchmarks.md's section from what an earlier run printed (its standard output), run nothing",
+    )
     args = parser.parse_args()
+    if args.write_from is not None:
+        write_from_log(args.write_from)
+        return
     args.work.mkdir(parents=True, exist_ok=True)
     suite = [Case(f"suite-{seed:02d}", f"suite:{seed}", "turntable") for seed in range(args.suite)]
     if args.true_masks:
         suite += [replace(c, name=f"{c.name}-true-masks", true_masks=True) for c in suite]
     cases = [c for c in REAL + suite + TWIN_CASES + OTHERS if args.only is None or c.name in args.only]
+    options = " ".join(o for o in sys.argv[1:] if o != "--write")
+    print(f"command: .venv/bin/python -m bench.real_poses {options} --write", flush=True)
     print(HEADER, flush=True)
     lines, suite_rows, true_mask_rows, twin_rows = [], [], [], {}
     for case in cases:
@@ -607,7 +629,6 @@ def main() -> None:
         summary.append(twin_summary(twin_rows))
         print(summary[-1])
     if args.write:
-        options = " ".join(o for o in sys.argv[1:] if o != "--write")
         write_real_poses(lines, summary, f".venv/bin/python -m bench.real_poses {options} --write")
 
 
