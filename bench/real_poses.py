@@ -48,8 +48,8 @@ table turns about its own normal, which leaves it undetermined too), so the solv
 it at the photo's centre and turns every camera by the angle between the two rays, an
 exchange the photos cannot tell apart (to first order in the field of view). "turn
 within 1 deg" counts those whose angle about the circle is (a turntable's or ring's
-placement on its circle). "stacked" counts placed photos within 0.1 degrees of another placed photo's
-direction whose true directions are more than half a step apart. "angle std" is the
+placement on its circle). "stacked" counts placed photos within 0.1 degrees of another
+placed photo's direction whose true directions are more than half a step apart. "angle std" is the
 uncertainty the solver reports for each placed photo (sfm.json); "outlines / features"
 the standard deviations (pixels) of the outlines' tangency errors and of the features'
 reprojection errors at the solution, where the outlines were fitted with the features. "masks": the segmenter
@@ -433,8 +433,9 @@ def run_case(case: Case, captures: Path, work: Path) -> dict:
         row["error"] = lines[-1].split(". Unregistered")[0].removeprefix("E ")[:160] if lines else "failed"
         return row
     output = capture / "output"
-    intrinsics, poses = read_cameras(output / "stages" / "sfm" / "cameras.json")
+    intrinsics = read_cameras(output / "stages" / "sfm" / "cameras.json")[0]
     views = camera_views(output / "stages" / "sfm" / "cameras.json")
+    poses = {name: view.pose for name, view in views.items()}
     key = json.loads((output / "manifest.json").read_text())["stages/sfm/cameras.json"]["key"]
     report = json.loads((capture / ".pipeline" / "cache" / "sfm" / key / "sfm.json").read_text())
     circular = report.get("circular", {})
