@@ -56,8 +56,9 @@ def tiny_capture(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="session")
 def bird_capture(tmp_path_factory) -> Path:
-    """A copy of sample_captures/bird (30 views, 560x420), shared by the stage tests:
-    the runner's cache lets each module run only the stages it adds."""
+    """A copy of sample_captures/bird (30 views, 560x420), shared by the tests of SfM, the
+    board's frame and what follows from them: the runner's cache lets each module run
+    only the stages it adds."""
     return Path(
         shutil.copytree(
             SAMPLE_CAPTURES / "bird",
@@ -95,6 +96,33 @@ def run_stages():
     """``run_stages(capture, until, *overrides, force=())``: the real stage DAG on
     ``capture`` up to ``until`` (rerunning ``force``); the outputs of each stage."""
     return _run_stages
+
+
+@pytest.fixture(scope="session")
+def small_bird(tmp_path_factory) -> Path:
+    """A synthetic bird of 8 close views at 128x96 whose cameras come from its ground
+    truth as another tool's (``[cameras] source``): the fit, scene and export stages'
+    tests need a specimen, a light and cameras, not SfM, which needs more and larger
+    photos (the bundled bird, ``bird_until_uv``). Shared by those tests on one worker."""
+    from tests.support.byo_capture import byo_capture
+
+    photos = _synth_capture(
+        tmp_path_factory,
+        "small-bird-photos",
+        views=8,
+        width=128,
+        height=96,
+        spp=16,
+        distance=0.25,
+        calibration_shots=0,
+        seed=1,
+    )
+    capture = byo_capture(photos, tmp_path_factory.mktemp("small-bird") / "bird")
+    with (capture / "capture.toml").open("a") as settings:
+        # A coarse hull and few faces: unwrapping and rendering scale with the faces.
+        settings.write('\n[cameras]\nsource = "external"\n\n[mesh]\nresolution = 64\n')
+        settings.write("\n[cleanup]\ntarget_faces = 2000\n\n[uv]\ntexture_size = 256\n")
+    return capture
 
 
 @pytest.fixture(scope="session")
@@ -148,9 +176,10 @@ def orbit_capture(tmp_path_factory) -> Path:
 
 
 def pytest_itemcollected(item):
-    """Under pytest-xdist (``-n 2 --dist loadgroup``, as bin/test runs), the tests of the
-    shared bundled bird run on one worker, whose cache lets each run only the stages it
-    adds; the rest spread over the workers. Marked as each test is collected: xdist tags
+    """Under pytest-xdist (``-n 2 --dist loadgroup``, as bin/test runs), the tests of each
+    shared capture (the bundled bird, the small bird) run on one worker, whose cache lets
+    each run only the stages it adds; the rest spread over the workers. Marked as each test is collected: xdist tags
     the grouped tests in its own pytest_collection_modifyitems, called before this file's."""
-    if "bird_capture" in getattr(item, "fixturenames", ()):
-        item.add_marker(pytest.mark.xdist_group("bird"))
+    for capture in ("bird_capture", "small_bird"):
+        if capture in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.xdist_group(capture))

@@ -1,4 +1,4 @@
-"""pipeline.report on the bundled sample bird through export (tiny fits): the page is
+"""pipeline.report on a small synthetic bird through export (tiny fits): the page is
 self-contained and a headless Chromium (Debian's chromium package, which bin/test
 installs) renders it with every image decoded."""
 
@@ -16,10 +16,10 @@ pytestmark = pytest.mark.slow
 OVERRIDES = (*TINY_FIT, *TINY_TEXTURE, "fit_geometry.enabled=false")  # as tests/stages/test_export.py
 
 
-def test_the_report_opens_offline_in_chromium_with_every_image_loaded(run_stages, bird_capture, tmp_path):
-    run_stages(bird_capture, "export", *OVERRIDES)
-    assert cli_main(["--quiet", "report", str(bird_capture), *(a for o in OVERRIDES for a in ("-s", o))]) == 0
-    text = (bird_capture / "output" / "report.html").read_text()
+def test_the_report_opens_offline_in_chromium_with_every_image_loaded(run_stages, small_bird, tmp_path):
+    run_stages(small_bird, "export", *OVERRIDES)
+    assert cli_main(["--quiet", "report", str(small_bird), *(a for o in OVERRIDES for a in ("-s", o))]) == 0
+    text = (small_bird / "output" / "report.html").read_text()
     for heading in ("Summary", "3D view", "Stages", "Cameras and mesh", "Choices", "Parameters (fit_geometry)"):
         assert f"<h2>{heading}</h2>" in text, heading
     assert "<h2>Held-out photos</h2>" in text and "<h2>Trajectories</h2>" in text and "<h2>Warnings</h2>" in text
@@ -35,7 +35,7 @@ def test_the_report_opens_offline_in_chromium_with_every_image_loaded(run_stages
     links = re.findall(r"""href=['"]([^'"]+)""", text)
     assert set(links) == {"scene.xml", "params.json", "specimen.glb", "heldout", "README.txt"}
     alone = tmp_path / "report.html"  # a copy alone in a folder: opens offline
-    shutil.copy2(bird_capture / "output" / "report.html", alone)
+    shutil.copy2(small_bird / "output" / "report.html", alone)
 
     chromium = shutil.which("chromium")
     if chromium is None:

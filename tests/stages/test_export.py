@@ -1,5 +1,5 @@
-"""Stage export: the glTF material mapping, model by model, and the stage on the
-bundled sample bird."""
+"""Stage export: the glTF material mapping, model by model, and the stage on a small
+synthetic bird."""
 
 import json
 import struct
@@ -33,8 +33,8 @@ def test_opaque_specular_becomes_the_matching_index_of_refraction():
 
 
 @pytest.mark.slow
-def test_export_writes_gltf_with_the_models_extensions(run_stages, bird_capture):
-    outputs = run_stages(bird_capture, "export", *TINY_FIT, *TINY_TEXTURE, "fit_geometry.enabled=false")
+def test_export_writes_gltf_with_the_models_extensions(run_stages, small_bird):
+    outputs = run_stages(small_bird, "export", *TINY_FIT, *TINY_TEXTURE, "fit_geometry.enabled=false")
     data = outputs["export"]["glb"].read_bytes()
     tree = json.loads(data[20 : 20 + struct.unpack("<I", data[12:16])[0]])
     material = tree["materials"][0]
@@ -44,26 +44,25 @@ def test_export_writes_gltf_with_the_models_extensions(run_stages, bird_capture)
     assert extensions["KHR_materials_ior"]["ior"] == pytest.approx(fitted["eta"][0])
     assert set(tree["extensionsUsed"]) == {"KHR_materials_transmission", "KHR_materials_ior", "KHR_materials_volume"}
     assert fitted["spec_trans"][0] > 0  # the bird is translucent: a clear solid, not a thin wall
-    # y up: the bird stands on y = 0.
+    # The vertices and the normals Mitsuba shades with, turned from z up to y up (three.js
+    # and Blender shade smooth).
     attributes = tree["meshes"][0]["primitives"][0]["attributes"]
-    positions = tree["accessors"][attributes["POSITION"]]
-    assert positions["min"][1] > -0.005 and positions["max"][1] > 0.05
-    # The normals Mitsuba shades with, turned to y up (three.js and Blender shade smooth).
     glb = trimesh.load(outputs["export"]["glb"], force="mesh", process=False)
     ply = trimesh.load(outputs["fit_geometry"]["geometry_dir"] / "mesh.ply", force="mesh", process=False)
     assert "NORMAL" in attributes and len(glb.vertex_normals) == len(ply.vertices)
+    np.testing.assert_allclose(glb.vertices, ply.vertices[:, [0, 2, 1]] * [1, 1, -1], atol=1e-6)
     np.testing.assert_allclose(glb.vertex_normals, ply.vertex_normals[:, [0, 2, 1]] * [1, 1, -1], atol=1e-5)
 
 
 @pytest.mark.slow
-def test_no_result_file_holds_a_nan_or_an_infinity(run_stages, bird_capture):
+def test_no_result_file_holds_a_nan_or_an_infinity(run_stages, small_bird):
     """Every JSON (strictly parsed), scene file, EXR and the glTF's JSON of the fit
     stages and export: the writers refuse non-finite values (pipeline.core.errors)."""
     import re
 
     from pipeline.synthetic.score import read_linear_image
 
-    outputs = run_stages(bird_capture, "export", *TINY_FIT, *TINY_TEXTURE, "fit_geometry.enabled=false")
+    outputs = run_stages(small_bird, "export", *TINY_FIT, *TINY_TEXTURE, "fit_geometry.enabled=false")
 
     def refuse(constant):
         raise AssertionError(f"non-finite constant {constant} in JSON")
@@ -119,7 +118,7 @@ def test_every_model_gives_a_glb_the_khronos_validator_passes(tmp_path, model, v
 
 
 @pytest.mark.slow
-def test_three_js_shows_the_glb_as_mitsuba_renders_the_scene(run_stages, bird_capture, tmp_path, mi):
+def test_three_js_shows_the_glb_as_mitsuba_renders_the_scene(run_stages, small_bird, tmp_path, mi):
     """The glb, validated, then rendered by three.js in headless Chromium from a held-out
     photo's camera: its outline is the fitted mesh's in that view, and its colour (the
     mean's chromaticity over the specimen; the lights differ) the Mitsuba render's."""
@@ -130,7 +129,7 @@ def test_three_js_shows_the_glb_as_mitsuba_renders_the_scene(run_stages, bird_ca
     from pipeline.formats.cameras import read_views
     from tests.support.gltf_viewers import three_js_renders, validator_issues
 
-    outputs = run_stages(bird_capture, "export", *TINY_FIT, *TINY_TEXTURE, "fit_geometry.enabled=false")
+    outputs = run_stages(small_bird, "export", *TINY_FIT, *TINY_TEXTURE, "fit_geometry.enabled=false")
     glb = outputs["export"]["glb"]
     issues = validator_issues(glb)
     assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, issues["messages"]

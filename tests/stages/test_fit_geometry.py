@@ -1,4 +1,4 @@
-"""Stage fit_geometry on the bundled sample bird, with passes small enough for a test."""
+"""Stage fit_geometry on a small synthetic bird, with passes small enough for a test."""
 
 import json
 
@@ -24,9 +24,9 @@ SPHERE_BY_SILHOUETTE = (
 lower its held-out error."""
 
 
-def test_fit_geometry_pulls_a_sphere_towards_the_silhouettes(run_stages, bird_capture):
+def test_fit_geometry_pulls_a_sphere_towards_the_silhouettes(run_stages, small_bird):
     outputs = run_stages(
-        bird_capture,
+        small_bird,
         "fit_geometry",
         *TINY_FIT,
         *TINY_TEXTURE,
@@ -50,12 +50,12 @@ def test_fit_geometry_pulls_a_sphere_towards_the_silhouettes(run_stages, bird_ca
     assert longer_sides["fit_geometry"] == longer_sides["fit_material"] == {48}
 
 
-def test_fit_geometry_alternates_shape_and_material_and_the_scene_holds_the_result(run_stages, bird_capture, mi):
+def test_fit_geometry_alternates_shape_and_material_and_the_scene_holds_the_result(run_stages, small_bird, mi):
     """Two rounds on the hull with a kept texture: each pass keeps its best held-out
     state (so none ends worse than it started), and the final scene holds the
     refitted constants and texture that params.json reports."""
     outputs = run_stages(
-        bird_capture,
+        small_bird,
         "fit_geometry",
         *TINY_FIT,
         *TINY_TEXTURE,
@@ -100,9 +100,9 @@ def test_fit_geometry_alternates_shape_and_material_and_the_scene_holds_the_resu
     assert (report["median_vertex_move_of_diagonal"] > 0) == report["kept"]
 
 
-def test_a_material_pass_below_the_minimum_gain_leaves_the_material_as_it_was(run_stages, bird_capture, mi):
+def test_a_material_pass_below_the_minimum_gain_leaves_the_material_as_it_was(run_stages, small_bird, mi):
     outputs = run_stages(
-        bird_capture,
+        small_bird,
         "fit_geometry",
         *TINY_FIT,
         *TINY_TEXTURE,
@@ -125,11 +125,11 @@ def test_a_material_pass_below_the_minimum_gain_leaves_the_material_as_it_was(ru
     assert (folder / "base_color.exr").read_bytes() == (textured / "base_color.exr").read_bytes()
 
 
-def test_a_geometry_pass_below_the_minimum_gain_leaves_the_mesh_as_it_was(run_stages, bird_capture):
+def test_a_geometry_pass_below_the_minimum_gain_leaves_the_mesh_as_it_was(run_stages, small_bird):
     """temple-ring's first pass lowered its own held-out error by 0.2 % and left the
     specimen 11 % worse: a pass must earn its mesh as a material pass its values."""
     outputs = run_stages(
-        bird_capture,
+        small_bird,
         "fit_geometry",
         *TINY_FIT,
         *TINY_TEXTURE,
@@ -143,7 +143,7 @@ def test_a_geometry_pass_below_the_minimum_gain_leaves_the_mesh_as_it_was(run_st
     assert geometry["kept"] is False and report["median_vertex_move_of_diagonal"] == 0
 
 
-def test_rounds_that_worsen_the_specimen_leave_the_start_scene(run_stages, bird_capture, monkeypatch):
+def test_rounds_that_worsen_the_specimen_leave_the_start_scene(run_stages, small_bird, monkeypatch):
     """A geometry pass scores its whole window: one that lowered its own error while
     the specimen's rose (here: the mesh blown up by 15 % after the real pass) is not
     kept, and fit_texture's scene is published unchanged."""
@@ -160,7 +160,7 @@ def test_rounds_that_worsen_the_specimen_leave_the_start_scene(run_stages, bird_
 
     monkeypatch.setattr(stages.fit_geometry, "shape_pass", blowing_up)
     outputs = run_stages(
-        bird_capture,
+        small_bird,
         "fit_geometry",
         *TINY_FIT,
         *TINY_TEXTURE,

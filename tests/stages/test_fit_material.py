@@ -1,4 +1,5 @@
-"""Stage fit_material on the bundled sample bird, with a fit small enough for a test."""
+"""Stage fit_material with a fit small enough for a test: on a small synthetic bird, and on
+the bundled bird where the board (the light's level, white balance) takes part."""
 
 import json
 
@@ -12,10 +13,10 @@ from tests.support.toy_stages import run_python
 pytestmark = pytest.mark.slow
 
 
-def test_fit_material_moves_base_colour_toward_the_truth_within_bounds(run_stages, bird_capture, mi):
-    outputs = run_stages(bird_capture, "fit_material", *TINY_FIT)["fit_material"]
+def test_fit_material_moves_base_colour_toward_the_truth_within_bounds(run_stages, small_bird, mi):
+    outputs = run_stages(small_bird, "fit_material", *TINY_FIT)["fit_material"]
     params = json.loads(outputs["params"].read_text())
-    truth = json.loads((bird_capture / "ground_truth" / "material.json").read_text())
+    truth = json.loads((small_bird / "ground_truth" / "material.json").read_text())
     start = np.array([0.5, 0.5, 0.5])
     fitted = np.array(params["params"]["base_color"])
     target = np.array(truth["base_color_mean"])  # a constant fit to the textured bird
@@ -77,11 +78,11 @@ def test_white_balance_writes_centred_gains_by_which_the_views_divide_their_phot
     np.testing.assert_allclose(matched, 1.0, rtol=0.1)
 
 
-def test_fit_material_rejects_bounds_of_unknown_parameters(run_stages, bird_capture):
+def test_fit_material_rejects_bounds_of_unknown_parameters(run_stages, small_bird):
     from pipeline.core.errors import PipelineError
 
     with pytest.raises(PipelineError, match="alpha, not parameters of the principled model"):
-        run_stages(bird_capture, "fit_material", *TINY_FIT, 'fit_material.bounds=["alpha=0.1:0.5"]')
+        run_stages(small_bird, "fit_material", *TINY_FIT, 'fit_material.bounds=["alpha=0.1:0.5"]')
 
 
 KILLED_IN_FIT = """
@@ -106,17 +107,17 @@ Runner(capture, STAGES, config).run(Selection(until="fit_material"))
 """
 
 
-def test_a_fit_killed_midway_resumes_where_it_was(run_stages, bird_capture, caplog):
+def test_a_fit_killed_midway_resumes_where_it_was(run_stages, small_bird, caplog):
     overrides = [*TINY_FIT, "fit_material.seed=11"]  # a key no other test computes
-    run_stages(bird_capture, "scene")
-    script = KILLED_IN_FIT.replace("CAPTURE", repr(str(bird_capture))).replace("OVERRIDES", repr(overrides))
+    run_stages(small_bird, "scene")
+    script = KILLED_IN_FIT.replace("CAPTURE", repr(str(small_bird))).replace("OVERRIDES", repr(overrides))
     killed = run_python(script, timeout=300)
     assert killed.returncode == -9, killed.stderr[-2000:]
-    outputs = run_stages(bird_capture, "fit_material", *overrides)["fit_material"]
+    outputs = run_stages(small_bird, "fit_material", *overrides)["fit_material"]
     assert "at iteration 5" in caplog.text and "resuming a fit" in caplog.text
     log = [json.loads(line) for line in (outputs["fitted_dir"] / "log.jsonl").read_text().splitlines()]
     assert [e["iteration"] for e in log] == list(range(1, 9))
-    assert not list((bird_capture / ".pipeline" / "checkpoints").glob("fit_material-*"))  # removed once committed
+    assert not list((small_bird / ".pipeline" / "checkpoints").glob("fit_material-*"))  # removed once committed
 
 
 def test_an_estimated_light_is_chosen_by_held_out_error_and_written_into_the_scene(run_stages, bird_capture, mi):
@@ -144,7 +145,7 @@ def test_an_estimated_light_is_chosen_by_held_out_error_and_written_into_the_sce
             assert (outputs["heldout"] / f"{name}.{kind}.png").is_file()
 
 
-def test_a_material_model_left_open_is_chosen_by_held_out_error_and_carried_downstream(run_stages, bird_capture, mi):
+def test_a_material_model_left_open_is_chosen_by_held_out_error_and_carried_downstream(run_stages, small_bird, mi):
     """capture.material = auto: fit_material fits principled, then opaque from it, then
     volumetric only when principled beat opaque by more than model_margin; keeps the
     simplest within the margin of the best (margin 0: the best), then checks twice the
@@ -155,7 +156,7 @@ def test_a_material_model_left_open_is_chosen_by_held_out_error_and_carried_down
     from pipeline.formats.scene_description import SceneDescription
 
     overrides = (*TINY_FIT, "capture.material=auto", "fit_material.model_margin=0", *TINY_TEXTURE)
-    outputs = run_stages(bird_capture, "fit_texture", *overrides, "fit_texture.texture=off")
+    outputs = run_stages(small_bird, "fit_texture", *overrides, "fit_texture.texture=off")
     description = SceneDescription.read(outputs["scene"]["description"])
     assert description.model_choice == ["opaque", "principled", "volumetric"]
     assert description.model == "principled" and set(description.integrators) == set(description.model_choice)

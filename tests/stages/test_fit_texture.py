@@ -1,4 +1,4 @@
-"""Stage fit_texture on the bundled sample bird, with a fit small enough for a test."""
+"""Stage fit_texture on a small synthetic bird, with a fit small enough for a test."""
 
 import json
 from pathlib import Path
@@ -12,10 +12,10 @@ from tests.support.tiny_fits import TINY_FIT, TINY_TEXTURE
 pytestmark = pytest.mark.slow
 
 
-def test_fit_texture_lowers_the_held_out_error_and_the_scene_loads_it(run_stages, bird_capture, mi):
+def test_fit_texture_lowers_the_held_out_error_and_the_scene_loads_it(run_stages, small_bird, mi):
     """From the constant, coarse to fine."""
     texture = (*TINY_TEXTURE, "fit_texture.texture=on", "fit_texture.start=constant")
-    outputs = run_stages(bird_capture, "fit_texture", *TINY_FIT, *texture)
+    outputs = run_stages(small_bird, "fit_texture", *TINY_FIT, *texture)
     folder = outputs["fit_texture"]["textured_dir"]
     report = json.loads((folder / "params.json").read_text())
     assert report["kept"] and report["kind"] == "bitmap" and report["parameter"] == "base_color"
@@ -42,22 +42,23 @@ def test_fit_texture_lowers_the_held_out_error_and_the_scene_loads_it(run_stages
     ]
 
 
-def test_a_texture_baked_from_the_photos_starts_far_below_the_constant(run_stages, bird_capture, mi):
+def test_a_texture_baked_from_the_photos_starts_far_below_the_constant(run_stages, small_bird, mi):
     """start = photos: the bake alone (before any step) more than halves the constant's
     held-out error on the blotchy bird; only the finest level is fitted, from it."""
-    outputs = run_stages(bird_capture, "fit_texture", *TINY_FIT, *TINY_TEXTURE, "fit_texture.start=photos")
+    outputs = run_stages(small_bird, "fit_texture", *TINY_FIT, *TINY_TEXTURE, "fit_texture.start=photos")
     report = json.loads((outputs["fit_texture"]["textured_dir"] / "params.json").read_text())
     assert report["kept"] and [level["resolution"] for level in report["levels"]] == [[32, 32]]
-    assert report["baked"]["max_size"] == 96 and report["baked"]["texels_seen"] > 0.8
+    # six training views from two rings above the table leave the underside unseen
+    assert report["baked"]["max_size"] == 96 and 0.4 < report["baked"]["texels_seen"] < 1.0
     assert report["levels"][0]["start_validation_mse"] < 0.5 * report["validation_mse_constant"]
     assert report["validation_mse_texture"] <= report["levels"][0]["start_validation_mse"]
 
 
-def test_a_texture_not_kept_leaves_the_constant_colour_with_the_refitted_constants(run_stages, bird_capture, mi):
+def test_a_texture_not_kept_leaves_the_constant_colour_with_the_refitted_constants(run_stages, small_bird, mi):
     """The texture must beat the refitted constants; min_improvement = 1 means it never
     does. The scene then has fit_material's constant colour and the constants that
     fit_texture refitted alone."""
-    outputs = run_stages(bird_capture, "fit_texture", *TINY_FIT, *TINY_TEXTURE, "fit_texture.min_improvement=1.0")
+    outputs = run_stages(small_bird, "fit_texture", *TINY_FIT, *TINY_TEXTURE, "fit_texture.min_improvement=1.0")
     folder = outputs["fit_texture"]["textured_dir"]
     report = json.loads((folder / "params.json").read_text())
     constants = json.loads(outputs["fit_material"]["params"].read_text())["params"]
@@ -73,14 +74,14 @@ def test_a_texture_not_kept_leaves_the_constant_colour_with_the_refitted_constan
     assert score_heldout(folder / "heldout")["views"] == 2
 
 
-def test_a_guessed_light_too_dim_for_the_texture_is_raised_in_every_scene_file(run_stages, bird_capture, mi):
+def test_a_guessed_light_too_dim_for_the_texture_is_raised_in_every_scene_file(run_stages, small_bird, mi):
     """Without the board's print the light's level is a guess (measured on the specimen
     as if grey); with colours bounded at 0.3 the bird's baked texels cannot reach the
     photos under it. The bake raises the light until all but 1 % of them fit, and the
     scene files carry the raised light with the texture (params.json says by how much)."""
     light = ("scene.board_plane=false", "light.model=constant", 'fit_material.bounds=["base_color=0.001:0.3"]')
     texture = (*TINY_TEXTURE, "fit_texture.start=photos", "fit_texture.texture=on")
-    outputs = run_stages(bird_capture, "fit_texture", *TINY_FIT, *light, *texture)
+    outputs = run_stages(small_bird, "fit_texture", *TINY_FIT, *light, *texture)
     fitted = json.loads(outputs["fit_material"]["params"].read_text())["light"]
     report = json.loads(outputs["fit_texture"]["params"].read_text())
     scale = report["baked"]["light_scale"]

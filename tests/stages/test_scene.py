@@ -1,5 +1,6 @@
-"""Stage scene on the bundled sample bird (after the geometry stages, shared through the
-runner's cache)."""
+"""Stage scene: lined up with the photos on the bundled sample bird (its board frame), and
+each model's files on a small synthetic bird (after the geometry stages, shared through
+the runner's cache)."""
 
 import json
 import xml.etree.ElementTree as ET
@@ -50,8 +51,8 @@ def test_scene_loads_renders_and_lines_up_with_the_photos(run_stages, bird_captu
 
 
 @pytest.mark.parametrize("model, medium, integrator", [("volumetric", True, "volpath"), ("opaque", False, "path")])
-def test_each_model_writes_only_what_it_needs(run_stages, bird_capture, mi, model, medium, integrator):
-    outputs = run_stages(bird_capture, "scene", f"scene.model={model}")["scene"]
+def test_each_model_writes_only_what_it_needs(run_stages, small_bird, mi, model, medium, integrator):
+    outputs = run_stages(small_bird, "scene", f"scene.model={model}")["scene"]
     specimen = ET.parse(outputs["scene_dir"] / "specimen.xml").getroot()
     assert (specimen.find(".//medium") is not None) == medium
     names = {e.get("name") for e in specimen.find(".//bsdf").iter()}
@@ -61,7 +62,7 @@ def test_each_model_writes_only_what_it_needs(run_stages, bird_capture, mi, mode
     mi.load_file(str(outputs["scene"]))
 
 
-def test_the_scene_renders_with_the_mitsuba_command(run_stages, bird_capture, mi, tmp_path):
+def test_the_scene_renders_with_the_mitsuba_command(run_stages, small_bird, mi, tmp_path):
     """The scene files name a render integrator the `mitsuba` command has (prb exists
     only in Python), so a user renders them as they are."""
     import subprocess
@@ -69,7 +70,7 @@ def test_the_scene_renders_with_the_mitsuba_command(run_stages, bird_capture, mi
 
     from pipeline.imaging.photo_io import read_photo
 
-    folder = run_stages(bird_capture, "scene", "scene.spp=1")["scene"]["scene_dir"]
+    folder = run_stages(small_bird, "scene", "scene.spp=1")["scene"]["scene_dir"]
     view = sorted(folder.glob("view-*.xml"))[0]
     command = Path(sys.executable).parent / "mitsuba"
     out = tmp_path / "render.exr"

@@ -30,5 +30,6 @@ TINY_GEOMETRY = (
     "fit_geometry.validation_spp=8",
     "fit_geometry.spp=4",
     "fit_geometry.material_max_size=48",
+    "fit_geometry.material_iterations=4",
     "fit_geometry.material_spp=4",
 )

@@ -46,7 +46,7 @@ def scaled(factor: float) -> Intrinsics:
 
 def turntable_views(
     views: int = 20,
-    points: int = 900,
+    points: int = 600,
     neighbours: int = 3,
     jitter: float = 0.3,
     seed: int = 0,
