@@ -302,7 +302,7 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="masks",
-    version=6,
+    version=7,
     config=Config,
     main=main,
     needs=("undistort.pinhole",),

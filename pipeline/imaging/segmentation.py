@@ -144,6 +144,13 @@ def _weighted_lab(srgb: np.ndarray) -> np.ndarray:
     return lab
 
 
+def _srgb_of(weighted_lab: np.ndarray) -> np.ndarray:
+    """The 8-bit-scale sRGB colour (floats) of a weighted CIELAB colour."""
+    lab = np.array(weighted_lab, np.float32).reshape(1, 1, 3)
+    lab[..., 0] /= LIGHTNESS_WEIGHT
+    return np.clip(cv2.cvtColor(lab, cv2.COLOR_Lab2RGB)[0, 0] * 255.0, 0.0, 255.0)
+
+
 def _border(shape: tuple[int, int]) -> np.ndarray:
     """A frame 3 % of the longer side wide (at least 2 px) along the image border."""
     width = max(2, round(0.03 * max(shape)))
@@ -201,6 +208,21 @@ class SetColours:
         for colour in self.colours[:, first:]:  # one colour at a time: memory stays one image
             nearest = np.minimum(nearest, np.linalg.norm(lab[:, 0] - colour, axis=-1))
         return (nearest / self.noise).reshape(srgb.shape[:2])
+
+    def in_shade(self, srgb: np.ndarray) -> np.ndarray:
+        """Pixels that are one of these colours in shade: within three noise units of the
+        colour dimmed to the pixel's brightness (every sRGB channel scaled alike, as less
+        light scales them), and farther than three from the colour itself."""
+        pixels = srgb.astype(np.float32)
+        lab = _weighted_lab(srgb)
+        shaded = np.zeros(srgb.shape[:2], bool)
+        for colour in self.colours:
+            lit = _srgb_of(colour)
+            scale = np.clip(pixels.sum(axis=-1) / max(float(lit.sum()), 1.0), 0.0, 1.0)
+            dimmed = _weighted_lab(scale[..., None] * lit)
+            near_dimmed = np.linalg.norm(lab - dimmed, axis=-1) <= 3 * self.noise
+            shaded |= near_dimmed & (np.linalg.norm(dimmed - colour, axis=-1) > 3 * self.noise)
+        return shaded
 
 
 def still_pixels(grey: np.ndarray) -> np.ndarray:
@@ -328,8 +350,25 @@ class FixedSet:
             seeds[set_still & (self.always_still | self._unlike_specimen(small, seeds == cv2.GC_FGD))] = cv2.GC_BGD
         else:
             seeds[inside & (distance > 3)] = cv2.GC_FGD
+        seeds[self._shadow(small, seeds == cv2.GC_FGD)] = cv2.GC_PR_BGD
         seeds[distance < 1] = cv2.GC_BGD
         return _photo_size(grabcut(small, seeds, iterations), srgb.shape[:2])
+
+    def _shadow(self, small: np.ndarray, specimen: np.ndarray) -> np.ndarray:
+        """Sure specimen pixels (``specimen``) that are the specimen's shadow on the set: a
+        set colour in shade (``SetColours.in_shade``) and no colour of the rest of the
+        photo's sure specimen in shade, those colours learned 2 px inside it (an outline
+        blends the specimen's colour with the set's) and a colour of under
+        ``SPECIMEN_PLATE_MIN_SHARE`` of it (a highlight) left out. A shadow changes from
+        photo to photo as the specimen turns and is far from the set's colours, so it
+        would be seeded as specimen; a specimen whose shade is also the set's (grey on
+        grey) keeps it."""
+        shaded = specimen & self.colours.in_shade(small)
+        rest = cv2.erode((specimen & ~shaded).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+        known = _colours_of(_weighted_lab(small)[rest], self.colours.noise, SPECIMEN_PLATE_MIN_SHARE)
+        if known is None:
+            return np.zeros(small.shape[:2], bool)
+        return shaded & ~known.in_shade(small) & (known.distance(small) > 3)
 
     def _unlike_specimen(self, small: np.ndarray, specimen: np.ndarray) -> np.ndarray:
         """Pixels farther than three noise units from every colour of ``specimen`` (the

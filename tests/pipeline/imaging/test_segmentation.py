@@ -105,3 +105,42 @@ def test_an_outline_a_pixel_off_is_snapped_to_where_the_blurred_photo_is_half_wa
         assert iou(snap_outline(photo, mask), truth > 0) > 0.98
     alike = np.full_like(photo, 120)
     assert (snap_outline(alike, grown) == grown).all()
+
+
+def _shadowed_photos(colour, shade, backdrop=BLUE, table=TABLE) -> tuple[list, list, list]:
+    """Photos of a specimen of ``colour`` turning before ``backdrop`` on ``table``, its lower
+    half ``shade`` times as bright, over its own shadow (the table at half its
+    brightness) that turns with it; their true masks and shadows."""
+    photos, truths, shadows = [], [], []
+    lower = np.arange(72)[:, None] >= 42
+    for index, angle in enumerate(range(0, 360, 30)):
+        photo = np.zeros((72, 96, 3))
+        photo[:], photo[45:] = backdrop, table
+        truth, shadow = np.zeros((72, 96), np.uint8), np.zeros((72, 96), np.uint8)
+        cv2.ellipse(truth, (48, 40), (22, 9), angle, 0, 360, 1, -1)
+        cv2.ellipse(shadow, (48 + round(14 * np.cos(np.radians(angle))), 52), (16, 5), 0, 0, 360, 1, -1)
+        truth, shadow = truth > 0, (shadow > 0) & (truth == 0)
+        photo[truth], photo[truth & lower], photo[shadow] = colour, np.array(colour) * shade, np.array(table) / 2
+        noise = np.random.default_rng(index).normal(0, 2.0, photo.shape)
+        photos.append(np.clip(photo + noise, 0, 255).astype(np.uint8))
+        truths.append(truth)
+        shadows.append(shadow)
+    return photos, truths, shadows
+
+
+def _masks(photos: list[np.ndarray]) -> list[np.ndarray]:
+    learned = FixedSet.learn(photos, working_size=192, camera_fixed=True)
+    return [clean(learned.segment(p, i, 0.9, 5, 192), 0.1, 1.0) for i, p in enumerate(photos)]
+
+
+def test_a_specimens_shadow_on_the_set_is_left_out_unless_the_specimen_shades_to_the_same_colour():
+    """An orange specimen's shadow, the table in shade, is no specimen; a white specimen on
+    a grey table whose lower half is in a shade as grey as its shadow keeps that half (the
+    shadow too: nothing tells them apart)."""
+    photos, truths, shadows = _shadowed_photos(ORANGE, 0.8)
+    masks = _masks(photos)
+    assert max(m[s].mean() for m, s in zip(masks, shadows)) < 0.2
+    assert min(iou(m, t) for m, t in zip(masks, truths)) > 0.8
+    photos, truths, _ = _shadowed_photos((240, 240, 240), 0.35, backdrop=(30, 30, 30), table=(128, 128, 128))
+    lower = np.arange(72)[:, None] >= 42
+    assert min(m[t & lower].mean() for m, t in zip(_masks(photos), truths)) > 0.9
