@@ -106,17 +106,8 @@ def small_bird(tmp_path_factory) -> Path:
     photos (the bundled bird, ``bird_until_uv``). Shared by those tests on one worker."""
     from tests.support.byo_capture import byo_capture
 
-    photos = _synth_capture(
-        tmp_path_factory,
-        "small-bird-photos",
-        views=8,
-        width=128,
-        height=96,
-        spp=16,
-        distance=0.25,
-        calibration_shots=0,
-        seed=1,
-    )
+    options = dict(views=8, width=128, height=96, spp=16, distance=0.25, calibration_shots=0, seed=1)
+    photos = _synth_capture(tmp_path_factory, "small-bird-photos", **options)
     capture = byo_capture(photos, tmp_path_factory.mktemp("small-bird") / "bird")
     with (capture / "capture.toml").open("a") as settings:
         # A coarse hull and few faces: unwrapping and rendering scale with the faces.
