@@ -154,10 +154,7 @@ def test_dino_sparse_ring_closes_its_broken_ring_through_the_arcs_outlines(run_s
     leaves two arcs of the ring apart, and the smaller is joined to the ring by its outlines
     and solved with it. Turn angles against the calibrated reference, their common offset
     removed."""
-    (tmp_path / "images").mkdir()
-    for photo in sorted((DINO_SPARSE_RING / "images").glob("*.png")):
-        (tmp_path / "images" / photo.name).symlink_to(photo)
-    (tmp_path / "capture.toml").write_text('[capture]\nrig = "ring"\n\n[board]\nkind = "none"\n')
+    _linked_capture(tmp_path, DINO_SPARSE_RING, "ring")
     outputs = run_stages(tmp_path, "sfm")
     report = json.loads(outputs["sfm"]["report"].read_text())["circular"]
     assert any(group["joined"] and len(group["photos"]) >= 5 for group in report["joined_groups"])
@@ -170,6 +167,14 @@ def test_dino_sparse_ring_closes_its_broken_ring_through_the_arcs_outlines(run_s
         reference[name] = -R.T @ t
     errors = _turn_angle_errors_deg(report["angle_deg"], reference)
     assert np.median(errors) < 0.5 and errors.max() < 1.5
+
+
+def _linked_capture(folder: Path, source: Path, rig: str) -> None:
+    """A capture in ``folder`` of ``source``'s photos (linked) on ``rig``, without a board."""
+    (folder / "images").mkdir()
+    for photo in sorted((source / "images").glob("*.png")):
+        (folder / "images" / photo.name).symlink_to(photo)
+    (folder / "capture.toml").write_text(f'[capture]\nrig = "{rig}"\n\n[board]\nkind = "none"\n')
 
 
 def _turn_angle_errors_deg(angles_deg: dict[str, float], reference_centres: dict[str, np.ndarray]) -> np.ndarray:
@@ -199,10 +204,7 @@ def test_oxford_dino_turntable_places_every_photo_at_its_turn_angle_and_centre(r
     placed, turn angles and camera centres against its projective turntable reference
     (whose centres lie on an exact circle of radius 1; its viewing directions are good to
     a few degrees only and are not scored here)."""
-    (tmp_path / "images").mkdir()
-    for photo in sorted((OXFORD_DINO / "images").glob("*.png")):
-        (tmp_path / "images" / photo.name).symlink_to(photo)
-    (tmp_path / "capture.toml").write_text('[capture]\nrig = "turntable"\n\n[board]\nkind = "none"\n')
+    _linked_capture(tmp_path, OXFORD_DINO, "turntable")
     outputs = run_stages(tmp_path, "sfm")
     report = json.loads(outputs["sfm"]["report"].read_text())["circular"]
     _, poses = read_cameras(outputs["sfm"]["cameras"])
@@ -230,9 +232,7 @@ def test_dino_sparse_ring_with_its_calibration_given_places_every_viewing_direct
     """Its principal point sits 40 px above the centre row, which one circular motion cannot
     find; given Middlebury's K as calibrate.known_intrinsics, sfm holds it and every photo's
     viewing direction lands within a degree of the reference (similarity-aligned centres)."""
-    (tmp_path / "images").mkdir()
-    for photo in sorted((DINO_SPARSE_RING / "images").glob("*.png")):
-        (tmp_path / "images" / photo.name).symlink_to(photo)
+    _linked_capture(tmp_path, DINO_SPARSE_RING, "ring")
     reference = {}
     for line in (DINO_SPARSE_RING / "reference" / "dinoSR_par.txt").read_text().splitlines()[1:]:
         name, *values = line.split()
@@ -241,9 +241,8 @@ def test_dino_sparse_ring_with_its_calibration_given_places_every_viewing_direct
     K = K.reshape(3, 3)  # every line has the same K
     known = {"width": 640, "height": 480, "fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2]}
     (tmp_path / "known.json").write_text(json.dumps(known))
-    (tmp_path / "capture.toml").write_text(
-        '[capture]\nrig = "ring"\n\n[board]\nkind = "none"\n\n[calibrate]\nknown_intrinsics = "known.json"\n'
-    )
+    with (tmp_path / "capture.toml").open("a") as settings:
+        settings.write('\n[calibrate]\nknown_intrinsics = "known.json"\n')
     outputs = run_stages(tmp_path, "sfm")
     intrinsics, poses = read_cameras(outputs["sfm"]["cameras"])
     assert intrinsics.cx == pytest.approx(K[0, 2]) and intrinsics.cy == pytest.approx(K[1, 2])
