@@ -4,12 +4,11 @@ installs) renders it with every image decoded."""
 
 import re
 import shutil
-import subprocess
 
 import pytest
 
 from pipeline.cli import main as cli_main
-from tests.support.gltf_viewers import CHROMIUM_FLAGS
+from tests.support.gltf_viewers import headless_chromium
 from tests.support.tiny_fits import TINY_FIT, TINY_TEXTURE
 
 pytestmark = pytest.mark.slow
@@ -36,23 +35,10 @@ def test_the_report_opens_offline_in_chromium_with_every_image_loaded(run_stages
     assert set(links) == {"scene.xml", "params.json", "specimen.glb", "heldout", "README.txt"}
     alone = tmp_path / "report.html"  # a copy alone in a folder: opens offline
     shutil.copy2(small_bird / "output" / "report.html", alone)
-
-    chromium = shutil.which("chromium")
-    if chromium is None:
-        pytest.skip("chromium is not installed (bin/test installs Debian's package)")
-    # Headless Chromium dumps the page when its virtual time runs out, which does not wait
-    # for the glb's textures to decode on a busy machine (tests/support/gltf_viewers.py):
-    # a dump whose 3D view has neither drawn nor failed is taken again, up to three times.
-    for _ in range(3):
-        dom = subprocess.run(
-            [chromium, *CHROMIUM_FLAGS, "--virtual-time-budget=10000", "--dump-dom", alone.as_uri()],
-            capture_output=True,
-            text=True,
-            timeout=180,
-            check=True,
-        ).stdout
-        if re.search(r'id="specimen-view"[^>]*data-(rendered|error)=', dom):
-            break
+    dom = headless_chromium(
+        ["--virtual-time-budget=10000", "--dump-dom", alone.as_uri()],
+        lambda page: re.search(r'id="specimen-view"[^>]*data-(rendered|error)=', page) is not None,
+    )
     counted = re.search(r'data-images="(\d+)" data-images-loaded="(\d+)"', dom)
     assert counted is not None, dom[:500]
     assert int(counted.group(1)) == images and int(counted.group(2)) == images

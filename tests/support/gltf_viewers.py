@@ -51,12 +51,26 @@ def validator_issues(glb: Path) -> dict:
     return json.loads(result.stdout)
 
 
-def three_js_renders(glb: bytes, view: tuple[Intrinsics, Pose], backgrounds: tuple[str, ...], folder: Path):
-    """Linear RGB renders of the glb from ``view``, one per background colour, by
-    three.js in headless Chromium (one browser run: the viewers side by side)."""
+def headless_chromium(arguments: list[str], drawn) -> str:
+    """Headless Chromium with ``arguments`` (the test skips where it is not installed:
+    bin/test installs Debian's package), run again, up to three times in all, until
+    ``drawn(stdout)`` holds; the last run's stdout. Chromium takes its shot or dumps its
+    page when its virtual time runs out, and on a busy machine a WebGL view has now and
+    then not drawn the glb by then (seen: a bare background, an undrawn report)."""
     chromium = shutil.which("chromium")
     if chromium is None:
         pytest.skip("chromium is not installed (bin/test installs Debian's package)")
+    for _ in range(3):
+        command = [chromium, *CHROMIUM_FLAGS, *arguments]
+        stdout = subprocess.run(command, capture_output=True, text=True, timeout=180, check=True).stdout
+        if drawn(stdout):
+            break
+    return stdout
+
+
+def three_js_renders(glb: bytes, view: tuple[Intrinsics, Pose], backgrounds: tuple[str, ...], folder: Path):
+    """Linear RGB renders of the glb from ``view``, one per background colour, by
+    three.js in headless Chromium (one browser run: the viewers side by side)."""
     width, height = view[0].width, view[0].height
     fragments = "".join(
         viewer_fragment(glb, element_id=f"view{i}", view=view, background=colour)
@@ -68,19 +82,16 @@ def three_js_renders(glb: bytes, view: tuple[Intrinsics, Pose], backgrounds: tup
         f"<body>{fragments}</body></html>"
     )
     shot = folder / "viewers.png"
-    # Headless Chromium takes the shot when its virtual time runs out; on a busy machine a
-    # viewer has now and then not drawn the glb by then (seen once: still its bare
-    # background). Such a shot is taken again.
-    for _ in range(3):
-        subprocess.run(
-            [chromium, *CHROMIUM_FLAGS, f"--window-size={width * len(backgrounds)},{height}"]
-            + ["--virtual-time-budget=5000", f"--screenshot={shot}", page.as_uri()],
-            capture_output=True,
-            timeout=180,
-            check=True,
-        )
+
+    def views() -> list[np.ndarray]:
         pixels = read_photo(shot, "srgb").pixels
-        views = [np.ascontiguousarray(pixels[:, i * width : (i + 1) * width]) for i in range(len(backgrounds))]
-        if not any(np.ptp(view.reshape(-1, view.shape[-1]), axis=0).max() < 1e-3 for view in views):
-            return views
-    pytest.fail(f"three.js drew nothing in a viewer in three tries ({page})")
+        return [np.ascontiguousarray(pixels[:, i * width : (i + 1) * width]) for i in range(len(backgrounds))]
+
+    def every_viewer_drew(_: str) -> bool:
+        return not any(np.ptp(v.reshape(-1, v.shape[-1]), axis=0).max() < 1e-3 for v in views())
+
+    size = f"--window-size={width * len(backgrounds)},{height}"
+    headless_chromium([size, "--virtual-time-budget=5000", f"--screenshot={shot}", page.as_uri()], every_viewer_drew)
+    if not every_viewer_drew(""):
+        pytest.fail(f"three.js drew nothing in a viewer in three tries ({page})")
+    return views()
