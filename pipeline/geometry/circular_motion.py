@@ -286,10 +286,13 @@ def essentials(axis: np.ndarray, point: np.ndarray, turns: np.ndarray) -> np.nda
 
 def sampson_sq(E: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     """(G, N) squared Sampson distances of rays ``x1`` -> ``x2`` (N, 3) under each of ``E`` (G, 3, 3)."""
-    Ex1 = x1 @ E.transpose(0, 2, 1)
-    Etx2 = x2 @ E
-    algebraic = np.sum(x2 * Ex1, axis=-1)
-    denominator = Ex1[..., 0] ** 2 + Ex1[..., 1] ** 2 + Etx2[..., 0] ** 2 + Etx2[..., 1] ** 2
+    # One (N, 3) x (3, 3G) product per side rather than G batched 3x3 ones: the axis
+    # search evaluates dozens of turns for hundreds of axes.
+    G = len(E)
+    Ex1 = (x1 @ E.transpose(2, 0, 1).reshape(3, 3 * G)).reshape(len(x1), G, 3)  # [n, g] = E[g] x1[n]
+    Etx2 = (x2 @ E.transpose(1, 0, 2).reshape(3, 3 * G)).reshape(len(x2), G, 3)  # [n, g] = E[g]^T x2[n]
+    algebraic = np.einsum("nga,na->gn", Ex1, x2)
+    denominator = (Ex1[..., 0] ** 2 + Ex1[..., 1] ** 2 + Etx2[..., 0] ** 2 + Etx2[..., 1] ** 2).T
     return algebraic**2 / np.maximum(denominator, 1e-300)
 
 
