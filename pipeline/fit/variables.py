@@ -75,8 +75,10 @@ class GradientWhitening:
     Limitations: the plain values only (a texture's texels are too many for a matrix);
     one eigendecomposition of a matrix of their channels per step, on the host."""
 
-    BETA = 0.999
-    """Decay of the second moment, Adam's own."""
+    BETA = 0.99
+    """Decay of the second moment: a memory of about a hundred steps, shorter than Adam's
+    own (0.999), so that the first steps' large gradients, along the steep directions,
+    do not set the directions' scales for the whole fit."""
     FLOOR = 1e-6
     """Eigenvalues below this fraction of the largest are raised to it: a direction no
     gradient has shown yet is not amplified without bound."""
