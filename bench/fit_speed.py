@@ -138,6 +138,7 @@ a stored outcome is reused while these are unchanged."""
 
 CONFIGS = {
     "defaults": (engine.FitSettings(), DEFAULT_SIZES),
+    "not whitened": (engine.FitSettings(whiten=False), DEFAULT_SIZES),
     "defaults, not frozen": (engine.FitSettings(freeze=False), DEFAULT_SIZES),
     "defaults at full size": (engine.FitSettings(), FilmSizes(0)),
     "max_size only": (engine.FitSettings(), FilmSizes(DEFAULT_SIZES.max_size, coarse_to_fine=False)),

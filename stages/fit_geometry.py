@@ -144,9 +144,11 @@ def _shape_settings(conf: Config, diagonal: float, seed: int) -> engine.ShapeSet
 
 
 def _material_settings(conf: Config, seed: int) -> engine.FitSettings:
-    """fit_material's loop, run to its iterations (no early stop)."""
+    """fit_material's loop, run to its iterations (no early stop), without whitening
+    (`pipeline fit`'s default, not measured on the stages' fits)."""
     return engine.FitSettings(
         iterations=conf.material_iterations,
+        whiten=False,
         batch=conf.batch,
         spp=conf.material_spp,
         learning_rate_scale=1.0,

@@ -95,6 +95,10 @@ class Config(FitSettings):
 
     iterations: Annotated[int, Range(1, None)] = 100
     """Most Adam steps."""
+    whiten: bool = False
+    """Decorrelate the plain values' gradients before Adam's step
+    (pipeline.fit.variables.GradientWhitening): `pipeline fit`'s default, measured on
+    its suite of kits, not on this stage's fits."""
     bounds: tuple[str, ...] = ()
     """Bounds overriding pipeline.render.materials' defaults, as "name=lower:upper" (e.g. "eta=1.3:1.6")."""
     max_size: Annotated[int, Range(16, None)] = 128

@@ -166,7 +166,8 @@ def _texture_fit(conf: Config, model: str, bounds: dict, views: list[engine.FitV
     parameters, and the loop's settings for one level."""
     # The texture's own learning rate (conf.learning_rate) is the scale's measure.
     loop = {f.name: getattr(conf, f.name) for f in fields(LoopSettings)}
-    settings = FitSettings(**loop, learning_rate_scale=1.0)
+    # Whitening (pipeline fit's default) is not measured on the stages' fits.
+    settings = FitSettings(**loop, learning_rate_scale=1.0, whiten=False)
     parameters = materials.refit_parameters(model, bounds, (conf.learning_rate, conf.smoothness), conf.refit_constants)
     training, validation = [v for v in views if v.name not in held], [v for v in views if v.name in held]
     return TextureFit(training=training, validation=validation, parameters=parameters, settings=settings)

@@ -97,7 +97,7 @@ def fit(
         raise PipelineError("no views to fit: every view is held out")
     gained = sorted(v.name for v in training) if settings.exposure or settings.white_balance else []
     variables = MaterialVariables(
-        parameters, _traversed(training + validation), gained, 3 if settings.white_balance else 1
+        parameters, _traversed(training + validation), gained, 3 if settings.white_balance else 1, settings.whiten
     )
     variables.check_keys(training + validation)
     variables.register(settings.learning_rate_scale)

@@ -407,6 +407,7 @@ class _Loop:
         step_losses = self.step(iteration)
         variables.add_priors()
         self.drop_non_finite_gradients(iteration)
+        variables.whiten_gradients()
         variables.optimizer.step()
         variables.clamp()
         # One read of the device per step: the batch's losses and gains together.
@@ -578,7 +579,8 @@ def run(
     def save(why: str | None) -> None:
         state.seconds, state.stopped = time.perf_counter() - started, why
         state.gain_estimates = variables.gain_estimates
-        checkpoint.save(variables.optimizer, state.arrays(best), state.record(best))
+        arrays = state.arrays(best) | variables.optimiser_arrays()
+        checkpoint.save(variables.optimizer, arrays, state.record(best))
 
     last = settings.iterations if state.stopped is None else state.iteration
     with progress.steps(last - state.iteration, label) as advance:
@@ -639,6 +641,7 @@ def _start(loop: _Loop, checkpoint) -> tuple[LoopState, BestState]:
         start_error = loop.validate() if loop.validation else None
         return LoopState(start_error), BestState(variables.snapshot(), 0, start_error)
     state, best = LoopState.resumed(resumed.record, resumed.arrays)
+    variables.restore_optimiser_arrays(resumed.arrays)
     for name, gain in state.gain_estimates.items():
         variables.record_gain(name, np.asarray(gain))
     for iteration in range(1, state.iteration + 1):

@@ -71,6 +71,10 @@ class FitSettings(LoopSettings):
     """Views rendered per step; their gradients add up before the step."""
     learning_rate_scale: Annotated[float, Range(0.0, None, exclusive_lo=True)] = 2.0
     """Multiplies every parameter's learning rate (pipeline.render.materials)."""
+    whiten: bool = True
+    """Decorrelate the plain values' gradients before Adam's step
+    (pipeline.fit.variables.GradientWhitening), so that values that trade off along a
+    diagonal valley follow it."""
     exposure: bool = False
     """Fit one exposure scale per photo (photos shot with automatic exposure)."""
     white_balance: bool = False

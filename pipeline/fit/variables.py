@@ -58,6 +58,46 @@ def neighbour_pairs(shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(first), np.concatenate(second)
 
 
+class GradientWhitening:
+    """Gradients of a few plain values decorrelated by the inverse square root of their
+    running second-moment matrix: full-matrix Adam's preconditioner, fed to the
+    diagonal Adam that steps them.
+
+    In units of each value's learning rate, a Monte Carlo gradient's noise near the
+    optimum is about J^T Sigma J, the Gauss-Newton curvature weighted by the render
+    noise. Where two values trade off along a diagonal valley (a transmission against
+    the base colour it dims), the steep direction's noise fills both coordinates, and
+    Adam's per-coordinate steps move along the valley by its signal over that noise:
+    the fit stops still short of the answer. Whitened, each direction is stepped by its
+    own signal over its own noise. Adam then sees gradients of about unit spread in
+    every coordinate, so its steps keep their size, one learning rate at most.
+
+    Limitations: the plain values only (a texture's texels are too many for a matrix);
+    one eigendecomposition of a matrix of their channels per step, on the host."""
+
+    BETA = 0.99
+    """Decay of the second moment: a memory of about a hundred steps, shorter than Adam's
+    own (0.999), so that the first steps' large gradients, along the steep directions,
+    do not set the directions' scales for the whole fit."""
+    FLOOR = 1e-6
+    """Eigenvalues below this fraction of the largest are raised to it: a direction no
+    gradient has shown yet is not amplified without bound."""
+
+    def __init__(self, moment: np.ndarray | None = None, count: int = 0):
+        self.moment, self.count = moment, count
+
+    def whiten(self, gradient: np.ndarray) -> np.ndarray:
+        """``gradient`` (in units of the learning rates) decorrelated; the moment updated."""
+        outer = np.outer(gradient, gradient)
+        self.moment = (
+            (1 - self.BETA) * outer if self.moment is None else self.BETA * self.moment + (1 - self.BETA) * outer
+        )
+        self.count += 1
+        values, vectors = np.linalg.eigh(self.moment / (1 - self.BETA**self.count))
+        floor = max(values.max(), np.finfo(float).tiny) * self.FLOOR
+        return vectors @ ((vectors.T @ gradient) / np.sqrt(np.maximum(values, floor)))
+
+
 class MaterialVariables:
     """Scene parameters (plain values or textures), in log space where they span decades,
     and optionally a gain per training view: one (its exposure) or one per colour channel
@@ -79,7 +119,12 @@ class MaterialVariables:
     of the level and colour (docs/decisions.md, "Photos and exposure")."""
 
     def __init__(
-        self, parameters: list[FitParameter], traversed: dict[int, Any], gain_views: list[str], gain_channels: int = 1
+        self,
+        parameters: list[FitParameter],
+        traversed: dict[int, Any],
+        gain_views: list[str],
+        gain_channels: int = 1,
+        whiten: bool = False,
     ):
         import drjit as dr
         import mitsuba as mi
@@ -89,6 +134,7 @@ class MaterialVariables:
         self.gain_estimates: dict[str, list[float]] = {}
         """Each gained view's latest matched gain."""
         self.optimizer = mi.ad.Adam(lr=0.01)
+        self.whitening = GradientWhitening() if whiten else None
 
     def register(self, learning_rate_scale: float) -> None:
         """The latents in the optimiser, from the first scene's values."""
@@ -114,6 +160,7 @@ class MaterialVariables:
             p.name: self.mi.UInt32(np.array(p.layout.give, np.uint32)) for p in self.parameters if p.layout is not None
         }
         self.textured = {p.name for p in self.parameters if dr.is_tensor_v(optimizer[p.name])}
+        self.rates = {p.name: p.learning_rate * learning_rate_scale for p in self.parameters}
         self.priors = []
         for parameter in self.parameters:
             if parameter.smoothness > 0 and parameter.name in self.textured:
@@ -174,6 +221,38 @@ class MaterialVariables:
     def record_gain(self, view_name: str, gain: np.ndarray) -> None:
         """The gain just matched to ``view_name``'s render (a gained view's)."""
         self.gain_estimates[view_name] = np.broadcast_to(gain, self.gain_channels).astype(float).tolist()
+
+    def whiten_gradients(self) -> None:
+        """The plain values' gradients decorrelated (GradientWhitening) before Adam's
+        step, when there are two channels or more; textures keep theirs."""
+        if self.whitening is None:
+            return
+        dr = self.dr
+        plain = [p.name for p in self.parameters if p.name not in self.textured]
+        gradients = [np.ravel(np.array(dr.grad(self.optimizer[name]), np.float64)) for name in plain]
+        if sum(len(g) for g in gradients) < 2:
+            return
+        rates = np.concatenate([np.full(len(g), self.rates[name]) for name, g in zip(plain, gradients)])
+        whitened = self.whitening.whiten(np.concatenate(gradients) * rates)
+        start = 0
+        for name, gradient in zip(plain, gradients):
+            value = self.optimizer[name]
+            part = type(value)(*[float(v) for v in whitened[start : start + len(gradient)]])
+            # A literal would be baked into the step's kernels, compiled anew every step.
+            dr.make_opaque(part)
+            dr.set_grad(value, part)
+            start += len(gradient)
+
+    def optimiser_arrays(self) -> dict[str, np.ndarray]:
+        """What a checkpoint needs beside Adam's state to resume the steps: the
+        whitening's moment."""
+        if self.whitening is None or self.whitening.moment is None:
+            return {}
+        return {"whitening/moment": self.whitening.moment, "whitening/count": np.array(self.whitening.count)}
+
+    def restore_optimiser_arrays(self, arrays: dict[str, np.ndarray]) -> None:
+        if self.whitening is not None and "whitening/moment" in arrays:
+            self.whitening = GradientWhitening(arrays["whitening/moment"], int(arrays["whitening/count"]))
 
     def add_priors(self) -> None:
         dr = self.dr
@@ -251,6 +330,15 @@ class ShapeVariables:
 
     def record_gain(self, view_name: str, gain: np.ndarray) -> None:
         raise AssertionError("a shape fit matches no gains")
+
+    def whiten_gradients(self) -> None:
+        """None: LargeSteps' coordinates are the shape's preconditioning."""
+
+    def optimiser_arrays(self) -> dict[str, np.ndarray]:
+        return {}
+
+    def restore_optimiser_arrays(self, arrays: dict[str, np.ndarray]) -> None:
+        pass
 
     def add_priors(self) -> None:
         pass
