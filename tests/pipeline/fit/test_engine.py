@@ -170,16 +170,8 @@ def test_a_jittering_fit_ends_in_its_average_where_that_scores_lower(mi, referen
     # jitter: whitening (tested on its own) changes which steps the average weighs.
     scene = _scene_file(tmp_path, [0.5, 0.5, 0.5], [0.7])
     views = _views(mi, scene, references / "references")
-    settings = engine.FitSettings(
-        iterations=40,
-        batch=2,
-        spp=4,
-        validate_every=5,
-        validation_spp=16,
-        still_threshold=0.0,
-        learning_rate_scale=8.0,
-        whiten=False,
-    )
+    loop = dict(iterations=40, batch=2, spp=4, validate_every=5, validation_spp=16, still_threshold=0.0)
+    settings = engine.FitSettings(**loop, learning_rate_scale=8.0, whiten=False)
     result = engine.fit(PARAMETERS, views[:2], views[2:], settings)
     validated = [e["validation_error"] for e in result.log if "validation_error" in e]
     assert result.averaged and result.validation_error < min(validated)
