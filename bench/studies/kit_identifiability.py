@@ -9,8 +9,8 @@ ended. For each kit folder that bench left in ``DIR`` whose stored run (``--runs
 ended outside a target, this renders the kit's views at the truth and at the run's
 result, both with the same seeds (the two renders share their sampler's numbers until
 the parameters send their paths apart, so most of their noise is common), and scores
-each against the references by the fits' loss: the dual estimator of the squared
-error of the expected image.
+each against the references by the squared error of the expected image (what the
+fits minimise), estimated from two renders (Deng et al.'s dual estimator).
 
 A result whose loss is no higher than the truth's fits the references as well as the
 truth does: those photos do not tell the two apart, and no fit of them can be expected
@@ -45,8 +45,8 @@ def stored_outcome(folder: Path, run: str) -> Outcome | None:
 
 
 def losses(kit, values: dict, folder: Path, spp: int, mi) -> np.ndarray:
-    """Per view: the dual estimator (two renders, Deng et al., the fits' loss) of the
-    squared error of the kit's expected image at ``values`` against its references.
+    """Per view: the dual estimator (two renders) of the squared error of the kit's
+    expected image at ``values`` against its references.
     One render's plain squared error would add the render's own variance, which the
     parameters change (a thinner medium scatters less and renders less noisy)."""
     with tempfile.TemporaryDirectory() as scratch:
@@ -86,7 +86,7 @@ def main() -> None:
         "|---|---|---|---|---|---|---|",
     ]
     print("\n".join(lines))
-    missed = [
+    candidates = [
         (material, seed, run)
         for material in args.materials
         for seed in sorted(int(p.name.rpartition("-")[2]) for p in args.work.glob(f"{material}-*"))
@@ -94,7 +94,7 @@ def main() -> None:
     ]
     determined = undetermined = 0
     examined = []
-    for material, seed, run in progress.track(missed, "kits"):
+    for material, seed, run in progress.track(candidates, "kits"):
         kit, folder = draw_kit(seed, material), args.work / f"{material}-{seed}"
         outcome = stored_outcome(folder, run)
         if outcome is None:
@@ -128,8 +128,8 @@ def main() -> None:
             "",
             f"{machine()} Mitsuba variant {variant}. Command (DIR: bench/fit_speed.py's --work folder):",
             f"`.venv/bin/python -m bench.studies.kit_identifiability {options} --write`.",
-            "A loss is the dual estimator of the squared error of the expected image against the",
-            f"references (the fits' loss), the truth and the result each rendered twice at {args.spp} spp with",
+            "A loss is the squared error of the expected image against the references (what the fits",
+            f"minimise), estimated from two renders at {args.spp} spp, the truth's and the result's with",
             "the same seeds (bench/studies/kit_identifiability.py's docstring).",
             "",
             verdict,
