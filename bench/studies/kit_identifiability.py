@@ -21,27 +21,19 @@ docs/benchmarks.md's "kit-identifiability" section with ``--write``.
 from __future__ import annotations
 
 import argparse
-import json
-import re
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from bench.common import machine, write_section
-from bench.fit_speed import SIGMA_T_TARGET, TARGETS, Outcome, draw_kit, errors, kit_xml, within
+from bench.fit_kits import draw_kit, errors, kit_xml, stored_outcome, target, within
 from pipeline.core import progress
 from pipeline.render import mitsuba_variant
 
 SEED = 1000
 """First render seed (a view's two are SEED plus twice its index, and one more); the
 references used 100 on."""
-
-
-def stored_outcome(folder: Path, run: str) -> Outcome | None:
-    """The run's outcome bench/fit_speed.py stored in the kit's folder, if any."""
-    path = folder / f"outcome-{re.sub(r'[^a-z0-9]+', '-', run)}.json"
-    return Outcome(**json.loads(path.read_text())["outcome"]) if path.is_file() else None
 
 
 def losses(kit, values: dict, folder: Path, spp: int, mi) -> np.ndarray:
@@ -62,11 +54,7 @@ def losses(kit, values: dict, folder: Path, spp: int, mi) -> np.ndarray:
 
 
 def outside_targets(kit, values: dict) -> str:
-    return ", ".join(
-        f"{name} {error:.3f}"
-        for name, error in errors(kit, values).items()
-        if error > (SIGMA_T_TARGET if name == "sigma_t" else TARGETS[name])
-    )
+    return ", ".join(f"{name} {error:.3f}" for name, error in errors(kit, values).items() if error > target(name))
 
 
 def main() -> None:
