@@ -16,21 +16,27 @@ Per step:
    merely render with less noise) recorded; the state with the lowest one is kept
    and the variables end in it;
 5. (``average``) the values join a running average that weighs the latest steps most
-   (TailAverage: about the last half of the fit).
+   (TailAverage: about the last half of the phase).
 
 It stops at ``iterations``, when the time budget is spent, or when nothing moves
 beyond its noise any more (pipeline.fit.stopping: no fitted value and not the
 training loss trends over the second half of the fit so far) and the held-out error
 has stopped falling (its latest render is not the best so far); each view's loss
 counts relative to its first, so that a batch of bright views does not look like a
-setback. At its stop, where the best held-out score came in the last half of the
-steps (the fit settled about its best, not away from it), the average is rendered on
-the held-out views and replaces the best state where its error is within the held-out
-scores' own jitter of the best (jitter_of); without held-out views it replaces the
-last state where the fit stopped still. Adam's fixed steps keep a value jittering about
-its optimum, and with momentum the jitter is a slow wander of several steps; the
-best of a few noisy held-out scores picks one point of that wander, the average
-its centre.
+setback. With ``step_halvings``, the first such stillness (and the next ones, as
+many times) halves every learning rate instead and the fit goes on: a phase of the
+fit is its steps at one step size, and the trend test and the running average see
+the current phase only.
+
+At its stop, where the best held-out score came in the last half of the phase (the
+fit settled about its best, not away from it), the average is rendered on the
+held-out views and replaces the best state where its error is within the held-out
+scores' own jitter of the best (jitter_of). Without held-out views it replaces the
+last state where the fit stopped still or its steps were halved: a fit found still
+once wanders about its optimum, and more steps only narrow the wander. Adam's fixed
+steps keep a value jittering about its optimum, and with momentum the jitter is a
+slow wander of several steps; the best of a few noisy held-out scores picks one
+point of that wander, the average its centre.
 
 What the loop costs, and why it is written this way (docs/benchmarks.md, "Fitting
 speed"): render seeds are passed as opaque Dr.Jit variables, so the kernels
@@ -429,6 +435,8 @@ class _Loop:
             "relative_loss": state.relative_losses[-1],
             "seconds": time.perf_counter() - started,
         }
+        if self.settings.step_halvings:
+            entry["halvings"] = state.halvings
         values = variables.snapshot() if self.settings.average else None
         if values is not None:
             state.average.add(values)
@@ -519,7 +527,17 @@ class LoopState:
     gain_estimates: dict[str, list] = field(default_factory=dict)
     """The gains matched to each view so far (pipeline.fit.variables)."""
     average: TailAverage = field(default_factory=TailAverage)
-    """The running average of the values (``average``); checkpointed as arrays."""
+    """The running average of the values over the current phase (``average``);
+    checkpointed as arrays."""
+    halvings: int = 0
+    """Times the learning rates were halved (``step_halvings``)."""
+    phase_start: int = 0
+    """Index in ``log`` of the first step at the current learning rates."""
+
+    @property
+    def phase(self) -> list[dict]:
+        """The log's steps at the current learning rates."""
+        return self.log[self.phase_start :]
 
     RECORD_KEYS = {"relative_losses": "losses"}
     """Names in the checkpoint's record that differ from the field's."""
@@ -599,7 +617,10 @@ def run(
             if checkpoint is not None:
                 checkpoint.log_step(entry)
             asked = on_iteration(entry) if on_iteration is not None else None
-            state.stopped = asked or _stop_reason(settings, state.log, entry, best)
+            state.stopped = asked or _stop_reason(settings, state.phase, entry, best)
+            if state.stopped and not asked and state.halvings < settings.step_halvings and not _spent(settings, entry):
+                _halve_steps(variables.optimizer, label, state)
+                state.stopped = None
             if state.stopped:
                 break
             if checkpoint is not None and checkpoint.due():
@@ -642,6 +663,7 @@ def _start(loop: _Loop, checkpoint) -> tuple[LoopState, BestState]:
         return LoopState(start_error), BestState(variables.snapshot(), 0, start_error)
     state, best = LoopState.resumed(resumed.record, resumed.arrays)
     variables.restore_optimiser_arrays(resumed.arrays)
+    _scale_learning_rates(variables.optimizer, 0.5**state.halvings)
     for name, gain in state.gain_estimates.items():
         variables.record_gain(name, np.asarray(gain))
     for iteration in range(1, state.iteration + 1):
@@ -651,17 +673,19 @@ def _start(loop: _Loop, checkpoint) -> tuple[LoopState, BestState]:
 
 def _averaged(loop: _Loop, state: LoopState, best: BestState) -> BestState:
     """The running average as the best state where the best step is among those it
-    weighs most (the last half) and it scores on the held-out views within their jitter
-    of that step (jitter_of), or, without held-out views, where the fit stopped still
-    (nothing trended over about the steps the average weighs); else ``best``."""
-    settings, average = loop.settings, state.average
+    weighs most (the last half of the phase) and it scores on the held-out views within
+    their jitter of that step (jitter_of), or, without held-out views, where the values
+    wander about a still point rather than drift: the fit stopped still (nothing
+    trended over about the steps the average weighs) or was found still before this
+    phase's step halving (``step_halvings``); else ``best``."""
+    settings, average, phase = loop.settings, state.average, state.phase
     if not average.count or best.averaged:
         return best
     if not loop.validation:
-        if still(state.log, settings.window, settings.still_threshold) is None:
+        if not state.halvings and still(phase, settings.window, settings.still_threshold) is None:
             return best
         return BestState(average.values, state.iteration, None, averaged=True)
-    tail = state.log[len(state.log) // 2 :]
+    tail = phase[len(phase) // 2 :]
     if not tail or best.iteration < tail[0]["iteration"]:
         return best  # the fit moved away from its best: its average is of worse states
     loop.variables.restore(average.values)
@@ -693,16 +717,39 @@ def jitter_of(errors: list[float]) -> float:
     return float(np.sqrt(np.mean(np.square(np.diff(errors, 2))) / 6))
 
 
-def _stop_reason(settings: LoopSettings, log: list[dict], entry: dict, best: BestState) -> str | None:
+def _stop_reason(settings: LoopSettings, phase: list[dict], entry: dict, best: BestState) -> str | None:
     # Still, but not while the held-out error keeps falling: its latest render the best
     # so far says the values are still on their way below the training loss's noise.
-    validated = [e["iteration"] for e in log if "validation_error" in e]
+    validated = [e["iteration"] for e in phase if "validation_error" in e]
     falling = bool(validated) and best.iteration == validated[-1]
-    if not falling and (reason := still(log, settings.window, settings.still_threshold)) is not None:
+    if not falling and (reason := still(phase, settings.window, settings.still_threshold)) is not None:
         return reason
-    if settings.time_budget_s and entry["seconds"] > settings.time_budget_s:
+    if _spent(settings, entry):
         return f"time budget of {settings.time_budget_s:g} s spent"
     return None
+
+
+def _spent(settings: LoopSettings, entry: dict) -> bool:
+    return bool(settings.time_budget_s) and entry["seconds"] > settings.time_budget_s
+
+
+def _halve_steps(optimizer, label: str, state: LoopState) -> None:
+    """Every learning rate halved, and a new phase begun: the trend test and the running
+    average start again from the next step."""
+    _scale_learning_rates(optimizer, 0.5)
+    state.halvings += 1
+    state.phase_start = len(state.log)
+    state.average = TailAverage()
+    logger.info("%s: still at step %d; learning rates halved (%d times so far)", label, state.iteration, state.halvings)
+
+
+def _scale_learning_rates(optimizer, factor: float) -> None:
+    """Each parameter's learning rate (the optimiser's own where it has none) times ``factor``."""
+    if factor == 1:
+        return
+    for key in list(optimizer.keys()):
+        rate = optimizer.state[key][2]
+        optimizer.set_learning_rate({key: (optimizer.lr if rate is None else rate) * factor})
 
 
 def _number(value: float | None) -> str:

@@ -23,7 +23,8 @@ plain value is one number for the whole image, and small films reach most target
 in a fraction of the time full ones take (docs/benchmarks.md, "Fitting speed").
 ``coarse_to_fine`` goes on from there at twice the pixels, and so on up to the films'
 own size, each level starting from the last one's values with half its learning
-rates and running until nothing moves beyond its noise (pipeline.fit.stopping):
+rates and running until nothing moves beyond its noise (pipeline.fit.stopping; the
+last level then halves its steps ``step_halvings`` times, pipeline.fit.loop):
 what only shows at full size (a small highlight's width) stays identifiable, and
 the finer levels' smaller steps and lower noise let the values settle closer. The
 written scene keeps its films.
@@ -347,9 +348,14 @@ def fit_scene(request: SceneFit, watcher: FitWatcher | None = None) -> Path:
         first_step = first_step if level else time.perf_counter()
         offset = time.perf_counter() - first_step
         # Adam's steps keep a value jittering by about its learning rate: each finer level,
-        # starting near the answer, steps half as far
+        # starting near the answer, steps half as far; only the last level, whose values
+        # are the answer, halves its steps again when still (step_halvings)
         settings = request.settings
-        level_settings = replace(settings, learning_rate_scale=settings.learning_rate_scale / 2**level)
+        level_settings = replace(
+            settings,
+            learning_rate_scale=settings.learning_rate_scale / 2**level,
+            step_halvings=settings.step_halvings if level == len(levels) - 1 else 0,
+        )
         result = engine.fit(
             parameters, training, heldout, level_settings, on_iteration=watcher.step if watcher else None
         )

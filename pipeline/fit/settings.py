@@ -36,6 +36,12 @@ class LoopSettings:
     window: Annotated[int, Range(4, None)] = 40
     """Fewest steps the trend test looks at (and before which the fit does not stop
     early): a drift a few times the noise shows over about this many steps."""
+    step_halvings: Annotated[int, Range(0, None)] = 0
+    """Times the fit, found still, halves every learning rate and fits on before it
+    stops: Adam's constant step keeps a value wandering about its optimum by about the
+    step (along a flat valley, far), and each halving narrows the wander. The trend
+    test and the running average (``average``) start again at each halving, so each
+    step size runs at least ``window`` steps."""
     time_budget_s: Annotated[float, Range(0.0, None)] = 0.0
     """Stop after this many seconds of fitting; 0 for no limit."""
     average: bool = True
@@ -71,6 +77,9 @@ class FitSettings(LoopSettings):
     """Views rendered per step; their gradients add up before the step."""
     learning_rate_scale: Annotated[float, Range(0.0, None, exclusive_lo=True)] = 2.0
     """Multiplies every parameter's learning rate (pipeline.render.materials)."""
+    step_halvings: Annotated[int, Range(0, None)] = 2
+    """Times a fit found still halves every learning rate and fits on before it stops
+    (LoopSettings; in a coarse-to-fine fit, at its last level)."""
     whiten: bool = True
     """Decorrelate the plain values' gradients before Adam's step
     (pipeline.fit.variables.GradientWhitening), so that values that trade off along a

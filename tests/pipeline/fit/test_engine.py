@@ -187,7 +187,7 @@ def test_a_jittering_fit_ends_in_its_average_where_that_scores_lower(mi, referen
 
 def test_without_held_out_views_the_average_is_taken_only_where_the_fit_stopped_still(mi, references, tmp_path):
     views = _views(mi, _scene_file(tmp_path, [0.5, 0.5, 0.5], [0.7]), references / "references")
-    settings = engine.FitSettings(iterations=400, batch=2, spp=4, window=12, learning_rate_scale=4.0)
+    settings = engine.FitSettings(iterations=400, batch=2, spp=4, window=12, learning_rate_scale=4.0, step_halvings=0)
     still = engine.fit(PARAMETERS, views, [], settings)
     assert still.stopped.startswith("nothing moved") and still.averaged
     for name, value in _average_of(still.log).items():
@@ -195,6 +195,50 @@ def test_without_held_out_views_the_average_is_taken_only_where_the_fit_stopped_
     capped = engine.fit(PARAMETERS, views, [], replace(settings, iterations=10, still_threshold=0.0))
     assert capped.stopped == "iterations" and not capped.averaged
     assert capped.values == capped.log[-1]["params"]
+
+
+def test_a_still_fit_halves_its_steps_as_often_as_asked_and_ends_in_the_last_phases_average(mi, references, tmp_path):
+    views = _views(mi, _scene_file(tmp_path, [0.5, 0.5, 0.5], [0.7]), references / "references")
+    settings = engine.FitSettings(iterations=400, batch=2, spp=4, window=12, learning_rate_scale=4.0, step_halvings=2)
+    result = engine.fit(PARAMETERS, views, [], settings)
+    assert result.stopped.startswith("nothing moved") and result.averaged
+    phases = [[e for e in result.log if e["halvings"] == h] for h in range(3)]
+    assert sum(map(len, phases)) == len(result.log) and all(len(phase) >= settings.window for phase in phases)
+    # each halving narrows the steps: the values move less from step to step
+    moves = [np.median(np.abs(np.diff([e["params"]["roughness"][0] for e in phase]))) for phase in phases]
+    assert moves[2] < moves[0]
+    for name, value in _average_of(phases[2]).items():
+        np.testing.assert_allclose(result.values[name], value, rtol=1e-5)
+
+
+def test_a_fit_resumed_after_a_halving_steps_at_the_halved_rates(mi, references, tmp_path, monkeypatch):
+    from pipeline.fit import loop
+    from pipeline.fit.checkpoint import resumable
+
+    scene = _scene_file(tmp_path, [0.5, 0.5, 0.5], [0.7])
+    settings = engine.FitSettings(iterations=400, batch=2, spp=4, window=12, learning_rate_scale=4.0, step_halvings=1)
+    rates = []
+    scale = loop._scale_learning_rates
+
+    def scale_and_record(optimizer, factor):
+        scale(optimizer, factor)
+        rates.append({key: optimizer.state[key][2] for key in optimizer.keys()})
+
+    monkeypatch.setattr(loop, "_scale_learning_rates", scale_and_record)
+
+    def interrupt_after_the_halving(entry):
+        if entry["halvings"] == 1:
+            raise Interrupted
+
+    with resumable(tmp_path / "checkpoints", every_s=0.0):
+        with pytest.raises(Interrupted):
+            engine.fit(
+                PARAMETERS, _views(mi, scene, references / "references"), [], settings, interrupt_after_the_halving
+            )
+        resumed = engine.fit(PARAMETERS, _views(mi, scene, references / "references"), [], settings)
+    halved, restored = rates
+    assert halved == restored and all(rate == 0.05 * 4.0 / 2 for rate in halved.values())
+    assert resumed.log[-1]["halvings"] == 1 and resumed.stopped.startswith("nothing moved")
 
 
 def test_set_values_writes_back_and_keeps_files_reachable(mi, tmp_path):
