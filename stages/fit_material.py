@@ -99,10 +99,6 @@ class Config(FitSettings):
     """Decorrelate the plain values' gradients before Adam's step
     (pipeline.fit.variables.GradientWhitening): `pipeline fit`'s default, measured on
     its suite of kits, not on this stage's fits."""
-    step_halvings: Annotated[int, Range(0, None)] = 0
-    """Times a fit found still halves its learning rates and fits on (LoopSettings):
-    `pipeline fit`'s default halves twice, measured on its suite of kits, not on this
-    stage's fits."""
     bounds: tuple[str, ...] = ()
     """Bounds overriding pipeline.render.materials' defaults, as "name=lower:upper" (e.g. "eta=1.3:1.6")."""
     max_size: Annotated[int, Range(16, None)] = 128

@@ -23,8 +23,8 @@ plain value is one number for the whole image, and small films reach most target
 in a fraction of the time full ones take (docs/benchmarks.md, "Fitting speed").
 ``coarse_to_fine`` goes on from there at twice the pixels, and so on up to the films'
 own size, each level starting from the last one's values with half its learning
-rates and running until nothing moves beyond its noise (pipeline.fit.stopping; the
-last level then halves its steps ``step_halvings`` times, pipeline.fit.loop):
+rates and running until nothing moves beyond its noise (pipeline.fit.stopping; with
+``step_halvings``, the last level then halves its steps, pipeline.fit.loop):
 what only shows at full size (a small highlight's width) stays identifiable, and
 the finer levels' smaller steps and lower noise let the values settle closer. The
 written scene keeps its films.

@@ -77,9 +77,6 @@ class FitSettings(LoopSettings):
     """Views rendered per step; their gradients add up before the step."""
     learning_rate_scale: Annotated[float, Range(0.0, None, exclusive_lo=True)] = 2.0
     """Multiplies every parameter's learning rate (pipeline.render.materials)."""
-    step_halvings: Annotated[int, Range(0, None)] = 2
-    """Times a fit found still halves every learning rate and fits on before it stops
-    (LoopSettings; in a coarse-to-fine fit, at its last level)."""
     whiten: bool = True
     """Decorrelate the plain values' gradients before Adam's step
     (pipeline.fit.variables.GradientWhitening), so that values that trade off along a

@@ -187,7 +187,7 @@ def test_a_jittering_fit_ends_in_its_average_where_that_scores_lower(mi, referen
 
 def test_without_held_out_views_the_average_is_taken_only_where_the_fit_stopped_still(mi, references, tmp_path):
     views = _views(mi, _scene_file(tmp_path, [0.5, 0.5, 0.5], [0.7]), references / "references")
-    settings = engine.FitSettings(iterations=400, batch=2, spp=4, window=12, learning_rate_scale=4.0, step_halvings=0)
+    settings = engine.FitSettings(iterations=400, batch=2, spp=4, window=12, learning_rate_scale=4.0)
     still = engine.fit(PARAMETERS, views, [], settings)
     assert still.stopped.startswith("nothing moved") and still.averaged
     for name, value in _average_of(still.log).items():
