@@ -166,11 +166,18 @@ def orbit_capture(tmp_path_factory) -> Path:
     )
 
 
+GROUPED = ("bird_capture", "small_bird", "mask_capture", "calibration_capture", "orbit_capture", "plain_turntable")
+"""Fixtures whose tests share one worker: the captures whose stages the tests share
+through the runner's cache, and the synthetic captures that take seconds to render
+(each worker would render its own)."""
+
+
 def pytest_itemcollected(item):
     """Under pytest-xdist (``-n 2 --dist loadgroup``, as bin/test runs), the tests of each
-    shared capture (the bundled bird, the small bird) run on one worker, whose cache lets
-    each run only the stages it adds; the rest spread over the workers. Marked as each test is collected: xdist tags
-    the grouped tests in its own pytest_collection_modifyitems, called before this file's."""
-    for capture in ("bird_capture", "small_bird"):
-        if capture in getattr(item, "fixturenames", ()):
-            item.add_marker(pytest.mark.xdist_group(capture))
+    fixture in GROUPED run on one worker; the rest spread over the workers. Marked as
+    each test is collected: xdist tags the grouped tests in its own
+    pytest_collection_modifyitems, called before this file's."""
+    for fixture in GROUPED:
+        if fixture in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.xdist_group(fixture))
+            return
