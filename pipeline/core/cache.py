@@ -143,17 +143,29 @@ class StageCache:
     def keep_failed(self, tmp: Path, stage: str, log_only: bool = False) -> Path:
         """Move a failed run's folder out of the cache, keeping its log for the user;
         with ``log_only``, only its log (the partial results are deleted)."""
-        stamp = time.strftime("%Y%m%d-%H%M%S")
-        dest = self.state_dir / "failed" / stage / f"{stamp}-{os.getpid()}"
-        dest.parent.mkdir(parents=True, exist_ok=True)
+        dest = self._new_failed_folder(stage)
         if log_only:
-            dest.mkdir()
             if (tmp / LOG_FILE).is_file():
                 os.rename(tmp / LOG_FILE, dest / LOG_FILE)
             shutil.rmtree(tmp)
         else:
-            os.rename(tmp, dest)
+            os.rename(tmp, dest)  # onto the empty folder just made
         return dest
+
+    def _new_failed_folder(self, stage: str) -> Path:
+        """An empty folder under failed/ named by the time and this process; numbered on,
+        because one process (the studio, a batch, a test) can fail a stage twice a second."""
+        parent = self.state_dir / "failed" / stage
+        parent.mkdir(parents=True, exist_ok=True)
+        name = f"{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
+        dest, number = parent / name, 1
+        while True:
+            try:
+                dest.mkdir()
+                return dest
+            except FileExistsError:
+                number += 1
+                dest = parent / f"{name}-{number}"
 
     def remove(self, entry: Entry) -> None:
         shutil.rmtree(entry.path)

@@ -205,6 +205,19 @@ def test_failing_stage_commits_nothing_and_is_redone_next_time(tmp_path, presets
     assert RUNS == ["ingest", "double", "meta", "report"]
 
 
+def test_a_stage_failing_twice_in_one_second_keeps_both_logs(tmp_path, presets_dir, monkeypatch):
+    """One process (the studio, a batch) can fail a stage twice within the second that
+    names the failed folder: the second failure still ends in its own error."""
+    import time
+
+    monkeypatch.setattr(time, "strftime", lambda fmt, *_: "20260101-000000")
+    capture = make_capture(tmp_path)
+    for _ in range(2):
+        with pytest.raises(RuntimeError, match="failed on purpose"):
+            run(capture, presets_dir, "ingest.fail='raise'")
+    assert len(list((capture / ".pipeline" / "failed" / "ingest").glob("*/log.txt"))) == 2
+
+
 def test_sigkilled_stage_leaves_no_entry_and_is_redone(tmp_path, presets_dir):
     capture = make_capture(tmp_path)
     run(capture, presets_dir, selection=Selection(until="ingest"))
