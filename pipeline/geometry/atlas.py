@@ -40,33 +40,50 @@ class Texels:
         return atlas.reshape(height, width, -1)[rows, cols]
 
 
+FACE_TEXELS_CHUNK = 1 << 22
+"""Candidate texels (bounding-box texels of the faces) tested at once: bounds the memory of
+rasterising a large atlas."""
+
+
 def _face_texels(textured: trimesh.Trimesh, shape: tuple[int, int]):
-    """Per face of ``textured``: (face, flat indices of the texels of an atlas of
-    ``shape`` whose centre lies in the face's UV triangle, edges included, and the
-    centres' barycentric weights (n, 3))."""
+    """Chunks, in face order, of (face per texel, flat indices of the texels of an atlas of
+    ``shape`` whose centre lies in that face's UV triangle, edges included, and the
+    centres' barycentric weights (n, 3)); within a face, texels in row-major order."""
     height, width = shape
-    for face_index, face in enumerate(textured.faces):
-        corners = textured.visual.uv[face] * (width, height) - 0.5  # texel-centre coordinates
-        lo = np.maximum(np.ceil(corners.min(axis=0)).astype(int), 0)
-        hi = np.minimum(np.floor(corners.max(axis=0)).astype(int), (width - 1, height - 1))
-        if np.any(hi < lo):
-            continue
-        edges = np.array([corners[1] - corners[0], corners[2] - corners[0]]).T
-        if abs(np.linalg.det(edges)) < 1e-12:
-            continue
-        cols, rows = np.meshgrid(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1))
-        weights = np.linalg.solve(edges, (np.c_[cols.ravel(), rows.ravel()] - corners[0]).T).T
+    corners = textured.visual.uv[textured.faces] * (width, height) - 0.5  # texel-centre coordinates
+    lo = np.maximum(np.ceil(corners.min(axis=1)).astype(int), 0)
+    hi = np.minimum(np.floor(corners.max(axis=1)).astype(int), (width - 1, height - 1))
+    edges = np.stack([corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]], axis=-1)  # columns
+    determinant = edges[:, 0, 0] * edges[:, 1, 1] - edges[:, 0, 1] * edges[:, 1, 0]
+    faces = np.flatnonzero((hi >= lo).all(axis=1) & (np.abs(determinant) >= 1e-12))
+    columns = hi[faces, 0] - lo[faces, 0] + 1
+    counts = columns * (hi[faces, 1] - lo[faces, 1] + 1)
+    # The inverse of each face's edge matrix, for the weights of every texel it covers.
+    inverse = np.stack([edges[:, 1, 1], -edges[:, 0, 1], -edges[:, 1, 0], edges[:, 0, 0]], axis=-1)
+    inverse = (inverse / determinant[:, None]).reshape(-1, 2, 2)
+    ends = np.cumsum(counts)
+    first = 0
+    while first < len(faces):
+        last = max(first + 1, int(np.searchsorted(ends, (ends[first - 1] if first else 0) + FACE_TEXELS_CHUNK)))
+        chunk, chunk_counts = faces[first:last], counts[first:last]
+        face = np.repeat(chunk, chunk_counts)
+        local = np.arange(chunk_counts.sum()) - np.repeat(np.cumsum(chunk_counts) - chunk_counts, chunk_counts)
+        row_length = np.repeat(columns[first:last], chunk_counts)
+        cols, rows = lo[face, 0] + local % row_length, lo[face, 1] + local // row_length
+        offset = np.c_[cols, rows] - corners[face, 0]
+        weights = np.einsum("nij,nj->ni", inverse[face], offset)
         weights = np.c_[1 - weights.sum(axis=1), weights]
         inside = (weights >= -1e-9).all(axis=1)
-        yield face_index, rows.ravel()[inside] * width + cols.ravel()[inside], weights[inside]
+        yield face[inside], rows[inside] * width + cols[inside], weights[inside]
+        first = last
 
 
 def chart_texels(textured: trimesh.Trimesh, shape: tuple[int, int]) -> Texels:
     """Rasterise ``textured``'s UV triangles at the texel centres of an atlas of ``shape``."""
     index, points = [], []
-    for face_index, texels, weights in _face_texels(textured, shape):
+    for face, texels, weights in _face_texels(textured, shape):
         index.append(texels)
-        points.append(weights @ textured.vertices[textured.faces[face_index]])
+        points.append(np.einsum("ni,nij->nj", weights, textured.vertices[textured.faces[face]]))
     # A texel centre on an edge shared by two faces is rasterised twice: keep the
     # later face's.
     if not index:
@@ -81,7 +98,7 @@ def overlapping_texels(textured: trimesh.Trimesh, shape: tuple[int, int]) -> int
     atlas has none."""
     covered = np.zeros(shape[0] * shape[1], dtype=int)
     for _, texels, weights in _face_texels(textured, shape):
-        np.add.at(covered, texels[(weights > 1e-6).all(axis=1)], 1)
+        covered += np.bincount(texels[(weights > 1e-6).all(axis=1)], minlength=len(covered))
     return int(np.count_nonzero(covered > 1))
 
 

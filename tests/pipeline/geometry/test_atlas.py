@@ -41,3 +41,19 @@ def test_uv_triangles_that_share_texels_are_counted():
     doubled = trimesh.util.concatenate([square, square])
     doubled.visual = trimesh.visual.TextureVisuals(uv=np.vstack([square.visual.uv] * 2))
     assert overlapping_texels(doubled, (8, 8)) > 0
+
+
+def test_rasterising_in_chunks_gives_the_texels_of_one_pass(monkeypatch):
+    from pipeline.geometry import atlas
+
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    angles = np.arctan2(sphere.vertices[:, 1], sphere.vertices[:, 0])
+    sphere.visual = trimesh.visual.TextureVisuals(
+        uv=np.c_[(angles + np.pi) / (2 * np.pi), sphere.vertices[:, 2] / 2 + 0.5]
+    )
+    whole = chart_texels(sphere, (64, 64))
+    monkeypatch.setattr(atlas, "FACE_TEXELS_CHUNK", 50)  # a few faces per chunk, some alone
+    chunked = chart_texels(sphere, (64, 64))
+    np.testing.assert_array_equal(chunked.index, whole.index)
+    np.testing.assert_allclose(chunked.points, whole.points)
+    assert overlapping_texels(sphere, (64, 64)) > 0  # the seam's faces wrap across the atlas
