@@ -65,7 +65,7 @@ def test_too_few_registered_photos_names_them(run_stages, tmp_path):
     for index, path in enumerate(photos[:8]):
         cv2.imwrite(str(path), np.full((420, 560, 3), (40 + 8 * index, 90, 160), np.uint8))
     with pytest.raises(PipelineError, match=r"only \d+ of 12 photos registered.*view_000\.jpg"):
-        run_stages(capture, "sfm", "masks.source=segment", "undistort.max_size=280")
+        run_stages(capture, "sfm", "undistort.max_size=280", "masks.working_size=280")
 
 
 @pytest.fixture(scope="module")
