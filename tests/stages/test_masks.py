@@ -112,7 +112,7 @@ def test_grayscale_photos_are_refused_under_the_colour_segmenter(run_stages, tin
         cv2.imwrite(str(photo), cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR))
     with pytest.raises(PipelineError, match=r"6 of 6 photos have no colour.*masks.segmenter = 'centre_prior'"):
         run_stages(capture, "masks")
-    # The fix works (at the photos' own size: GrabCut on grey photos converges slowly).
+    # The fix works (at twice the photos' size: GrabCut on grey photos converges slowly).
     masks = run_stages(capture, "masks", "masks.segmenter=centre_prior", "masks.working_size=192")["masks"]
     assert json.loads(masks["masks_json"].read_text())
 
