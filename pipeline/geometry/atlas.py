@@ -58,20 +58,21 @@ def _face_texels(textured: trimesh.Trimesh, shape: tuple[int, int]):
     faces = np.flatnonzero((hi >= lo).all(axis=1) & (np.abs(determinant) >= 1e-12))
     columns = hi[faces, 0] - lo[faces, 0] + 1
     counts = columns * (hi[faces, 1] - lo[faces, 1] + 1)
-    # The inverse of each face's edge matrix, for the weights of every texel it covers.
-    inverse = np.stack([edges[:, 1, 1], -edges[:, 0, 1], -edges[:, 1, 0], edges[:, 0, 0]], axis=-1)
-    inverse = (inverse / determinant[:, None]).reshape(-1, 2, 2)
+    # The inverse of each kept face's edge matrix, for the weights of every texel it covers.
+    kept_edges = edges[faces]
+    inverse = np.stack([kept_edges[:, 1, 1], -kept_edges[:, 0, 1], -kept_edges[:, 1, 0], kept_edges[:, 0, 0]], axis=-1)
+    inverse = (inverse / determinant[faces, None]).reshape(-1, 2, 2)
     ends = np.cumsum(counts)
     first = 0
     while first < len(faces):
         last = max(first + 1, int(np.searchsorted(ends, (ends[first - 1] if first else 0) + FACE_TEXELS_CHUNK)))
-        chunk, chunk_counts = faces[first:last], counts[first:last]
-        face = np.repeat(chunk, chunk_counts)
+        chunk_counts = counts[first:last]
+        kept = np.repeat(np.arange(first, last), chunk_counts)  # per candidate texel: its face among the kept
+        face = faces[kept]
         local = np.arange(chunk_counts.sum()) - np.repeat(np.cumsum(chunk_counts) - chunk_counts, chunk_counts)
-        row_length = np.repeat(columns[first:last], chunk_counts)
-        cols, rows = lo[face, 0] + local % row_length, lo[face, 1] + local // row_length
+        cols, rows = lo[face, 0] + local % columns[kept], lo[face, 1] + local // columns[kept]
         offset = np.c_[cols, rows] - corners[face, 0]
-        weights = np.einsum("nij,nj->ni", inverse[face], offset)
+        weights = np.einsum("nij,nj->ni", inverse[kept], offset)
         weights = np.c_[1 - weights.sum(axis=1), weights]
         inside = (weights >= -1e-9).all(axis=1)
         yield face[inside], rows[inside] * width + cols[inside], weights[inside]
