@@ -40,9 +40,9 @@ class Texels:
         return atlas.reshape(height, width, -1)[rows, cols]
 
 
-FACE_TEXELS_CHUNK = 1 << 22
-"""Candidate texels (bounding-box texels of the faces) tested at once: bounds the memory of
-rasterising a large atlas."""
+FACE_TEXELS_CHUNK = 1 << 20
+"""Candidate texels (bounding-box texels of the faces) tested at once: about 100 MB of
+arrays, whatever the atlas's size."""
 
 
 def _face_texels(textured: trimesh.Trimesh, shape: tuple[int, int]):
