@@ -154,7 +154,8 @@ class StageCache:
 
     def _new_failed_folder(self, stage: str) -> Path:
         """An empty folder under failed/ named by the time and this process; numbered on,
-        because one process (the studio, a batch, a test) can fail a stage twice a second."""
+        because a process that runs the stages twice (a script or notebook calling the
+        runner, the tests) can fail a stage twice within a second."""
         parent = self.state_dir / "failed" / stage
         parent.mkdir(parents=True, exist_ok=True)
         name = f"{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"

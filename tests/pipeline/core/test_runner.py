@@ -206,8 +206,9 @@ def test_failing_stage_commits_nothing_and_is_redone_next_time(tmp_path, presets
 
 
 def test_a_stage_failing_twice_in_one_second_keeps_both_logs(tmp_path, presets_dir, monkeypatch):
-    """One process (the studio, a batch) can fail a stage twice within the second that
-    names the failed folder: the second failure still ends in its own error."""
+    """A process that runs the stages twice (a script calling the runner) can fail a stage
+    twice within the second that names the failed folder: the second failure still ends
+    in its own error."""
     import time
 
     monkeypatch.setattr(time, "strftime", lambda fmt, *_: "20260101-000000")
