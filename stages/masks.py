@@ -11,11 +11,12 @@ Where the masks come from, first match wins (``masks.source = "auto"``):
    Pixels differing from the plate by more than the noise are specimen; GrabCut
    settles shadows and colours that match the set.
 3. Automatic segmentation, ``masks.segmenter``: ``set_colours`` for a turntable or a
-   ring without the printed board (the default there): the colours along the borders
-   of most photos are the set's, whatever they are, and for a turntable's fixed camera
-   the pixels that stay as they are while the specimen turns are too (the room), but
-   where the photos show the specimen most of the time (its foot on the axis); its
-   outline is then snapped to the photo's edge;
+   ring without the printed board in its photos (the default there; a board named in
+   capture.toml but shot for calibration only is not on the set): the colours along
+   the borders of most photos are the set's, whatever they are, and for a turntable's
+   fixed camera the pixels that stay as they are while the specimen turns are too (the
+   room), but where the photos show the specimen most of the time (its foot on the
+   axis); its outline is then snapped to the photo's edge;
    ``neutral_backdrop`` for a specimen on a grey, white or black set (the default
    otherwise, the printed board included, which turns with the specimen): greyness
    says backdrop, colour says specimen; ``centre_prior`` for anything else: GrabCut
@@ -54,10 +55,12 @@ import cv2
 import numpy as np
 
 from pipeline import logger
+from pipeline.camera.board import found_in_any
 from pipeline.camera.model import Intrinsics, undistort
 from pipeline.core import progress
 from pipeline.core.config import Range
 from pipeline.core.errors import PipelineError
+from pipeline.core.sections import BoardSection
 from pipeline.core.stage import Stage, StageInputs, StageResult
 from pipeline.formats.masks import write_masks
 from pipeline.formats.pinhole import read_camera_settings, read_photos
@@ -86,8 +89,8 @@ class Config:
     set's (and, on a turntable, what stays still while the specimen turns). neutral_backdrop:
     the set (table, board, sweep) is grey, white or black and the specimen is more colourful.
     centre_prior: GrabCut with the specimen near the centre. auto: set_colours for a
-    turntable or ring without the printed board (board.kind none: one set frames every
-    photo), else neutral_backdrop."""
+    turntable or ring whose photos do not show the printed board (board.kind none, or
+    a board shot for calibration only: one set frames every photo), else neutral_backdrop."""
     backdrop_chroma: Annotated[float, Range(0.0, 1.0, exclusive_lo=True)] = 0.04
     """neutral_backdrop: spread of the 8-bit sRGB channels (as a fraction of 255) below
     which a pixel is surely backdrop; twice this is probably backdrop, three times surely
@@ -243,6 +246,23 @@ def _refuse_empty_masks(report: dict[str, dict], source: str) -> None:
         )
 
 
+def _board_in_photos(board: BoardSection, photos: dict[str, dict]) -> bool:
+    """Whether any photo shows the board capture.toml names. A board shot for
+    calibration only (calibration/) is not on the set the photos show, and taking it for
+    the set's black and white would pick the wrong segmenter."""
+    if board.kind == "none":
+        return False
+    images = (cv2.imread(str(photo["srgb"]), cv2.IMREAD_GRAYSCALE) for photo in photos.values())
+    if found_in_any(board, images):
+        return True
+    logger.warning(
+        "board.kind = %r, but no photo in images/ shows the board (shot for calibration only?): "
+        "segmenting by the set's colours, as without a board",
+        board.kind,
+    )
+    return False
+
+
 def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     # 1. Which source the masks come from.
     pinhole_json = inputs.upstream["undistort"]["pinhole"]
@@ -251,7 +271,9 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     warn_unread(inputs.capture_dir / "masks", "mask")
     has_user_masks = any(p.parent == inputs.capture_dir / "masks" for p in inputs.files)
     kind = _choose_source(conf, has_user_masks, bool(plates))
-    segmenter = resolve_segmenter(conf.segmenter, inputs.shared["capture.rig"], inputs.shared["board.kind"] != "none")
+    segmenter = resolve_segmenter(
+        conf.segmenter, inputs.shared["capture.rig"], lambda: _board_in_photos(inputs.shared["board"], photos)
+    )
     logger.info("masks from %s", {"user": "masks/", "background": "background plates"}.get(kind, segmenter))
     if kind == "segment":
         _refuse_grayscale(photos, segmenter)
@@ -302,11 +324,11 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
 
 STAGE = Stage(
     name="masks",
-    version=7,
+    version=8,
     config=Config,
     main=main,
     needs=("undistort.pinhole",),
     outputs=("masks_json", "masks"),
     reads=("masks/*",),
-    shared=("capture.rig", "board.kind"),
+    shared=("capture.rig", "board"),
 )

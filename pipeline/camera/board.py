@@ -1,8 +1,9 @@
 """The printed calibration board: its image, its detection, its 3D corner positions.
 
 One definition serves ``pipeline board`` (printing), the calibrate stage and
-``pipeline check`` (detection), the sfm stage (metric scale) and ``pipeline synth``
-(rendering), so that what is printed is what is detected.
+``pipeline check`` (detection), the masks stage (whether the photos show the board),
+the sfm stage (metric scale) and ``pipeline synth`` (rendering), so that what is
+printed is what is detected.
 
 Board coordinates follow OpenCV: origin at the top-left corner of the printed
 pattern, x to the right, y down the page, z into the board, in metres. Corner
@@ -12,6 +13,7 @@ pattern, x to the right, y down the page, z into the board, in metres. Corner
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -97,6 +99,15 @@ class BoardDetector:
         if len(ids) < self.min_corners:
             return None
         return BoardDetection(ids, points.astype(np.float64), self.corners[ids])
+
+
+def found_in_any(board: BoardSection, images: Iterable[np.ndarray]) -> bool:
+    """Whether the board is detected in any of ``images`` (grayscale uint8), looking no
+    further than the first that shows it; False for ``board.kind = 'none'``."""
+    if board.kind == "none":
+        return False
+    detector = BoardDetector(board)
+    return any(detector.detect(image) is not None for image in images)
 
 
 def board_to_world(board: BoardSection) -> np.ndarray:

@@ -39,7 +39,7 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from pipeline.camera.board import BoardDetector
+from pipeline.camera.board import BoardDetector, found_in_any
 from pipeline.core import progress
 from pipeline.core.config import Config
 from pipeline.core.errors import PipelineError
@@ -324,7 +324,11 @@ def check_masks(
     user_masks = {p.stem: p for p in list_photos(capture_dir / "masks")}
     problems: list[Problem] = []
     masks: dict[str, np.ndarray | None] = {}
-    segmenter = resolve_segmenter(conf.segmenter, config["capture"].rig, config["board"].kind != "none")
+    segmenter = resolve_segmenter(
+        conf.segmenter,
+        config["capture"].rig,
+        lambda: found_in_any(config["board"], (cv2.cvtColor(p.srgb, cv2.COLOR_RGB2GRAY) for p in photos)),
+    )
     fixed_sets = _fixed_sets(photos, config) if segmenter == "set_colours" and not user_masks else {}
     for photo in progress.track(photos, "checking masks"):
         if user_masks:

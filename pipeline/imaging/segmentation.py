@@ -18,7 +18,7 @@ before the expensive stages run).
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -463,15 +463,19 @@ def learn_fixed_sets(
     return fixed_sets
 
 
-def resolve_segmenter(segmenter: str, rig: str, board: bool) -> str:
-    """``auto``: set_colours for a turntable or ring without the printed board, whose
-    photos one fixed set frames; neutral_backdrop for a handheld capture (its borders
-    show the room from every side) and for a capture on the board, whose black and white
-    turn with the specimen (neither along the border nor still) and which the capture
-    checklist puts on a neutral set."""
+def resolve_segmenter(segmenter: str, rig: str, board_in_photos: Callable[[], bool]) -> str:
+    """``auto``: set_colours for a turntable or ring without the printed board in its
+    photos, whose photos one fixed set frames; neutral_backdrop for a handheld capture
+    (its borders show the room from every side) and for a capture on the board, whose
+    black and white turn with the specimen (neither along the border nor still) and which
+    the capture checklist puts on a neutral set. ``board_in_photos`` is asked only for
+    a turntable or ring: a board in capture.toml may have been shot for calibration only,
+    off the set, and finding it costs a detection per photo."""
     if segmenter != "auto":
         return segmenter
-    return "set_colours" if rig in ("turntable", "ring") and not board else "neutral_backdrop"
+    if rig not in ("turntable", "ring"):
+        return "neutral_backdrop"
+    return "neutral_backdrop" if board_in_photos() else "set_colours"
 
 
 OUTLINE_MIN_CONTRAST = 12.0

@@ -118,17 +118,22 @@ def test_grayscale_photos_are_refused_under_the_colour_segmenter(run_stages, tin
 
 
 def test_a_turntable_in_a_room_is_cut_from_the_set_its_photos_show_not_from_its_greyness(
-    run_stages, synth_capture, tmp_path
+    run_stages, synth_capture, caplog
 ):
-    """The hard turntable's set: a dark dotted plate before a coloured room. auto learns
-    the set's colours and the room that stays still (set_colours); the room's colours
-    fool neutral_backdrop."""
-    options = hard_turntable_options(views=6, width=96, height=72, spp=4, rings=(20.0,), backdrop="room", seed=11)
+    """The hard turntable's set: a dark dotted plate before a coloured room, and a board
+    in capture.toml that was shot for calibration only. auto finds no board in the
+    photos, learns the set's colours and the room that stays still (set_colours); the
+    room's colours fool neutral_backdrop."""
+    options = hard_turntable_options(
+        views=6, width=96, height=72, spp=4, rings=(20.0,), backdrop="room", calibration_shots=2, seed=11
+    )
     capture = synth_capture("room_turntable", **options)
-    small = ("board.kind=none", "masks.working_size=192")  # twice the photos' size: GrabCut's time is per pixel
+    assert 'kind = "charuco"' in (capture / "capture.toml").read_text()
+    small = ("masks.working_size=192",)  # twice the photos' size: GrabCut's time is per pixel
     outputs = run_stages(capture, "masks", *small)
     status = json.loads((outputs["masks"]["masks_json"].parent / "status.json").read_text())
     assert status["metrics"]["segmenter"] == "set_colours"
+    assert "no photo in images/ shows the board" in caplog.text
     learned = _ious(capture, outputs)
     neutral = _ious(capture, run_stages(capture, "masks", *small, "masks.segmenter=neutral_backdrop"))
     # 96 px: a pixel of edge is much of a small silhouette's IoU.

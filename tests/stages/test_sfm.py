@@ -93,6 +93,9 @@ def test_turntable_of_a_plain_specimen_poses_every_photo_within_a_degree(run_sta
     place most photos, the rest by board pose or silhouette; none is left out or stacked."""
     capture = plain_turntable
     outputs = run_stages(capture, "sfm")
+    # the photos show the board, which turns with the specimen: not the set's colours
+    status = json.loads((outputs["masks"]["masks_json"].parent / "status.json").read_text())
+    assert status["metrics"]["segmenter"] == "neutral_backdrop"
     _, truth = read_cameras(capture / "ground_truth" / "cameras.json")
     views = read_views(outputs["sfm"]["cameras"])
     assert sorted(views) == sorted(truth)

@@ -54,10 +54,14 @@ def test_a_turntable_specimen_is_found_in_front_of_its_coloured_set_and_a_still_
 
 
 def test_auto_learns_the_set_of_turntables_and_rings_keeps_neutral_backdrops_handheld_and_on_the_board():
-    assert resolve_segmenter("auto", "turntable", False) == resolve_segmenter("auto", "ring", False) == "set_colours"
-    assert resolve_segmenter("auto", "handheld", False) == "neutral_backdrop"
-    assert resolve_segmenter("auto", "turntable", True) == "neutral_backdrop"  # the board turns with it
-    assert resolve_segmenter("centre_prior", "turntable", False) == "centre_prior"
+    def unasked() -> bool:
+        raise AssertionError("the photos were searched for the board where the choice does not depend on it")
+
+    shown, hidden = (lambda: True), (lambda: False)
+    assert resolve_segmenter("auto", "turntable", hidden) == resolve_segmenter("auto", "ring", hidden) == "set_colours"
+    assert resolve_segmenter("auto", "handheld", unasked) == "neutral_backdrop"
+    assert resolve_segmenter("auto", "turntable", shown) == "neutral_backdrop"  # the board turns with it
+    assert resolve_segmenter("centre_prior", "turntable", unasked) == "centre_prior"
 
 
 def test_where_a_turning_specimen_shows_in_most_photos_its_still_pixels_are_not_taken_for_the_set():
