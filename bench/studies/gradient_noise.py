@@ -44,7 +44,9 @@ UNITS = np.array([TARGETS["alpha"], TARGETS["eta"], *[TARGETS["albedo"]] * 3, SI
 TRAINING_SPP = 4
 
 
-def _set(params, x: np.ndarray) -> None:
+def set_coordinates(params, x: np.ndarray) -> None:
+    """The kit's material at ``x`` (alpha, eta, albedo r g b, log sigma_t) in ``params``
+    (mi.traverse of its scene; ``params.update()`` is the caller's)."""
     values = {"alpha": [x[0]], "eta": [x[1]], "albedo": x[2:5], "sigma_t": [np.exp(x[5])]}
     for name, value in values.items():
         params[KEYS[name]] = type(params[KEYS[name]])(*map(float, value))
@@ -55,7 +57,7 @@ def gradients(scene, integrator, references_, x: np.ndarray, seeds: int, mi, dr)
     params = mi.traverse(scene)
     rows = []
     for seed in range(seeds):
-        _set(params, x)
+        set_coordinates(params, x)
         for key in KEYS.values():
             dr.enable_grad(params[key])
         params.update()
