@@ -122,7 +122,7 @@ def main() -> None:
     rng = np.random.default_rng(0)
     header = " ".join(f"{name:>11s}" for name in COORDINATES)
     print(f"standard deviation of the best fit, in targets:\n kit {header}  P(within every target)")
-    total = 0.0
+    total, estimated = 0.0, 0
     for seed in (int(s) for s in args.kits.split(",")):
         kit = draw_kit(seed, "volumetric")
         C = covariance(kit, args.spp, args.seed, mi)
@@ -131,10 +131,12 @@ def main() -> None:
             print(f"{seed:4d} covariance not positive definite (eigenvalues {eigenvalues}): more --spp", flush=True)
             continue
         probability = within_probability(C, rng)
-        total += probability
+        total, estimated = total + probability, estimated + 1
         spread = " ".join(f"{s:11.2f}" for s in np.sqrt(np.diag(C)) / UNITS)
         print(f"{seed:4d} {spread}  {probability:.2f}   ({kit.describe()})", flush=True)
-    print(f"expected kits within every target for a fit without error of its own: {total:.1f}")
+    print(
+        f"of {estimated} kits estimated, expected within every target for a fit without error of its own: {total:.1f}"
+    )
 
 
 if __name__ == "__main__":
