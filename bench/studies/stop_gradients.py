@@ -1,0 +1,117 @@
+"""Whether a fit that stops short of a kit's targets could have told from its gradients.
+
+    .venv/bin/python -m bench.studies.stop_gradients --material volumetric --kits 0,1 [--work DIR]
+
+Runs `pipeline fit`'s defaults on kits of bench/fit_kits.py (bench/fit_speed.py's
+``pipeline_fit``, in a folder of its own under ``--work``) and records, at every step,
+each fitted value's latent (log space where the parameter has one) and its gradient
+as the loss gave it, before the whitening. Printed per kit and per level of the
+coarse-to-fine fit, over the level's last half of steps (what its running average
+weighs), coordinate by coordinate in units of the kit's targets (bench/fit_kits.py):
+
+- how far the steps' mean lies from the truth;
+- the steps' mean gradient in standard errors of that mean (its steps' spread over
+  the square root of their count): within about 2 the gradients do not say which way
+  the truth lies, however far off the values are.
+
+Limitations: the standard error takes the steps' gradients as independent (their
+seeds are); a coordinate's gradient mixes the pull of every other coordinate's offset.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from bench.fit_kits import Clock, draw_kit, references, target
+from bench.fit_speed import CONFIGS, pipeline_fit
+from pipeline.fit import engine, variables
+from pipeline.fit.scene_fit import property_name
+from pipeline.render import mitsuba_variant
+
+
+def recorded_fit(kit, folder: Path, dr) -> list[dict]:
+    """`pipeline fit`'s defaults on ``kit`` in ``folder``; per step, each parameter's
+    latent and gradient (flattened), and which level's loop took it."""
+    steps: list[dict] = []
+    whiten, fit = variables.MaterialVariables.whiten_gradients, engine.fit
+    levels = [-1]
+
+    def counted(*args, **kwargs):
+        levels[0] += 1  # scene_fit runs one engine.fit per level
+        return fit(*args, **kwargs)
+
+    def recording(self) -> None:
+        level = levels[0]
+        for parameter in self.parameters:
+            latent = self.optimizer[parameter.name]
+            steps.append(
+                {
+                    "level": level,
+                    "name": parameter.name,
+                    "log": parameter.log,
+                    "latent": np.ravel(np.array(latent, np.float64)),
+                    "gradient": np.ravel(np.array(dr.grad(latent), np.float64)),
+                }
+            )
+        whiten(self)
+
+    variables.MaterialVariables.whiten_gradients, engine.fit = recording, counted
+    try:
+        pipeline_fit(kit, folder, *CONFIGS["defaults"], Clock(kit, 0.0))
+    finally:
+        variables.MaterialVariables.whiten_gradients, engine.fit = whiten, fit
+    return steps
+
+
+def level_lines(kit, steps: list[dict]) -> list[str]:
+    """Per level, per coordinate: the last half's mean off the truth and its mean
+    gradient in standard errors."""
+    lines = []
+    for level in sorted({s["level"] for s in steps}):
+        names = list(dict.fromkeys(s["name"] for s in steps if s["level"] == level))
+        parts, count = [], 0
+        for name in names:
+            rows = [s for s in steps if s["level"] == level and s["name"] == name]
+            rows = rows[len(rows) // 2 :]
+            count = len(rows)
+            latents = np.array([r["latent"] for r in rows])
+            gradients = np.array([r["gradient"] for r in rows])
+            prop = property_name(name)
+            truth = np.ravel(kit.truth[prop]).astype(np.float64)
+            mean = np.exp(latents.mean(axis=0)) if rows[0]["log"] else latents.mean(axis=0)
+            off = (mean - truth) / (target(prop) * (truth if prop == "sigma_t" else 1.0))
+            error = gradients.std(axis=0, ddof=1) / np.sqrt(len(rows))
+            z = gradients.mean(axis=0) / np.where(error > 0, error, np.inf)
+            for channel in range(len(truth)):
+                label = prop if len(truth) == 1 else f"{prop}[{channel}]"
+                parts.append(f"{label} {off[channel]:+.1f} targets off, gradient {z[channel]:+.1f} se")
+        lines.append(f"  level {level + 1}, last {count} steps: " + "; ".join(parts))
+    return lines
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--material", choices=("principled", "volumetric"), default="volumetric")
+    parser.add_argument("--kits", default="0,1", help="kit seeds, comma-separated")
+    parser.add_argument("--work", type=Path, default=None, help="kit folders (references kept); default: temporary")
+    args = parser.parse_args()
+    mitsuba_variant.activate()
+    import drjit as dr
+    import mitsuba as mi
+
+    work = args.work or Path(tempfile.mkdtemp(prefix="stop-gradients-"))
+    for seed in (int(s) for s in args.kits.split(",")):
+        kit = draw_kit(seed, args.material)
+        folder = work / f"{args.material}-{seed}"
+        folder.mkdir(parents=True, exist_ok=True)
+        references(kit, folder, mi)
+        lines = [f"{args.material} kit {seed}: {kit.describe()}", *level_lines(kit, recorded_fit(kit, folder, dr))]
+        print("\n".join(lines), flush=True)
+
+
+if __name__ == "__main__":
+    main()
