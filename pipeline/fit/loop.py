@@ -230,6 +230,8 @@ class ViewRender:
     sensor: Any
     integrator: Any
     spp: int
+    spp_grad: int
+    """0: spp."""
     seeds: tuple
     """Two opaque render seeds (seed): the second render's for the dual loss."""
 
@@ -257,10 +259,14 @@ def view_loss(render: ViewRender, comparison: ViewComparison):
     import mitsuba as mi
 
     r, target = render, comparison.target
-    image = mi.render(r.scene, r.params, sensor=r.sensor, integrator=r.integrator, spp=r.spp, seed=r.seeds[0])
-    second = image
-    if comparison.dual:
-        second = mi.render(r.scene, r.params, sensor=r.sensor, integrator=r.integrator, spp=r.spp, seed=r.seeds[1])
+
+    def rendered(seed_value):
+        return mi.render(
+            r.scene, r.params, sensor=r.sensor, integrator=r.integrator, spp=r.spp, spp_grad=r.spp_grad, seed=seed_value
+        )
+
+    image = rendered(r.seeds[0])
+    second = rendered(r.seeds[1]) if comparison.dual else image
     gain, pull = None, 0.0
     if comparison.gain_channels:
         # matched with its gradient for the level's pull (this photo's gain, fresh,
@@ -352,6 +358,7 @@ class _Loop:
                     view.sensor,
                     self.integrator or view.integrator,
                     self.settings.spp,
+                    self.settings.spp_grad,
                     (seed(render_seed), seed(render_seed + 1)),
                 ),
                 ViewComparison(self.targets[view.name], gain_channels, self.settings.loss == "dual", self.share),

@@ -20,6 +20,13 @@ class LoopSettings:
     """Views rendered per step; their gradients add up before the step."""
     spp: Annotated[int, Range(1, None)] = 16
     """Samples per pixel of each training render."""
+    spp_grad: Annotated[int, Range(0, None)] = 0
+    """Samples per pixel of the pass that renders the gradient (mi.render's
+    ``spp_grad``); 0: ``spp``. Near the optimum most of the gradient's noise for a value
+    the image is smooth in (a colour, a medium's) is the image's noise times the
+    derivative, and an image sample costs less than a gradient sample: more samples in
+    the image than in the gradient lower the noise per second there
+    (bench/studies/gradient_samples.py)."""
     loss: Literal["l2", "dual"] = "l2"
     """l2: one render per view and its squared error; Mitsuba renders the gradient with
     independent samples, so it is that of the expected image's error, unbiased by Monte

@@ -598,6 +598,28 @@ def test_a_frozen_step_gives_the_unfrozen_fit(mi, references, tmp_path):
         np.testing.assert_allclose(results[0].values[name], results[1].values[name], rtol=1e-4)
 
 
+def test_the_gradient_pass_takes_its_own_samples(mi, references, tmp_path, monkeypatch):
+    """``spp_grad`` reaches every training render (mi.render's gradient pass), and 0
+    leaves it to ``spp``; the fit still moves towards the truth with fewer gradient samples."""
+    import mitsuba
+
+    asked = []
+    render = mitsuba.render
+    monkeypatch.setattr(
+        mitsuba, "render", lambda *a, **k: asked.append((k["spp"], k.get("spp_grad"))) or render(*a, **k)
+    )
+    start = {"base_color": [0.5, 0.5, 0.5], "roughness": [0.7]}
+    views = _views(mi, _scene_file(tmp_path, start["base_color"], start["roughness"]), references / "references")
+    settings = engine.FitSettings(iterations=30, batch=3, spp=8, spp_grad=2, still_threshold=0.0, freeze=False)
+    result = engine.fit(PARAMETERS, views, [], settings)
+    assert set(asked[: 30 * 3]) == {(8, 2)}
+    for name, truth in TRUTH.items():
+        assert np.all(np.abs(np.subtract(result.values[name], truth)) < 0.5 * np.abs(np.subtract(start[name], truth)))
+    asked.clear()
+    engine.fit(PARAMETERS, views, [], replace(settings, iterations=2, spp_grad=0))
+    assert set(asked[: 2 * 3]) == {(8, 0)}
+
+
 def test_each_view_replays_its_own_recording(mi, references, tmp_path, monkeypatch):
     """One frozen function per view (its sensor object), each recorded a few times at
     most, also for two views of one window size and offset: Dr.Jit keys a recording on
