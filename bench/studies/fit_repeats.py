@@ -19,12 +19,12 @@ in ``--work``.
 from __future__ import annotations
 
 import argparse
-import tempfile
 from dataclasses import replace
 from pathlib import Path
 
-from bench.fit_kits import Clock, draw_kit, errors, references, target, within
+from bench.fit_kits import Clock, errors, target, within
 from bench.fit_speed import CONFIGS, pipeline_fit
+from bench.studies.kit_folders import kits_with_references
 from pipeline.render import mitsuba_variant
 
 
@@ -58,13 +58,8 @@ def main() -> None:
     mitsuba_variant.activate()
     import mitsuba as mi
 
-    work = args.work or Path(tempfile.mkdtemp(prefix="fit-repeats-"))
-    for seed in (int(s) for s in args.kits.split(",")):
-        kit = draw_kit(seed, args.material)
-        folder = work / f"{args.material}-{seed}"
-        folder.mkdir(parents=True, exist_ok=True)
-        references(kit, folder, mi)
-        print(f"{args.material} kit {seed}: {kit.describe()}", flush=True)
+    for kit, folder in kits_with_references(args.material, args.kits, args.work, mi):
+        print(f"{args.material} kit {kit.seed}: {kit.describe()}", flush=True)
         for config in args.configs:
             print("\n".join(runs_of(kit, folder, config, args.runs)), flush=True)
 

@@ -24,13 +24,13 @@ seeds is known to about 40 %, so a ratio of about 1 says nothing.
 from __future__ import annotations
 
 import argparse
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-from bench.fit_kits import INTEGRATORS, draw_kit, kit_xml, references
+from bench.fit_kits import INTEGRATORS, kit_xml
+from bench.studies.kit_folders import kits_with_references
 from pipeline.render import mitsuba_variant
 
 
@@ -71,12 +71,10 @@ def gradient_rows(scene, integrator, references_, keys, pair, seeds, mi, dr) -> 
     return rows, (time.perf_counter() - started) / seeds
 
 
-def study(material: str, seed: int, pairs: list[tuple[int, int]], seeds: int, work: Path, mi, dr) -> list[str]:
+def study(material: str, seed: int, pairs: list[tuple[int, int]], seeds: int, work: Path | None, mi, dr) -> list[str]:
     """The printed lines of one kit."""
-    kit = draw_kit(seed, material)
-    folder = work / f"{material}-{seed}"
-    folder.mkdir(parents=True, exist_ok=True)
-    reference_dir = references(kit, folder, mi)
+    kit, folder = next(kits_with_references(material, str(seed), work, mi))
+    reference_dir = folder / "references"
     scene = mi.load_file(str(kit_xml(kit, kit.truth, folder)))
     integrator = mi.load_dict({"type": INTEGRATORS[material][1], "max_depth": INTEGRATORS[material][2]})
     references_ = [mi.TensorXf(mi.Bitmap(str(reference_dir / f"view_{i}.exr"))) for i in range(kit.views)]
@@ -116,8 +114,7 @@ def main() -> None:
     import mitsuba as mi
 
     pairs = [(int(a), int(b)) for a, b in (pair.split(":") for pair in args.pairs.split(","))]
-    work = args.work or Path(tempfile.mkdtemp(prefix="gradient-samples-"))
-    print("\n".join(study(args.material, args.kit, pairs, args.seeds, work, mi, dr)), flush=True)
+    print("\n".join(study(args.material, args.kit, pairs, args.seeds, args.work, mi, dr)), flush=True)
 
 
 if __name__ == "__main__":

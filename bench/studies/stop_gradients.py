@@ -21,13 +21,13 @@ seeds are); a coordinate's gradient mixes the pull of every other coordinate's o
 from __future__ import annotations
 
 import argparse
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from bench.fit_kits import Clock, draw_kit, references, target
+from bench.fit_kits import Clock, target
 from bench.fit_speed import CONFIGS, pipeline_fit
+from bench.studies.kit_folders import kits_with_references
 from pipeline.fit import engine, variables
 from pipeline.fit.scene_fit import property_name
 from pipeline.render import mitsuba_variant
@@ -103,13 +103,8 @@ def main() -> None:
     import drjit as dr
     import mitsuba as mi
 
-    work = args.work or Path(tempfile.mkdtemp(prefix="stop-gradients-"))
-    for seed in (int(s) for s in args.kits.split(",")):
-        kit = draw_kit(seed, args.material)
-        folder = work / f"{args.material}-{seed}"
-        folder.mkdir(parents=True, exist_ok=True)
-        references(kit, folder, mi)
-        lines = [f"{args.material} kit {seed}: {kit.describe()}", *level_lines(kit, recorded_fit(kit, folder, dr))]
+    for kit, folder in kits_with_references(args.material, args.kits, args.work, mi):
+        lines = [f"{args.material} kit {kit.seed}: {kit.describe()}", *level_lines(kit, recorded_fit(kit, folder, dr))]
         print("\n".join(lines), flush=True)
 
 
