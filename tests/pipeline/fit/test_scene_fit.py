@@ -313,3 +313,46 @@ def test_coarse_to_fine_fits_level_by_level_up_to_the_films_own_size(mi, referen
     roughness = [entry["params"]["mat.roughness.value"][0] for entry in log]
     assert abs(np.log(roughness[6] / roughness[5])) < 0.15 and abs(np.log(roughness[12] / roughness[11])) < 0.15
     assert abs(record["params"]["mat.roughness.value"][0] - 0.3) < abs(0.7 - 0.3)
+
+
+MEDIUM_SCENE = """<scene version="3.0.0">
+  <integrator type="{integrator}"/>
+  <shape type="sphere">
+    <bsdf type="dielectric"/>
+    {medium}
+  </shape>
+</scene>
+"""
+
+
+@pytest.mark.parametrize(
+    "integrator, medium, given, expected",
+    [
+        ("volpath", True, {}, (16, 4)),  # the image at medium_spp, the gradient at spp
+        ("prbvolpath", True, {"spp": 32}, (32, 32)),  # never fewer image samples than spp
+        ("volpath", True, {"spp_grad": 2}, (4, 2)),  # samples given for the gradient are kept
+        ("volpath", False, {}, (4, 0)),  # no medium to render
+        ("path", True, {}, (4, 0)),  # a medium the integrator does not render
+    ],
+)
+def test_a_scene_that_renders_a_medium_samples_its_image_more_than_its_gradient(integrator, medium, given, expected):
+    """`pipeline fit`'s options as a user gives them, on a scene with or without a medium."""
+    import argparse
+    import xml.etree.ElementTree as ET
+
+    from pipeline.cli.fit import FitOptions, scene_fit_request
+    from pipeline.cli.options import add_options, parse_options
+    from pipeline.fit.scene_fit import sampled_settings
+
+    def request(*argv: str):
+        parser = argparse.ArgumentParser()
+        add_options(parser, FitOptions)
+        return scene_fit_request(parse_options(FitOptions, parser.parse_args(["scene.xml", *argv]), "fit"))
+
+    interior = '<medium type="homogeneous" name="interior"/>' if medium else ""
+    tree = ET.ElementTree(ET.fromstring(MEDIUM_SCENE.format(integrator=integrator, medium=interior)))
+    flags = [f"--{name.replace('_', '-')}={value}" for name, value in given.items()]
+    settings = sampled_settings(request(*flags), tree)
+    assert (settings.spp, settings.spp_grad) == expected
+    off = request("--medium-spp=0", *flags)
+    assert sampled_settings(off, tree) == off.settings  # every scene as any other
