@@ -12,7 +12,6 @@ from pipeline.cli.registry import command
 from pipeline.core.config import Range
 from pipeline.core.errors import ConfigError
 from pipeline.fit.engine import FitSettings
-from pipeline.fit.settings import MEDIUM_SPP
 
 
 @dataclass(frozen=True)
@@ -36,11 +35,6 @@ class FitOptions:
     nothing moves beyond its noise (--no-coarse-to-fine: max_size only)."""
     settings: FitSettings = field(default_factory=FitSettings)
     """The loop's settings."""
-    medium_spp: Annotated[int, Range(0, None)] = MEDIUM_SPP
-    """Where the scene renders a medium and --spp-grad is 0: samples per pixel of the
-    training renders' image, at least --spp, the gradient's pass taking --spp (0: every
-    scene as any other). More samples in the image than in the gradient cut a medium's
-    gradient noise per second (docs/decisions.md)."""
     lr: Annotated[float | None, Range(0.0, None, exclusive_lo=True)] = None
     """One learning rate for every parameter (default: per parameter, pipeline.render.materials)."""
     bound: Annotated[tuple[str, ...], Arg(repeat=True, metavar="NAME=LO:HI")] = ()
@@ -70,7 +64,6 @@ def scene_fit_request(options: FitOptions):
         Path(options.out),
         options.variant,
         FilmSizes(options.max_size, options.coarse_to_fine),
-        options.medium_spp,
         options.heldout,
     )
 

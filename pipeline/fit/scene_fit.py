@@ -29,11 +29,6 @@ what only shows at full size (a small highlight's width) stays identifiable, and
 the finer levels' smaller steps and lower noise let the values settle closer. The
 written scene keeps its films.
 
-Where the scene renders a medium (a volumetric path tracer and a ``<medium>``) and
-``spp_grad`` is not set, the training renders' image takes ``medium_spp`` samples per
-pixel and the gradient's pass ``spp``: a medium's values get most of their gradient's
-noise from the image's, and an image sample costs less than a gradient sample.
-
 ``heldout`` names reference images that are not fitted to but rendered every
 ``validate_every`` steps: the fit then keeps the state with the lowest error on them
 (pipeline.fit.loop) instead of its last. A watcher (``FitWatcher``: `pipeline
@@ -64,7 +59,6 @@ from pipeline.core.errors import ConfigError, PipelineError
 from pipeline.core.fsutil import atomic_write_text
 from pipeline.fit import engine
 from pipeline.fit.outputs import write_fit_log
-from pipeline.fit.settings import MEDIUM_SPP
 from pipeline.imaging.photo_io import list_photos, read_photo
 from pipeline.render import materials, mitsuba_variant, scene_xml, user_scene
 
@@ -282,10 +276,6 @@ class SceneFit:
     """The Mitsuba variant."""
     sizes: FilmSizes = field(default_factory=FilmSizes)
     """The film sizes the fit renders at."""
-    medium_spp: int = MEDIUM_SPP
-    """Where the scene renders a medium and ``settings.spp_grad`` is 0: the training
-    renders' image takes at least this many samples per pixel and the gradient's pass
-    ``settings.spp`` (0: both ``settings.spp``, as for any scene)."""
     heldout: tuple[str, ...] = ()
     """Reference images (by file name without its suffix) not fitted to but rendered
     every ``validate_every`` steps: the fit keeps the state with the lowest error on
@@ -316,20 +306,6 @@ def _split_heldout(views: list[engine.FitView], heldout: tuple[str, ...], refere
     return training, [view for view in views if view.name in heldout]
 
 
-def sampled_settings(request: SceneFit, tree: ET.ElementTree) -> engine.FitSettings:
-    """``request.settings`` with ``request.medium_spp`` applied where the scene renders a
-    medium: a medium's values (its albedo and density, which the image is smooth in)
-    get most of their gradient's noise from the image's noise times the derivative, and
-    an image sample costs less than a gradient sample (docs/decisions.md, "The fitting
-    loop's stop and schedule")."""
-    settings = request.settings
-    if not request.medium_spp or settings.spp_grad or not user_scene.renders_media(tree):
-        return settings
-    spp = max(request.medium_spp, settings.spp)
-    logger.info("the scene renders a medium: images at %d spp, gradients at %d (--medium-spp)", spp, settings.spp)
-    return replace(settings, spp=spp, spp_grad=settings.spp)
-
-
 def fit_scene(request: SceneFit, watcher: FitWatcher | None = None) -> Path:
     """Fit (at ``request.sizes``) and write the results into ``request.out_dir``;
     returns its params.json."""
@@ -343,7 +319,6 @@ def fit_scene(request: SceneFit, watcher: FitWatcher | None = None) -> Path:
     tree = user_scene.normalised(scene_path)
     full_sizes = user_scene.reduce_films(copy.deepcopy(tree), 0)
     integrator = user_scene.differentiable_integrator(tree)
-    settings = sampled_settings(request, tree)
     levels = request.sizes.levels(max((max(size) for size in full_sizes), default=0))
     bounds = engine.parse_bounds(list(request.bounds), "--bound")
 
@@ -375,6 +350,7 @@ def fit_scene(request: SceneFit, watcher: FitWatcher | None = None) -> Path:
         # Adam's steps keep a value jittering by about its learning rate: each finer level,
         # starting near the answer, steps half as far; only the last level, whose values
         # are the answer, halves its steps again when still (step_halvings)
+        settings = request.settings
         level_settings = replace(
             settings,
             learning_rate_scale=settings.learning_rate_scale / 2**level,

@@ -9,12 +9,6 @@ from typing import Annotated, Literal
 
 from pipeline.core.config import Range
 
-MEDIUM_SPP = 16
-"""`pipeline fit`'s samples per pixel of a training render's image where the scene
-renders a medium, the gradient's pass taking ``spp`` (pipeline.fit.scene_fit.SceneFit):
-four times the default ``spp``, measured against it on bench/fit_speed.py's volumetric
-kits (docs/decisions.md, "The fitting loop's stop and schedule")."""
-
 
 @dataclass(frozen=True)
 class LoopSettings:

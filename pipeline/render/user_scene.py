@@ -46,8 +46,6 @@ PLUGIN_TAGS = ("shape", "bsdf", "medium", "phase", "emitter", "texture", "volume
 DIFFERENTIABLE = {"path": "prb", "volpath": "prbvolpath", "direct": "direct_projective"}
 """Render integrators and the differentiable integrator that computes the same image."""
 DIFFERENTIABLE_TYPES = {"prb", "prbvolpath", "direct_projective", "prb_projective", "prb_basic"}
-VOLUMETRIC_TYPES = {"volpath", "volpathmis", "prbvolpath"}
-"""Integrators that render media."""
 
 
 def _filename_attribute(element: ET.Element) -> str | None:
@@ -208,13 +206,6 @@ def relative_filenames(tree: ET.ElementTree, folder: Path) -> None:
         target = element.get(attribute) if attribute else None
         if target and Path(target).is_absolute():
             element.set(attribute, os.path.relpath(target, folder))
-
-
-def renders_media(tree: ET.ElementTree) -> bool:
-    """Whether the (normalised) scene has a medium and an integrator that renders it."""
-    element = tree.getroot().find("integrator")
-    kind = element.get("type") if element is not None else "path"
-    return kind in VOLUMETRIC_TYPES and tree.getroot().find(".//medium") is not None
 
 
 def differentiable_integrator(tree: ET.ElementTree):

@@ -47,7 +47,7 @@ PREVIEW_SPP = 16
 """Samples per pixel of a preview render: enough to judge a material by eye."""
 PREVIEW_EVERY = 5
 """Steps between two previews of the view the page shows (each costs a render)."""
-PAGE_OPTIONS = ("max_size", "coarse_to_fine", "medium_spp", "lr")
+PAGE_OPTIONS = ("max_size", "coarse_to_fine", "lr")
 """`pipeline fit`'s options the page sets besides the loop's settings (the scene, the
 references, the output folder and the variant come from the command line; the
 parameters, their bounds and the held-out images from the page's tables)."""
