@@ -32,7 +32,10 @@ def dotted_plate(seed: int, dots: int = 40, dot_radius: float = 0.03, size: int 
     x, y = r * np.cos(phi), r * np.sin(phi)
     plate = np.full((size, size), PLATE_INK, np.float32)
     for cx, cy in centres:
-        plate[np.hypot(x - cx, y - cy) < dot_radius] = PLATE_DOT
+        # Only columns within a dot's radius of its centre's radius can hold it.
+        near = np.flatnonzero(np.abs(u - np.hypot(cx, cy)) < 1.001 * dot_radius)
+        inside = np.hypot(x[:, near] - cx, y[:, near] - cy) < dot_radius
+        plate[:, near] = np.where(inside, PLATE_DOT, plate[:, near])
     return plate
 
 
@@ -44,23 +47,27 @@ def room_map(seed: int, width: int = 2048, height: int = 1024) -> np.ndarray:
     rng = np.random.default_rng(seed)
     azimuth = (np.arange(width) + 0.5) / width * 2 * np.pi
     elevation = np.pi / 2 - (np.arange(height) + 0.5) / height * np.pi
-    az, el = np.meshgrid(azimuth, elevation)
     room = np.empty((height, width, 3), np.float32)
     room[:] = (0.30, 0.27, 0.22)  # walls
-    room[el > np.radians(50)] = (0.55, 0.55, 0.52)  # ceiling
-    room[el < np.radians(-15)] = (0.12, 0.10, 0.09)  # floor
+    room[elevation > np.radians(50)] = (0.55, 0.55, 0.52)  # ceiling
+    room[elevation < np.radians(-15)] = (0.12, 0.10, 0.09)  # floor
+    # A rectangle is a band of rows (elevations) times a band of columns (azimuths).
     for _ in range(90):
         left, wide = rng.uniform(0, 2 * np.pi), np.radians(rng.uniform(3, 28))
         bottom, tall = np.radians(rng.uniform(-20, 40)), np.radians(rng.uniform(3, 30))
-        inside = ((az - left) % (2 * np.pi) < wide) & (el > bottom) & (el < bottom + tall)
+        rows = np.flatnonzero((elevation > bottom) & (elevation < bottom + tall))
+        columns = np.flatnonzero((azimuth - left) % (2 * np.pi) < wide)
         colour = rng.uniform(0.03, 0.7, 3) * (rng.uniform(2.0, 4.0) if rng.uniform() < 0.08 else 1.0)
-        room[inside] = colour
-    # Fine texture: random-phase sinusoids on the sphere, a few degrees across.
-    direction = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=-1)
+        room[np.ix_(rows, columns)] = colour
+    # Fine texture: random-phase sinusoids on the sphere, a few degrees across; a
+    # direction's dot product with an axis splits into a row term and a column term.
+    cos_el, sin_el = np.cos(elevation)[:, None], np.sin(elevation)[:, None]
+    cos_az, sin_az = np.cos(azimuth)[None, :], np.sin(azimuth)[None, :]
     texture = np.zeros((height, width), np.float32)
     for _ in range(16):
         axis = rng.normal(size=3)
         axis /= np.linalg.norm(axis)
-        texture += np.sin(direction @ axis * rng.uniform(60, 240) + rng.uniform(0, 2 * np.pi)).astype(np.float32)
+        along = cos_el * (cos_az * axis[0] + sin_az * axis[1]) + sin_el * axis[2]
+        texture += np.sin(along * rng.uniform(60, 240) + rng.uniform(0, 2 * np.pi)).astype(np.float32)
     room *= (1 + 0.25 * texture / np.sqrt(8))[..., None]
     return np.clip(room, 0.0, None)
