@@ -1,0 +1,237 @@
+"""Where a volumetric fit that missed its targets stopped, in its loss landscape.
+
+    .venv/bin/python -m bench.studies.volumetric_landscape --work DIR --kits 7 [--run defaults]
+        [--studies trajectory line gradient compass model] [--spp 32] [--seeds 16]
+        [--samples 60] [--radius 1] [--rounds 3]
+
+For each volumetric kit whose stored run (bench/fit_speed.py's ``--work`` folder and
+configuration, ``--run``) ended outside a target, the loss the fits minimise is estimated
+by the dual estimator (bench/studies/kit_identifiability.py's ``losses``: two renders
+per view at ``--spp``, the same seeds at every point) and printed relative to the
+truth's. Distances are in targets (bench/fit_kits.py), in bench/studies/gradient_noise.py's
+coordinates (alpha, eta, albedo r g b, log sigma_t). Studies:
+
+- trajectory: every tenth step of the run's log (fit_out/log.jsonl) scored: whether the
+  lowest-scoring state the fit passed through lies within target (what keeping the best
+  state by the training views' score would return);
+- line: the loss on the straight line from the result to the truth, eleven points;
+- gradient: the fit's gradient (4 spp, gradient_noise.py's) averaged over ``--seeds``
+  seeds at the current point: its largest z-score, the cosine of its descent direction
+  (target units) with the way to the truth, and a step along it of the length among
+  0.25-8 targets that lowers the loss most (none if none does); ``--rounds`` times;
+- compass: one coordinate at a time moved by 2 targets either way, kept where the loss
+  falls; the move halved when no coordinate's does, down to a quarter target;
+- model: a quadratic fitted to the loss at ``--samples`` points drawn uniformly within
+  ``--radius`` targets of the current point (inside bench/fit_kits.py's BOUNDS); its
+  minimum within 1.5 radii is the next point; ``--rounds`` times.
+
+Limitations: whole films at the kit's size (the fits' coarse levels and windows are not
+modelled); the loss at one point has a seed noise of about one to two percent at 32 spp,
+partly common to nearby points.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import minimize
+
+from bench.fit_kits import BOUNDS, INTEGRATORS, draw_kit, errors, kit_xml, stored_outcome, target, within
+from bench.studies.gradient_noise import KEYS, UNITS, gradients
+from bench.studies.kit_identifiability import losses
+from pipeline.render import mitsuba_variant
+
+STUDIES = ("trajectory", "line", "gradient", "compass", "model")
+LOG_NAMES = {key: name for name, key in KEYS.items()}
+"""The fit log's parameter keys, by property name."""
+LOWER = np.array([BOUNDS["alpha"][0], BOUNDS["eta"][0], *[BOUNDS["albedo"][0]] * 3, np.log(BOUNDS["sigma_t"][0])])
+UPPER = np.array([BOUNDS["alpha"][1], BOUNDS["eta"][1], *[BOUNDS["albedo"][1]] * 3, np.log(BOUNDS["sigma_t"][1])])
+
+
+def coordinates(values: dict) -> np.ndarray:
+    return np.array([values["alpha"], values["eta"], *values["albedo"], np.log(values["sigma_t"])], float)
+
+
+def values_of(x: np.ndarray) -> dict:
+    return {
+        "alpha": float(x[0]),
+        "eta": float(x[1]),
+        "albedo": [float(v) for v in x[2:5]],
+        "sigma_t": float(np.exp(x[5])),
+    }
+
+
+class Landscape:
+    """One kit's loss (relative to the truth's) and distance from the truth in targets."""
+
+    def __init__(self, kit, folder: Path, spp: int, mi):
+        self.kit, self.folder, self.spp, self.mi = kit, folder, spp, mi
+        self.truth = coordinates(kit.truth)
+        self.truth_loss = float(losses(kit, kit.truth, folder, spp, mi).sum())
+
+    def loss(self, x: np.ndarray) -> float:
+        return float(losses(self.kit, values_of(x), self.folder, self.spp, self.mi).sum()) / self.truth_loss
+
+    def worst(self, x: np.ndarray) -> float:
+        """The largest error, in targets."""
+        return max(error / target(name) for name, error in errors(self.kit, values_of(x)).items())
+
+    def describe(self, x: np.ndarray) -> str:
+        return f"loss {self.loss(x):.3f}, worst {self.worst(x):.2f} targets"
+
+
+def trajectory(land: Landscape, x: np.ndarray, log: list[dict]) -> list[str]:
+    states = [
+        (entry["iteration"], coordinates({LOG_NAMES[k]: v if len(v) > 1 else v[0] for k, v in entry["params"].items()}))
+        for entry in log
+        if entry["iteration"] % 10 == 0 and "params" in entry
+    ]
+    scored = [(step, land.loss(state), land.worst(state)) for step, state in states]
+    step, loss, worst = min(scored, key=lambda row: row[1])
+    within_share = np.mean([row[2] <= 1 for row in scored])
+    correlation = np.corrcoef([row[1] for row in scored], [row[2] for row in scored])[0, 1]
+    return [
+        f"  trajectory: {len(scored)} states; the lowest loss at step {step}: {loss:.3f}, worst {worst:.2f} targets; "
+        f"{within_share:.0%} of the states within every target; loss against worst error: r = {correlation:.2f}"
+    ]
+
+
+def line(land: Landscape, x: np.ndarray) -> list[str]:
+    points = [(t, land.loss((1 - t) * x + t * land.truth)) for t in np.linspace(0, 1, 11)]
+    return ["  line to the truth: " + ", ".join(f"{t:.1f}: {loss:.3f}" for t, loss in points)]
+
+
+def gradient(land: Landscape, x: np.ndarray, seeds: int, rounds: int, mi, dr) -> list[str]:
+    with tempfile.TemporaryDirectory() as scratch:
+        scene = mi.load_file(str(kit_xml(land.kit, land.kit.truth, Path(scratch))))
+    integrator = mi.load_dict({"type": INTEGRATORS["volumetric"][1], "max_depth": INTEGRATORS["volumetric"][2]})
+    references = [
+        mi.TensorXf(mi.Bitmap(str(land.folder / "references" / f"view_{i}.exr"))) for i in range(land.kit.views)
+    ]
+    lines, current = [], land.loss(x)
+    for number in range(rounds):
+        rows = gradients(scene, integrator, references, x, seeds, mi, dr)
+        mean, error = rows.mean(axis=0), rows.std(axis=0, ddof=1) / np.sqrt(seeds)
+        direction = -mean * UNITS**2
+        direction /= np.linalg.norm(direction / UNITS)
+        way = (land.truth - x) / UNITS
+        cosine = float(direction / UNITS @ way / np.linalg.norm(way))
+        trials = [
+            (length, land.loss(np.clip(x + length * direction, LOWER, UPPER))) for length in (0.25, 0.5, 1, 2, 4, 8)
+        ]
+        length, loss = min(trials, key=lambda row: row[1])
+        if loss < current:
+            x, current = np.clip(x + length * direction, LOWER, UPPER), loss
+        lines.append(
+            f"  gradient round {number + 1}: largest |z| {np.max(np.abs(mean / error)):.1f}, cosine with the way to "
+            f"the truth {cosine:+.2f}, step {length if loss <= current else 0} targets: {land.describe(x)}"
+        )
+    return lines
+
+
+def compass(land: Landscape, x: np.ndarray) -> list[str]:
+    lines, current, move, evaluations = [], land.loss(x), 2.0, 0
+    while move >= 0.25:
+        improved = False
+        for coordinate in range(6):
+            for sign in (1, -1):
+                trial = x.copy()
+                trial[coordinate] += sign * move * UNITS[coordinate]
+                loss, evaluations = land.loss(np.clip(trial, LOWER, UPPER)), evaluations + 1
+                if loss < current:
+                    x, current, improved = np.clip(trial, LOWER, UPPER), loss, True
+                    break
+        lines.append(f"  compass, moves of {move} targets: {land.describe(x)} after {evaluations} losses")
+        move = move if improved else move / 2
+    return lines
+
+
+def _quadratic_features(z: np.ndarray) -> np.ndarray:
+    z = np.atleast_2d(z)
+    pairs = [z[:, i] * z[:, j] for i in range(z.shape[1]) for j in range(i, z.shape[1])]
+    return np.column_stack([np.ones(len(z)), z, *pairs])
+
+
+def model(land: Landscape, x: np.ndarray, samples: int, radius: float, rounds: int) -> list[str]:
+    rng, lines = np.random.default_rng(0), []
+    for number in range(rounds):
+        points = np.clip(x + rng.uniform(-radius, radius, (samples, 6)) * UNITS, LOWER, UPPER)
+        offsets = (points - x) / UNITS
+        values = np.array([land.loss(p) for p in points])
+        coefficients = np.linalg.lstsq(_quadratic_features(offsets), values, rcond=None)[0]
+        bounds = [
+            (max(-1.5 * radius, lo), min(1.5 * radius, hi)) for lo, hi in zip((LOWER - x) / UNITS, (UPPER - x) / UNITS)
+        ]
+        found = min(
+            (
+                minimize(lambda z: float((_quadratic_features(z) @ coefficients)[0]), start, bounds=bounds)
+                for start in (np.zeros(6), offsets[np.argmin(values)])
+            ),
+            key=lambda result: result.fun,
+        )
+        x = x + found.x * UNITS
+        lines.append(
+            f"  model round {number + 1}: lowest sampled loss {values.min():.3f}, the quadratic's minimum "
+            f"{found.fun:.3f} at {np.round(found.x, 1).tolist()} targets: {land.describe(x)}"
+        )
+    return lines
+
+
+def _run_log(folder: Path, result: np.ndarray) -> list[dict] | None:
+    """The folder's fit log (fit_out/, the last run bench/fit_speed.py made there) when
+    that run ended at ``result``; else None."""
+    written = json.loads((folder / "fit_out" / "params.json").read_text())["params"]
+    values = {LOG_NAMES[key]: value if len(value) > 1 else value[0] for key, value in written.items()}
+    if not np.allclose(coordinates(values), result):
+        return None
+    return [json.loads(line) for line in (folder / "fit_out" / "log.jsonl").read_text().splitlines()]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--work", type=Path, required=True, help="bench/fit_speed.py's --work folder")
+    parser.add_argument("--kits", required=True, help="volumetric kit seeds, comma-separated")
+    parser.add_argument("--run", default="defaults", help="bench/fit_speed.py's configuration")
+    parser.add_argument("--studies", nargs="*", default=list(STUDIES), choices=STUDIES)
+    parser.add_argument("--spp", type=int, default=32, help="samples per pixel of each loss render")
+    parser.add_argument("--seeds", type=int, default=16, help="gradients averaged (gradient)")
+    parser.add_argument("--samples", type=int, default=60, help="losses per quadratic (model)")
+    parser.add_argument("--radius", type=float, default=1.0, help="targets about the point (model)")
+    parser.add_argument("--rounds", type=int, default=3, help="steps (gradient, model)")
+    args = parser.parse_args()
+    mitsuba_variant.activate()
+    import drjit as dr
+    import mitsuba as mi
+
+    for seed in (int(s) for s in args.kits.split(",")):
+        kit, folder = draw_kit(seed, "volumetric"), args.work / f"volumetric-{seed}"
+        outcome = stored_outcome(folder, args.run)
+        if outcome is None or within(kit, outcome.final):
+            print(f"kit {seed}: no stored {args.run} run outside its targets")
+            continue
+        started = time.perf_counter()
+        land = Landscape(kit, folder, args.spp, mi)
+        x = coordinates(outcome.final)
+        print(f"kit {seed}: {kit.describe()}; the result: {land.describe(x)}", flush=True)
+        log = _run_log(folder, x)
+        studies = {
+            "trajectory": lambda: (
+                trajectory(land, x, log) if log else ["  trajectory: fit_out/ holds another run's log"]
+            ),
+            "line": lambda: line(land, x),
+            "gradient": lambda: gradient(land, x, args.seeds, args.rounds, mi, dr),
+            "compass": lambda: compass(land, x),
+            "model": lambda: model(land, x, args.samples, args.radius, args.rounds),
+        }
+        for name in args.studies:
+            print("\n".join(studies[name]()), flush=True)
+        print(f"  ({time.perf_counter() - started:.0f} s)", flush=True)
+
+
+if __name__ == "__main__":
+    main()
