@@ -19,24 +19,29 @@ def dotted_plate(seed: int, dots: int = 40, dot_radius: float = 0.03, size: int 
     """(size, size) reflectance of a unit disk with ``dots`` white dots of ``dot_radius``
     (both in units of the disk's radius), in the parameterisation of Mitsuba's disk:
     column u = r, row v = atan2(y, x) / 2 pi (first row at v = 0)."""
-    rng = np.random.default_rng(seed)
-    # Dots spread over the plate at least two diameters apart: isolated features.
-    centres: list[np.ndarray] = []
-    while len(centres) < dots:
-        candidate = rng.uniform(-0.95, 0.95, 2)
-        if np.hypot(*candidate) < 0.95 and all(np.hypot(*(candidate - c)) > 4 * dot_radius for c in centres):
-            centres.append(candidate)
     u = (np.arange(size) + 0.5) / size
     v = (np.arange(size) + 0.5) / size
     r, phi = np.meshgrid(u, 2 * np.pi * v)
     x, y = r * np.cos(phi), r * np.sin(phi)
     plate = np.full((size, size), PLATE_INK, np.float32)
-    for cx, cy in centres:
+    for cx, cy in dot_centres(seed, dots, dot_radius):
         # Only columns within a dot's radius of its centre's radius can hold it.
         near = np.flatnonzero(np.abs(u - np.hypot(cx, cy)) < 1.001 * dot_radius)
         inside = np.hypot(x[:, near] - cx, y[:, near] - cy) < dot_radius
         plate[:, near] = np.where(inside, PLATE_DOT, plate[:, near])
     return plate
+
+
+def dot_centres(seed: int, dots: int, dot_radius: float) -> list[np.ndarray]:
+    """dotted_plate's dot centres (x, y in units of the disk's radius): spread over the
+    plate at least two diameters apart, isolated features."""
+    rng = np.random.default_rng(seed)
+    centres: list[np.ndarray] = []
+    while len(centres) < dots:
+        candidate = rng.uniform(-0.95, 0.95, 2)
+        if np.hypot(*candidate) < 0.95 and all(np.hypot(*(candidate - c)) > 4 * dot_radius for c in centres):
+            centres.append(candidate)
+    return centres
 
 
 def room_map(seed: int, width: int = 2048, height: int = 1024) -> np.ndarray:
