@@ -85,7 +85,7 @@ class Landscape:
         return f"loss {self.loss(x):.3f}, worst {self.worst(x):.2f} targets"
 
 
-def trajectory(land: Landscape, x: np.ndarray, log: list[dict]) -> list[str]:
+def trajectory(land: Landscape, log: list[dict]) -> list[str]:
     states = [
         (entry["iteration"], coordinates({LOG_NAMES[k]: v if len(v) > 1 else v[0] for k, v in entry["params"].items()}))
         for entry in log
@@ -220,9 +220,7 @@ def main() -> None:
         print(f"kit {seed}: {kit.describe()}; the result: {land.describe(x)}", flush=True)
         log = _run_log(folder, x)
         studies = {
-            "trajectory": lambda: (
-                trajectory(land, x, log) if log else ["  trajectory: fit_out/ holds another run's log"]
-            ),
+            "trajectory": lambda: trajectory(land, log) if log else ["  trajectory: fit_out/ holds another run's log"],
             "line": lambda: line(land, x),
             "gradient": lambda: gradient(land, x, args.seeds, args.rounds, mi, dr),
             "compass": lambda: compass(land, x),
