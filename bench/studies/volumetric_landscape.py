@@ -81,8 +81,9 @@ class Landscape:
         """The largest error, in targets."""
         return max(error / target(name) for name, error in errors(self.kit, values_of(x)).items())
 
-    def describe(self, x: np.ndarray) -> str:
-        return f"loss {self.loss(x):.3f}, worst {self.worst(x):.2f} targets"
+    def describe(self, x: np.ndarray, loss: float | None = None) -> str:
+        """``x``'s loss (``loss`` when already known) and largest error."""
+        return f"loss {self.loss(x) if loss is None else loss:.3f}, worst {self.worst(x):.2f} targets"
 
 
 def trajectory(land: Landscape, log: list[dict]) -> list[str]:
@@ -129,7 +130,7 @@ def gradient(land: Landscape, x: np.ndarray, seeds: int, rounds: int, mi, dr) ->
             x, current = np.clip(x + length * direction, LOWER, UPPER), loss
         lines.append(
             f"  gradient round {number + 1}: largest |z| {np.max(np.abs(mean / error)):.1f}, cosine with the way to "
-            f"the truth {cosine:+.2f}, step {length if loss <= current else 0} targets: {land.describe(x)}"
+            f"the truth {cosine:+.2f}, step {length if loss <= current else 0} targets: {land.describe(x, current)}"
         )
     return lines
 
@@ -146,7 +147,7 @@ def compass(land: Landscape, x: np.ndarray) -> list[str]:
                 if loss < current:
                     x, current, improved = np.clip(trial, LOWER, UPPER), loss, True
                     break
-        lines.append(f"  compass, moves of {move} targets: {land.describe(x)} after {evaluations} losses")
+        lines.append(f"  compass, moves of {move} targets: {land.describe(x, current)} after {evaluations} losses")
         move = move if improved else move / 2
     return lines
 
