@@ -4,10 +4,11 @@ reprojection errors, the 3D points eliminated by the Schur complement.
 The camera side is a handful of *global* parameters (intrinsics, a rig's geometry)
 plus a few parameters *per view* (a turntable's angle); every observation depends
 on the global parameters, its own view's and its own point's. The camera model is
-any ``project(global, views, points, observations) -> pixels``; its Jacobian is
-taken by forward differences, one evaluation per global parameter, per view
-parameter (all views at once) and per point coordinate (all points at once), so
-a model is a plain vectorised function.
+any ``project(global, views, points, observations) -> pixels``; its Jacobian is the
+model's own where it gives one (``Problem.jacobians``), else taken by forward
+differences, one evaluation per global parameter, per view parameter (all views at
+once) and per point coordinate (all points at once), so a model can be a plain
+vectorised function.
 
 The reduced camera system is dense (global + views x per-view parameters, tens to
 a few hundred), the points' 3x3 blocks are inverted in closed form: memory and time
@@ -22,7 +23,8 @@ on the views through few differences gives its own view Jacobian rather than one
 evaluation per view.
 
 Limitations: forward differences limit the attainable precision to about 1e-7 of
-a parameter's scale, far below what pixels constrain; the dense reduced system
+a parameter's scale, far below what pixels constrain, and cost one projection per
+parameter; the dense reduced system
 suits problems with up to a few hundred camera parameters, not a city.
 """
 
@@ -82,6 +84,10 @@ class Problem:
     loss_scale_px: float = 2.0
     """Cauchy loss scale: residuals of this many pixels get half weight."""
     priors: list[Prior] = field(default_factory=list)
+    jacobians: Callable[[np.ndarray, np.ndarray, np.ndarray, "Observations"], tuple] | None = None
+    """Optional: ``project``'s pixels with their derivatives by every global parameter
+    (m, 2, G), every view parameter (m, 2, k) and the point (m, 2, 3), from the same
+    arguments; None for forward differences."""
 
 
 @dataclass
@@ -115,30 +121,41 @@ class _Linearisation:
 
     def __init__(self, problem: Problem, g: np.ndarray, V: np.ndarray, X: np.ndarray):
         obs = problem.observations
-        predicted = problem.project(g, V, X, obs)
-        self.residuals = predicted - obs.pixels  # (m, 2)
         free_g = np.flatnonzero(problem.free_global)
-        self.J_global = np.empty((len(obs.view), 2, len(free_g)))
-        for column, index in enumerate(free_g):
-            moved = g.copy()
-            moved[index] += problem.global_steps[index]
-            self.J_global[:, :, column] = (problem.project(moved, V, X, obs) - predicted) / problem.global_steps[index]
-        k = V.shape[1]
-        self.J_view = np.empty((len(obs.view), 2, k))
-        for j in range(k):
-            moved = V.copy()
-            moved[:, j] += problem.view_steps[j]
-            self.J_view[:, :, j] = (problem.project(g, moved, X, obs) - predicted) / problem.view_steps[j]
-        self.J_view *= problem.free_views[obs.view][:, None, :]
-        self.J_point = np.empty((len(obs.view), 2, 3))
-        for j in range(3):
-            moved = X.copy()
-            moved[:, j] += problem.point_step
-            self.J_point[:, :, j] = (problem.project(g, V, moved, obs) - predicted) / problem.point_step
+        if problem.jacobians is not None:
+            predicted, J_global, self.J_view, self.J_point = problem.jacobians(g, V, X, obs)
+            self.J_global = J_global[:, :, free_g]
+        else:
+            predicted, self.J_global, self.J_view, self.J_point = _forward_differences(problem, g, V, X, free_g)
+        self.residuals = predicted - obs.pixels  # (m, 2)
+        self.J_view = self.J_view * problem.free_views[obs.view][:, None, :]
         blocks = [_prior_jacobian(problem, prior, g, V) for prior in problem.priors]
         self.prior_residuals = np.concatenate([residuals for residuals, _ in blocks]) if blocks else np.zeros(0)
         n_cam = len(free_g) + int(np.count_nonzero(problem.free_views))
         self.J_prior = np.vstack([J for _, J in blocks]) if blocks else np.zeros((0, n_cam))
+
+
+def _forward_differences(problem: Problem, g: np.ndarray, V: np.ndarray, X: np.ndarray, free_g: np.ndarray):
+    """``project``'s pixels and their Jacobians by the free global parameters, the view
+    parameters and the point, by forward differences."""
+    obs = problem.observations
+    predicted = problem.project(g, V, X, obs)
+    J_global = np.empty((len(obs.view), 2, len(free_g)))
+    for column, index in enumerate(free_g):
+        moved = g.copy()
+        moved[index] += problem.global_steps[index]
+        J_global[:, :, column] = (problem.project(moved, V, X, obs) - predicted) / problem.global_steps[index]
+    J_view = np.empty((len(obs.view), 2, V.shape[1]))
+    for j in range(V.shape[1]):
+        moved = V.copy()
+        moved[:, j] += problem.view_steps[j]
+        J_view[:, :, j] = (problem.project(g, moved, X, obs) - predicted) / problem.view_steps[j]
+    J_point = np.empty((len(obs.view), 2, 3))
+    for j in range(3):
+        moved = X.copy()
+        moved[:, j] += problem.point_step
+        J_point[:, :, j] = (problem.project(g, V, moved, obs) - predicted) / problem.point_step
+    return predicted, J_global, J_view, J_point
 
 
 def _prior_jacobian(problem: Problem, prior: Prior, g: np.ndarray, V: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -249,6 +249,64 @@ class Model:
         radial = 1 + g[K1] * (x * x + y * y)
         return np.column_stack([g[FOCAL] * x * radial + g[CX], g[FOCAL] * y * radial + g[CY]])
 
+    def jacobians(
+        self, g: np.ndarray, views: np.ndarray, points: np.ndarray, obs: Observations
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``project``'s pixels (m, 2) and their derivatives by the global parameters
+        (m, 2, 7), the angle (m, 2, 1) and the point (m, 2, 3), in closed form but for
+        the axis and ``p`` by the first three global parameters (central differences of
+        ``axis_and_point``, a function of three numbers). Vectors throughout, no 3x3
+        matrix per observation: numpy's products of many tiny matrices are slow."""
+        axis, p = self.axis_and_point(g)
+        angles, relative = views[obs.view, 0], points[obs.point] - p
+        turned = axis_rotation(axis, angles, relative)
+        camera = turned + p
+        z = np.maximum(camera[:, 2], 1e-6)
+        x, y = camera[:, 0] / z, camera[:, 1] / z
+        r2 = x * x + y * y
+        radial = 1 + g[K1] * r2
+        pixels = np.column_stack([g[FOCAL] * x * radial + g[CX], g[FOCAL] * y * radial + g[CY]])
+        # Pixels by the camera point: the distortion's 2x2 times the perspective
+        # division's 2x3 (nothing by depth where ``project`` clamps it).
+        by_x = g[FOCAL] * np.column_stack([radial + 2 * g[K1] * x * x, 2 * g[K1] * x * y])  # (m, 2)
+        by_y = g[FOCAL] * np.column_stack([2 * g[K1] * x * y, radial + 2 * g[K1] * y * y])
+        in_front = camera[:, 2] > 1e-6
+        x_by_camera = np.column_stack([1 / z, np.zeros_like(z), -x / z * in_front])  # (m, 3)
+        y_by_camera = np.column_stack([np.zeros_like(z), 1 / z, -y / z * in_front])
+        by_camera = by_x[:, :, None] * x_by_camera[:, None, :] + by_y[:, :, None] * y_by_camera[:, None, :]
+
+        # By the point: the camera point moves by R dX, so each pixel row's gradient is
+        # R^T of its gradient in the camera frame (the turn undone).
+        J_point = np.stack([axis_rotation(axis, -angles, by_camera[:, row]) for row in range(2)], 1)
+        J_view = np.einsum("mij,mj->mi", by_camera, np.cross(axis, turned))[:, :, None]
+        # By the axis and p, along central differences of axis_and_point (columns of
+        # d_axis and d_p): Rodrigues' formula R w = c w + s (a x w) + (1 - c) a (a . w)
+        # differentiated by a as a free vector, and c = R w + p with w = X - p by p; each
+        # pixel row's gradient b dotted with them, as products with the three columns.
+        d_axis, d_p = np.zeros((3, 3)), np.zeros((3, 3))
+        for index in range(3):
+            ahead, behind = g.copy(), g.copy()
+            ahead[index] += 1e-6
+            behind[index] -= 1e-6
+            (axis_ahead, p_ahead), (axis_behind, p_behind) = self.axis_and_point(ahead), self.axis_and_point(behind)
+            d_axis[:, index], d_p[:, index] = (axis_ahead - axis_behind) / 2e-6, (p_ahead - p_behind) / 2e-6
+        c, s = np.cos(angles)[:, None], np.sin(angles)[:, None]
+        dot = (relative @ axis)[:, None]
+        J_global = np.zeros((len(z), 2, len(g)))
+        for row in range(2):
+            b = by_camera[:, row]
+            b_axis = (b @ axis)[:, None]
+            J_global[:, row, :3] = (
+                s * (np.cross(relative, b) @ d_axis)  # b . (d x w) = d . (w x b)
+                + (1 - c) * (dot * (b @ d_axis) + b_axis * (relative @ d_axis))
+                + (1 - c) * (b @ d_p - b_axis * (axis @ d_p))  # (I - R) d_p, its c and a terms
+                - s * (b @ np.cross(axis, d_p.T).T)  # and its s term
+            )
+        J_global[:, 0, FOCAL], J_global[:, 1, FOCAL] = x * radial, y * radial
+        J_global[:, 0, CX] = J_global[:, 1, CY] = 1.0
+        J_global[:, 0, K1], J_global[:, 1, K1] = g[FOCAL] * x * r2, g[FOCAL] * y * r2
+        return pixels, J_global, J_view, J_point
+
     def undistorted_rays(self, g: np.ndarray, pixels: np.ndarray) -> np.ndarray:
         """Normalised image coordinates of ``pixels`` (distortion removed by fixed-point iteration)."""
         distorted = (pixels - g[[CX, CY]]) / g[FOCAL]
@@ -263,7 +321,7 @@ class Model:
 
 @dataclass
 class PairRays:
-    """A matched photo pair (file indices ``i`` < ``j``) as normalised camera rays (k, 3)."""
+    """A matched photo pair (file indices ``i`` < ``j``) as normalised camera rays (k, 3), z = 1."""
 
     i: int
     j: int
@@ -277,23 +335,22 @@ def essentials(axis: np.ndarray, point: np.ndarray, turns: np.ndarray) -> np.nda
     # No turn has no epipolar geometry (E = 0 explains anything): the least turn is kept.
     turns = np.where(np.abs(turns) < 1e-4, np.where(turns < 0, -1e-4, 1e-4), turns)
     R = Rotation.from_rotvec(np.outer(turns, axis)).as_matrix()
-    t = point - R @ point
-    cross = np.zeros_like(R)
-    cross[:, 0, 1], cross[:, 0, 2], cross[:, 1, 2] = -t[:, 2], t[:, 1], -t[:, 0]
-    cross -= cross.transpose(0, 2, 1)
-    return cross @ R
+    return silhouette_tangency.cross_matrices(point - R @ point) @ R
 
 
 def sampson_sq(E: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     """(G, N) squared Sampson distances of rays ``x1`` -> ``x2`` (N, 3) under each of ``E`` (G, 3, 3)."""
-    # One (N, 3) x (3, 3G) product per side rather than G batched 3x3 ones: the axis
-    # search evaluates dozens of turns for hundreds of axes.
+    # Matrix products over all G at once: the algebraic error x2^T E x1 as the rays'
+    # outer products against E's nine entries, the gradient's four terms one row or
+    # column of every E each. The axis search evaluates dozens of turns for hundreds
+    # of axes.
     G = len(E)
-    Ex1 = (x1 @ E.transpose(2, 0, 1).reshape(3, 3 * G)).reshape(len(x1), G, 3)  # [n, g] = E[g] x1[n]
-    Etx2 = (x2 @ E.transpose(1, 0, 2).reshape(3, 3 * G)).reshape(len(x2), G, 3)  # [n, g] = E[g]^T x2[n]
-    algebraic = np.einsum("nga,na->gn", Ex1, x2)
-    denominator = (Ex1[..., 0] ** 2 + Ex1[..., 1] ** 2 + Etx2[..., 0] ** 2 + Etx2[..., 1] ** 2).T
-    return algebraic**2 / np.maximum(denominator, 1e-300)
+    algebraic = (x2[:, :, None] * x1[:, None, :]).reshape(-1, 9) @ E.reshape(G, 9).T  # (N, G)
+    denominator = np.zeros_like(algebraic)
+    for row in range(2):
+        denominator += (x1 @ E[:, row, :].T) ** 2  # (E x1)_row
+        denominator += (x2 @ E[:, :, row].T) ** 2  # (E^T x2)_row
+    return (algebraic**2 / np.maximum(denominator, 1e-300)).T
 
 
 def facing_point(axis: np.ndarray) -> np.ndarray:
@@ -312,8 +369,7 @@ def pair_turns(
     normalised units). Returns the best turn, its cost and its inlier count per pair,
     and the median inlier count over all ``turns`` (what its matches fit by chance,
     when the turns span far more than the pair's own)."""
-    x1 = np.vstack([np.column_stack([p.rays_i, np.ones(len(p.rays_i))]) for p in pairs])
-    x2 = np.vstack([np.column_stack([p.rays_j, np.ones(len(p.rays_j))]) for p in pairs])
+    x1, x2 = np.vstack([p.rays_i for p in pairs]), np.vstack([p.rays_j for p in pairs])
     sizes = [len(p.rays_i) for p in pairs]
     starts = np.cumsum([0] + sizes)[:-1]
     distances = sampson_sq(essentials(axis, facing_point(axis), turns), x1, x2)
@@ -556,7 +612,7 @@ def _pair_rays(solver: _Solver, matches) -> list[PairRays]:
         if i < j and len(matched) >= solver.min_pair_matches:
             mine, theirs = np.array(list(matched.items())).T
             rays = [model.undistorted_rays(solver.g, solver.keypoints[n][k]) for n, k in ((a, mine), (b, theirs))]
-            pairs.append(PairRays(i, j, *rays))
+            pairs.append(PairRays(i, j, *[np.column_stack([r, np.ones(len(r))]) for r in rays]))
     return pairs
 
 
@@ -613,8 +669,8 @@ def _explained_by_one_turn(
     turns, explained = turns[len(verified) :], explained[len(verified) :]
     found = {}
     for pair, turn in ((pair, turn) for pair, turn, kept in zip(pairs, turns, explained) if kept):
-        rays = [np.column_stack([r, np.ones(len(r))]) for r in (pair.rays_i, pair.rays_j)]
-        inlier = sampson_sq(essentials(axis, facing_point(axis), np.array([turn])), *rays)[0] < threshold**2
+        E = essentials(axis, facing_point(axis), np.array([turn]))
+        inlier = sampson_sq(E, pair.rays_i, pair.rays_j)[0] < threshold**2
         a, b = solver.order[pair.i], solver.order[pair.j]
         kept = [(k, m) for (k, m), keep in zip(candidates[a, b].items(), inlier) if keep]
         found[a, b] = dict(kept)
@@ -734,13 +790,21 @@ class _Coherence:
         self.pixels = outlines.pixels[rows]
         self.pairs = silhouette_coherence.choose_pairs(solver.angles[self.views])
         self.feature_sigma = feature_sigma
+        self._undistorted: tuple[tuple, np.ndarray | None] = ((), None)
+        """The intrinsics the outlines were last undistorted with, and their rays."""
         self.sigma = silhouette_coherence.robust_sigma(self.residuals(solver.g, solver.angles[:, None]))
 
     def residuals(self, g: np.ndarray, views: np.ndarray, turn_step: float = 0.0) -> np.ndarray:
         """(P, 4) tangency errors (pixels) of the pairs at the global parameters and
         angles, every pair's turn increased by ``turn_step``."""
         axis, p = self.model.axis_and_point(g)
-        normalised = self.model.undistorted_rays(g, self.pixels.reshape(-1, 2)).reshape(self.pixels.shape)
+        intrinsics = tuple(g[[FOCAL, CX, CY, K1]])
+        if intrinsics != self._undistorted[0]:
+            # The bundle adjuster differentiates by the axis and the angles with the
+            # intrinsics unchanged: the outlines' rays are undistorted once for those.
+            rays = self.model.undistorted_rays(g, self.pixels.reshape(-1, 2)).reshape(self.pixels.shape)
+            self._undistorted = (intrinsics, rays)
+        normalised = self._undistorted[1]
         angles = views[self.views, 0]
         turns = angles[self.pairs[:, 1]] - angles[self.pairs[:, 0]] + turn_step
         return silhouette_coherence.tangency_residuals(axis, p, turns, normalised, self.pairs, g[FOCAL])
@@ -805,6 +869,7 @@ def _problem(
         priors.append(coherence.prior)
     return Problem(
         project=solver.model.project,
+        jacobians=solver.model.jacobians,
         observations=observations,
         free_global=free_global,
         free_views=free_views,

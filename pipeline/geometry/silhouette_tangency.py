@@ -50,7 +50,8 @@ def padded(hulls: list[np.ndarray]) -> np.ndarray:
     return np.stack([np.concatenate([h, np.repeat(h[-1:], longest - len(h), axis=0)]) for h in hulls]).astype(float)
 
 
-def _skew(t: np.ndarray) -> np.ndarray:
+def cross_matrices(t: np.ndarray) -> np.ndarray:
+    """(P, 3, 3) cross-product matrices of ``t`` (P, 3): ``cross_matrices(t)[k] @ w = t[k] x w``."""
     zero = np.zeros(len(t))
     rows = [[zero, -t[:, 2], t[:, 1]], [t[:, 2], zero, -t[:, 0]], [-t[:, 1], t[:, 0], zero]]
     return np.stack([np.stack(row, 1) for row in rows], 1)
@@ -97,7 +98,7 @@ def tangency_errors(
     carried to a; positive where a carried tangent misses the outline, negative where it
     cuts it. And (P,) whether the pair constrains anything: both epipoles in front of
     their camera and outside their outline."""
-    E = _skew(t) @ R
+    E = cross_matrices(t) @ R
     # The epipoles: camera b's centre seen from a, and a's seen from b.
     epipole_a, front_a = _dehomogenise(-np.einsum("pji,pj->pi", R, t))
     epipole_b, front_b = _dehomogenise(t)

@@ -4,6 +4,7 @@ import pytest
 
 from pipeline.camera.model import Intrinsics
 from pipeline.geometry import circular_motion
+from pipeline.geometry.bundle import Observations
 from pipeline.geometry.circular_motion import CircularSettings, synchronise_angles
 from pipeline.geometry.silhouette_tangency import outline
 from tests.support.turntable_views import (
@@ -40,6 +41,38 @@ def views():
 def solution(views):
     settings = CircularSettings()
     return circular_motion.solve(settings, views.names, START, views.keypoints, views.matches)
+
+
+def test_the_models_jacobians_are_its_projections_central_differences():
+    """The closed-form derivatives the bundle adjustment steps by, against central
+    differences of the projection, for a tilted axis, distortion and points about it."""
+    rng = np.random.default_rng(0)
+    model = circular_motion.Model(np.array([0.1, -0.9, -0.4]))
+    g = np.array([0.02, -0.01, 0.3, 900.0, 320.0, 240.0, -0.08])
+    axis, p = model.axis_and_point(g)
+    views, points = rng.uniform(-3, 3, (6, 1)), p + rng.normal(0, 0.2, (40, 3))
+    view, point = np.meshgrid(np.arange(6), np.arange(40), indexing="ij")
+    obs = Observations(view.ravel(), point.ravel(), np.zeros((240, 2)))
+    pixels, J_global, J_view, J_point = model.jacobians(g, views, points, obs)
+    np.testing.assert_allclose(pixels, model.project(g, views, points, obs), atol=1e-6)
+
+    def central(moved_ahead, moved_behind, step):
+        return (model.project(*moved_ahead, obs) - model.project(*moved_behind, obs)) / (2 * step)
+
+    for index, step in enumerate([1e-6, 1e-6, 1e-6, 1e-3, 1e-3, 1e-3, 1e-6]):
+        ahead, behind = g.copy(), g.copy()
+        ahead[index] += step
+        behind[index] -= step
+        expected = central((ahead, views, points), (behind, views, points), step)
+        np.testing.assert_allclose(J_global[:, :, index], expected, rtol=1e-5, atol=1e-4 * np.abs(expected).max())
+    expected = central((g, views + 1e-6, points), (g, views - 1e-6, points), 1e-6)
+    np.testing.assert_allclose(J_view[:, :, 0], expected, rtol=1e-5, atol=1e-4 * np.abs(expected).max())
+    for j in range(3):
+        ahead, behind = points.copy(), points.copy()
+        ahead[:, j] += 1e-6
+        behind[:, j] -= 1e-6
+        expected = central((g, views, ahead), (g, views, behind), 1e-6)
+        np.testing.assert_allclose(J_point[:, :, j], expected, rtol=1e-5, atol=1e-4 * np.abs(expected).max())
 
 
 def test_the_solver_recovers_uneven_angles_axis_focal_length_and_distortion(views, solution):
