@@ -1,6 +1,7 @@
 """pipeline.fit.engine, pipeline.render.scene_xml and `pipeline fit` on a tiny scene: a sphere
 under a constant sky and one softbox, seen by three 40x30 sensors."""
 
+import gc
 import json
 import xml.etree.ElementTree as ET
 from dataclasses import replace
@@ -638,7 +639,15 @@ def test_each_view_replays_its_own_recording(mi, references, tmp_path, monkeypat
     freeze = dr.freeze
     monkeypatch.setattr(dr, "freeze", lambda f: recordings.append(freeze(f)) or recordings[-1])
     settings = engine.FitSettings(iterations=16, batch=3, spp=4, still_threshold=0.0, freeze_min_replays=0)
-    engine.fit(PARAMETERS, views, [], settings)
+    # A recording holds Dr.Jit's registry of live Mitsuba objects: earlier tests' scenes,
+    # freed by the garbage collector part-way through the fit, make every function record
+    # again. Collected first, and no collection during the fit.
+    gc.collect()
+    gc.disable()
+    try:
+        engine.fit(PARAMETERS, views, [], settings)
+    finally:
+        gc.enable()
     assert len(recordings) == 3 and all(r.n_recordings <= 3 for r in recordings)
     # A recording per view pays only when replayed often: 16 steps over 3 views is
     # 16 replays each, fewer than the default's 30, so nothing is recorded.
