@@ -281,8 +281,9 @@ class Model:
         J_view = np.einsum("mij,mj->mi", by_camera, np.cross(axis, turned))[:, :, None]
         # By the axis and p, along central differences of axis_and_point (columns of
         # d_axis and d_p): Rodrigues' formula R w = c w + s (a x w) + (1 - c) a (a . w)
-        # differentiated by a as a free vector, and c = R w + p with w = X - p by p; each
-        # pixel row's gradient b dotted with them, as products with the three columns.
+        # differentiated by the axis a as a free vector, and the camera point R w + p
+        # (w = X - p) by p; each pixel row's gradient b dotted with them, as products
+        # with the three columns.
         d_axis, d_p = np.zeros((3, 3)), np.zeros((3, 3))
         for index in range(3):
             ahead, behind = g.copy(), g.copy()
@@ -299,8 +300,8 @@ class Model:
             J_global[:, row, :3] = (
                 s * (np.cross(relative, b) @ d_axis)  # b . (d x w) = d . (w x b)
                 + (1 - c) * (dot * (b @ d_axis) + b_axis * (relative @ d_axis))
-                + (1 - c) * (b @ d_p - b_axis * (axis @ d_p))  # (I - R) d_p, its c and a terms
-                - s * (b @ np.cross(axis, d_p.T).T)  # and its s term
+                + (1 - c) * (b @ d_p - b_axis * (axis @ d_p))  # (I - R) d_p: its cosine and axis terms
+                - s * (b @ np.cross(axis, d_p.T).T)  # and its sine term
             )
         J_global[:, 0, FOCAL], J_global[:, 1, FOCAL] = x * radial, y * radial
         J_global[:, 0, CX] = J_global[:, 1, CY] = 1.0
