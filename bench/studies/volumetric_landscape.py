@@ -2,7 +2,7 @@
 
     .venv/bin/python -m bench.studies.volumetric_landscape --work DIR --kits 7 [--run defaults]
         [--studies trajectory line gradient compass model] [--spp 32] [--seeds 16]
-        [--samples 60] [--radius 1] [--rounds 3]
+        [--samples 60] [--radius 1] [--rounds 3] [--jacobian-spp 8]
 
 For each volumetric kit whose stored run (bench/fit_speed.py's ``--work`` folder and
 configuration, ``--run``) ended outside a target, the loss the fits minimise is estimated
@@ -23,11 +23,25 @@ coordinates (alpha, eta, albedo r g b, log sigma_t). Studies:
   falls; the move halved when no coordinate's does, down to a quarter target;
 - model: a quadratic fitted to the loss at ``--samples`` points drawn uniformly within
   ``--radius`` targets of the current point (inside bench/fit_kits.py's BOUNDS); its
-  minimum within 1.5 radii is the next point; ``--rounds`` times.
+  minimum within 1.5 radii is the next point; ``--rounds`` times;
+- common: whether renders with the same seeds share their noise when one coordinate
+  moves (what finite differences and models of the loss lean on): at the truth, for
+  moves of 0.5, 2 and 8 targets either way, the mean squared difference of the two
+  renders with the same seeds and the expected one (the dual estimator over two other
+  seed pairs), both relative to two independent renders' at one point;
+- forward: Gauss-Newton rounds from the result with per-pixel Jacobians in forward
+  mode (the scene's ``volpath`` with evaluated loops: the fits' ``prbvolpath`` has no
+  forward mode), one pass per coordinate and view at ``--jacobian-spp``; the
+  Gauss-Newton matrix by the dual estimator (two Jacobians from independent seeds, so
+  their noise does not add to its diagonal), its eigenvalues floored at a thousandth of
+  the largest, the residual at ``--spp``; each step capped at ``--radius`` targets and
+  taken whatever the loss says; ``--rounds`` times.
 
 Limitations: whole films at the kit's size (the fits' coarse levels and windows are not
 modelled); the loss at one point has a seed noise of about one to two percent at 32 spp,
-partly common to nearby points.
+partly common to nearby points. The forward-mode Jacobians differentiate ``volpath``'s
+own sampling (a free flight's distance moves with sigma_t), not ``prbvolpath``'s
+detached sampling.
 """
 
 from __future__ import annotations
@@ -42,12 +56,13 @@ import numpy as np
 from scipy.optimize import minimize
 
 from bench.fit_kits import BOUNDS, INTEGRATORS, draw_kit, errors, kit_xml, stored_outcome, target, within
-from bench.studies.gradient_noise import KEYS, UNITS, gradients
+from bench.studies.gradient_noise import COORDINATES, KEYS, UNITS, gradients, set_coordinates
 from bench.studies.kit_identifiability import losses
 from pipeline.render import mitsuba_variant
 
-STUDIES = ("trajectory", "line", "gradient", "compass", "model")
+STUDIES = ("trajectory", "line", "gradient", "compass", "model", "common", "forward")
 LOG_NAMES = {key: name for name, key in KEYS.items()}
+COORDINATE_PROPERTIES = ("alpha", "eta", "albedo", "albedo", "albedo", "sigma_t")
 """The fit log's parameter keys, by property name."""
 LOWER = np.array([BOUNDS["alpha"][0], BOUNDS["eta"][0], *[BOUNDS["albedo"][0]] * 3, np.log(BOUNDS["sigma_t"][0])])
 UPPER = np.array([BOUNDS["alpha"][1], BOUNDS["eta"][1], *[BOUNDS["albedo"][1]] * 3, np.log(BOUNDS["sigma_t"][1])])
@@ -84,6 +99,62 @@ class Landscape:
     def describe(self, x: np.ndarray, loss: float | None = None) -> str:
         """``x``'s loss (``loss`` when already known) and largest error."""
         return f"loss {self.loss(x) if loss is None else loss:.3f}, worst {self.worst(x):.2f} targets"
+
+
+class Renders:
+    """The kit's scene with its material set by coordinates, rendered view by view into one
+    flat array (every view's pixels, then the next's)."""
+
+    def __init__(self, land: Landscape, integrator: str):
+        mi = land.mi
+        with tempfile.TemporaryDirectory() as scratch:
+            self.scene = mi.load_file(str(kit_xml(land.kit, land.kit.truth, Path(scratch))))
+        self.integrator = mi.load_dict({"type": integrator, "max_depth": INTEGRATORS["volumetric"][2]})
+        self.params, self.land = mi.traverse(self.scene), land
+        self.reference = np.concatenate(
+            [
+                np.array(mi.Bitmap(str(land.folder / "references" / f"view_{view}.exr"))).ravel()
+                for view in range(land.kit.views)
+            ]
+        )
+
+    def __call__(self, x: np.ndarray, seed: int, spp: int) -> np.ndarray:
+        set_coordinates(self.params, np.clip(x, LOWER, UPPER))
+        self.params.update()
+        return np.concatenate(
+            [
+                np.array(
+                    self.land.mi.render(
+                        self.scene, self.params, sensor=view, integrator=self.integrator, spp=spp, seed=seed + 17 * view
+                    )
+                ).ravel()
+                for view in range(self.land.kit.views)
+            ]
+        )
+
+    def jacobian(self, x: np.ndarray, seed: int, spp: int, dr) -> np.ndarray:
+        """(pixels, 6): each coordinate's derivative of the image, per target, in forward mode."""
+        mi, columns = self.land.mi, []
+        for coordinate, unit in enumerate(UNITS):
+            name = COORDINATE_PROPERTIES[coordinate]
+            key = KEYS[name]
+            set_coordinates(self.params, np.clip(x, LOWER, UPPER))
+            dr.enable_grad(self.params[key])
+            self.params.update()
+            if name == "albedo":
+                dr.set_grad(self.params[key], mi.Color3f(*np.eye(3)[coordinate - 2]))
+            else:  # log sigma_t's tangent moves sigma_t by sigma_t
+                dr.set_grad(self.params[key], float(np.exp(x[5])) if name == "sigma_t" else 1.0)
+            derivatives = []
+            for view in range(self.land.kit.views):
+                image = mi.render(
+                    self.scene, self.params, sensor=view, integrator=self.integrator, spp=spp, seed=seed + 31 * view
+                )
+                dr.forward_to(image)
+                derivatives.append(np.array(dr.grad(image)).ravel())
+            dr.disable_grad(self.params[key])
+            columns.append(np.concatenate(derivatives) * unit)
+        return np.stack(columns, axis=1)
 
 
 def trajectory(land: Landscape, log: list[dict]) -> list[str]:
@@ -183,6 +254,49 @@ def model(land: Landscape, x: np.ndarray, samples: int, radius: float, rounds: i
     return lines
 
 
+def common(land: Landscape, spp: int) -> list[str]:
+    render, x = Renders(land, INTEGRATORS["volumetric"][1]), land.truth
+    independent = float(np.mean((render(x, 1, spp) - render(x, 2, spp)) ** 2))
+    lines = []
+    for move in (0.5, 2.0, 8.0):
+        cells = []
+        for coordinate, name in enumerate(COORDINATES):
+            shift = np.eye(6)[coordinate] * move * UNITS[coordinate]
+            same = np.mean((render(x + shift, 1, spp) - render(x - shift, 1, spp)) ** 2)
+            expected = np.mean(
+                (render(x + shift, 3, spp) - render(x - shift, 3, spp))
+                * (render(x + shift, 4, spp) - render(x - shift, 4, spp))
+            )
+            cells.append(f"{name} {same / independent:.3f} ({expected / independent:.3f})")
+        lines.append(
+            f"  common, moves of {move} targets either way, the same seeds' squared difference (the expected "
+            f"one) over independent seeds': " + ", ".join(cells)
+        )
+    return lines
+
+
+def forward(land: Landscape, x: np.ndarray, spp: int, jacobian_spp: int, radius: float, rounds: int, dr) -> list[str]:
+    derivative, render = Renders(land, INTEGRATORS["volumetric"][0]), Renders(land, INTEGRATORS["volumetric"][1])
+    lines = []
+    for number in range(rounds):
+        with dr.scoped_set_flag(dr.JitFlag.SymbolicLoops, False):  # volpath's loops differentiate when evaluated
+            first, second = (derivative.jacobian(x, seed + 100 * number, jacobian_spp, dr) for seed in (1000, 5000))
+        residual = render(x, 9000 + 100 * number, spp) - render.reference
+        matrix = (first.T @ second + second.T @ first) / 2
+        noise_share = np.diag(first.T @ first + second.T @ second) / 2 / np.diag(matrix)
+        values, vectors = np.linalg.eigh(matrix)
+        floored = vectors @ np.diag(np.maximum(values, 1e-3 * values.max())) @ vectors.T
+        step = -np.linalg.solve(floored, (first + second).T @ residual / 2)
+        length = float(np.linalg.norm(step))
+        x = np.clip(x + step * min(1.0, radius / length) * UNITS, LOWER, UPPER)
+        lines.append(
+            f"  forward round {number + 1}: the matrix's eigenvalues over its largest "
+            f"{np.round(values / values.max(), 3).tolist()}, each diagonal with the Jacobians' own noise over "
+            f"without {np.round(noise_share, 1).tolist()}; Gauss-Newton step {length:.1f} targets: {land.describe(x)}"
+        )
+    return lines
+
+
 def _run_log(folder: Path, result: np.ndarray) -> list[dict] | None:
     """The folder's fit log (fit_out/, the last run bench/fit_speed.py made there) when
     that run ended at ``result``; else None."""
@@ -203,7 +317,8 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=16, help="gradients averaged (gradient)")
     parser.add_argument("--samples", type=int, default=60, help="losses per quadratic (model)")
     parser.add_argument("--radius", type=float, default=1.0, help="targets about the point (model)")
-    parser.add_argument("--rounds", type=int, default=3, help="steps (gradient, model)")
+    parser.add_argument("--rounds", type=int, default=3, help="steps (gradient, model, forward)")
+    parser.add_argument("--jacobian-spp", type=int, default=8, help="samples per pixel of a Jacobian (forward)")
     args = parser.parse_args()
     mitsuba_variant.activate()
     import drjit as dr
@@ -226,6 +341,8 @@ def main() -> None:
             "gradient": lambda: gradient(land, x, args.seeds, args.rounds, mi, dr),
             "compass": lambda: compass(land, x),
             "model": lambda: model(land, x, args.samples, args.radius, args.rounds),
+            "common": lambda: common(land, args.spp),
+            "forward": lambda: forward(land, x, args.spp, args.jacobian_spp, args.radius, args.rounds, dr),
         }
         for name in args.studies:
             print("\n".join(studies[name]()), flush=True)
