@@ -1,7 +1,7 @@
 """Where a volumetric fit that missed its targets stopped, in its loss landscape.
 
     .venv/bin/python -m bench.studies.volumetric_landscape --work DIR --kits 7 [--run defaults]
-        [--studies trajectory line gradient compass model] [--spp 32] [--seeds 16]
+        [--studies trajectory line gradient compass model common forward] [--spp 32] [--seeds 16]
         [--samples 60] [--radius 1] [--rounds 3] [--jacobian-spp 8]
 
 For each volumetric kit whose stored run (bench/fit_speed.py's ``--work`` folder and
@@ -62,8 +62,9 @@ from pipeline.render import mitsuba_variant
 
 STUDIES = ("trajectory", "line", "gradient", "compass", "model", "common", "forward")
 LOG_NAMES = {key: name for name, key in KEYS.items()}
-COORDINATE_PROPERTIES = ("alpha", "eta", "albedo", "albedo", "albedo", "sigma_t")
 """The fit log's parameter keys, by property name."""
+COORDINATE_PROPERTIES = ("alpha", "eta", "albedo", "albedo", "albedo", "sigma_t")
+"""The property each coordinate moves."""
 LOWER = np.array([BOUNDS["alpha"][0], BOUNDS["eta"][0], *[BOUNDS["albedo"][0]] * 3, np.log(BOUNDS["sigma_t"][0])])
 UPPER = np.array([BOUNDS["alpha"][1], BOUNDS["eta"][1], *[BOUNDS["albedo"][1]] * 3, np.log(BOUNDS["sigma_t"][1])])
 
@@ -316,7 +317,9 @@ def main() -> None:
     parser.add_argument("--spp", type=int, default=32, help="samples per pixel of each loss render")
     parser.add_argument("--seeds", type=int, default=16, help="gradients averaged (gradient)")
     parser.add_argument("--samples", type=int, default=60, help="losses per quadratic (model)")
-    parser.add_argument("--radius", type=float, default=1.0, help="targets about the point (model)")
+    parser.add_argument(
+        "--radius", type=float, default=1.0, help="targets about the point (model); a step's cap (forward)"
+    )
     parser.add_argument("--rounds", type=int, default=3, help="steps (gradient, model, forward)")
     parser.add_argument("--jacobian-spp", type=int, default=8, help="samples per pixel of a Jacobian (forward)")
     args = parser.parse_args()
