@@ -143,7 +143,7 @@ class Renders:
             dr.enable_grad(self.params[key])
             self.params.update()
             if name == "albedo":
-                dr.set_grad(self.params[key], mi.Color3f(*np.eye(3)[coordinate - 2]))
+                dr.set_grad(self.params[key], mi.Color3f(*map(float, np.eye(3)[coordinate - 2])))
             else:  # log sigma_t's tangent moves sigma_t by sigma_t
                 dr.set_grad(self.params[key], float(np.exp(x[5])) if name == "sigma_t" else 1.0)
             derivatives = []
