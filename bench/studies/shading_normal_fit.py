@@ -23,10 +23,10 @@ Limitations: a normal field is not a surface; positions and normals then disagre
 which only shading sees. Synthetic captures only (the truth scores the arms).
 
 Usage: ``.venv/bin/python -m bench.studies.shading_normal_fit --capture DIR --work DIR
-[--after fit_texture|fit_geometry] [--iterations N] [--step S] [--smoothing L]`` (a
-synthetic capture; runs its stages up to ``--after`` first, cached; prints and writes
-report.json in the work folder). Results: docs/decisions.md, "Fitting's windows and
-geometry".
+[--after fit_texture|fit_geometry] [--iterations N] [--step S] [--smoothing L]
+[--max-size PX]`` (a synthetic capture; runs its stages up to ``--after`` first,
+cached; prints and writes report.json in the work folder). Results:
+docs/decisions.md, "Fitting's windows and geometry".
 """
 
 from __future__ import annotations
@@ -34,6 +34,7 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -128,6 +129,9 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, default=100, help="steps of the normal pass")
     parser.add_argument("--step", type=float, default=0.01, help="Adam step on the normals' differential coordinates")
     parser.add_argument("--smoothing", type=float, default=20.0, help="LargeSteps' lambda for the normals")
+    parser.add_argument(
+        "--max-size", type=int, default=0, help="window of the normal pass, px (0: the material pass's)"
+    )
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
 
@@ -177,7 +181,8 @@ def main() -> None:
         geometry = copy_scene(Path(source), folder)
         entry = {}
         if arm == "normals":
-            entry["normal_pass"] = normal_pass(geometry, description, photos, held, windowing, normal_settings)
+            normal_windows = replace(windowing, max_size=args.max_size or windowing.max_size)
+            entry["normal_pass"] = normal_pass(geometry, description, photos, held, normal_windows, normal_settings)
         refit, kept = material_pass(geometry, description, photos, held, parameters, windowing, material_settings, 0.0)
         values = dict(start["params"]) | (refit.values if kept else {})
         entry |= {
