@@ -59,7 +59,8 @@ from stages import STAGES, fit_geometry
 class NormalVariables(ShapeVariables):
     """A mesh's vertex normals in every view's scene, as LargeSteps' differential
     coordinates (welded at the UV seams by its construction from the positions),
-    renormalised to unit length before every render."""
+    renormalised to unit length before every render. Snapshots are ShapeVariables'
+    (the un-normalised normals, under its ``positions`` key)."""
 
     def __init__(self, shape_id: str, traversed: dict, step: float, smoothing: float):
         import drjit as dr
@@ -107,8 +108,8 @@ def normal_pass(geometry: Path, description, photos, held: set[str], windowing: 
 
 
 def shading_error(capture: Path, mesh_file: Path, similarity) -> dict:
-    """pipeline score's mesh scores of ``mesh_file`` with the vertex normals it holds,
-    in the true frame (moved here: trimesh's own transform recomputes the normals)."""
+    """pipeline score's mesh scores of ``mesh_file`` with the vertex normals it holds
+    (not ones recomputed from its faces), moved into the true frame with them."""
     mesh = trimesh.load(mesh_file, process=False)  # force="mesh" would drop the normals
     matrix = similarity.matrix()
     normals = np.asarray(mesh.vertex_normals) @ matrix[:3, :3].T
