@@ -170,7 +170,8 @@ def draw_kit(seed: int, material: str) -> Kit:
 
 
 def shape_file(kit: Kit, folder: Path) -> Path:
-    """The kit's shape as a PLY, about 0.2 m across, standing on z = 0."""
+    """The kit's shape as a PLY, about 0.2 m across, standing on z = 0; its absolute
+    path (a scene file's relative names are read against the scene file's folder)."""
     import trimesh
 
     if kit.shape == "bird":
@@ -187,7 +188,7 @@ def shape_file(kit: Kit, folder: Path) -> Path:
         stretch = np.array([1.6, 0.8, 0.9]) if kit.shape == "stretched blob" else np.ones(3)
         vertices, faces = 0.1 * v * bumps[:, None] * stretch, sphere.faces
     vertices = vertices - [*vertices[:, :2].mean(axis=0), vertices[:, 2].min()]
-    path = folder / "shape.ply"
+    path = folder.resolve() / "shape.ply"
     trimesh.Trimesh(vertices, faces, process=False).export(path)
     return path
 
