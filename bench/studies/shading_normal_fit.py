@@ -63,16 +63,10 @@ class NormalVariables(ShapeVariables):
     (the un-normalised normals, under its ``positions`` key)."""
 
     def __init__(self, shape_id: str, traversed: dict, step: float, smoothing: float):
-        import drjit as dr
-        import mitsuba as mi
-
-        self.dr, self.mi, self.traversed = dr, mi, traversed
+        super().__init__(shape_id, traversed, step, smoothing)  # the Laplacian of the positions' mesh
         self.key = f"{shape_id}.vertex_normals"
-        first = next(iter(traversed.values()))
-        self.steps = mi.ad.LargeSteps(first[f"{shape_id}.vertex_positions"], first[f"{shape_id}.faces"], smoothing)
-        self.optimizer = mi.ad.Adam(lr=step, uniform=True)
-        self.optimizer["u"] = self.steps.to_differential(first[self.key])
-        self.gain_estimates: dict[str, list[float]] = {}
+        # before any step: Adam's state is still its initial one
+        self.optimizer["u"] = self.steps.to_differential(next(iter(traversed.values()))[self.key])
 
     def apply(self, scene_key: int) -> None:
         normals = self.dr.normalize(
