@@ -1,7 +1,7 @@
 """Where a volumetric fit that missed its targets stopped, in its loss landscape.
 
     .venv/bin/python -m bench.studies.volumetric_landscape --work DIR --kits 7 [--run defaults]
-        [--studies trajectory line gradient compass model common forward] [--spp 32] [--seeds 16]
+        [--studies trajectory line gradient compass model trust common forward] [--spp 32] [--seeds 16]
         [--samples 60] [--radius 1] [--rounds 3] [--jacobian-spp 8]
 
 For each volumetric kit whose stored run (bench/fit_speed.py's ``--work`` folder and
@@ -24,6 +24,15 @@ coordinates (alpha, eta, albedo r g b, log sigma_t). Studies:
 - model: a quadratic fitted to the loss at ``--samples`` points drawn uniformly within
   ``--radius`` targets of the current point (inside bench/fit_kits.py's BOUNDS); its
   minimum within 1.5 radii is the next point; ``--rounds`` times;
+- trust: a trust region on models of the loss, each loss from its own seeds (so that
+  the quadratic's regression averages their noise away): each round draws ``--samples``
+  points within ``--radius`` targets of the current point (the radius per coordinate),
+  fits a quadratic to every point drawn so far within twice the radius, floors its
+  Hessian's eigenvalues (a noisy model's saddle sends every step to a corner), and
+  moves to its minimum within the radius where the fitted quadratic predicts a fall
+  beyond twice its own standard error (the regression's residuals give the noise);
+  else the point stays, the radius shrinks by a third (down to half a target) and the
+  next round's samples join the model; ``--rounds`` times;
 - common: whether renders with the same seeds share their noise when one coordinate
   moves (what finite differences and models of the loss lean on): at the truth, for
   moves of 0.5, 2 and 8 targets either way, the mean squared difference of the two
@@ -60,7 +69,7 @@ from bench.studies.gradient_noise import COORDINATES, KEYS, UNITS, gradients, se
 from bench.studies.kit_identifiability import losses
 from pipeline.render import mitsuba_variant
 
-STUDIES = ("trajectory", "line", "gradient", "compass", "model", "common", "forward")
+STUDIES = ("trajectory", "line", "gradient", "compass", "model", "trust", "common", "forward")
 LOG_NAMES = {key: name for name, key in KEYS.items()}
 """The fit log's parameter keys, by property name."""
 COORDINATE_PROPERTIES = ("alpha", "eta", "albedo", "albedo", "albedo", "sigma_t")
@@ -112,12 +121,11 @@ class Renders:
             self.scene = mi.load_file(str(kit_xml(land.kit, land.kit.truth, Path(scratch))))
         self.integrator = mi.load_dict({"type": integrator, "max_depth": INTEGRATORS["volumetric"][2]})
         self.params, self.land = mi.traverse(self.scene), land
-        self.reference = np.concatenate(
-            [
-                np.array(mi.Bitmap(str(land.folder / "references" / f"view_{view}.exr"))).ravel()
-                for view in range(land.kit.views)
-            ]
-        )
+        self.references = [
+            mi.TensorXf(mi.Bitmap(str(land.folder / "references" / f"view_{view}.exr")))
+            for view in range(land.kit.views)
+        ]
+        self.reference = np.concatenate([np.array(reference).ravel() for reference in self.references])
 
     def __call__(self, x: np.ndarray, seed: int, spp: int) -> np.ndarray:
         set_coordinates(self.params, np.clip(x, LOWER, UPPER))
@@ -180,15 +188,10 @@ def line(land: Landscape, x: np.ndarray) -> list[str]:
 
 
 def gradient(land: Landscape, x: np.ndarray, seeds: int, rounds: int, mi, dr) -> list[str]:
-    with tempfile.TemporaryDirectory() as scratch:
-        scene = mi.load_file(str(kit_xml(land.kit, land.kit.truth, Path(scratch))))
-    integrator = mi.load_dict({"type": INTEGRATORS["volumetric"][1], "max_depth": INTEGRATORS["volumetric"][2]})
-    references = [
-        mi.TensorXf(mi.Bitmap(str(land.folder / "references" / f"view_{i}.exr"))) for i in range(land.kit.views)
-    ]
+    render = Renders(land, INTEGRATORS["volumetric"][1])
     lines, current = [], land.loss(x)
     for number in range(rounds):
-        rows = gradients(scene, integrator, references, x, seeds, mi, dr)
+        rows = gradients(render.scene, render.integrator, render.references, x, seeds, mi, dr)
         mean, error = rows.mean(axis=0), rows.std(axis=0, ddof=1) / np.sqrt(seeds)
         direction = -mean * UNITS**2
         direction /= np.linalg.norm(direction / UNITS)
@@ -255,6 +258,64 @@ def model(land: Landscape, x: np.ndarray, samples: int, radius: float, rounds: i
     return lines
 
 
+def _convex_minimum(coefficients: np.ndarray, bounds: list[tuple[float, float]]) -> np.ndarray:
+    """The minimum within ``bounds`` of the quadratic (``_quadratic_features``' order)
+    with its Hessian's eigenvalues floored at a thousandth of the largest: a noisy
+    model's saddle would otherwise send every step to a corner."""
+    size = len(bounds)
+    gradient, hessian, index = coefficients[1 : size + 1], np.zeros((size, size)), size + 1
+    for i in range(size):
+        for j in range(i, size):
+            hessian[i, j] = hessian[j, i] = coefficients[index] * (2 if i == j else 1)
+            index += 1
+    values, vectors = np.linalg.eigh(hessian)
+    hessian = vectors @ np.diag(np.maximum(values, 1e-3 * max(values.max(), 1e-12))) @ vectors.T
+    return minimize(
+        lambda z: (gradient @ z + z @ hessian @ z / 2, gradient + hessian @ z), np.zeros(size), jac=True, bounds=bounds
+    ).x
+
+
+def trust(land: Landscape, x: np.ndarray, spp: int, samples: int, radius: float, rounds: int) -> list[str]:
+    render, rng = Renders(land, INTEGRATORS["volumetric"][0]), np.random.default_rng(0)
+    seeds = iter(range(100_000, 10**9, 2))
+    scale = land.truth_loss / land.kit.views  # the per-view mean of the truth's loss
+
+    def loss(point: np.ndarray) -> float:
+        seed = next(seeds)
+        first, second = (render(point, s, spp) - render.reference for s in (seed, seed + 1))
+        return float(np.mean(first * second)) / scale
+
+    drawn, values, lines = np.empty((0, 6)), np.empty(0), []
+    for number in range(rounds):
+        started = time.perf_counter()
+        points = np.clip(x + rng.uniform(-radius, radius, (samples, 6)) * UNITS, LOWER, UPPER)
+        drawn, values = np.vstack([drawn, points]), np.append(values, [loss(p) for p in points])
+        offsets = (drawn - x) / UNITS
+        near = np.max(np.abs(offsets), axis=1) <= 2 * radius
+        features = _quadratic_features(offsets[near])
+        coefficients, *_ = np.linalg.lstsq(features, values[near], rcond=None)
+        residual = values[near] - features @ coefficients
+        noise = float(np.sqrt(residual @ residual / max(near.sum() - features.shape[1], 1)))
+        covariance = noise**2 * np.linalg.pinv(features.T @ features)
+        found = _convex_minimum(
+            coefficients,
+            [(max(-radius, lo), min(radius, hi)) for lo, hi in zip((LOWER - x) / UNITS, (UPPER - x) / UNITS)],
+        )
+        difference = (_quadratic_features(np.zeros(6)) - _quadratic_features(found))[0]
+        fall, error = float(difference @ coefficients), float(np.sqrt(difference @ covariance @ difference))
+        moved = fall > 2 * error
+        if moved:
+            x = x + found * UNITS
+        else:
+            radius = max(radius * 2 / 3, 0.5)
+        lines.append(
+            f"  trust round {number + 1}: {int(near.sum())} losses in the model, noise {noise:.3f}; predicted fall "
+            f"{fall:.3f} +- {error:.3f}: {'moved' if moved else 'stayed'}, radius now {radius:.2f}: "
+            f"worst {land.worst(x):.2f} targets ({time.perf_counter() - started:.0f} s)"
+        )
+    return lines
+
+
 def common(land: Landscape, spp: int) -> list[str]:
     render, x = Renders(land, INTEGRATORS["volumetric"][1]), land.truth
     independent = float(np.mean((render(x, 1, spp) - render(x, 2, spp)) ** 2))
@@ -316,11 +377,14 @@ def main() -> None:
     parser.add_argument("--studies", nargs="*", default=list(STUDIES), choices=STUDIES)
     parser.add_argument("--spp", type=int, default=32, help="samples per pixel of each loss render")
     parser.add_argument("--seeds", type=int, default=16, help="gradients averaged (gradient)")
-    parser.add_argument("--samples", type=int, default=60, help="losses per quadratic (model)")
+    parser.add_argument("--samples", type=int, default=60, help="losses per quadratic (model), per round (trust)")
     parser.add_argument(
-        "--radius", type=float, default=1.0, help="targets about the point (model); a step's cap (forward)"
+        "--radius",
+        type=float,
+        default=1.0,
+        help="targets about the point (model; trust's first); a step's cap (forward)",
     )
-    parser.add_argument("--rounds", type=int, default=3, help="steps (gradient, model, forward)")
+    parser.add_argument("--rounds", type=int, default=3, help="steps (gradient, model, trust, forward)")
     parser.add_argument("--jacobian-spp", type=int, default=8, help="samples per pixel of a Jacobian (forward)")
     args = parser.parse_args()
     mitsuba_variant.activate()
@@ -344,6 +408,7 @@ def main() -> None:
             "gradient": lambda: gradient(land, x, args.seeds, args.rounds, mi, dr),
             "compass": lambda: compass(land, x),
             "model": lambda: model(land, x, args.samples, args.radius, args.rounds),
+            "trust": lambda: trust(land, x, args.spp, args.samples, args.radius, args.rounds),
             "common": lambda: common(land, args.spp),
             "forward": lambda: forward(land, x, args.spp, args.jacobian_spp, args.radius, args.rounds, dr),
         }
