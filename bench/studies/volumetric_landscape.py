@@ -2,7 +2,7 @@
 
     .venv/bin/python -m bench.studies.volumetric_landscape --work DIR --kits 7 [--run defaults]
         [--studies trajectory line gradient compass model trust common forward] [--spp 32] [--seeds 16]
-        [--samples 60] [--radius 1] [--rounds 3] [--jacobian-spp 8]
+        [--samples 60] [--radius 1] [--rounds 3] [--confirm 0] [--jacobian-spp 8]
 
 For each volumetric kit whose stored run (bench/fit_speed.py's ``--work`` folder and
 configuration, ``--run``) ended outside a target, the loss the fits minimise is estimated
@@ -31,8 +31,10 @@ coordinates (alpha, eta, albedo r g b, log sigma_t). Studies:
   Hessian's eigenvalues (a noisy model's saddle sends every step to a corner), and
   moves to its minimum within the radius where the fitted quadratic predicts a fall
   beyond twice its own standard error (the regression's residuals give the noise);
-  else the point stays, the radius shrinks by a third (down to half a target) and the
-  next round's samples join the model; ``--rounds`` times;
+  with ``--confirm K``, only where K losses at the step's end average below K at its
+  start (all of them join the model); else the point stays, the radius shrinks by a
+  third (down to half a target) and the next round's samples join the model;
+  ``--rounds`` times;
 - common: whether renders with the same seeds share their noise when one coordinate
   moves (what finite differences and models of the loss lean on): at the truth, for
   moves of 0.5, 2 and 8 targets either way, the mean squared difference of the two
@@ -275,7 +277,9 @@ def _convex_minimum(coefficients: np.ndarray, bounds: list[tuple[float, float]])
     ).x
 
 
-def trust(land: Landscape, x: np.ndarray, spp: int, samples: int, radius: float, rounds: int) -> list[str]:
+def trust(
+    land: Landscape, x: np.ndarray, spp: int, samples: int, radius: float, rounds: int, confirm: int
+) -> list[str]:
     render, rng = Renders(land, INTEGRATORS["volumetric"][0]), np.random.default_rng(0)
     seeds = iter(range(100_000, 10**9, 2))
     scale = land.truth_loss / land.kit.views  # the per-view mean of the truth's loss
@@ -303,14 +307,27 @@ def trust(land: Landscape, x: np.ndarray, spp: int, samples: int, radius: float,
         )
         difference = (_quadratic_features(np.zeros(6)) - _quadratic_features(found))[0]
         fall, error = float(difference @ coefficients), float(np.sqrt(difference @ covariance @ difference))
-        moved = fall > 2 * error
+        moved, confirmation = fall > 2 * error, ""
+        if moved and confirm:
+            candidate = x + found * UNITS
+            here, there = (
+                np.array([loss(x) for _ in range(confirm)]),
+                np.array([loss(candidate) for _ in range(confirm)]),
+            )
+            drawn, values = (
+                np.vstack([drawn, [x] * confirm, [candidate] * confirm]),
+                np.concatenate([values, here, there]),
+            )
+            moved = there.mean() < here.mean()
+            spread = np.sqrt((here.var(ddof=1) + there.var(ddof=1)) / confirm)
+            confirmation = f", confirmed {'yes' if moved else 'no'} ({here.mean() - there.mean():+.3f} +- {spread:.3f})"
         if moved:
             x = x + found * UNITS
         else:
             radius = max(radius * 2 / 3, 0.5)
         lines.append(
             f"  trust round {number + 1}: {int(near.sum())} losses in the model, noise {noise:.3f}; predicted fall "
-            f"{fall:.3f} +- {error:.3f}: {'moved' if moved else 'stayed'}, radius now {radius:.2f}: "
+            f"{fall:.3f} +- {error:.3f}{confirmation}: {'moved' if moved else 'stayed'}, radius now {radius:.2f}: "
             f"worst {land.worst(x):.2f} targets ({time.perf_counter() - started:.0f} s)"
         )
     return lines
@@ -385,6 +402,9 @@ def main() -> None:
         help="targets about the point (model; trust's first); a step's cap (forward)",
     )
     parser.add_argument("--rounds", type=int, default=3, help="steps (gradient, model, trust, forward)")
+    parser.add_argument(
+        "--confirm", type=int, default=0, help="losses at each end of a step the model found (trust); 0: none"
+    )
     parser.add_argument("--jacobian-spp", type=int, default=8, help="samples per pixel of a Jacobian (forward)")
     args = parser.parse_args()
     mitsuba_variant.activate()
@@ -408,7 +428,7 @@ def main() -> None:
             "gradient": lambda: gradient(land, x, args.seeds, args.rounds, mi, dr),
             "compass": lambda: compass(land, x),
             "model": lambda: model(land, x, args.samples, args.radius, args.rounds),
-            "trust": lambda: trust(land, x, args.spp, args.samples, args.radius, args.rounds),
+            "trust": lambda: trust(land, x, args.spp, args.samples, args.radius, args.rounds, args.confirm),
             "common": lambda: common(land, args.spp),
             "forward": lambda: forward(land, x, args.spp, args.jacobian_spp, args.radius, args.rounds, dr),
         }
