@@ -7,7 +7,10 @@ Per step:
 2. per view: write the variables (pipeline.fit.variables) into its scene, render
    once (``l2``) or twice (``dual``), match the photo's gain to the render where
    photos have their own exposure, and backpropagate the loss on linear radiance
-   over the view's weight mask; the batch's gradients add up;
+   over the view's weight mask; the batch's gradients add up. With ``image_memory``
+   the l2 error is that of the render blended with the view's earlier estimate,
+   carried to the current values by one more render of the values it stood for with
+   the step's seed (Nicolet et al.'s recursive control variate, 2023);
 3. non-finite gradient entries are zeroed (and counted: one would turn Adam's
    state into NaN for good); the variables' priors add their gradients; one Adam
    step; the variables are clamped to their bounds;
@@ -248,13 +251,46 @@ class ViewComparison:
     """The dual-buffer loss from two renders, else l2 from one."""
     share: Any
     """The weight the gradient is backpropagated with (an opaque 1 / batch)."""
+    blend: bool = False
+    """l2 on the image blended with the view's earlier ones (``image_memory``), its
+    blend returned for the next step that draws the view."""
+    carried: CarriedImage | None = None
+    """The view's earlier estimate, where it has one (``blend``)."""
+
+
+@dataclass
+class CarriedImage:
+    """A view's image estimate from the steps that drew it before (``image_memory``),
+    with what view_loss needs to carry it to this step's values (a dataclass, as
+    ViewRender)."""
+
+    previous: Any
+    """The view rendered at the values ``estimate`` stands for, with this step's seed
+    and without a gradient: the control variate."""
+    estimate: Any
+    """The blended image the view's last step ended with."""
+    keep: Any
+    """The carried estimate's weight in the blend (an opaque Float), one minus the new
+    render's."""
+
+
+@dataclass
+class ImageHistory:
+    """What a view's next step carries its image from (``image_memory``)."""
+
+    estimate: Any
+    latents: dict[str, Any]
+    """The variables (Variables.latents) the estimate stands for."""
+    renders: int
+    """Renders blended into it."""
 
 
 def view_loss(render: ViewRender, comparison: ViewComparison):
     """One view's loss after the renders are multiplied by the gain matched to them
     (None returned for the gain when none is), its gradient backpropagated with the
-    comparison's share. What changes between calls is a Dr.Jit value or holds them,
-    so that ``dr.freeze`` replays it correctly."""
+    comparison's share; with ``blend``, the blended image as well (else None). What
+    changes between calls is a Dr.Jit value or holds them, so that ``dr.freeze``
+    replays it correctly."""
     import drjit as dr
     import mitsuba as mi
 
@@ -267,17 +303,50 @@ def view_loss(render: ViewRender, comparison: ViewComparison):
 
     image = rendered(r.seeds[0])
     second = rendered(r.seeds[1]) if comparison.dual else image
+    blended = None
+    if comparison.blend:
+        # The carried estimate moved to this step's values by the same-seed difference
+        # (Nicolet et al. 2023): unbiased, and nearly noise-free where the values moved
+        # little, so the blend averages the noise of the renders before.
+        blended = dr.detach(image)
+        carried = comparison.carried
+        if carried is not None:
+            carried_blend = blended - carried.keep * (carried.previous - carried.estimate)
+            # a pixel that once rendered NaN would stay NaN in every later blend
+            blended = dr.select(dr.isfinite(carried_blend), carried_blend, blended)
     gain, pull = None, 0.0
     if comparison.gain_channels:
         # matched with its gradient for the level's pull (this photo's gain, fresh,
         # towards 1: LEVEL_PULL), detached where it scales the renders
         attached = target.matched_gain(image, second, comparison.gain_channels, dr, detached=False)
-        gain = dr.detach(attached)
+        gain = (
+            dr.detach(attached)
+            if blended is None
+            else target.matched_gain(blended, blended, comparison.gain_channels, dr)
+        )
         pull = LEVEL_PULL * dr.mean(dr.square(dr.log(attached)))
         image, second = image * gain, second * gain
-    loss = target.dual(image, second, dr) if comparison.dual else target.mse(image, dr)
-    dr.backward((loss + pull) * comparison.share)
-    return loss, gain
+    if blended is None:
+        loss = target.dual(image, second, dr) if comparison.dual else target.mse(image, dr)
+        dr.backward((loss + pull) * comparison.share)
+        return loss, gain, None
+    # l2's gradient, 2 (I - R) dI, with the blend's error for I - R: the derivative
+    # (Mitsuba's adjoint pass, its own samples) is weighted by a residual of little noise.
+    residual = (blended if gain is None else blended * gain) - target.reference
+    loss = target.mean(dr.square(residual), dr)
+    dr.backward((2 * target.mean(residual * image, dr) + pull) * comparison.share)
+    return loss, gain, blended
+
+
+def view_image(render: ViewRender):
+    """One render of the view without a gradient, with the first of its seeds (as
+    view_loss, frozen per view)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    r = render
+    with dr.suspend_grad():
+        return mi.render(r.scene, sensor=r.sensor, integrator=r.integrator, spp=r.spp, seed=r.seeds[0])
 
 
 class _Batches:
@@ -316,8 +385,10 @@ class _Loop:
         self.batches = _Batches(self.training, settings.batch, settings.seed)
         self.share = dr.opaque(mi.Float, 1.0 / self.batches.size)
         # Frozen functions per loop: their recordings belong to this loop's scenes.
-        self.frozen: dict[int, Callable] = {}
+        self.frozen: dict[tuple[int, Callable], Callable] = {}
         self.skipped = 0
+        self.blend = settings.image_memory > 0 and settings.loss == "l2"
+        self.histories: dict[str, ImageHistory] = {}
         self.values: dict[str, np.ndarray] | None = None
         """The last step's values, where the average took them (``average``)."""
         replays = settings.iterations * self.batches.size / max(len(self.training), 1)
@@ -331,54 +402,79 @@ class _Loop:
             )
             self.settings = replace(settings, freeze=False)
 
-    def view_loss(self, view: FitView) -> Callable:
-        """view_loss, or its frozen form for this view: one recording per view's sensor.
-        Dr.Jit 1.5's dr.freeze keys a recording on the sensor object and on its values
-        (measured: two sensors of identical settings, or one sensor whose parameters were
-        updated between calls, each record anew), and a film size or crop offset is a
-        literal in the kernels; one function for every view would record again at nearly
-        every call."""
+    def replayed(self, view: FitView, function: Callable, *arguments):
+        """``function(*arguments)``, frozen for this view: one recording per function
+        and view's sensor. Dr.Jit 1.5's dr.freeze keys a recording on the sensor object
+        and on its values (measured: two sensors of identical settings, or one sensor
+        whose parameters were updated between calls, each record anew), and a film size
+        or crop offset is a literal in the kernels; one function for every view would
+        record again at nearly every call."""
         if not self.settings.freeze:
-            return view_loss
-        if id(view.sensor) not in self.frozen:
-            self.frozen[id(view.sensor)] = self.dr.freeze(view_loss)
-        return self.frozen[id(view.sensor)]
+            return function(*arguments)
+        key = (id(view.sensor), function)
+        if key not in self.frozen:
+            self.frozen[key] = self.dr.freeze(function)
+        try:
+            return self.frozen[key](*arguments)
+        except RuntimeError as error:
+            # Dr.Jit 1.5 now and then refuses to replay a recording whose registry of
+            # Mitsuba objects it miscounts ("assign_with_registry(): The number of
+            # registry entries (132) did not match ... (132)!", seen once in a fit_geometry
+            # material pass); it fails before running anything, so the step is traced.
+            if "registry" not in str(error):
+                raise
+            logger.warning("%s: Dr.Jit could not replay a recording (%s); going on without freezing", self.label, error)
+            self.settings = replace(self.settings, freeze=False)
+            return function(*arguments)
+
+    def view_render(self, view: FitView, render_seed: int) -> ViewRender:
+        """What the view's renders at ``render_seed`` take, the values as they stand in its scene."""
+        return ViewRender(
+            view.scene,
+            self.variables.traversed[id(view.scene)],
+            view.sensor,
+            self.integrator or view.integrator,
+            self.settings.spp,
+            self.settings.spp_grad,
+            (seed(render_seed), seed(render_seed + 1)),
+        )
 
     def step(self, iteration: int) -> list[tuple[str, Any, Any]]:
         """One step's renders, losses and backpropagation: each view's name, loss and
         matched gain (None where none is), still on the device."""
         losses = []
         for view, render_seed in self.batches.draw(iteration):
+            carried = self.carried_image(view, render_seed) if self.blend else None
             self.variables.apply(id(view.scene))
-            gain_channels = self.variables.gain_channels_of(view.name)
-            arguments = (
-                ViewRender(
-                    view.scene,
-                    self.variables.traversed[id(view.scene)],
-                    view.sensor,
-                    self.integrator or view.integrator,
-                    self.settings.spp,
-                    self.settings.spp_grad,
-                    (seed(render_seed), seed(render_seed + 1)),
-                ),
-                ViewComparison(self.targets[view.name], gain_channels, self.settings.loss == "dual", self.share),
+            latents = self.variables.latents() if self.blend else None
+            comparison = ViewComparison(
+                self.targets[view.name],
+                self.variables.gain_channels_of(view.name),
+                self.settings.loss == "dual",
+                self.share,
+                self.blend,
+                carried,
             )
-            try:
-                loss, gain = self.view_loss(view)(*arguments)
-            except RuntimeError as error:
-                # Dr.Jit 1.5 now and then refuses to replay a recording whose registry
-                # of Mitsuba objects it miscounts ("assign_with_registry(): The number of
-                # registry entries (132) did not match ... (132)!", seen once in a fit_geometry
-                # material pass); it fails before running anything, so the step is traced.
-                if "registry" not in str(error):
-                    raise
-                logger.warning(
-                    "%s: Dr.Jit could not replay a recording (%s); going on without freezing", self.label, error
-                )
-                self.settings = replace(self.settings, freeze=False)
-                loss, gain = view_loss(*arguments)
+            loss, gain, blended = self.replayed(view, view_loss, self.view_render(view, render_seed), comparison)
+            if blended is not None:
+                renders = self.histories[view.name].renders if view.name in self.histories else 0
+                self.histories[view.name] = ImageHistory(blended, latents, renders + 1)
             losses.append((view.name, loss, gain))
         return losses
+
+    def carried_image(self, view: FitView, render_seed: int) -> CarriedImage | None:
+        """The view's last estimate and its values rendered again with this step's
+        seed (``image_memory``); None before the view's first step."""
+        history = self.histories.get(view.name)
+        if history is None:
+            return None
+        dr, mi = self.dr, self.mi
+        with dr.suspend_grad():
+            self.variables.apply(id(view.scene), history.latents)
+        previous = self.replayed(view, view_image, self.view_render(view, render_seed))
+        # the running mean until the memory is full, then an exponential one
+        new_weight = max(1.0 / (history.renders + 1), 1.0 / self.settings.image_memory)
+        return CarriedImage(previous, history.estimate, dr.opaque(mi.Float, 1.0 - new_weight))
 
     def drop_non_finite_gradients(self, iteration: int) -> None:
         """Zero NaN or infinite gradient entries (counted, with a warning) before the

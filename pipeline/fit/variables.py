@@ -184,10 +184,16 @@ class MaterialVariables:
                 lo, hi = np.log(lo), np.log(hi)
             self.optimizer[parameter.name] = self.dr.clip(self.optimizer[parameter.name], lo, hi)
 
-    def apply(self, scene_key: int) -> None:
+    def latents(self) -> dict[str, Any]:
+        """The optimiser's values as they stand, detached: ``apply`` renders them again
+        after later steps (a Dr.Jit value is not changed by the steps that replace it)."""
+        return {p.name: self.dr.detach(self.optimizer[p.name]) for p in self.parameters}
+
+    def apply(self, scene_key: int, latents: dict[str, Any] | None = None) -> None:
+        """Write the values into one scene: the optimiser's, or ``latents`` (from ``latents()``)."""
         dr, params = self.dr, self.traversed[scene_key]
         for parameter in self.parameters:
-            latent = self.optimizer[parameter.name]
+            latent = self.optimizer[parameter.name] if latents is None else latents[parameter.name]
             if parameter.mean_weights is not None:
                 latent = self._channel_mean_fixed(parameter.name, latent)
             if parameter.log:
@@ -320,8 +326,14 @@ class ShapeVariables:
     def clamp(self) -> None:
         pass
 
-    def apply(self, scene_key: int) -> None:
-        self.traversed[scene_key][self.key] = self.dr.ravel(self.steps.from_differential(self.optimizer["u"]))
+    def latents(self) -> dict[str, Any]:
+        """The differential coordinates as they stand, detached (MaterialVariables.latents)."""
+        return {"u": self.dr.detach(self.optimizer["u"])}
+
+    def apply(self, scene_key: int, latents: dict[str, Any] | None = None) -> None:
+        """Write the positions into one scene: the optimiser's, or ``latents``'."""
+        coordinates = self.optimizer["u"] if latents is None else latents["u"]
+        self.traversed[scene_key][self.key] = self.dr.ravel(self.steps.from_differential(coordinates))
         self.traversed[scene_key].update()
 
     def gain_channels_of(self, view_name: str) -> int:

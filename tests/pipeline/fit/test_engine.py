@@ -584,15 +584,14 @@ def test_later_steps_compile_no_kernel(mi, references, tmp_path):
     assert compiled == []
 
 
-def test_a_frozen_step_gives_the_unfrozen_fit(mi, references, tmp_path):
+@pytest.mark.parametrize("image_memory", [0, 4])
+def test_a_frozen_step_gives_the_unfrozen_fit(mi, references, tmp_path, image_memory):
     scene = _scene_file(tmp_path, [0.5, 0.5, 0.5], [0.7])
+    settings = engine.FitSettings(
+        iterations=5, batch=2, spp=4, still_threshold=0.0, freeze_min_replays=0, image_memory=image_memory
+    )
     results = [
-        engine.fit(
-            PARAMETERS,
-            _views(mi, scene, references / "references"),
-            [],
-            engine.FitSettings(iterations=5, batch=2, spp=4, still_threshold=0.0, freeze=freeze, freeze_min_replays=0),
-        )
+        engine.fit(PARAMETERS, _views(mi, scene, references / "references"), [], replace(settings, freeze=freeze))
         for freeze in (True, False)
     ]
     for name in results[0].values:
@@ -619,6 +618,50 @@ def test_the_gradient_pass_takes_its_own_samples(mi, references, tmp_path, monke
     asked.clear()
     engine.fit(PARAMETERS, views, [], replace(settings, iterations=2, spp_grad=0))
     assert set(asked[: 2 * 3]) == {(8, 0)}
+
+
+def _gradients_at_the_truth(mi, references, tmp_path, monkeypatch, image_memory):
+    """Each step's raw gradient (before the whitening) over 24 steps that leave the values
+    at the truth (a learning rate scaled to nothing), at 2 spp."""
+    from pipeline.fit import variables
+
+    gradients = []
+    whiten = variables.MaterialVariables.whiten_gradients
+
+    def recording(self):
+        gradients.append(np.concatenate([np.ravel(self.dr.grad(self.optimizer[p.name])) for p in self.parameters]))
+        whiten(self)
+
+    monkeypatch.setattr(variables.MaterialVariables, "whiten_gradients", recording)
+    views = _views(mi, _scene_file(tmp_path, TRUTH["base_color"], TRUTH["roughness"]), references / "references")
+    settings = engine.FitSettings(
+        iterations=24, batch=3, spp=2, still_threshold=0.0, learning_rate_scale=1e-9, image_memory=image_memory
+    )
+    engine.fit(PARAMETERS, views, [], settings)
+    return np.array(gradients)
+
+
+def test_an_image_memory_takes_the_renders_noise_out_of_the_gradient(mi, references, tmp_path, monkeypatch):
+    """At the truth the gradient is the renders' noise: blended over the steps
+    (``image_memory``), the error it is weighted by loses most of it, and the steps'
+    gradients scatter far less once the memory has filled."""
+    plain = _gradients_at_the_truth(mi, references, tmp_path / "plain", monkeypatch, 0)
+    blended = _gradients_at_the_truth(mi, references, tmp_path / "blended", monkeypatch, 8)
+    ratio = blended[8:].var(axis=0) / plain[8:].var(axis=0)
+    assert np.all(ratio < 0.5), ratio
+
+
+def test_a_fit_with_an_image_memory_moves_every_parameter_toward_the_truth(mi, references, tmp_path):
+    """The carried images follow the values as they move (the same-seed renders of the
+    values each estimate stood for)."""
+    start = {"base_color": [0.5, 0.5, 0.5], "roughness": [0.7]}
+    views = _views(mi, _scene_file(tmp_path, start["base_color"], start["roughness"]), references / "references")
+    settings = engine.FitSettings(iterations=40, batch=3, spp=4, still_threshold=0.0, image_memory=8)
+    result = engine.fit(PARAMETERS, views, [], settings)
+    for name, truth in TRUTH.items():
+        before = np.abs(np.subtract(start[name], truth))
+        after = np.abs(np.subtract(result.values[name], truth))
+        assert np.all(after < 0.5 * before), (name, result.values[name])
 
 
 def test_each_view_replays_its_own_recording(mi, references, tmp_path, monkeypatch):
@@ -821,8 +864,11 @@ def test_held_out_photos_with_their_own_exposure_are_scored_after_a_matched_gain
     assert errors["known"] < 2 * noise < 0.1 * errors["known wrong"]
 
 
+@pytest.mark.parametrize("image_memory", [0, 4])
 @pytest.mark.parametrize("case", ["black reference", "nearly saturated reference", "1 spp", "one-pixel mask"])
-def test_extreme_photos_and_settings_keep_every_step_finite_and_inside_the_bounds(mi, references, tmp_path, case):
+def test_extreme_photos_and_settings_keep_every_step_finite_and_inside_the_bounds(
+    mi, references, tmp_path, case, image_memory
+):
     views = _views(mi, _scene_file(tmp_path, [0.5, 0.5, 0.5], [0.7]), references / "references")
     spp = 1 if case == "1 spp" else 4
     for view in views:
@@ -833,7 +879,8 @@ def test_extreme_photos_and_settings_keep_every_step_finite_and_inside_the_bound
         elif case == "one-pixel mask":
             view.weight = np.zeros(view.reference.shape[:2], np.float32)
             view.weight[15, 20] = 1.0  # on the sphere
-    result = engine.fit(PARAMETERS, views, [], engine.FitSettings(iterations=6, batch=3, spp=spp, still_threshold=0.0))
+    settings = engine.FitSettings(iterations=6, batch=3, spp=spp, still_threshold=0.0, image_memory=image_memory)
+    result = engine.fit(PARAMETERS, views, [], settings)
     for entry in result.log:
         assert np.isfinite(entry["loss"]), entry
         for parameter in PARAMETERS:
