@@ -387,7 +387,11 @@ class _Loop:
         # Frozen functions per loop: their recordings belong to this loop's scenes.
         self.frozen: dict[tuple[int, Callable], Callable] = {}
         self.skipped = 0
-        self.blend = settings.image_memory > 0 and settings.loss == "l2"
+        if settings.image_memory and settings.loss != "l2":
+            raise PipelineError(
+                f"image_memory {settings.image_memory} blends l2 renders only: set loss = l2, or image_memory = 0"
+            )
+        self.blend = settings.image_memory > 0
         self.histories: dict[str, ImageHistory] = {}
         self.values: dict[str, np.ndarray] | None = None
         """The last step's values, where the average took them (``average``)."""

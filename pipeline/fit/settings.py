@@ -33,7 +33,7 @@ class LoopSettings:
     Carlo noise. dual: Deng et al.'s dual-buffer estimator from two renders (an unbiased
     loss value too, at twice the cost per view)."""
     image_memory: Annotated[int, Range(0, None)] = 0
-    """Carry each view's image from the steps that drew it before (l2 only): Nicolet et
+    """Carry each view's image from the steps that drew it before (``loss`` l2): Nicolet et
     al.'s recursive control variate (2023). The view is rendered again at the values
     its last estimate stood for, with the new render's seed; their difference, which
     the shared samples keep nearly free of noise where the values moved little, carries
@@ -41,8 +41,9 @@ class LoopSettings:
     ``image_memory`` in the blend. The derivative (Mitsuba's adjoint pass) is weighted
     by the blend's error rather than the render's: near the answer a render's error is
     mostly its noise, and that noise times the derivative's own is most of a medium's
-    gradient noise. One more render (no gradient) per view and step. The estimates start afresh at each level of a
-    coarse-to-fine fit and after a resume. 0: off; each step's render alone."""
+    gradient noise. One more render (no gradient) per view and step. The estimates
+    start afresh at each level of a coarse-to-fine fit and after a resume. 0: off;
+    each step's render alone."""
     validate_every: Annotated[int, Range(1, None)] = 10
     """Steps between renders of the held-out views."""
     validation_spp: Annotated[int, Range(1, None)] = 64

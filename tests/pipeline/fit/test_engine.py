@@ -651,6 +651,12 @@ def test_an_image_memory_takes_the_renders_noise_out_of_the_gradient(mi, referen
     assert np.all(ratio < 0.5), ratio
 
 
+def test_an_image_memory_with_the_dual_loss_is_refused_by_name(mi, references, tmp_path):
+    views = _views(mi, _scene_file(tmp_path, [0.5, 0.5, 0.5], [0.7]), references / "references")
+    with pytest.raises(PipelineError, match="image_memory 4 blends l2 renders only: set loss = l2"):
+        engine.fit(PARAMETERS, views, [], engine.FitSettings(iterations=2, loss="dual", image_memory=4))
+
+
 def test_a_fit_with_an_image_memory_moves_every_parameter_toward_the_truth(mi, references, tmp_path):
     """The carried images follow the values as they move (the same-seed renders of the
     values each estimate stood for)."""
