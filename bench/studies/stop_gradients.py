@@ -78,24 +78,12 @@ def level_lines(kit, steps: list[dict]) -> list[str]:
     gradient in standard errors."""
     lines = []
     for level in sorted({s["level"] for s in steps}):
-        names = list(dict.fromkeys(s["name"] for s in steps if s["level"] == level))
-        parts, count = [], 0
-        for name in names:
-            rows = [s for s in steps if s["level"] == level and s["name"] == name]
-            rows = rows[len(rows) // 2 :]
-            count = len(rows)
-            latents = np.array([r["latent"] for r in rows])
-            gradients = np.array([r["gradient"] for r in rows])
-            prop = property_name(name)
-            truth = np.ravel(kit.truth[prop]).astype(np.float64)
-            mean = np.exp(latents.mean(axis=0)) if rows[0]["log"] else latents.mean(axis=0)
-            off = (mean - truth) / (target(prop) * (truth if prop == "sigma_t" else 1.0))
-            error = gradients.std(axis=0, ddof=1) / np.sqrt(len(rows))
-            z = gradients.mean(axis=0) / np.where(error > 0, error, np.inf)
-            for channel in range(len(truth)):
-                label = prop if len(truth) == 1 else f"{prop}[{channel}]"
-                parts.append(f"{label} {off[channel]:+.1f} targets off, gradient {z[channel]:+.1f} se")
-        lines.append(f"  level {level + 1}, last {count} steps: " + "; ".join(parts))
+        latents, gradients, labels, offsets = _level_arrays(kit, steps, level)
+        off = offsets(latents.mean(axis=0))
+        error = gradients.std(axis=0, ddof=1) / np.sqrt(len(latents))
+        z = gradients.mean(axis=0) / np.where(error > 0, error, np.inf)
+        parts = [f"{n} {o:+.1f} targets off, gradient {g:+.1f} se" for n, o, g in zip(labels, off, z)]
+        lines.append(f"  level {level + 1}, last {len(latents)} steps: " + "; ".join(parts))
     return lines
 
 
