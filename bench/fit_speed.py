@@ -87,20 +87,28 @@ a stored outcome is reused while these are unchanged."""
 
 CONFIGS = {
     "defaults": (engine.FitSettings(), DEFAULT_SIZES),
+    "without the medium's defaults": (engine.FitSettings(image_memory=0, step_halvings=0), DEFAULT_SIZES),
     "not whitened": (engine.FitSettings(whiten=False), DEFAULT_SIZES),
-    "halved steps": (engine.FitSettings(step_halvings=2), DEFAULT_SIZES),
-    "16 spp, 4 for the gradient": (engine.FitSettings(spp=16, spp_grad=4), DEFAULT_SIZES),
-    "image memory 10": (engine.FitSettings(image_memory=10), DEFAULT_SIZES),
+    "halved steps": (engine.FitSettings(image_memory=0, step_halvings=2), DEFAULT_SIZES),
+    "16 spp, 4 for the gradient": (
+        engine.FitSettings(spp=16, spp_grad=4, image_memory=0, step_halvings=0),
+        DEFAULT_SIZES,
+    ),
+    "image memory 10": (engine.FitSettings(image_memory=10, step_halvings=0), DEFAULT_SIZES),
     "image memory 10, halved steps": (engine.FitSettings(image_memory=10, step_halvings=2), DEFAULT_SIZES),
     "defaults, not frozen": (engine.FitSettings(freeze=False), DEFAULT_SIZES),
     "defaults at full size": (engine.FitSettings(), FilmSizes(0)),
     "max_size only": (engine.FitSettings(), FilmSizes(DEFAULT_SIZES.max_size, coarse_to_fine=False)),
 }
 """`pipeline fit`'s settings to compare with the original loop: the loop's settings and
-the films' sizes. ``defaults`` are those `pipeline fit` runs with when given no option;
-``max_size only`` is ``--no-coarse-to-fine``; ``halved steps`` is ``--step-halvings 2``;
-``16 spp, 4 for the gradient`` is ``--spp 16 --spp-grad 4``; ``image memory 10`` is
-``--image-memory 10``."""
+the films' sizes. ``defaults`` are those `pipeline fit` runs with when given no option
+(with a medium, the image memory and halved steps: pipeline.fit.settings.FitSettings);
+``without the medium's defaults`` is ``--image-memory 0 --step-halvings 0``;
+``max_size only`` is ``--no-coarse-to-fine``; ``halved steps`` is ``--step-halvings 2
+--image-memory 0``; ``16 spp, 4 for the gradient`` is ``--spp 16 --spp-grad 4`` without
+the memory or halvings; ``image memory 10`` is ``--image-memory 10 --step-halvings 0``;
+``image memory 10, halved steps`` is ``--image-memory 10 --step-halvings 2`` (a medium's
+defaults, on any scene)."""
 
 
 def pipeline_fit(kit: Kit, folder: Path, settings: engine.FitSettings, sizes: FilmSizes, clock: Clock) -> dict:

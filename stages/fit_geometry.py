@@ -144,11 +144,14 @@ def _shape_settings(conf: Config, diagonal: float, seed: int) -> engine.ShapeSet
 
 
 def _material_settings(conf: Config, seed: int) -> engine.FitSettings:
-    """fit_material's loop, run to its iterations (no early stop), without whitening
-    (`pipeline fit`'s default, not measured on the stages' fits)."""
+    """fit_material's loop, run to its iterations (no early stop), without whitening,
+    image memory or step halvings (`pipeline fit`'s defaults, not measured on the
+    stages' fits)."""
     return engine.FitSettings(
         iterations=conf.material_iterations,
         whiten=False,
+        image_memory=0,
+        step_halvings=0,
         batch=conf.batch,
         spp=conf.material_spp,
         learning_rate_scale=1.0,

@@ -99,6 +99,14 @@ class Config(FitSettings):
     """Decorrelate the plain values' gradients before Adam's step
     (pipeline.fit.variables.GradientWhitening): `pipeline fit`'s default, measured on
     its suite of kits, not on this stage's fits."""
+    image_memory: Annotated[int, Range(0, None)] = 0
+    """Carry each view's image from its earlier steps (pipeline.fit.settings.LoopSettings):
+    `pipeline fit`'s default where a scene renders a medium, measured on its suite of
+    kits, not on this stage's fits."""
+    step_halvings: Annotated[int, Range(0, None)] = 0
+    """Times the fit, found still, halves its learning rates and fits on
+    (pipeline.fit.settings.LoopSettings): `pipeline fit`'s default where a scene renders
+    a medium, not measured on this stage's fits."""
     bounds: tuple[str, ...] = ()
     """Bounds overriding pipeline.render.materials' defaults, as "name=lower:upper" (e.g. "eta=1.3:1.6")."""
     max_size: Annotated[int, Range(16, None)] = 128

@@ -83,6 +83,14 @@ def _traversed(views: list[FitView]) -> dict:
     return {id(v.scene): mi.traverse(v.scene) for v in views}
 
 
+def renders_medium(scene_values) -> bool:
+    """Whether the scene ``scene_values`` traverses (mi.traverse) holds a participating
+    medium (in a shape or about a sensor): FitSettings.resolved's condition."""
+    import mitsuba as mi
+
+    return any(isinstance(node, mi.Medium) for _, _, node, _ in scene_values.properties.values())
+
+
 def fit(
     parameters: list[FitParameter],
     training: list[FitView],
@@ -91,14 +99,16 @@ def fit(
     on_iteration=None,
 ) -> FitResult:
     """Fit ``parameters`` to the training views; the scenes end in the best state.
-    ``on_iteration`` sees each step's log entry and may return a reason to stop."""
+    Settings left to the scene (None) are set for the training views' scenes
+    (FitSettings.resolved). ``on_iteration`` sees each step's log entry and may return
+    a reason to stop."""
     training, validation = _with_pixels(training), _with_pixels(validation)
     if not training:
         raise PipelineError("no views to fit: every view is held out")
+    traversed = _traversed(training + validation)
+    settings = settings.resolved(any(renders_medium(traversed[id(v.scene)]) for v in training))
     gained = sorted(v.name for v in training) if settings.exposure or settings.white_balance else []
-    variables = MaterialVariables(
-        parameters, _traversed(training + validation), gained, 3 if settings.white_balance else 1, settings.whiten
-    )
+    variables = MaterialVariables(parameters, traversed, gained, 3 if settings.white_balance else 1, settings.whiten)
     variables.check_keys(training + validation)
     variables.register(settings.learning_rate_scale)
     result = loop.run(variables, training, validation, settings, on_iteration=on_iteration)
@@ -204,4 +214,5 @@ __all__ = [
     "fit_shape",
     "parse_bounds",
     "plot_loss",
+    "renders_medium",
 ]

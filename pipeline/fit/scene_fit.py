@@ -47,7 +47,7 @@ import re
 import tempfile
 import time
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Protocol
 
@@ -336,6 +336,14 @@ def fit_scene(request: SceneFit, watcher: FitWatcher | None = None) -> Path:
             parameters = select_parameters(scene_values, list(request.patterns), bounds, request.learning_rate, tree)
             start = {p.key: np.ravel(np.asarray(scene_values[p.key])).tolist() for p in parameters}
             logger.info("fitting %s on %d views", ", ".join(p.key for p in parameters), len(full_sizes))
+            medium = engine.renders_medium(scene_values)
+            settings = request.settings.resolved(medium)
+            if medium:
+                logger.info(
+                    "the scene renders a participating medium: image memory %d, %d step halvings at the last level",
+                    settings.image_memory,
+                    settings.step_halvings,
+                )
         else:
             set_values(scene_values, result.values)
         views = _views(scene, scene_path, references, integrator, full_sizes)
@@ -350,7 +358,6 @@ def fit_scene(request: SceneFit, watcher: FitWatcher | None = None) -> Path:
         # Adam's steps keep a value jittering by about its learning rate: each finer level,
         # starting near the answer, steps half as far; only the last level, whose values
         # are the answer, halves its steps again when still (step_halvings)
-        settings = request.settings
         level_settings = replace(
             settings,
             learning_rate_scale=settings.learning_rate_scale / 2**level,
@@ -390,6 +397,7 @@ def fit_scene(request: SceneFit, watcher: FitWatcher | None = None) -> Path:
         "heldout_error": result.validation_error,
         "stopped": result.stopped,
         "seconds": seconds,
+        "settings": asdict(settings),
     }
     out_scene = out_dir / scene_path.name
     user_scene.relative_filenames(tree, out_dir)

@@ -4,7 +4,7 @@ stages' config sections and `pipeline fit`'s options hold these fields."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Annotated, Literal
 
 from pipeline.core.config import Range
@@ -100,11 +100,43 @@ class FitSettings(LoopSettings):
     """Decorrelate the plain values' gradients before Adam's step
     (pipeline.fit.variables.GradientWhitening), so that values that trade off along a
     diagonal valley follow it."""
+    image_memory: Annotated[int | None, Range(0, None)] = None
+    """As the loop's (``LoopSettings.image_memory``); None: ``MEDIUM_IMAGE_MEMORY`` where
+    the scene renders a participating medium and ``loss`` is l2, else 0 (``resolved``)."""
+    step_halvings: Annotated[int | None, Range(0, None)] = None
+    """As the loop's (``LoopSettings.step_halvings``); None: ``MEDIUM_STEP_HALVINGS``
+    where the image memory is on by this rule, else 0 (``resolved``)."""
     exposure: bool = False
     """Fit one exposure scale per photo (photos shot with automatic exposure)."""
     white_balance: bool = False
     """Fit one gain per colour channel per photo (automatic white balance, as phones
     shoot): exposure and white balance at once."""
+
+    def resolved(self, renders_medium: bool) -> FitSettings:
+        """These settings with the fields left to the scene (None) set for it: the image
+        memory and halved steps where it renders a medium and the loss is one the memory
+        blends (l2)."""
+        medium = renders_medium and self.loss == "l2"
+        image_memory = MEDIUM_IMAGE_MEMORY if medium else 0
+        step_halvings = MEDIUM_STEP_HALVINGS if medium else 0
+        return replace(
+            self,
+            image_memory=image_memory if self.image_memory is None else self.image_memory,
+            step_halvings=step_halvings if self.step_halvings is None else self.step_halvings,
+        )
+
+
+MEDIUM_IMAGE_MEMORY = 10
+"""`pipeline fit`'s image memory where the scene renders a participating medium: a
+medium's gradient is mostly its render's noise times the derivative's own, which the
+memory's blend lowers; with halved steps (``MEDIUM_STEP_HALVINGS``) the suite's
+volumetric kits end within every target more often, for a longer wait
+(docs/decisions.md, "The fitting loop's stop and schedule"). Without a medium it is
+not measured to help, and it costs a render per view and step."""
+MEDIUM_STEP_HALVINGS = 2
+"""`pipeline fit`'s step halvings at the last level where the scene renders a
+participating medium (with ``MEDIUM_IMAGE_MEMORY``): the memory lowers the gradient's
+noise, and the halved steps let a value's wander about its optimum narrow with it."""
 
 
 @dataclass(frozen=True)

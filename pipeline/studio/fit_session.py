@@ -87,6 +87,8 @@ def settings_schema() -> list[dict[str, Any]]:
 
 
 def _kind(hint: Any) -> str:
+    if type(None) in typing.get_args(hint):  # left to the fit (None) or given
+        hint = next(a for a in typing.get_args(hint) if a is not type(None))
     if typing.get_origin(hint) is typing.Literal:
         return "choice"
     if hint is bool:

@@ -366,6 +366,40 @@ def test_volumetric_fit_moves_every_parameter_toward_the_truth_within_bounds(mi,
     assert all(p.lower <= v <= p.upper for e in result.log for p in parameters for v in e["params"][p.name])
 
 
+@pytest.mark.parametrize("model, medium", [("volumetric", True), ("principled", False)])
+def test_a_medium_gets_the_image_memory_and_halved_steps_unless_they_are_given(
+    mi, tmp_path, monkeypatch, model, medium
+):
+    """Left to the scene (None), the image memory and step halvings are on where it
+    renders a medium and the loss is l2, off elsewhere; given values are kept."""
+    from pipeline.fit import loop, stability
+    from pipeline.fit.settings import MEDIUM_IMAGE_MEMORY, MEDIUM_STEP_HALVINGS
+    from pipeline.render import materials
+
+    scene_file = stability.sphere_scene(tmp_path, model, 16, 2)
+    scene = mi.load_file(str(scene_file))
+    assert engine.renders_medium(mi.traverse(scene)) is medium
+    given = engine.FitSettings(image_memory=3, step_halvings=0).resolved(medium)
+    assert (given.image_memory, given.step_halvings) == (3, 0)
+    dual = engine.FitSettings(loss="dual").resolved(medium)
+    assert (dual.image_memory, dual.step_halvings) == (0, 0)
+    seen = []
+    run = loop.run
+
+    def record_settings(variables, training, validation, settings, **options):
+        seen.append(settings)
+        return run(variables, training, validation, settings, **options)
+
+    monkeypatch.setattr(loop, "run", record_settings)
+    reference = stability.references(scene_file, 4)
+    views = [engine.FitView(f"view{i}", scene, s, reference[i]) for i, s in enumerate(scene.sensors())]
+    settings = engine.FitSettings(iterations=2, batch=1, spp=2, still_threshold=0.0)
+    result = engine.fit(materials.fit_parameters(model), views, [], settings)
+    expected = (MEDIUM_IMAGE_MEMORY, MEDIUM_STEP_HALVINGS) if medium else (0, 0)
+    assert (seen[0].image_memory, seen[0].step_halvings) == expected
+    assert ("halvings" in result.log[-1]) is medium
+
+
 def test_a_zero_still_threshold_runs_every_iteration(mi, references, tmp_path):
     views = _views(mi, _scene_file(tmp_path, [0.5, 0.5, 0.5], [0.7]), references / "references")
     # A window of 4 sees the noise of 4 spp: with a threshold the rule could fire.

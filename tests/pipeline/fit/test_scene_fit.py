@@ -118,6 +118,8 @@ def test_refs_defaults_includes_and_unnamed_objects_fit_and_write_back(mi, refer
     assert "<!-- lit by hand in Blender -->" in (out / "scene.xml").read_text()  # the user's comments stay
     record = json.loads((out / "params.json").read_text())
     assert record["start"]["mat.roughness.value"] == pytest.approx([0.7]) and record["seconds"] > 0
+    # no medium: neither the image memory nor halved steps (pipeline.fit.settings.FitSettings.resolved)
+    assert (record["settings"]["image_memory"], record["settings"]["step_halvings"]) == (0, 0)
     assert sorted(Path(p).name for p in record["references"].values()) == ["ref_0.exr", "ref_1.exr", "ref_2.exr"]
 
 
