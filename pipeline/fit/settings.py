@@ -101,11 +101,14 @@ class FitSettings(LoopSettings):
     (pipeline.fit.variables.GradientWhitening), so that values that trade off along a
     diagonal valley follow it."""
     image_memory: Annotated[int | None, Range(0, None)] = None
-    """As the loop's (``LoopSettings.image_memory``); None: ``MEDIUM_IMAGE_MEMORY`` where
-    the scene renders a participating medium and ``loss`` is l2, else 0 (``resolved``)."""
+    """Carry each view's image from the steps that drew it before, the new render
+    weighing at least 1 / this (loss l2; LoopSettings.image_memory); 0: off. Unset
+    (None): 10 (``MEDIUM_IMAGE_MEMORY``) where the scene renders a participating medium
+    and the loss is l2, else off (``resolved``)."""
     step_halvings: Annotated[int | None, Range(0, None)] = None
-    """As the loop's (``LoopSettings.step_halvings``); None: ``MEDIUM_STEP_HALVINGS``
-    where the image memory is on by this rule, else 0 (``resolved``)."""
+    """Times the fit, found still, halves every learning rate and fits on before it
+    stops (LoopSettings.step_halvings). Unset (None): 2 (``MEDIUM_STEP_HALVINGS``) where
+    the unset image memory is on (a medium), else 0 (``resolved``)."""
     exposure: bool = False
     """Fit one exposure scale per photo (photos shot with automatic exposure)."""
     white_balance: bool = False
