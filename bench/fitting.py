@@ -265,7 +265,7 @@ def _normal_error(mesh_ply: Path, truth: trimesh.Trimesh) -> float:
     return score_mesh(trimesh.load(mesh_ply, force="mesh", process=False), truth)["shading_normal_error_deg"]
 
 
-def _shading_normals_towards_truth(mesh_ply: Path, truth: trimesh.Trimesh, weight: float) -> None:
+def shading_normals_towards_truth(mesh_ply: Path, truth: trimesh.Trimesh, weight: float) -> None:
     """Give ``mesh_ply``'s vertices (positions kept) shading normals ``weight`` of the
     way from their own to the true surface's at its nearest point (1: the true normals)."""
     import mitsuba as mi
@@ -309,7 +309,7 @@ def oracle_part(work: Path) -> None:
         if weight is None:
             truth.export(scene_dir / "mesh.ply")
         else:
-            _shading_normals_towards_truth(scene_dir / "mesh.ply", truth, weight)
+            shading_normals_towards_truth(scene_dir / "mesh.ply", truth, weight)
         normal_error = _normal_error(scene_dir / "mesh.ply", truth)
         inputs = StageInputs(
             capture,
