@@ -42,26 +42,22 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import trimesh
 
-from bench.common import run_stages, truth_in_reconstruction
+from bench.common import truth_in_reconstruction
 from bench.fitting import shading_normals_towards_truth
+from bench.studies.fitted_capture import FittedCapture, load_fitted_capture
 from bench.studies.shading_normal_fit import shading_error
 from pipeline import logger
-from pipeline.core.config import load_config
-from pipeline.core.sections import schema
 from pipeline.fit.passes import material_pass, shape_pass
-from pipeline.fit.views import PhotoGains, Windowing, read_capture_photos
-from pipeline.formats.cameras import read_cameras, read_views
-from pipeline.formats.fit_results import TexturedFit, read_fitted_scene
-from pipeline.formats.scene_folder import MESH_PLY, PARAMS_JSON, copy_scene
-from pipeline.render import materials, mitsuba_variant
-from pipeline.synthetic.score import score_cameras, score_material
-from stages import STAGES, fit_geometry
+from pipeline.fit.views import Windowing
+from pipeline.formats.scene_folder import MESH_PLY, copy_scene
+from pipeline.synthetic.score import score_material
+from stages import fit_geometry
 
 ARMS = ("stage", "long", "true-normals", "long-true", "geometry", "geometry-half-step", "geometry-128px")
 GEOMETRY_ARMS = {"geometry": {}, "geometry-half-step": {"step_scale": 0.5}, "geometry-128px": {"max_size": 128}}
@@ -75,57 +71,7 @@ def _arm_settings(arm: str, stage_settings, iterations: int):
     return stage_settings
 
 
-@dataclass
-class Study:
-    """What every arm reads: the capture's fitted scene and photos, the pass's settings."""
-
-    capture: Path
-    outputs: dict
-    source: Path
-    """The chosen stage's scene folder, copied for each arm and seed."""
-    description: object
-    photos: object
-    held: set[str]
-    parameters: list
-    conf: fit_geometry.Config
-    truth: dict
-    similarity: object
-    """Reconstruction to truth, for the meshes' normal errors."""
-    start: dict
-    """The chosen stage's params.json."""
-
-
-def _load(capture: Path, after: str) -> Study:
-    outputs, _ = run_stages(capture, after)
-    description, material = read_fitted_scene(outputs["scene"]["description"], outputs["fit_material"]["params"])
-    mitsuba_variant.activate("auto")
-    photos = read_capture_photos(
-        outputs["sfm"]["cameras"],
-        outputs["undistort"]["pinhole"],
-        outputs["masks"]["masks_json"],
-        PhotoGains.of(material),
-    )
-    texture_fit = TexturedFit.read(outputs["fit_texture"]["params"])
-    source = Path(outputs["fit_texture"]["textured_dir"] if after == "fit_texture" else outputs[after]["geometry_dir"])
-    texture = (texture_fit.learning_rate, texture_fit.smoothness) if texture_fit.kept else None
-    _, true_poses = read_cameras(capture / "ground_truth" / "cameras.json")
-    _, similarity = score_cameras({n: p for n, (_, p) in read_views(outputs["sfm"]["cameras"]).items()}, true_poses)
-    return Study(
-        capture,
-        outputs,
-        source,
-        description,
-        photos,
-        set(texture_fit.held_out),
-        materials.refit_parameters(description.model, texture_fit.bounds, texture),
-        load_config(schema(STAGES), capture, "standard", [])["fit_geometry"],
-        json.loads((capture / "ground_truth" / "material.json").read_text()),
-        similarity,
-        json.loads((source / PARAMS_JSON).read_text()),
-    )
-
-
-def _run_arm(study: Study, arm: str, seed_value: int, folder: Path, iterations: int) -> dict:
+def _run_arm(study: FittedCapture, arm: str, seed_value: int, folder: Path, iterations: int) -> dict:
     """One arm with one seed on a fresh copy of the stage's scene in ``folder``: its report entry."""
     conf = study.conf
     shutil.rmtree(folder, ignore_errors=True)
@@ -189,7 +135,7 @@ def main() -> None:
     if unknown := set(arms) - set(ARMS):
         parser.error(f"unknown arms {sorted(unknown)}; choose from {', '.join(ARMS)}")
 
-    study = _load(args.capture, args.after)
+    study = load_fitted_capture(args.capture, args.after)
     args.work.mkdir(parents=True, exist_ok=True)
     report_file = args.work / "report.json"
     report = json.loads(report_file.read_text()) if report_file.is_file() else {}

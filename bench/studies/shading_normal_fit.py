@@ -40,20 +40,15 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from bench.common import run_stages
+from bench.studies.fitted_capture import load_fitted_capture
 from pipeline import logger
-from pipeline.core.config import load_config
-from pipeline.core.sections import schema
 from pipeline.fit import engine, loop
 from pipeline.fit.passes import material_pass
 from pipeline.fit.variables import ShapeVariables
-from pipeline.fit.views import PhotoGains, Windowing, load_views, read_capture_photos
-from pipeline.formats.cameras import read_cameras, read_views
-from pipeline.formats.fit_results import TexturedFit, read_fitted_scene
-from pipeline.formats.scene_folder import MESH_PLY, PARAMS_JSON, copy_scene
-from pipeline.render import materials, mitsuba_variant
-from pipeline.synthetic.score import score_cameras, score_material, score_mesh
-from stages import STAGES, fit_geometry
+from pipeline.fit.views import Windowing, load_views
+from pipeline.formats.scene_folder import MESH_PLY, copy_scene
+from pipeline.synthetic.score import score_material, score_mesh
+from stages import fit_geometry
 
 
 class NormalVariables(ShapeVariables):
@@ -130,28 +125,10 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
 
-    outputs, _ = run_stages(args.capture, args.after)
-    description, material = read_fitted_scene(outputs["scene"]["description"], outputs["fit_material"]["params"])
-    mitsuba_variant.activate("auto")
-    photos = read_capture_photos(
-        outputs["sfm"]["cameras"],
-        outputs["undistort"]["pinhole"],
-        outputs["masks"]["masks_json"],
-        PhotoGains.of(material),
-    )
-    texture_fit = TexturedFit.read(outputs["fit_texture"]["params"])
-    source = (
-        outputs["fit_texture"]["textured_dir"] if args.after == "fit_texture" else outputs[args.after]["geometry_dir"]
-    )
-    start = json.loads((Path(source) / PARAMS_JSON).read_text())
-    held = set(texture_fit.held_out)
-    texture = (texture_fit.learning_rate, texture_fit.smoothness) if texture_fit.kept else None
-    parameters = materials.refit_parameters(description.model, texture_fit.bounds, texture)
-    truth = json.loads((args.capture / "ground_truth" / "material.json").read_text())
-    _, true_poses = read_cameras(args.capture / "ground_truth" / "cameras.json")
-    _, similarity = score_cameras({n: p for n, (_, p) in read_views(outputs["sfm"]["cameras"]).items()}, true_poses)
-    # fit_geometry's material pass as the standard preset configures it
-    conf = load_config(schema(STAGES), args.capture, "standard", [])["fit_geometry"]
+    fitted = load_fitted_capture(args.capture, args.after)
+    description, photos, held, parameters = fitted.description, fitted.photos, fitted.held, fitted.parameters
+    source, start, truth, similarity = fitted.source, fitted.start, fitted.truth, fitted.similarity
+    conf = fitted.conf  # fit_geometry's material pass as the standard preset configures it
     windowing = Windowing(conf.material_max_size, conf.erode_px, conf.material_spp)
     material_settings = fit_geometry._material_settings(conf, args.seed)
     normal_settings = engine.ShapeSettings(
