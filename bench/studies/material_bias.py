@@ -82,12 +82,12 @@ def _run_arm(study: FittedCapture, arm: str, seed_value: int, folder: Path, iter
     entry = {}
     if arm in GEOMETRY_ARMS:
         change = GEOMETRY_ARMS[arm]
-        diagonal = float(np.linalg.norm(np.ptp(trimesh.load(geometry / MESH_PLY).vertices, axis=0)))
+        diagonal = float(np.linalg.norm(trimesh.load(geometry / MESH_PLY, force="mesh").extents))
         shape_settings = fit_geometry._shape_settings(conf, diagonal * change.get("step_scale", 1.0), seed_value)
         size = change.get("max_size", conf.max_size)
-        shape, _ = shape_pass(
-            geometry, study.description, "photometric", study.photos, study.held, size, shape_settings, 0.0
-        )
+        volumetric = study.description.model == "volumetric"
+        loss = conf.loss if conf.loss != "auto" else ("silhouette" if volumetric else "photometric")
+        shape, _ = shape_pass(geometry, study.description, loss, study.photos, study.held, size, shape_settings, 0.0)
         entry["geometry"] = {"validation": [shape.start_validation_error, shape.validation_error]}
     entry["mesh"] = shading_error(study.capture, geometry / MESH_PLY, study.similarity)
     settings = _arm_settings(arm, fit_geometry._material_settings(conf, seed_value), iterations)
