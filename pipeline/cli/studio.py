@@ -70,7 +70,7 @@ def _session(options: StudioOptions):
 
 @command("studio", StudioOptions, "fit a scene interactively, or watch and run a capture, in the browser")
 def studio(options: StudioOptions) -> int:
-    from pipeline.studio.server import create_app, listening_socket, serve
+    from pipeline.studio.server import Access, create_app, listening_socket, serve
 
     if options.host not in LOCAL_HOSTS:
         logger.warning(
@@ -85,25 +85,29 @@ def studio(options: StudioOptions) -> int:
     except OSError as failure:
         raise ConfigError(f"cannot listen on {options.host}:{options.port} ({failure.strerror}): pick another --port")
     host, port = sock.getsockname()[:2]
-    url = f"http://{'[' + host + ']' if ':' in host else host}:{port}/"
+    access = Access.serving(host, port)
+    url = access.url(host, port)
     logger.info("studio at %s (Ctrl-C to quit)", url)
     if not options.no_browser:
         threading.Timer(0.5, webbrowser.open, [url]).start()
     try:
-        serve(create_app(session, error), sock)
+        serve(create_app(session, access, error), sock)
     finally:
         _finish(session)
     return 0 if error is None else 2
 
 
 def _finish(session) -> None:
-    """On quitting: a running fit stops and writes its best state; a run from the page
-    is interrupted as Ctrl-C would (its finished stages kept)."""
+    """On quitting (Ctrl-C, SIGTERM, SIGHUP): a running fit stops and writes its best
+    state; a run from the page is interrupted as Ctrl-C would (its finished stages
+    kept) and waited for, so that its lock is released before the studio ends."""
     from pipeline.studio.fit_session import FitSession
 
     if isinstance(session, FitSession):
-        session.stop()
+        if session.stop():
+            logger.info("studio: stopping the fit; its best state so far goes to %s", session.out_dir)
         session.wait()
     elif session is not None:
-        session.stop_run()
+        if session.stop_run():
+            logger.info("studio: stopping the run started from the page; its finished stages are kept")
         session.wait()

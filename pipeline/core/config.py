@@ -106,6 +106,26 @@ def _check_input_files(name: str, section: Any, capture_dir: Path, origins: Mapp
             raise ConfigError(f"{name}.{key} = {value!r} is {special}, not a file: name a regular file")
 
 
+def confine_input_files(
+    schema: Mapping[str, type], capture_dir: Path, overrides: list[str] | tuple[str, ...], where: str
+) -> None:
+    """Refuse an override from ``where`` (not the command line: the studio's page) whose
+    ``InputFile`` setting names a file outside the capture folder, as capture.toml's
+    may not."""
+    for text in overrides:
+        section, key, value = parse_override(text)
+        cls = schema.get(section)
+        if cls is None or not isinstance(value, str) or not value:
+            continue  # an unknown key or a wrong type is refused by load_config, with its message
+        hint = typing.get_type_hints(cls, include_extras=True).get(key)
+        marked = typing.get_origin(hint) is Annotated and any(isinstance(a, InputFile) for a in typing.get_args(hint))
+        if marked and not input_file_path(capture_dir, value).resolve().is_relative_to(capture_dir.resolve()):
+            raise ConfigError(
+                f"{section}.{key} = {value!r} from {where} points outside the capture folder {capture_dir}: "
+                "copy the file into the capture folder, or give it on the command line (-s)"
+            )
+
+
 @functools.cache
 def field_docs(cls: type) -> dict[str, str]:
     """The docstring written under each field of a dataclass, by field name; fields a

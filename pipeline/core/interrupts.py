@@ -52,6 +52,11 @@ def interruption(error: BaseException | None) -> BaseException | None:
     return Interrupted(_received[0]) if _received else None
 
 
+def signal_name(error: BaseException) -> str:
+    """SIGINT, SIGTERM or SIGHUP: the signal behind an interruption."""
+    return signal.Signals(exit_code(error) - 128).name
+
+
 def exit_code(error: BaseException) -> int:
     """128 + the signal of an interruption (KeyboardInterrupt: SIGINT)."""
     return error.exit_code if isinstance(error, Interrupted) else 128 + signal.SIGINT
@@ -112,4 +117,4 @@ def after_native_import() -> None:
     signal.signal(signal.SIGINT, _raise_keyboard_interrupt)
 
 
-__all__ = ["Interrupted", "after_native_import", "exit_code", "install", "interruption"]
+__all__ = ["Interrupted", "after_native_import", "exit_code", "install", "interruption", "signal_name"]

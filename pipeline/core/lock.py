@@ -33,12 +33,25 @@ def _holder_text(record: dict) -> str:
 
 
 class CaptureLock:
-    """Context manager holding a capture's lock; waits for it unless ``wait`` is False."""
+    """Context manager holding a capture's lock; waits for it unless ``wait`` is False.
 
-    def __init__(self, capture_dir: Path, command: str, wait: bool = True):
-        self.path = capture_dir / ".pipeline" / LOCK_FILE
+    ``lock_file`` locks another folder the same way (`pipeline fit`'s --out, whose lock
+    is ``OUT/.fit.lock``), and ``busy_hint`` is what a caller that does not wait is told
+    to do."""
+
+    def __init__(
+        self,
+        capture_dir: Path,
+        command: str,
+        wait: bool = True,
+        lock_file: Path | None = None,
+        busy_hint: str = "wait for it to finish, or run again without --no-wait to queue behind it",
+    ):
+        self.folder = capture_dir
+        self.path = lock_file or capture_dir / ".pipeline" / LOCK_FILE
         self.command = command
         self.wait = wait
+        self.busy_hint = busy_hint
         self._fd: int | None = None
 
     def _read_holder(self) -> dict:
@@ -53,7 +66,7 @@ class CaptureLock:
             fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
         except PermissionError as error:
             raise PipelineError(
-                f"cannot write to {self.path.parent}: the capture folder must be writable to run stages "
+                f"cannot write to {self.path.parent}: {self.folder} must be writable for {self.command} "
                 "(copy it somewhere writable, or fix its permissions)"
             ) from error
         except IsADirectoryError as error:
@@ -64,11 +77,8 @@ class CaptureLock:
             holder = _holder_text(self._read_holder())
             if not self.wait:
                 os.close(fd)
-                raise CaptureBusy(
-                    f"{self.path.parents[1]} is in use by {holder}: wait for it to finish, "
-                    "or run again without --no-wait to queue behind it"
-                ) from None
-            logger.warning("%s is in use by %s; waiting for it to finish", self.path.parents[1], holder)
+                raise CaptureBusy(f"{self.folder} is in use by {holder}: {self.busy_hint}") from None
+            logger.warning("%s is in use by %s; waiting for it to finish", self.folder, holder)
             fcntl.flock(fd, fcntl.LOCK_EX)
         previous = self._read_holder()
         if previous:

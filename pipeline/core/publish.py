@@ -54,13 +54,52 @@ def check_output_path(capture_dir: Path) -> None:
 
 
 def current_manifest(capture_dir: Path) -> dict[str, Any] | None:
-    """The manifest of the published output, or None when there is none or it is unreadable."""
+    """The manifest of the published output, or None when there is none, it is unreadable
+    or it is not of the shape publish() writes (a path in it that leaves output/, a
+    record that is not a table of sizes and digests): a damaged manifest is never
+    trusted to say which files to restore, hash or keep aside."""
     path = capture_dir / OUTPUT / MANIFEST
     try:
         manifest = json.loads(path.read_text())
-    except (FileNotFoundError, NotADirectoryError, json.JSONDecodeError, UnicodeDecodeError):
+    except (FileNotFoundError, NotADirectoryError, IsADirectoryError, json.JSONDecodeError, UnicodeDecodeError):
         return None
-    return manifest if isinstance(manifest, dict) else None
+    except PermissionError:
+        logger.warning("%s cannot be read: the published output is treated as unknown", path)
+        return None
+    problem = manifest_problem(manifest)
+    if problem is not None:
+        logger.warning("%s is damaged (%s): ignored; the next run publishes a new one", path, problem)
+        return None
+    return manifest
+
+
+def manifest_problem(manifest: Any) -> str | None:
+    """What makes ``manifest`` unlike the ones publish() writes, or None."""
+    if not isinstance(manifest, dict):
+        return "not a JSON object"
+    for name, record in manifest.items():
+        if not _inside(name) or not isinstance(record, dict) or not isinstance(record.get("stage", ""), str):
+            return f"entry {name!r}"
+        contents = record.get("contents", {})
+        if not isinstance(contents, dict):
+            return f"entry {name!r}: contents"
+        for rel, entry in contents.items():
+            if not _inside(rel):
+                return f"path {rel!r} leaves output/"
+            if (
+                not isinstance(entry, list)
+                or len(entry) != 2
+                or not isinstance(entry[0], int)
+                or not isinstance(entry[1], str)
+            ):
+                return f"entry {rel!r}: not [size, sha256]"
+    return None
+
+
+def _inside(relative: str) -> bool:
+    """Whether a manifest's path names something inside output/ (relative, no '..')."""
+    parts = Path(relative).parts
+    return bool(parts) and not Path(relative).is_absolute() and ".." not in parts and "\\" not in relative
 
 
 def _changed(output: Path, manifest: dict[str, Any]) -> dict[str, str]:
@@ -159,16 +198,39 @@ def _top(name: str) -> str:
     return name.split("/", 1)[0]
 
 
+def remove_tree(path: Path) -> bool:
+    """Delete ``path`` (a folder or a file), making read-only folders in it writable
+    first (a user's chmod of output/ must not stop the next publish); False with a
+    warning naming it where that is not allowed either."""
+
+    def writable_and_again(function, failed: str, error) -> None:
+        parent = Path(failed).parent
+        os.chmod(parent, os.stat(parent).st_mode | 0o700)
+        if Path(failed).is_dir() and not Path(failed).is_symlink():
+            os.chmod(failed, os.stat(failed).st_mode | 0o700)
+        function(failed)
+
+    try:
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path, onerror=lambda function, failed, info: writable_and_again(function, failed, info))
+        else:
+            path.unlink(missing_ok=True)
+    except PermissionError as error:
+        logger.warning("%s cannot be removed (%s): delete it by hand", error.filename or path, error.strerror)
+        return False
+    return True
+
+
 def remove_leftovers(capture_dir: Path) -> None:
     """Delete what a killed publish left and an older pipeline's version folders; the
     caller holds the capture's lock."""
     for stale in capture_dir.glob(f"{STAGING}*"):
-        shutil.rmtree(stale) if stale.is_dir() and not stale.is_symlink() else stale.unlink()
+        remove_tree(stale)
     old_layout = capture_dir / OLD_LAYOUT
     if old_layout.is_dir() and not (capture_dir / OUTPUT).is_symlink():
         for version in old_layout.iterdir():
             if not version.name.startswith("legacy-"):  # a user's output/ folder an older pipeline moved aside
-                shutil.rmtree(version)
+                remove_tree(version)
 
 
 def publish(capture_dir: Path, files: dict[str, tuple[Path, dict[str, Any]]]) -> bool:
@@ -203,10 +265,7 @@ def publish(capture_dir: Path, files: dict[str, tuple[Path, dict[str, Any]]]) ->
         raise
     was_link = output.is_symlink()
     _swap_in(staging, output)
-    if staging.is_symlink():
-        staging.unlink()
-    elif staging.exists():
-        shutil.rmtree(staging)
+    remove_tree(staging)  # the old output
     if was_link:
         remove_leftovers(capture_dir)
     return True

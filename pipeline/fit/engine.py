@@ -97,11 +97,13 @@ def fit(
     validation: list[FitView],
     settings: FitSettings,
     on_iteration=None,
+    finish_on_interrupt: bool = False,
 ) -> FitResult:
     """Fit ``parameters`` to the training views; the scenes end in the best state.
     Settings left to the scene (None) are set for the training views' scenes
     (FitSettings.resolved). ``on_iteration`` sees each step's log entry and may return
-    a reason to stop."""
+    a reason to stop; ``finish_on_interrupt``: Ctrl-C ends the fit in its best state
+    (loop.run)."""
     training, validation = _with_pixels(training), _with_pixels(validation)
     if not training:
         raise PipelineError("no views to fit: every view is held out")
@@ -111,7 +113,9 @@ def fit(
     variables = MaterialVariables(parameters, traversed, gained, 3 if settings.white_balance else 1, settings.whiten)
     variables.check_keys(training + validation)
     variables.register(settings.learning_rate_scale)
-    result = loop.run(variables, training, validation, settings, on_iteration=on_iteration)
+    result = loop.run(
+        variables, training, validation, settings, on_iteration=on_iteration, finish_on_interrupt=finish_on_interrupt
+    )
     textures = {n: v.astype(np.float32) for n, v in result.best.items() if v.ndim > 1}
     return FitResult(
         {n: summarize(v) for n, v in result.best.items()},
@@ -174,6 +178,8 @@ def parse_bounds(entries: tuple[str, ...] | list[str], where: str) -> dict[str, 
             result[name.strip()] = (float(lower), float(upper))
         except ValueError:
             raise PipelineError(f"{where}: '{entry}' is not name=lower:upper (e.g. eta=1.3:1.6)") from None
+        if not all(np.isfinite(result[name.strip()])):
+            raise PipelineError(f"{where}: '{entry}' is not finite: give finite bounds (e.g. eta=1.3:1.6)")
         if not result[name.strip()][0] < result[name.strip()][1]:
             raise PipelineError(f"{where}: '{entry}' has lower >= upper")
     return result

@@ -64,9 +64,13 @@ import numpy as np
 from pipeline import logger
 from pipeline.core import progress
 from pipeline.core.errors import PipelineError
+from pipeline.core.interrupts import Interrupted, interruption, signal_name
 from pipeline.fit.checkpoint import next_checkpoint
 from pipeline.fit.settings import LoopSettings
 from pipeline.fit.stopping import still
+
+INTERRUPTED = "interrupted"
+"""How the reason begins when Ctrl-C or SIGTERM ended a loop that finishes on them."""
 
 
 @dataclass
@@ -688,12 +692,16 @@ def run(
     integrator=None,
     on_iteration: Callable[[dict], str | None] | None = None,
     label: str = "fit",
+    finish_on_interrupt: bool = False,
 ) -> LoopResult:
     """Fit ``variables`` (pipeline.fit.variables, registered in their optimiser) to the
     training views; the scenes end in the best state. ``integrator`` overrides the
     views' own; ``on_iteration`` sees each step's log entry and may return a reason to
     stop (a user's Stop in the studio): the loop then ends as it would at its own stop,
-    in the best state."""
+    in the best state. With ``finish_on_interrupt`` (`pipeline fit`, which has no
+    checkpoint to resume from), Ctrl-C or SIGTERM during the steps ends the loop the
+    same way, stopped ``INTERRUPTED``; a stage's loop lets it through to the runner,
+    whose checkpoint keeps the steps."""
     if not training:
         raise PipelineError("no views to fit: every view is held out")
     loop = _Loop(variables, training, validation, settings, integrator, label)
@@ -707,8 +715,8 @@ def run(
         arrays = state.arrays(best) | variables.optimiser_arrays()
         checkpoint.save(variables.optimizer, arrays, state.record(best))
 
-    last = settings.iterations if state.stopped is None else state.iteration
-    with progress.steps(last - state.iteration, label) as advance:
+    def steps(advance) -> None:
+        nonlocal best
         for iteration in range(state.iteration + 1, last + 1):
             entry = loop.train(iteration, state, started)
             if loop.validation and (iteration % settings.validate_every == 0 or iteration == settings.iterations):
@@ -729,9 +737,21 @@ def run(
                 _halve_steps(variables.optimizer, label, state)
                 state.stopped = None
             if state.stopped:
-                break
+                return
             if checkpoint is not None and checkpoint.due():
                 save(None)
+
+    last = settings.iterations if state.stopped is None else state.iteration
+    with progress.steps(last - state.iteration, label) as advance:
+        try:
+            steps(advance)
+        except (KeyboardInterrupt, Interrupted, RuntimeError) as error:
+            signal_error = interruption(error)
+            if signal_error is None or not finish_on_interrupt:
+                raise
+            state.stopped = f"{INTERRUPTED} ({signal_name(signal_error)}) after step {state.iteration}"
+            logger.warning("%s %s; it ends in its best state so far", label, state.stopped)
+    state.stopped = state.stopped or "iterations"
     state.stopped = state.stopped or "iterations"
     best = _averaged(loop, state, best)
     if checkpoint is not None:

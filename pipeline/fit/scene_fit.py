@@ -57,12 +57,18 @@ from pipeline import logger
 from pipeline.core import jsonio
 from pipeline.core.errors import ConfigError, PipelineError
 from pipeline.core.fsutil import atomic_write_text
+from pipeline.core.interrupts import Interrupted, interruption, signal_name
+from pipeline.core.lock import CaptureLock
 from pipeline.fit import engine
+from pipeline.fit.loop import INTERRUPTED
 from pipeline.fit.outputs import write_fit_log
 from pipeline.imaging.photo_io import list_photos, read_photo
 from pipeline.render import materials, mitsuba_variant, scene_xml, user_scene
 
 EXR_SUFFIXES = (".exr",)
+LOCK_FILE = ".fit.lock"
+"""In --out: held while a fit runs, so that two fits never mix their results in one folder."""
+BUSY_HINT = "wait for that fit to end, or give this one another --out"
 USER_STOP = "stopped by the user"
 """How a watcher's stop reason begins (``FitWatcher.step``): it ends every level."""
 
@@ -306,98 +312,143 @@ def _split_heldout(views: list[engine.FitView], heldout: tuple[str, ...], refere
     return training, [view for view in views if view.name in heldout]
 
 
+@dataclass
+class _Fitted:
+    """What the levels of a fit found, for writing."""
+
+    levels: list[int]
+    parameters: list[engine.FitParameter]
+    start: dict[str, list[float]]
+    settings: engine.FitSettings
+    log: list[dict]
+    result: engine.FitResult
+    sensor_ids: list[str]
+    seconds: float
+
+
 def fit_scene(request: SceneFit, watcher: FitWatcher | None = None) -> Path:
     """Fit (at ``request.sizes``) and write the results into ``request.out_dir``;
-    returns its params.json."""
-    scene_path, references, out_dir = request.scene, request.references, request.out_dir
-    check_out_dir(out_dir, scene_path, references)
+    returns its params.json. --out is locked meanwhile; Ctrl-C or SIGTERM ends the fit
+    in its best state so far, which is written and marked interrupted."""
+    check_out_dir(request.out_dir, request.scene, request.references)
     check_patterns(list(request.patterns))
     mitsuba_variant.activate(request.variant)
+    lock = CaptureLock(
+        request.out_dir, "pipeline fit", wait=False, lock_file=request.out_dir / LOCK_FILE, busy_hint=BUSY_HINT
+    )
+    with lock:
+        tree = user_scene.normalised(request.scene)
+        fitted = _fit_levels(request, tree, watcher)
+        params_json = _write_results(request, tree, fitted)
+    if fitted.result.stopped.startswith(INTERRUPTED):
+        logger.warning(
+            '%s: the best state so far is written to %s (params.json: "interrupted": true)',
+            fitted.result.stopped,
+            request.out_dir,
+        )
+    return params_json
+
+
+def _fit_levels(request: SceneFit, tree, watcher: FitWatcher | None) -> _Fitted:
+    """The fit, level by level, of the scene file ``tree`` (user_scene.normalised)."""
     import mitsuba as mi
 
-    # 1. The scene as Mitsuba loads it with stable keys, and the films' sizes per level.
-    tree = user_scene.normalised(scene_path)
+    scene_path, references = request.scene, request.references
+
+    # 1. The films' sizes per level, the differentiable integrator and the bounds.
     full_sizes = user_scene.reduce_films(copy.deepcopy(tree), 0)
     integrator = user_scene.differentiable_integrator(tree)
     levels = request.sizes.levels(max((max(size) for size in full_sizes), default=0))
     bounds = engine.parse_bounds(list(request.bounds), "--bound")
 
-    # 2. The fit, level by level: the scene loaded with its films reduced (the references
-    # averaged down to them); the parameters chosen on the first, each later level
-    # starting from the last one's values.
+    # 2. Each level: the scene loaded with its films reduced (the references averaged
+    # down to them); the parameters chosen on the first, each later level starting from
+    # the last one's values. Ctrl-C between two levels keeps the last level's result.
     started = time.perf_counter()
-    parameters, start, log, result, first_step = None, {}, [], None, 0.0
-    for level, max_size in enumerate(levels):
-        reduced = copy.deepcopy(tree)
-        user_scene.reduce_films(reduced, max_size)
-        scene = _load(scene_path, reduced)
-        scene_values = mi.traverse(scene)
-        if parameters is None:
-            parameters = select_parameters(scene_values, list(request.patterns), bounds, request.learning_rate, tree)
-            start = {p.key: np.ravel(np.asarray(scene_values[p.key])).tolist() for p in parameters}
-            logger.info("fitting %s on %d views", ", ".join(p.key for p in parameters), len(full_sizes))
-            medium = engine.renders_medium(scene_values)
-            settings = request.settings.resolved(medium)
-            if medium:
-                logger.info(
-                    "the scene renders a participating medium: image memory %d, %d step halvings at the last level",
-                    settings.image_memory,
-                    settings.step_halvings,
+    parameters, start, log, result, first_step, sensor_ids = None, {}, [], None, 0.0, []
+    settings = request.settings
+    level = 0
+    try:
+        for level, max_size in enumerate(levels):
+            reduced = copy.deepcopy(tree)
+            user_scene.reduce_films(reduced, max_size)
+            scene = _load(scene_path, reduced)
+            scene_values = mi.traverse(scene)
+            if parameters is None:
+                parameters = select_parameters(
+                    scene_values, list(request.patterns), bounds, request.learning_rate, tree
                 )
-        else:
-            set_values(scene_values, result.values)
-        views = _views(scene, scene_path, references, integrator, full_sizes)
-        training, heldout = _split_heldout(views, request.heldout, references)
-        if len(levels) > 1:
-            logger.info("level %d of %d: films of %s px", level + 1, len(levels), max_size or "their own")
-        if watcher is not None:
-            watcher.level_started(level, levels, views)
-        # a later level's steps counted from the first level's first step, as one fit's
-        first_step = first_step if level else time.perf_counter()
-        offset = time.perf_counter() - first_step
-        # Adam's steps keep a value jittering by about its learning rate: each finer level,
-        # starting near the answer, steps half as far; only the last level, whose values
-        # are the answer, halves its steps again when still (step_halvings)
-        level_settings = replace(
-            settings,
-            learning_rate_scale=settings.learning_rate_scale / 2**level,
-            step_halvings=settings.step_halvings if level == len(levels) - 1 else 0,
-        )
-        result = engine.fit(
-            parameters, training, heldout, level_settings, on_iteration=watcher.step if watcher else None
-        )
-        log += [entry | {"level": level, "seconds": offset + entry["seconds"]} for entry in result.log]
-        sensor_ids = [view.sensor.id() for view in views]
-        del (
-            scene,
-            scene_values,
-            views,
-            training,
-            heldout,
-        )  # Dr.Jit traces every live scene into the next level's kernels
-        if result.stopped.startswith(USER_STOP):
-            break  # the user's stop ends the fit, not only this level
-    seconds = time.perf_counter() - started
+                start = {p.key: np.ravel(np.asarray(scene_values[p.key])).tolist() for p in parameters}
+                logger.info("fitting %s on %d views", ", ".join(p.key for p in parameters), len(full_sizes))
+                medium = engine.renders_medium(scene_values)
+                settings = request.settings.resolved(medium)
+                if medium:
+                    logger.info(
+                        "the scene renders a participating medium: image memory %d, %d step halvings at the last level",
+                        settings.image_memory,
+                        settings.step_halvings,
+                    )
+            else:
+                set_values(scene_values, result.values)
+            views = _views(scene, scene_path, references, integrator, full_sizes)
+            training, heldout = _split_heldout(views, request.heldout, references)
+            if len(levels) > 1:
+                logger.info("level %d of %d: films of %s px", level + 1, len(levels), max_size or "their own")
+            if watcher is not None:
+                watcher.level_started(level, levels, views)
+            # a later level's steps counted from the first level's first step, as one fit's
+            first_step = first_step if level else time.perf_counter()
+            offset = time.perf_counter() - first_step
+            # Adam's steps keep a value jittering by about its learning rate: each finer level,
+            # starting near the answer, steps half as far; only the last level, whose values
+            # are the answer, halves its steps again when still (step_halvings)
+            level_settings = replace(
+                settings,
+                learning_rate_scale=settings.learning_rate_scale / 2**level,
+                step_halvings=settings.step_halvings if level == len(levels) - 1 else 0,
+            )
+            on_iteration = watcher.step if watcher else None
+            result = engine.fit(
+                parameters, training, heldout, level_settings, on_iteration=on_iteration, finish_on_interrupt=True
+            )
+            log += [entry | {"level": level, "seconds": offset + entry["seconds"]} for entry in result.log]
+            sensor_ids = [view.sensor.id() for view in views]
+            # Dr.Jit traces every live scene into the next level's kernels
+            del scene, scene_values, views, training, heldout
+            if result.stopped.startswith((USER_STOP, INTERRUPTED)):
+                break  # the user's stop or Ctrl-C ends the fit, not only this level
+    except (KeyboardInterrupt, Interrupted, RuntimeError) as error:
+        signal_error = interruption(error)
+        if signal_error is None or result is None:
+            raise
+        result = replace(result, stopped=f"{INTERRUPTED} ({signal_name(signal_error)}) before level {level + 1}")
+    return _Fitted(levels, parameters, start, settings, log, result, sensor_ids, time.perf_counter() - started)
 
-    # 3. What was found first, then the scene with it written in; each file written beside
-    # its place and renamed into it, so that a kill or a full disk leaves no half file.
+
+def _write_results(request: SceneFit, tree, fitted: _Fitted) -> Path:
+    """params.json and log.jsonl first, then the scene with the values written in; each
+    file written beside its place and renamed into it, so that a kill or a full disk
+    leaves no half file."""
+    scene_path, references, out_dir = request.scene, request.references, request.out_dir
+    result, parameters, log = fitted.result, fitted.parameters, fitted.log
     params_json = out_dir / "params.json"
     summary = {
         "scene": str(scene_path),
-        "references": dict(zip(sensor_ids, (str(path) for path in list_photos(references)))),
-        "start": start,
+        "references": dict(zip(fitted.sensor_ids, (str(path) for path in list_photos(references)))),
+        "start": fitted.start,
         "params": result.values,
         "bounds": {p.key: [p.lower, p.upper] for p in parameters},
         "iterations": len(log),
-        "levels": [size or "full" for size in levels],
+        "levels": [size or "full" for size in fitted.levels],
         "final_loss": log[-1]["loss"] if log else None,
         "heldout": list(request.heldout),
         "best_iteration": result.best_iteration if request.heldout else None,
         "averaged": result.averaged,
         "heldout_error": result.validation_error,
         "stopped": result.stopped,
-        "seconds": seconds,
-        "settings": asdict(settings),
+        "interrupted": result.stopped.startswith(INTERRUPTED),
+        "seconds": fitted.seconds,
+        "settings": asdict(fitted.settings),
     }
     out_scene = out_dir / scene_path.name
     user_scene.relative_filenames(tree, out_dir)

@@ -16,6 +16,7 @@ the current settings (the plan's entries), output/ and the checkpoints.
 
 from __future__ import annotations
 
+import ctypes
 import io
 import json
 import signal
@@ -28,11 +29,13 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.cli.registry import ConfigLayers, capture_dir
+from pipeline import logger
+from pipeline.cli.registry import ConfigLayers, capture_dir, registered_stages
 from pipeline.cli.stages import make_runner, status_summary
-from pipeline.core.config import DEFAULT_PRESET, parse_override, preset_names
+from pipeline.core.config import DEFAULT_PRESET, confine_input_files, parse_override, preset_names
 from pipeline.core.errors import ConfigError
 from pipeline.core.lock import holder
+from pipeline.core.sections import schema
 from pipeline.fit.scene_fit import set_values
 from pipeline.formats.cameras import read_views
 from pipeline.formats.pinhole import linear_photos, read_photos
@@ -41,6 +44,9 @@ from pipeline.imaging.photo_io import read_photo
 from pipeline.render import mitsuba_variant
 from pipeline.studio.fit_session import PREVIEW_SPP, finite, preview_images
 
+STOP_WAIT_S = 120.0
+"""Seconds a run stopped from the studio may take to end before it is sent SIGTERM
+(a stage ends at its next step: a render or a COLMAP call at most)."""
 THUMBNAIL_PX = 320
 """Longer side of a photo's thumbnail."""
 LOG_LINES = 2000
@@ -58,11 +64,23 @@ class RunState:
     exit_code: int | None = None
 
 
+def _interrupt_with_parent() -> None:
+    """In the run's process before it starts: Linux sends it SIGINT when the studio dies
+    (even by SIGKILL), so that no orphaned run goes on holding the capture's lock."""
+    PR_SET_PDEATHSIG = 1
+    ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGINT)
+
+
 class CaptureSession:
-    """One capture folder; at most one run from the page at a time."""
+    """One capture folder; at most one run from the page at a time.
+
+    Settings from the page are confined as capture.toml's are: a file they name must
+    lie inside the capture folder (pipeline.core.config.confine_input_files), unless the
+    same override was given on the studio's own command line."""
 
     def __init__(self, capture: str, preset: str = DEFAULT_PRESET, overrides: tuple[str, ...] = ()):
         self.folder = capture_dir(capture)
+        self.command_line = tuple(overrides)
         self.layers = self._layers(preset, list(overrides))
         self._runner()  # a bad preset, -s or capture.toml fails here, before the page opens
         self.run_state = RunState()
@@ -73,16 +91,17 @@ class CaptureSession:
         """Each stage's current results, planned once per stage table (not per thumbnail)."""
         self._preview: tuple[tuple[str, int], dict[str, bytes]] | None = None
 
-    @staticmethod
-    def _layers(preset: str, overrides: list[str]) -> ConfigLayers:
+    def _layers(self, preset: str, overrides: list[str]) -> ConfigLayers:
         if preset not in preset_names():
             raise ConfigError(f"preset {preset!r} does not exist: use one of {', '.join(preset_names())}")
         for override in overrides:
             parse_override(override)
+        from_page = [override for override in overrides if override not in self.command_line]
+        confine_input_files(schema(registered_stages()), self.folder, from_page, "the studio's page")
         return ConfigLayers(preset, tuple(overrides))
 
-    def _runner(self):
-        return make_runner(str(self.folder), self.layers)
+    def _runner(self, layers: ConfigLayers | None = None):
+        return make_runner(str(self.folder), layers or self.layers)
 
     def describe(self) -> dict[str, Any]:
         return {
@@ -94,40 +113,63 @@ class CaptureSession:
         }
 
     def stages(self, preset: str | None = None, overrides: list[str] | None = None) -> dict[str, Any]:
-        """`pipeline status --json`'s summary under the page's settings, and who holds
-        the capture's lock."""
-        if preset is not None:
-            self.layers = self._layers(preset, overrides or [])
+        """`pipeline status --json`'s summary under the page's settings (the session's
+        own when ``preset`` is None), and who holds the capture's lock. Only a run
+        keeps the page's settings: looking changes nothing."""
+        layers = self.layers if preset is None else self._layers(preset, overrides or [])
         self._results = None  # the page reloads what the stages made after its table
-        return status_summary(self._runner()) | {"locked_by": holder(self.folder)}
+        return status_summary(self._runner(layers)) | {"locked_by": holder(self.folder)}
 
     # A run.
 
-    def start_run(self) -> None:
+    def start_run(self, preset: str | None = None, overrides: list[str] | None = None) -> None:
+        """`pipeline run` under ``preset`` and ``overrides`` (the session's when None),
+        which become the session's."""
+        layers = self.layers if preset is None else self._layers(preset, overrides or [])
+        self._runner(layers)  # a setting the configuration refuses ends here, with its message
         with self._lock:
             if self._process is not None and self._process.poll() is None:
                 raise ConfigError("a run started here is still going: stop it or wait for it")
             busy = holder(self.folder)
             if busy is not None:
                 raise ConfigError(f"{self.folder} is in use by {busy}: wait for it to finish")
-            command = [sys.executable, "-m", "pipeline", "run", str(self.folder), "--preset", self.layers.preset]
-            for override in self.layers.set:
+            self.layers = layers
+            command = [sys.executable, "-m", "pipeline", "run", str(self.folder), "--preset", layers.preset]
+            for override in layers.set:
                 command += ["-s", override]
             self.run_state = RunState(command)
             self._process = subprocess.Popen(
-                command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1
+                command,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+                text=True,
+                bufsize=1,
+                preexec_fn=_interrupt_with_parent,
             )
             threading.Thread(target=self._read_log, args=(self._process,), daemon=True).start()
 
-    def stop_run(self) -> None:
-        """SIGINT, as Ctrl-C: the run keeps its finished stages and checkpoints."""
+    def stop_run(self) -> bool:
+        """SIGINT, as Ctrl-C: the run keeps its finished stages and checkpoints. Whether
+        a run was going."""
         with self._lock:
             if self._process is not None and self._process.poll() is None:
                 self._process.send_signal(signal.SIGINT)
+                return True
+            return False
 
-    def wait(self, timeout: float | None = None) -> None:
-        if self._process is not None:
-            self._process.wait(timeout)
+    def wait(self, timeout: float = STOP_WAIT_S) -> None:
+        """Until the run has ended (after stop_run); one that outlasts ``timeout`` seconds
+        is sent SIGTERM, then killed, so that the studio never leaves it holding the lock."""
+        if self._process is None:
+            return
+        for then in (signal.SIGTERM, signal.SIGKILL):
+            try:
+                self._process.wait(timeout)
+                return
+            except subprocess.TimeoutExpired:
+                logger.warning("studio: the run did not end in %.0f s: sending %s", timeout, then.name)
+                self._process.send_signal(then)
+        self._process.wait()
 
     def _read_log(self, process: subprocess.Popen) -> None:
         for line in process.stdout:

@@ -213,12 +213,15 @@ class FitSession(FitWatcher):
                 self.state.status = "running"
                 self._running.set()
 
-    def stop(self) -> None:
+    def stop(self) -> bool:
+        """Ask a running or paused fit to end in its best state; whether there was one."""
         with self._lock:
             if self.state.status in ("running", "paused"):
                 self.state.status = "stopping"
                 self._stop.set()
                 self._running.set()
+                return True
+            return False
 
     def wait(self, timeout: float | None = None) -> None:
         """Until the worker has written its results (or ``timeout`` seconds)."""

@@ -3,9 +3,13 @@
 "use strict";
 const $ = id => document.getElementById(id);
 let session = null;
+// This start's token (server.py serves it with the page): sent with every request, and
+// needed by every POST, which no other site's page can send with it.
+const TOKEN = document.querySelector('meta[name="studio-token"]')?.content ?? "";
 
 async function api(path, body) {
-  const init = body === undefined ? {} : { method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify(body) };
+  const headers = { "X-Studio-Token": TOKEN };
+  const init = body === undefined ? { headers } : { method: "POST", headers: { ...headers, "Content-Type": "application/json" }, body: JSON.stringify(body) };
   const response = await fetch(path, init);
   const data = response.status === 204 ? null : await response.json();
   if (!response.ok) throw new Error(data && data.error ? data.error : `${response.status} ${response.statusText}`);

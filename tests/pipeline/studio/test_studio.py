@@ -36,14 +36,17 @@ def _chromium() -> str:
 
 
 @contextmanager
-def studio(*args: str, cwd: Path):
-    """`pipeline studio ARGS --no-browser` on a free port; yields its address and log."""
+def studio(*args: str, cwd: Path, process_out: list | None = None):
+    """`pipeline studio ARGS --no-browser` on a free port; yields the address it prints
+    (with its token) and its log; ``process_out`` receives the process."""
     process = subprocess.Popen(
         [sys.executable, "-m", "pipeline", "studio", *args, "--no-browser"],
         cwd=cwd,
         stderr=subprocess.PIPE,
         text=True,
     )
+    if process_out is not None:
+        process_out.append(process)
     lines = []
     try:
         for line in process.stderr:
@@ -54,7 +57,9 @@ def studio(*args: str, cwd: Path):
             pytest.fail("the studio did not start:\n" + "".join(lines))
         yield found.group(1), lines
     finally:
-        process.terminate()
+        if process.poll() is None:
+            process.terminate()
+        lines += process.stderr.readlines()
         process.wait(60)
 
 
@@ -80,9 +85,17 @@ def _screenshot(page, path: Path) -> None:
         shutil.copy(path, Path(SCREENSHOTS) / path.name)
 
 
-def _get(url: str) -> tuple[int, dict]:
+def request(url: str, path: str, body=None, token: bool = True, headers: dict | None = None) -> tuple[int, dict]:
+    """A request to the studio at ``url``, as its page makes them (the token as its
+    header; a POST when there is a body): the status and the JSON answer."""
+    base, _, query = url.partition("?")
+    sent = {"X-Studio-Token": query.removeprefix("token=")} if token else {}
+    data = None if body is None else (body if isinstance(body, bytes) else json.dumps(body).encode())
+    if data is not None:
+        sent["Content-Type"] = "application/json"
+    call = urllib.request.Request(base + path.lstrip("/"), data=data, headers=sent | (headers or {}))
     try:
-        with urllib.request.urlopen(url) as response:
+        with urllib.request.urlopen(call, timeout=60) as response:
             return response.status, json.loads(response.read() or b"null")
     except urllib.error.HTTPError as error:
         return error.code, json.loads(error.read() or b"null")
@@ -170,7 +183,7 @@ def test_a_scene_mitsuba_cannot_load_shows_the_cli_message_in_the_page(tmp_path)
     (tmp_path / "refs").mkdir()
     with studio(str(bad), "--references", str(tmp_path / "refs"), "--host", "0.0.0.0", cwd=tmp_path) as (url, log):
         assert any("other machines can reach the studio" in line for line in log)
-        status, session = _get(url + "api/session")
+        status, session = request(url, "api/session")
         assert status == 200 and session["mode"] == "error"
         assert "Mitsuba cannot load" in session["error"] and str(bad) in session["error"]
 
