@@ -40,6 +40,8 @@ class BoardOptions:
     """Page size of the PDF."""
     dpi: Annotated[int, Range(72, 2400)] = 300
     """Resolution of the PNG and of the PDF's image."""
+    force: bool = False
+    """Replace OUT.png and OUT.pdf when they exist (without it, the command refuses)."""
     config: ConfigLayers = field(default_factory=ConfigLayers)
     """Preset and overrides."""
 
@@ -76,6 +78,9 @@ def board(options: BoardOptions) -> int:
     if config["board"].kind == "none":
         raise ConfigError("board.kind = 'none': set it to 'charuco' or 'checkerboard' to print a board")
     folder = Path(options.out).parent
+    existing = [str(path) for suffix in (".png", ".pdf") if (path := Path(options.out + suffix)).exists()]
+    if existing and not options.force:
+        raise ConfigError(f"{' and '.join(existing)} exist: name another --out, or add --force to replace them")
     try:
         tempfile.TemporaryFile(dir=folder).close()
     except OSError as error:

@@ -81,3 +81,15 @@ def test_a_board_that_cannot_be_made_is_refused_with_the_fix(tmp_path, capsys, a
     assert main(["board", *out, *argv]) == 2
     err = capsys.readouterr().err
     assert message in err and "Traceback" not in err and not (tmp_path / "board.png").exists()
+
+
+def test_an_existing_board_is_replaced_only_when_asked(tmp_path, capsys):
+    out = tmp_path / "board"
+    assert main(["board", "--out", str(out), "--dpi", "72"]) == 0
+    (tmp_path / "board.pdf").write_bytes(b"a board someone printed from")
+    assert main(["board", "--out", str(out), "--dpi", "72"]) == 2
+    err = capsys.readouterr().err
+    assert "board.png and" in err and "add --force to replace them" in err
+    assert (tmp_path / "board.pdf").read_bytes() == b"a board someone printed from"
+    assert main(["board", "--out", str(out), "--dpi", "72", "--force"]) == 0
+    assert (tmp_path / "board.pdf").read_bytes().startswith(b"%PDF")

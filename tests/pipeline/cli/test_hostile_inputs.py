@@ -63,6 +63,15 @@ CASES = [
     ("capture-toml", "planning", lambda c: _fifo(c / "capture.toml"), [], 2, "capture.toml is a FIFO"),
     ("envmap", "scene", lambda c: _fifo(c / "room.exr"), ["-s", "light.environment_map='room.exr'"], 2, "is a FIFO"),
     ("non-finite-mesh", "mesh", _non_finite_mesh, MESH, 1, "vertices are NaN or infinite"),
+    # a kernel file that blocks when read (/proc/kmsg) or never ends: refused by its file system
+    (
+        "kernel-file",
+        "planning",
+        lambda c: None,
+        ["--dry-run", "-s", "light.environment_map='/proc/kmsg'"],
+        2,
+        "a file the kernel makes up (proc)",
+    ),
 ]
 
 

@@ -4,7 +4,9 @@ import errno
 import json
 import os
 import shutil
+import tempfile
 import time
+import traceback
 from pathlib import Path
 
 import pytest
@@ -308,3 +310,81 @@ def test_a_file_system_without_exchange_publishes_by_two_renames(tmp_path, prese
     monkeypatch.setattr(publish, "_exchange", unsupported)
     run_toy(capture, presets_dir, "double.factor=3")
     assert published(capture)[0] == "result 18.0\n" and not list(capture.glob(".output.tmp-*"))
+
+
+@pytest.mark.parametrize(
+    "manifest",
+    [
+        {"report.txt": {"stage": "report", "contents": {"../../victim/f.txt": [3, "0" * 64]}}},
+        {"report.txt": {"stage": "report", "contents": {"/etc/hostname": [3, "0" * 64]}}},
+        {"report.txt": {"stage": "report", "contents": {"report.txt": "12"}}},
+        {"report.txt": ["not", "a", "record"]},
+        ["a", "list"],
+    ],
+    ids=["leaves-output", "absolute", "wrong-entry", "wrong-record", "not-an-object"],
+)
+def test_a_damaged_manifest_is_ignored_and_nothing_is_written_outside_the_capture(
+    tmp_path, presets_dir, caplog, manifest
+):
+    capture = make_capture(tmp_path)
+    run_toy(capture, presets_dir)
+    victim = tmp_path / "victim"
+    victim.mkdir()
+    (victim / "f.txt").write_text("abc")
+    (capture / "output" / "manifest.json").write_text(json.dumps(manifest))
+    run_toy(capture, presets_dir, "double.factor=3")
+    assert sorted(p.name for p in victim.iterdir()) == ["f.txt"]  # no f.edited.txt beside it
+    assert published(capture)[0] == "result 18.0\n"
+    assert "manifest.json is damaged" in caplog.text
+    assert publish.current_manifest(capture) is not None  # the new one is whole
+
+
+def test_published_files_are_as_readable_as_any_the_user_makes(tmp_path, presets_dir):
+    """Not 0600, as tempfile.mkstemp makes them: what open() would under the umask."""
+    capture = make_capture(tmp_path)
+    run_toy(capture, presets_dir)
+    for path in (capture / "output" / "manifest.json", capture / "output" / "report.txt"):
+        assert path.stat().st_mode & 0o777 == 0o666 & ~fsutil.UMASK, path
+
+
+def test_a_read_only_output_folder_is_replaced_and_leaves_nothing_behind(request, presets_dir):
+    """As a user who is not root, whose chmod 0555 the permission checks honour."""
+    import pwd
+
+    if os.geteuid() != 0:
+        pytest.skip("needs root to run the publish as another user")
+    nobody = pwd.getpwnam("nobody")
+    # pytest's folders are root's alone (0700): a world-readable one the user can reach
+    shared = Path(tempfile.mkdtemp(prefix="read-only-output-"))
+    request.addfinalizer(lambda: shutil.rmtree(shared, ignore_errors=True))
+    os.chmod(shared, 0o755)
+    presets_dir = Path(shutil.copytree(presets_dir, shared / "presets"))
+    capture = make_capture(shared)
+    run_toy(capture, presets_dir)
+    for path in [capture, *capture.rglob("*")]:
+        os.lchown(path, nobody.pw_uid, nobody.pw_gid)
+    os.chmod(capture / "output", 0o555)
+    for _ in range(2):  # the second run finds nothing the first left
+        assert _as_user(nobody, lambda: run_toy(capture, presets_dir, "double.factor=3")) == 0
+    assert published(capture)[0] == "result 18.0\n"
+    assert not list(capture.glob(".output.tmp-*"))
+
+
+def _as_user(user, work) -> int:
+    """``work()`` in a forked child that has become ``user`` (this interpreter cannot be
+    started as another user: its files are root's); the child's exit code, 1 on any
+    exception, whose traceback it prints."""
+    pid = os.fork()
+    if pid == 0:  # the child: never returns into pytest
+        code = 1
+        try:
+            os.setgid(user.pw_gid)
+            os.setuid(user.pw_uid)
+            work()
+            code = 0
+        except BaseException:
+            traceback.print_exc()  # the child ends below without unwinding into pytest
+            raise
+        finally:
+            os._exit(code)
+    return os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1])

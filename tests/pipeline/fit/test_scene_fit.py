@@ -5,7 +5,11 @@ given by name, a render integrator (path) that is swapped for its differentiable
 import errno
 import json
 import shutil
+import signal
+import subprocess
+import sys
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +17,7 @@ import pytest
 
 from pipeline.cli import main as cli_main
 from pipeline.fit import engine
-from pipeline.fit.scene_fit import selects
+from pipeline.fit.scene_fit import LOCK_FILE, selects
 from pipeline.imaging.photo_io import read_photo, write_image
 
 pytestmark = pytest.mark.slow
@@ -315,3 +319,50 @@ def test_coarse_to_fine_fits_level_by_level_up_to_the_films_own_size(mi, referen
     roughness = [entry["params"]["mat.roughness.value"][0] for entry in log]
     assert abs(np.log(roughness[6] / roughness[5])) < 0.15 and abs(np.log(roughness[12] / roughness[11])) < 0.15
     assert abs(record["params"]["mat.roughness.value"][0] - 0.3) < abs(0.7 - 0.3)
+
+
+def _fit_process(scene: Path, references: Path, out: Path) -> subprocess.Popen:
+    """`pipeline fit` that runs until it is stopped, in a process of its own."""
+    argv = ["fit", str(scene), "--references", str(references), "--params", "roughness", "--out", str(out)]
+    argv += ["--iterations", "100000", "--still-threshold", "0", "--spp", "2", "--max-size", "16"]
+    return subprocess.Popen([sys.executable, "-m", "pipeline", *argv], stderr=subprocess.PIPE, text=True)
+
+
+def _wait_for_steps(out: Path, process: subprocess.Popen) -> None:
+    """Until the fit has taken steps (its lock's holder record is written at the start,
+    and a few seconds of steps follow)."""
+    deadline = time.monotonic() + 120
+    while not (out / LOCK_FILE).is_file() or not (out / LOCK_FILE).read_text():
+        assert process.poll() is None and time.monotonic() < deadline, process.stderr.read()
+        time.sleep(0.1)
+    time.sleep(5)
+
+
+@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_an_interrupted_fit_writes_its_best_state_marked_interrupted(mi, references, tmp_path, stop):
+    scene = _write_scene(tmp_path / "start", rough=0.7, colour="0.5, 0.5, 0.5", floor="0.3, 0.3, 0.3")
+    out = tmp_path / "out"
+    process = _fit_process(scene, references, out)
+    _wait_for_steps(out, process)
+    process.send_signal(stop)
+    err = process.communicate(timeout=120)[1]
+    assert process.returncode == 128 + stop, err
+    params = json.loads((out / "params.json").read_text())
+    assert params["interrupted"] and params["stopped"].startswith(f"interrupted ({stop.name})")
+    assert params["iterations"] > 0 and (out / "scene.xml").is_file() and (out / "log.jsonl").is_file()
+    assert "the best state so far is written to" in err and "Traceback" not in err
+
+
+def test_two_fits_never_share_an_out_folder(mi, references, tmp_path, capsys):
+    scene = _write_scene(tmp_path / "start", rough=0.7, colour="0.5, 0.5, 0.5", floor="0.3, 0.3, 0.3")
+    out = tmp_path / "out"
+    first = _fit_process(scene, references, out)
+    try:
+        _wait_for_steps(out, first)
+        assert _fit(scene, references, out, "roughness") == 1
+        err = capsys.readouterr().err
+        assert f"{out} is in use by pid {first.pid}" in err and "another --out" in err
+    finally:
+        first.send_signal(signal.SIGINT)
+        first.communicate(timeout=120)
+    assert json.loads((out / "params.json").read_text())["interrupted"]  # the first fit's, whole
