@@ -45,13 +45,43 @@ def contents(folder: Path) -> dict[str, list]:
 
 
 def damage(entry: "Entry") -> str | None:
-    """What is wrong with a committed entry's files, or None when they are intact."""
-    for rel, (size, digest) in entry.status["contents"].items():
+    """What is wrong with a committed entry's files, or None when they are intact: one
+    missing, changed or added since the entry was committed."""
+    recorded = entry.status["contents"]
+    for rel, (size, digest) in recorded.items():
         path = entry.path / rel
         if not path.is_file():
             return f"{rel} is missing"
         if path.stat().st_size != size or sha256_of(path) != digest:
             return f"{rel} has changed"
+    for path in entry.path.rglob("*"):
+        rel = path.relative_to(entry.path).as_posix()
+        if not path.is_dir() and path.name != STATUS_FILE and rel not in recorded:
+            return f"{rel} was added"
+    return None
+
+
+def status_problem(status: Any) -> str | None:
+    """What makes a status.json unlike the ones commit() writes (None: nothing), so that
+    a damaged one is recomputed rather than read."""
+    if not isinstance(status, dict) or not REQUIRED_KEYS <= status.keys():
+        return "incomplete"
+    if not isinstance(status["finished"], (int, float)) or not isinstance(status["seconds"], (int, float)):
+        return "its times are not numbers"
+    if not isinstance(status["components"], dict) or not isinstance(status.get("metrics", {}), dict):
+        return "its components or metrics are not tables"
+    for table in ("outputs", "contents"):
+        if not isinstance(status[table], dict):
+            return f"its {table} is not a table"
+        for rel in [*status[table], *(status[table].values() if table == "outputs" else ())]:
+            parts = Path(rel).parts if isinstance(rel, str) else ()
+            if not parts or Path(rel).is_absolute() or ".." in parts:
+                return f"its {table} name a path outside the entry"
+    for entry in status["contents"].values():
+        if not (
+            isinstance(entry, list) and len(entry) == 2 and isinstance(entry[0], int) and isinstance(entry[1], str)
+        ):
+            return "its contents are not [size, sha256]"
     return None
 
 
@@ -87,8 +117,9 @@ class StageCache:
         except (json.JSONDecodeError, UnicodeDecodeError):
             logger.warning("cache entry %s has a damaged %s; it will be recomputed", path, STATUS_FILE)
             return None
-        if not isinstance(status, dict) or not REQUIRED_KEYS <= status.keys():
-            logger.warning("cache entry %s has an incomplete %s; it will be recomputed", path, STATUS_FILE)
+        problem = status_problem(status)
+        if problem is not None:
+            logger.warning("cache entry %s has a damaged %s (%s); it will be recomputed", path, STATUS_FILE, problem)
             return None
         return Entry(stage=stage, key=path.name, path=path, status=status)
 

@@ -30,6 +30,8 @@ import functools
 import json
 import os
 import time
+import zipfile
+import zlib
 from contextvars import ContextVar
 from dataclasses import dataclass
 from pathlib import Path
@@ -130,29 +132,53 @@ class Checkpoint:
             f.write(json.dumps(entry) + "\n")
 
     def restore(self, optimizer) -> Resumed | None:
-        """Load the checkpoint into ``optimizer`` (whose keys it must hold); None if there is none."""
+        """Load the checkpoint into ``optimizer`` (whose keys it must hold); None if there
+        is none, or if it is damaged (truncated, flipped bytes, another fit's keys): then
+        it is removed, with a warning, and the fit starts afresh instead of failing on
+        every rerun."""
         if not self.path.is_file():
+            return None
+        try:
+            stored, record = self._read(optimizer)
+        except (OSError, EOFError, ValueError, KeyError, zipfile.BadZipFile, zlib.error) as error:
+            logger.warning("fit checkpoint %s is damaged (%s): removed; the fit starts afresh", self.path, error)
+            self.path.unlink(missing_ok=True)
+            self.steps_path.unlink(missing_ok=True)
             return None
         import drjit as dr
 
-        with np.load(self.path, allow_pickle=False) as stored:
-            for key in list(optimizer.keys()):
-                value, promoted, lr, (t, m_t, v_t, v_max) = optimizer.state[key]
-                kind = type(value)
-                restored = stored[f"adam/{key}/value"]
-                optimizer[key] = kind(restored) if dr.is_tensor_v(kind) else kind(*restored.ravel().tolist())
-                value, promoted, lr, _ = optimizer.state[key]
-                moments = (
-                    type(t)(stored[f"adam/{key}/t"].ravel()),
-                    type(m_t)(stored[f"adam/{key}/m"].ravel()),
-                    type(v_t)(stored[f"adam/{key}/v"].ravel()),
-                    v_max,
-                )
-                optimizer.state[key] = (value, promoted, lr, moments)
-            arrays = {name[len("array/") :]: stored[name] for name in stored.files if name.startswith("array/")}
-            record = json.loads(str(stored["record"]))
+        for key in list(optimizer.keys()):
+            value, promoted, lr, (t, m_t, v_t, v_max) = optimizer.state[key]
+            kind = type(value)
+            restored = stored[f"adam/{key}/value"]
+            optimizer[key] = kind(restored) if dr.is_tensor_v(kind) else kind(*restored.ravel().tolist())
+            value, promoted, lr, _ = optimizer.state[key]
+            moments = (
+                type(t)(stored[f"adam/{key}/t"].ravel()),
+                type(m_t)(stored[f"adam/{key}/m"].ravel()),
+                type(v_t)(stored[f"adam/{key}/v"].ravel()),
+                v_max,
+            )
+            optimizer.state[key] = (value, promoted, lr, moments)
+        arrays = {name[len("array/") :]: value for name, value in stored.items() if name.startswith("array/")}
         logger.info("resuming a fit from %s at iteration %d", self.path, record["iteration"])
         return Resumed(arrays, record)
+
+    def _read(self, optimizer) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """Every array of the checkpoint, read and checked against ``optimizer`` before
+        anything is set: a damaged file raises here, not halfway through a restore."""
+        with np.load(self.path, allow_pickle=False) as archive:
+            stored = {name: archive[name] for name in archive.files}
+        record = json.loads(str(stored["record"]))
+        if not isinstance(record, dict) or not isinstance(record.get("iteration"), int):
+            raise ValueError("its record has no iteration")
+        for key in optimizer.keys():
+            size = np.asarray(optimizer.state[key][0]).size
+            for part in ("value", "t", "m", "v"):
+                found = stored[f"adam/{key}/{part}"]
+                if part != "t" and found.size != size or not np.all(np.isfinite(found)):
+                    raise ValueError(f"adam/{key}/{part} does not fit the parameter")
+        return stored, record
 
 
 __all__ = ["CHECKPOINT_EVERY_S", "Checkpoint", "Resumed", "next_checkpoint", "resumable", "resumable_stage"]

@@ -149,7 +149,7 @@ def test_a_read_only_capture_can_be_inspected_but_not_run(tmp_path, toy_cli, cap
     monkeypatch.setattr(Path, "mkdir", lambda self, *a, **k: None)
     assert toy_cli(["run", str(capture)]) == 1
     err = capsys.readouterr().err
-    assert "the capture folder must be writable" in err and "Traceback" not in err
+    assert "capture must be writable for pipeline run" in err and "Traceback" not in err
 
 
 @pytest.mark.parametrize(

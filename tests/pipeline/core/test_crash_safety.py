@@ -214,6 +214,34 @@ def test_a_damaged_or_partial_cache_entry_is_recomputed_with_a_warning(tmp_path,
     run_toy(capture, presets_dir)
     assert RUNS == ["report"] and "damaged status.json" in caplog.text
     assert published(capture)[0] == "result 12.0\n"
+    (entry_dir(capture, "double") / "stray.txt").write_text("a file put into the cache by hand")
+    run_toy(capture, presets_dir)
+    assert RUNS == ["double"] and "stray.txt was added" in caplog.text
+
+
+@pytest.mark.parametrize(
+    "spoil",
+    [
+        lambda status: status | {"contents": 5},
+        lambda status: status | {"outputs": ["doubled.txt"]},
+        lambda status: status | {"outputs": {"doubled": "../../../../etc/hostname"}},
+        lambda status: status | {"contents": {"doubled.txt": "12"}},
+        lambda status: status | {"seconds": "soon"},
+        lambda status: status | {"components": None},
+    ],
+    ids=["contents", "outputs-list", "outputs-outside", "contents-entry", "seconds", "components"],
+)
+def test_a_status_json_of_valid_json_and_the_wrong_shape_is_recomputed(tmp_path, presets_dir, toy_cli, capsys, spoil):
+    capture = make_capture(tmp_path)
+    assert toy_cli(["--quiet", "run", str(capture)]) == 0  # the CLI's logging from the start, on this test's stderr
+    status_file = entry_dir(capture, "double") / STATUS_FILE
+    status_file.write_text(json.dumps(spoil(json.loads(status_file.read_text()))))
+    RUNS.clear()
+    for command in (["status"], ["report"], ["run", "--dry-run"], ["run"]):
+        assert toy_cli(["--quiet", *command, str(capture)]) == 0
+        err = capsys.readouterr().err
+        assert "damaged status.json" in err and "Traceback" not in err
+    assert RUNS == ["double"] and published(capture)[0] == "result 12.0\n"
 
 
 def test_damaged_state_files_are_rebuilt_not_fatal(tmp_path, presets_dir, caplog):

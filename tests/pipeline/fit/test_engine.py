@@ -552,6 +552,37 @@ def test_a_checkpoint_restores_adam_state_exactly(mi, tmp_path):
             np.testing.assert_array_equal(np.array(a), np.array(b))
 
 
+@pytest.mark.parametrize("damage", ["truncated", "flipped", "empty", "another-fit"])
+def test_a_damaged_checkpoint_is_removed_and_the_fit_starts_afresh(mi, tmp_path, caplog, damage):
+    import drjit as dr
+
+    from pipeline.fit.checkpoint import Checkpoint
+
+    def optimiser(keys=("colour",)):
+        optimizer = mi.ad.Adam(lr=0.1)
+        for key in keys:
+            optimizer[key] = mi.Color3f(0.2, 0.4, 0.6)
+        dr.backward(dr.sum(dr.square(optimizer[keys[0]] - 0.5), axis=None))
+        optimizer.step()
+        return optimizer
+
+    path = tmp_path / "00.npz"
+    Checkpoint(path, 0.0).save(optimiser(), {}, {"iteration": 1})
+    Checkpoint(path, 0.0).log_step({"iteration": 1, "loss": 0.1})
+    data = path.read_bytes()
+    if damage == "truncated":
+        path.write_bytes(data[: len(data) // 2])
+    elif damage == "flipped":
+        path.write_bytes(data[:100] + bytes(b ^ 0xFF for b in data[100:140]) + data[140:])
+    elif damage == "empty":
+        path.write_bytes(b"")
+    fresh = optimiser(("texture",) if damage == "another-fit" else ("colour",))
+    before = np.array(fresh["texture" if damage == "another-fit" else "colour"])
+    assert Checkpoint(path, 0.0).restore(fresh) is None
+    assert "is damaged" in caplog.text and not path.exists() and not path.with_suffix(".steps.jsonl").exists()
+    np.testing.assert_array_equal(np.array(fresh["texture" if damage == "another-fit" else "colour"]), before)
+
+
 def test_an_interrupted_shape_fit_resumes_from_its_checkpoint(mi, tmp_path, monkeypatch, caplog):
     import trimesh
 
