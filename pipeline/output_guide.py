@@ -29,7 +29,7 @@ KNOWN = {
     "environment.exr": "the fitted environment light, linear",
     "board.png": "the calibration board's texture, as the scene shows it",
     "scene.json": "the scene's cameras, light and units, for the fit stages",
-    "preview.png": "a quick render of the scene",
+    "preview.png": "the first view as the scene stage rendered it, before any fit",
     "loss.png": "the fit's loss and held-out error against the step",
     "log.jsonl": "the fit, one JSON line per step",
     "specimen.glb": "the specimen as glTF 2.0 (y up) for Blender and three.js",

@@ -45,6 +45,7 @@ from pipeline.core.config import Config
 from pipeline.core.errors import PipelineError
 from pipeline.imaging.photo_io import (
     PHOTO_SUFFIXES,
+    UNREAD_NAMED,
     camera_setting,
     gray_uint8,
     list_photos,
@@ -67,6 +68,13 @@ CLIPPED_FRACTION = 0.05
 EXPOSURE_STOPS = 1.0
 BLUR_RATIO = 0.3
 DUPLICATE_CORRELATION = 0.995
+CORRELATION_BLOCK = 512
+ALL_PAIRS_UP_TO = 150
+"""Photos up to which the stray check matches every pair (11,175 pairs at most)."""
+STRAY_NEIGHBOURS = 8
+"""Beyond that, each photo is matched with this many neighbours in file order and as
+many look-alikes."""
+"""Rows of the thumbnails' correlation matrix computed at once (512 x N floats)."""
 MIN_SHARED_MATCHES = 12
 STRAY_RATIO = 0.3
 FEATURE_SIZE = (256, 640)
@@ -167,32 +175,51 @@ def check_blur(photos: list[PhotoSummary]) -> list[Problem]:
     ]
 
 
-def check_duplicates(photos: list[PhotoSummary], masks: dict[str, np.ndarray | None]) -> list[Problem]:
-    """Thumbnails of the specimen's box: photos cut out on white, or of a turntable, are
-    alike around the specimen whatever the specimen shows."""
-    thumbnails = []
-    for photo in photos:
+def thumbnails(photos: list[PhotoSummary], masks: dict[str, np.ndarray | None]) -> np.ndarray:
+    """Each photo's 32x32 grey thumbnail of the specimen's box (the whole photo without a
+    mask), normalised to zero mean and unit deviation: one row per photo."""
+    rows = np.zeros((len(photos), 32 * 32))
+    for row, photo in zip(rows, photos):
         gray = cv2.cvtColor(photo.srgb, cv2.COLOR_RGB2GRAY)
         specimen = _specimen(photo, masks)
         if specimen is not None:
             x, y, w, h = cv2.boundingRect(specimen.astype(np.uint8))
             gray = gray[y : y + h, x : x + w]
         small = cv2.resize(gray, (32, 32), interpolation=cv2.INTER_AREA).astype(np.float64).ravel()
-        thumbnails.append((small - small.mean()) / (small.std() + 1e-9))
+        row[:] = (small - small.mean()) / (small.std() + 1e-9)
+    return rows
+
+
+def check_duplicates(photos: list[PhotoSummary], masks: dict[str, np.ndarray | None]) -> list[Problem]:
+    """Thumbnails of the specimen's box: photos cut out on white, or of a turntable, are
+    alike around the specimen whatever the specimen shows."""
     problems = []
-    for i, j in combinations(range(len(photos)), 2):
-        correlation = float(thumbnails[i] @ thumbnails[j]) / thumbnails[i].size
-        if correlation > DUPLICATE_CORRELATION:
-            problems.append(
-                Problem(
-                    "warning",
-                    "duplicates",
-                    f"images/{photos[j].name}",
-                    f"near-duplicate of {photos[i].name} (correlation {correlation:.4f})",
-                    "it adds no viewpoint; remove one of the two",
-                )
+    for i, j, correlation in _correlated_pairs(thumbnails(photos, masks), DUPLICATE_CORRELATION):
+        problems.append(
+            Problem(
+                "warning",
+                "duplicates",
+                f"images/{photos[j].name}",
+                f"near-duplicate of {photos[i].name} (correlation {correlation:.4f})",
+                "it adds no viewpoint; remove one of the two",
             )
+        )
     return problems
+
+
+def _correlated_pairs(thumbnails: np.ndarray, threshold: float) -> list[tuple[int, int, float]]:
+    """Pairs (i < j, in that order) of normalised thumbnails (rows) whose correlation
+    exceeds ``threshold``: one matrix product a block of rows at a time, so that 10,000
+    photos take seconds and a bounded block of memory, not 50 million Python steps."""
+    found = []
+    count, size = thumbnails.shape
+    for start in range(0, count, CORRELATION_BLOCK):
+        block = thumbnails[start : start + CORRELATION_BLOCK] @ thumbnails.T / size
+        rows, columns = np.nonzero(block > threshold)
+        for row, column in zip(rows, columns):
+            if column > start + row:
+                found.append((int(start + row), int(column), float(block[row, column])))
+    return sorted(found)
 
 
 def verified_count(points_i: np.ndarray, points_j: np.ndarray) -> int:
@@ -206,8 +233,28 @@ def verified_count(points_i: np.ndarray, points_j: np.ndarray) -> int:
     return 0 if verified is None else int(verified.sum())
 
 
-def shared_matches(photos: list[PhotoSummary]) -> np.ndarray:
-    """Matrix of SIFT matches between photo pairs that survive a fundamental-matrix RANSAC."""
+def candidate_pairs(photos: list[PhotoSummary], similar: np.ndarray | None = None) -> list[tuple[int, int]]:
+    """The photo pairs to match: every pair up to ALL_PAIRS_UP_TO photos; beyond, each
+    photo with its STRAY_NEIGHBOURS neighbours in file order and the STRAY_NEIGHBOURS
+    whose thumbnails (rows of ``similar``) are most alike, as a vocabulary tree would
+    propose them: a stray matches none of either, and the work grows with the count,
+    not its square."""
+    count = len(photos)
+    if count <= ALL_PAIRS_UP_TO or similar is None:
+        return list(combinations(range(count), 2))
+    pairs = {(i, j) for i in range(count) for j in range(i + 1, min(i + 1 + STRAY_NEIGHBOURS, count))}
+    for start in range(0, count, CORRELATION_BLOCK):
+        block = similar[start : start + CORRELATION_BLOCK] @ similar.T
+        for row, scores in enumerate(block):
+            scores[start + row] = -np.inf
+            for column in np.argpartition(-scores, STRAY_NEIGHBOURS)[:STRAY_NEIGHBOURS]:
+                pairs.add((min(start + row, int(column)), max(start + row, int(column))))
+    return sorted(pairs)
+
+
+def shared_matches(photos: list[PhotoSummary], pairs: list[tuple[int, int]] | None = None) -> np.ndarray:
+    """Matrix of SIFT matches between photo pairs (``pairs``; None: all) that survive a
+    fundamental-matrix RANSAC."""
     sift = cv2.SIFT_create(nfeatures=1500)
     features = []
     for photo in progress.track(photos, "finding features"):
@@ -215,7 +262,8 @@ def shared_matches(photos: list[PhotoSummary]) -> np.ndarray:
         features.append((np.float32([k.pt for k in keypoints]), descriptors))
     matcher = cv2.BFMatcher(cv2.NORM_L2)
     inliers = np.zeros((len(photos), len(photos)), int)
-    for i, j in progress.track(list(combinations(range(len(photos)), 2)), "matching photo pairs"):
+    pairs = pairs if pairs is not None else list(combinations(range(len(photos)), 2))
+    for i, j in progress.track(pairs, "matching photo pairs"):
         (points_i, descriptors_i), (points_j, descriptors_j) = features[i], features[j]
         if descriptors_i is None or descriptors_j is None or min(len(points_i), len(points_j)) < 8:
             continue
@@ -228,11 +276,13 @@ def shared_matches(photos: list[PhotoSummary]) -> np.ndarray:
     return inliers
 
 
-def check_strays(photos: list[PhotoSummary], blurred: set[str]) -> list[Problem]:
-    """Photos that match no other; blurred photos match poorly too, but their problem is blur."""
+def check_strays(photos: list[PhotoSummary], blurred: set[str], similar: np.ndarray | None = None) -> list[Problem]:
+    """Photos that match no other; blurred photos match poorly too, but their problem is
+    blur. ``similar``: the photos' thumbnails, which pick the pairs to match in a large
+    set (candidate_pairs)."""
     if len(photos) < MIN_PHOTOS:
         return []
-    best = shared_matches(photos).max(axis=1)
+    best = shared_matches(photos, candidate_pairs(photos, similar)).max(axis=1)
     limit = max(MIN_SHARED_MATCHES, STRAY_RATIO * float(np.median(best)))
     return [
         Problem(
@@ -394,6 +444,7 @@ def check_masks(
 def check_capture(capture_dir: Path, config: Config, features: bool = True) -> list[Problem]:
     """Every check on ``capture_dir``; ``features=False`` skips the pairwise matching."""
     paths = list_photos(capture_dir / "images")
+    unread = unsupported_files(capture_dir / "images")
     unsupported = [
         Problem(
             "warning",
@@ -402,8 +453,18 @@ def check_capture(capture_dir: Path, config: Config, features: bool = True) -> l
             "not a photo the pipeline reads, left out",
             f"convert it to {', '.join(PHOTO_SUFFIXES)} or move it out of images/",
         )
-        for path in unsupported_files(capture_dir / "images")
+        for path in unread[:UNREAD_NAMED]
     ]
+    if len(unread) > UNREAD_NAMED:
+        unsupported.append(
+            Problem(
+                "warning",
+                "unsupported",
+                "images/",
+                f"{len(unread) - UNREAD_NAMED} more files are not photos the pipeline reads, left out",
+                f"convert them to {', '.join(PHOTO_SUFFIXES)} or move them out of images/",
+            )
+        )
     if len(paths) < MIN_PHOTOS:
         return unsupported + [
             Problem(
@@ -456,7 +517,8 @@ def check_capture(capture_dir: Path, config: Config, features: bool = True) -> l
         problems += check_exposure(same_size_group, masks) + check_blur(same_size_group)
         problems += check_duplicates(same_size_group, masks)
     if features:
-        problems += check_strays(photos, {p.file for p in problems if p.check == "blur"})
+        blurred = {p.file for p in problems if p.check == "blur"}
+        problems += check_strays(photos, blurred, thumbnails(photos, masks) / np.sqrt(32 * 32))
     return problems + check_board(capture_dir, config) + mask_problems
 
 

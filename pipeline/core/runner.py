@@ -300,6 +300,11 @@ class Runner:
             targets = {selection.only}
             forced[selection.only] = f"--only {selection.only}"
             must_be_cached = ancestors(self.stages, selection.only)
+        if selection.start and selection.start not in targets:
+            raise ConfigError(
+                f"--from {selection.start} is not upstream of --until {selection.until or selection.only}: "
+                "nothing lies between them to run; pick a --from before --until"
+            )
         if selection.start:
             for name in descendants(self.stages, selection.start) & targets:
                 forced[name] = f"--from {selection.start}"

@@ -228,6 +228,12 @@ def _views(
     views = []
     for index, (path, sensor, size) in enumerate(zip(files, sensors, full_sizes)):
         pixels = read_photo(path, "linear" if path.suffix.lower() in EXR_SUFFIXES else "srgb").pixels
+        negative = int(np.count_nonzero((pixels < 0).any(axis=-1)))
+        if negative:
+            raise PipelineError(
+                f"{path}: {negative} pixel(s) are negative, which no render (light is never negative) can match: "
+                "clip them to 0 in the file"
+            )
         if pixels.shape[:2] != size[::-1]:
             raise PipelineError(
                 f"{path} is {pixels.shape[1]}x{pixels.shape[0]} but sensor {index} renders "

@@ -318,8 +318,19 @@ def specimen_masks(
 
 
 def held_out_names(names: list[str], count: int) -> list[str]:
-    """``count`` names evenly spread over the sorted list (none when fewer than 3 photos)."""
-    if count == 0 or len(names) < 3:
+    """``count`` names evenly spread over the sorted list (none when fewer than 3 photos),
+    all but one at most. Fewer than asked is said in a warning."""
+    if count == 0:
         return []
-    count = min(count, len(names) - 1)
-    return [sorted(names)[i] for i in np.linspace(0, len(names) - 1, count + 2)[1:-1].round().astype(int)]
+    if len(names) < 3:
+        logger.warning("held_out = %d, but %d photo(s) are too few to hold any out: none held out", count, len(names))
+        return []
+    kept = min(count, len(names) - 1)
+    if kept < count:
+        logger.warning(
+            "held_out = %d, but with %d photos at most %d are held out, so that one is fitted",
+            count,
+            len(names),
+            kept,
+        )
+    return [sorted(names)[i] for i in np.linspace(0, len(names) - 1, kept + 2)[1:-1].round().astype(int)]

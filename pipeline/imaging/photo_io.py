@@ -89,34 +89,53 @@ def photo_files(paths: list[Path]) -> list[Path]:
     return [p for p in photos if p not in twins]
 
 
-def list_photos(folder: Path) -> list[Path]:
-    """The photos directly in ``folder`` (``photo_files``); [] when it does not exist."""
+UNREAD_NAMED = 5
+"""Files a warning about unread files names one by one; the rest are counted."""
+
+
+def folder_entries(folder: Path) -> list[Path]:
+    """What sits directly in ``folder`` ([] when it does not exist); one that cannot be
+    listed is a user error naming it, never "no photos"."""
     if not folder.is_dir():
         return []
-    return photo_files(list(folder.iterdir()))
+    try:
+        return list(folder.iterdir())
+    except PermissionError as error:
+        raise PipelineError(
+            f"{folder} cannot be read ({error.strerror}): give yourself permission to list it (chmod u+rx)"
+        ) from None
+
+
+def list_photos(folder: Path) -> list[Path]:
+    """The photos directly in ``folder`` (``photo_files``); [] when it does not exist."""
+    return photo_files(folder_entries(folder))
 
 
 def unsupported_files(folder: Path) -> list[Path]:
     """What sits directly in ``folder`` and is not a photo the pipeline reads (PSD, XMP
     sidecars, a FIFO named .jpg...), sorted; hidden files are left out."""
-    if not folder.is_dir():
-        return []
     return sorted(
         p
-        for p in folder.iterdir()
+        for p in folder_entries(folder)
         if not p.name.startswith(".") and not p.is_dir() and not (p.is_file() and p.suffix.lower() in PHOTO_SUFFIXES)
     )
 
 
 def warn_unread(folder: Path, what: str = "photo") -> None:
-    """Warn about each of ``unsupported_files(folder)``: the stage reading ``folder``
-    leaves it out, and the user should know why."""
-    for path in unsupported_files(folder):
+    """Warn about ``unsupported_files(folder)``, which the stage reading ``folder`` leaves
+    out: the first few by name, then how many more, so that a folder of thousands of
+    other files gives a few lines, not thousands."""
+    unread = unsupported_files(folder)
+    for path in unread[:UNREAD_NAMED]:
         logger.warning(
             "%s is not a %s the pipeline reads (it reads %s): left out; convert it or move it away",
             path,
             what,
             ", ".join(PHOTO_SUFFIXES),
+        )
+    if len(unread) > UNREAD_NAMED:
+        logger.warning(
+            "%d more files in %s are not %ss the pipeline reads: left out", len(unread) - UNREAD_NAMED, folder, what
         )
 
 

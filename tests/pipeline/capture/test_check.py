@@ -124,3 +124,18 @@ def test_files_that_are_not_photos_are_listed_as_warnings(orbit_capture, tmp_pat
     assert _flagged(problems, "unsupported") == {"IMG_0002.PSD": "warning", "IMG_0003.xmp": "warning"}
     # RAW and HEIC are read: damaged ones are named as unreadable.
     assert _flagged(problems, "readable") == {"IMG_0001.HEIC": "error", "IMG_0003.DNG": "error"}
+
+
+def test_duplicates_and_match_pairs_scale_with_the_photo_count():
+    """3,000 thumbnails: the planted near-duplicate is found by block products, and the
+    stray check's pairs grow with the count (neighbours and look-alikes), not its square."""
+    from pipeline.capture.check import DUPLICATE_CORRELATION, STRAY_NEIGHBOURS, _correlated_pairs, candidate_pairs
+
+    rng = np.random.default_rng(0)
+    rows = rng.normal(size=(3_000, 1024))
+    rows[2321] = rows[12] + rng.normal(scale=0.01, size=1024)
+    rows = (rows - rows.mean(axis=1, keepdims=True)) / rows.std(axis=1, keepdims=True)
+    assert [(i, j) for i, j, _ in _correlated_pairs(rows, DUPLICATE_CORRELATION)] == [(12, 2321)]
+    pairs = candidate_pairs([None] * 3_000, rows / 32)
+    assert len(pairs) <= 3_000 * 2 * STRAY_NEIGHBOURS and (12, 2321) in pairs and (0, 1) in pairs
+    assert len(candidate_pairs([None] * 20, rows[:20] / 32)) == 190  # a usual capture: every pair

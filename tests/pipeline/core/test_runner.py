@@ -184,6 +184,13 @@ def test_unknown_stage_in_selection_is_a_usage_error(tmp_path, presets_dir):
         run(capture, presets_dir, selection=Selection(start="mesh"))
 
 
+def test_a_from_after_the_until_is_a_usage_error_not_an_empty_run(tmp_path, presets_dir):
+    capture = make_capture(tmp_path)
+    with pytest.raises(ConfigError, match="--from report is not upstream of --until double: nothing lies between"):
+        run(capture, presets_dir, selection=Selection(start="report", until="double"))
+    assert not (capture / ".pipeline" / "cache").exists()
+
+
 def committed_entries(capture: Path, stage: str) -> list[Path]:
     stage_dir = capture / ".pipeline" / "cache" / stage
     return [p for p in stage_dir.iterdir() if not p.name.startswith(".")] if stage_dir.exists() else []

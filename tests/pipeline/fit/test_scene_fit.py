@@ -287,6 +287,18 @@ def test_non_finite_reference_pixels_are_refused_by_file_and_count(mi, reference
     )
 
 
+def test_negative_reference_pixels_are_refused_by_file_and_count(mi, references, tmp_path, capsys):
+    scene = _write_scene(tmp_path / "start", rough=0.7, colour="0.5, 0.5, 0.5", floor="0.3, 0.3, 0.3")
+    spoilt = Path(shutil.copytree(references, tmp_path / "refs"))
+    first = sorted(spoilt.iterdir())[0]
+    pixels = read_photo(first, "linear").pixels
+    pixels[2, :5, 1] = -0.25
+    write_image(first, pixels)
+    assert _fit(scene, spoilt, tmp_path / "out", "roughness") == 1
+    err = capsys.readouterr().err
+    assert f"{first}: 5 pixel(s) are negative" in err and not (tmp_path / "out" / "params.json").exists()
+
+
 def test_results_stay_json_when_the_fit_ends_non_finite(tmp_path):
     from pipeline.formats.scene_folder import write_log
 

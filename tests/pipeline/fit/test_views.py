@@ -166,3 +166,13 @@ def test_a_window_averaged_down_from_its_photo_renders_as_sharp_as_the_photo(mi)
     assert errors["window"] < 0.5 * errors["default"], errors
     assert pixel_filter(1.0)["stddev"] == pytest.approx(np.sqrt(1 / 12 + PHOTO_BLUR_PX**2))
     assert 0.45 < pixel_filter(0.5)["stddev"] < 0.5  # the sample bird's windows: about the default
+
+
+def test_held_out_photos_beyond_what_a_capture_has_are_fewer_with_a_warning(caplog):
+    from pipeline.fit.views import held_out_names
+
+    names = [f"view_{i:03d}" for i in range(6)]
+    assert held_out_names(names, 2) == ["view_002", "view_003"] and "held_out" not in caplog.text
+    held = held_out_names(names, 1000)
+    assert len(held) == 5 and "held_out = 1000, but with 6 photos at most 5 are held out" in caplog.text
+    assert held_out_names(names[:2], 1) == [] and "too few to hold any out" in caplog.text
