@@ -113,6 +113,8 @@ class FitState:
     error: str | None = None
     outputs: list[str] = field(default_factory=list)
     preview_version: int = 0
+    preview_of: str | None = None
+    """The view the current preview images show (the picker's choice once rendered)."""
 
 
 class FitSession(FitWatcher):
@@ -235,9 +237,15 @@ class FitSession(FitWatcher):
             self._preview_view, self._preview_due = name, True
 
     def snapshot(self, since: int = 0) -> dict[str, Any]:
+        """The state the page polls, with the log entries from ``since`` on: only those
+        are copied, so a poll costs the same at step 10 and at step 10,000."""
         with self._lock:
-            state = dataclasses.asdict(self.state)
-        state["log"] = state["log"][since:]
+            log, self.state.log = self.state.log, []
+            try:
+                state = dataclasses.asdict(self.state)
+            finally:
+                self.state.log = log
+            state["log"] = log[since:]
         state["since"] = since
         state["preview_view"] = self._preview_view
         return state
@@ -319,6 +327,7 @@ class FitSession(FitWatcher):
         with self._lock:
             self._previews = previews
             self.state.preview_version += 1
+            self.state.preview_of = name
 
 
 def preview_images(render: np.ndarray, reference: np.ndarray) -> dict[str, bytes]:

@@ -15,6 +15,12 @@ async function api(path, body) {
   if (!response.ok) throw new Error(data && data.error ? data.error : `${response.status} ${response.statusText}`);
   return data;
 }
+// One request of a poll at a time: under load a poll can outlast the interval, and two
+// in flight would both append the lines after the same position.
+function singleFlight(poll) {
+  let busy = null;
+  return () => busy ?? (busy = poll().finally(() => { busy = null; }));
+}
 function showError(message) { $("error").hidden = !message; $("error").textContent = message || ""; }
 function cell(row, content) { const td = row.insertCell(); if (content instanceof Node) td.appendChild(content); else td.textContent = content ?? ""; return td; }
 function fmt(v) { return Array.isArray(v) ? v.map(x => Number(x).toPrecision(4)).join(", ") : (v ?? ""); }
@@ -87,7 +93,7 @@ async function filterParams() {
     showError("");
   } catch (e) { showError(e.message); }
 }
-async function pollFit() {
+const pollFit = singleFlight(async () => {
   try {
     const state = await api(`/api/fit/state?since=${since}`);
     log = log.concat(state.log); since = log.length; fitStatus = state.status;
@@ -102,6 +108,7 @@ async function pollFit() {
       previewVersion = state.preview_version;
       $("preview-images").hidden = previewVersion === 0;
       for (const kind of ["render", "reference", "difference"]) $(`preview-${kind}`).src = `/api/fit/preview/${kind}?v=${previewVersion}`;
+      $("preview-images").dataset.view = state.preview_of ?? "";
     }
     $("stopped").textContent = state.stopped ? `Stopped: ${state.stopped}` : "";
     if (state.error) showError(state.error);
@@ -111,7 +118,7 @@ async function pollFit() {
       const li = document.createElement("li"); li.appendChild(a); downloads.appendChild(li);
     }
   } catch (e) { showError(e.message); }
-}
+});
 function setupFit(info) {
   $("fit").hidden = false;
   $("target").textContent = `${info.scene} (references ${info.references}, results into ${info.out})`;
@@ -145,7 +152,7 @@ async function refreshStages() {
     body.dataset.loaded = "1"; showError("");
   } catch (e) { showError(e.message); }
 }
-async function pollRun() {
+const pollRun = singleFlight(async () => {
   try {
     const state = await api(`/api/capture/run?since=${runLine}`);
     runLine = state.next;
@@ -159,10 +166,12 @@ async function pollRun() {
       plotTrajectories($("stage-trajectories"), state.fit_log);
       refreshStagePreview(state);
     }
-    if (wasRunning && !state.running) refreshAll();  // a run ended: its stages, photos, mesh and report
+    // a stage finished during the run (its table row, and the photos, cameras or mesh it
+    // made), or the run ended (the report too)
+    if ((state.running && state.log.some(line => / done in [\d.]+ s$/.test(line))) || (wasRunning && !state.running)) refreshAll();
     wasRunning = state.running;
   } catch (e) { showError(e.message); }
-}
+});
 // The running fit's latest values rendered in one photo's view: every 10 s at most
 // (each is a render beside the run), and when another view is picked.
 function refreshStagePreview(state) {

@@ -119,6 +119,8 @@ def test_a_fit_started_watched_and_stopped_in_the_page_moves_toward_the_truth(mi
             page.wait_for_function("Number(document.getElementById('loss-plot').dataset.points) >= 30", timeout=120_000)
             page.wait_for_function("document.getElementById('preview-render').naturalWidth === 32")
             page.select_option("#preview-view", "1_side")
+            page.wait_for_function("document.getElementById('preview-images').dataset.view === '1_side'")
+            assert page.locator("#error").is_hidden()  # the picker's request answered
             page.click("#pause")
             page.wait_for_selector("#status >> text=paused")
             steps = page.evaluate("document.getElementById('loss-plot').dataset.points")
@@ -166,6 +168,11 @@ def test_a_capture_shows_the_stage_table_of_status_json_its_photos_and_cameras_a
             page.wait_for_function(
                 "/mesh\\s+[\\d.]+ s/.test(document.getElementById('run-log').textContent)", timeout=300_000
             )
+            # during the run, the table follows the stages as they finish
+            page.wait_for_function(
+                "document.querySelector('#stages tr[data-stage=\"mesh\"] .state').textContent === 'cached'"
+            )
+            assert page.inner_text("#run-status") == "running"
             page.click("#run-stop")
             page.wait_for_function(
                 "/exit code/.test(document.getElementById('run-status').textContent)", timeout=120_000
