@@ -248,6 +248,100 @@ def output_complete(capture: Path) -> str | None:
     return None
 
 
+BACKGROUND: list[subprocess.Popen] = []
+"""Processes a spoiler started (a fit holding --out), killed when the case ends."""
+
+
+def fit_argv(out: str = "CAPTURE/fit_out", iterations: int = 3) -> list[str]:
+    """`pipeline fit` on scene_folder's scene into ``out``."""
+    return [
+        "fit",
+        "CAPTURE/fit/scene.xml",
+        "--references",
+        "CAPTURE/fit/refs",
+        "--params",
+        "reflectance",
+        "--bound",
+        "reflectance=0:1",
+        "--iterations",
+        str(iterations),
+        "--still-threshold",
+        "0",
+        "--spp",
+        "2",
+        "--out",
+        out,
+    ]
+
+
+def fit_running(capture: Path) -> None:
+    """scene_folder's scene, and a long fit of it into CAPTURE/fit_out, running."""
+    scene_folder(None)(capture)
+    argv = [a.replace("CAPTURE", str(capture)) for a in fit_argv(iterations=1_000_000)]
+    BACKGROUND.append(subprocess.Popen([sys.executable, "-c", CLI, *argv], cwd=REPOSITORY, stderr=subprocess.DEVNULL))
+    lock = capture / "fit_out" / ".fit.lock"
+    deadline = time.time() + 60
+    while not (lock.is_file() and lock.read_text()) and time.time() < deadline:
+        time.sleep(0.1)
+
+
+def fit_interrupted(capture: Path) -> str | None:
+    params = capture / "fit_out" / "params.json"
+    if not params.is_file() or not json.loads(params.read_text()).get("interrupted"):
+        return "no params.json marked interrupted"
+    return None if (capture / "fit_out" / "scene.xml").is_file() else "no fitted scene"
+
+
+def traversing_manifest(capture: Path) -> None:
+    victim = capture.parent / "victim"
+    victim.mkdir(exist_ok=True)
+    (victim / "f.txt").write_text("abc")
+    manifest = capture / "output" / "manifest.json"
+    records = json.loads(manifest.read_text())
+    name = sorted(records)[0]
+    records[name]["contents"]["../../victim/f.txt"] = [3, "0" * 64]
+    manifest.write_text(json.dumps(records))
+
+
+def victim_untouched(capture: Path) -> str | None:
+    found = sorted(p.name for p in (capture.parent / "victim").iterdir())
+    return None if found == ["f.txt"] else f"written beside the capture: {found}"
+
+
+def cache_status(change: Callable[[dict], dict]) -> Callable[[Path], None]:
+    """The masks stage's cache entry's status.json, changed (valid JSON, wrong shape)."""
+
+    def spoil(capture: Path) -> None:
+        for status in (capture / ".pipeline" / "cache" / "masks").glob("*/status.json"):
+            status.write_text(json.dumps(change(json.loads(status.read_text()))))
+
+    return spoil
+
+
+def add_to_cache(capture: Path) -> None:
+    for entry in (capture / ".pipeline" / "cache" / "masks").glob("*/status.json"):
+        (entry.parent / "stray.txt").write_text("put here by hand")
+
+
+def many_files(count: int) -> Callable[[Path], None]:
+    def spoil(capture: Path) -> None:
+        for index in range(count):
+            (capture / "images" / f"notes_{index:05d}.txt").write_text("x")
+
+    return spoil
+
+
+def readable_outputs(capture: Path) -> str | None:
+    mask = os.umask(0)
+    os.umask(mask)
+    wrong = [
+        p.relative_to(capture).as_posix()
+        for p in (capture / "output").rglob("*")
+        if p.is_file() and p.stat().st_mode & 0o777 != 0o666 & ~mask
+    ]
+    return f"{len(wrong)} files not {oct(0o666 & ~mask)}, e.g. {wrong[0]}" if wrong else output_complete(capture)
+
+
 def fill_disk(leave_kb: int) -> Callable[[Path], None]:
     def spoil(capture: Path) -> None:
         free = shutil.disk_usage(capture).free
@@ -728,7 +822,301 @@ def cases() -> list[Case]:
             "is full",
             on_tmpfs_kb=8192,
         ),
+        *round_four_cases(until_masks),
     ]
+
+
+def round_four_cases(until_masks: list[str]) -> list[Case]:
+    """Issue 101's families: lost work, crashes from damaged state or settings the
+    configuration accepts, silent or misleading results (the studio's are studio_cases)."""
+    republish = [*until_masks, "-s", "masks.max_hole_fraction=0.5"]
+    return [
+        Case(
+            "fit-ctrl-c-keeps-best",
+            "lost",
+            "round four",
+            scene_folder(None),
+            fit_argv(iterations=1_000_000),
+            130,
+            "the best state so far is written to",
+            signal_after=(signal.SIGINT, "10"),
+            check=fit_interrupted,
+        ),
+        Case(
+            "fit-sigterm-keeps-best",
+            "lost",
+            "round four",
+            scene_folder(None),
+            fit_argv(iterations=1_000_000),
+            143,
+            "the best state so far is written to",
+            signal_after=(signal.SIGTERM, "10"),
+            check=fit_interrupted,
+        ),
+        Case("fit-same-out", "lost", "round four", fit_running, fit_argv(), 1, "is in use by pid"),
+        Case(
+            "board-overwrite",
+            "lost",
+            "round four",
+            add_file("board.png", b"printed already"),
+            ["board", "--out", "CAPTURE/board"],
+            2,
+            "add --force to replace them",
+            check=lambda c: None if (c / "board.png").read_bytes() == b"printed already" else "board.png replaced",
+        ),
+        Case(
+            "manifest-leaves-output",
+            "lost",
+            "round four",
+            traversing_manifest,
+            republish,
+            0,
+            "manifest.json is damaged",
+            check=victim_untouched,
+        ),
+        Case(
+            "status-json-wrong-shape",
+            "crash",
+            "round four",
+            cache_status(lambda status: status | {"contents": 5}),
+            until_masks,
+            0,
+            "damaged status.json",
+        ),
+        Case(
+            "status-json-outside-entry",
+            "crash",
+            "round four",
+            cache_status(lambda status: status | {"outputs": {"masks": "../../../../etc"}}),
+            ["status", "CAPTURE"],
+            0,
+            "damaged status.json",
+        ),
+        Case(
+            "kernel-file-dry-run",
+            "hang",
+            "round four",
+            nothing,
+            ["run", "CAPTURE", "--dry-run", "-s", "light.environment_map='/proc/kmsg'"],
+            2,
+            "a file the kernel makes up (proc)",
+        ),
+        Case(
+            "bound-infinite",
+            "crash",
+            "round four",
+            scene_folder(None),
+            [*fit_argv(), "--bound", "reflectance=0:inf"],
+            1,
+            "is not finite",
+        ),
+        Case(
+            "from-after-until",
+            "silently wrong",
+            "round four",
+            nothing,
+            ["run", "CAPTURE", "--from", "masks", "--until", "calibrate"],
+            2,
+            "is not upstream of --until",
+        ),
+        Case(
+            "negative-reference",
+            "silently wrong",
+            "round four",
+            scene_folder(-0.5),
+            fit_argv(),
+            1,
+            "pixel(s) are negative",
+        ),
+        Case("file-added-to-cache", "silently wrong", "round four", add_to_cache, until_masks, 0, "was added"),
+        Case(
+            "outputs-readable",
+            "silently wrong",
+            "round four",
+            nothing,
+            republish,
+            0,
+            "published",
+            check=readable_outputs,
+        ),
+        Case(
+            "check-5000-non-photos",
+            "silently wrong",
+            "round four",
+            many_files(5000),
+            ["check", "CAPTURE", "--no-features"],
+            0,
+            "more files are not photos the pipeline reads",
+        ),
+    ]
+
+
+# --- the studio ---------------------------------------------------------------------------
+
+STUDIO_REQUESTS = [
+    # (name, kind, path, body (None: GET), headers, with the token, expected status)
+    ("studio-foreign-host-run", "security", "api/capture/run", {}, {"Host": "attacker.example"}, True, 403),
+    ("studio-foreign-host-session", "security", "api/session", None, {"Host": "attacker.example"}, True, 403),
+    ("studio-foreign-host-output", "security", "output/manifest.json", None, {"Host": "attacker.example"}, True, 403),
+    ("studio-cross-origin-stop", "security", "api/capture/stop", {}, {"Origin": "http://attacker.example"}, True, 403),
+    ("studio-cross-site-fetch", "security", "api/capture/stop", {}, {"Sec-Fetch-Site": "cross-site"}, True, 403),
+    ("studio-no-token-stop", "security", "api/capture/stop", {}, {}, False, 403),
+    ("studio-no-token-session", "security", "api/session", None, {}, False, 403),
+    ("studio-no-token-photo", "security", "api/capture/photos", None, {}, False, 403),
+    ("studio-body-2mb", "security", "api/capture/run", b"x" * (2 << 20), {}, True, 413),
+    ("studio-chunked-body", "security", "api/capture/run", b"{}", {"Transfer-Encoding": "chunked"}, True, 411),
+    (
+        "studio-page-file-outside",
+        "security",
+        "api/capture/run",
+        {"preset": "draft", "set": ["light.environment_map=/etc/shadow"]},
+        {},
+        True,
+        400,
+    ),
+    ("studio-get-changes-nothing", "security", "api/capture/stages?preset=draft", None, {}, True, 200),
+    ("studio-malformed-json", "crash", "api/capture/run", b"{", {}, True, 400),
+    ("studio-run-set-not-list", "crash", "api/capture/run", {"preset": "draft", "set": "a"}, {}, True, 400),
+    ("studio-run-preset-number", "crash", "api/capture/run", {"preset": 5}, {}, True, 400),
+    ("studio-run-extra-key", "crash", "api/capture/run", {"nonsense": 1}, {}, True, 400),
+    ("studio-since-negative", "crash", "api/capture/run?since=-1", None, {}, True, 400),
+    ("studio-photo-outside", "crash", "api/capture/photo/..%2F..%2Fcapture.toml", None, {}, True, 400),
+    ("studio-output-outside", "crash", "output/..%2Fcapture.toml", None, {}, True, 400),
+    ("studio-preview-no-view", "crash", "api/capture/fit-preview/render", None, {}, True, 400),
+    ("studio-unknown-route", "crash", "api/capture/nothing", None, {}, True, 404),
+]
+
+
+def studio_request(url: str, path: str, body, headers: dict, token: bool) -> tuple[int, str]:
+    """(status, the answer's text) of one request to the studio at ``url`` (printed, with its token)."""
+    import urllib.error
+    import urllib.request
+
+    base, _, query = url.partition("?")
+    sent = {"X-Studio-Token": query.removeprefix("token=")} if token else {}
+    data = None if body is None else body if isinstance(body, bytes) else json.dumps(body).encode()
+    if data is not None:
+        sent["Content-Type"] = "application/json"
+    call = urllib.request.Request(base + path, data=data, headers=sent | headers)
+    try:
+        with urllib.request.urlopen(call, timeout=60) as answer:
+            return answer.status, answer.read().decode(errors="replace")
+    except urllib.error.HTTPError as error:
+        return error.code, error.read().decode(errors="replace")
+
+
+def start_studio(args: list[str]) -> tuple[subprocess.Popen, str, list[str]]:
+    """`pipeline studio ARGS` on a free port: the process, the address it printed, its log."""
+    process = subprocess.Popen(
+        [sys.executable, "-c", CLI, "studio", *args, "--no-browser"], cwd=REPOSITORY, stderr=subprocess.PIPE, text=True
+    )
+    lines = []
+    for line in process.stderr:
+        lines.append(line)
+        if "studio at " in line:
+            return process, line.split("studio at ")[1].split()[0], lines
+    raise RuntimeError("the studio did not start:\n" + "".join(lines))
+
+
+def studio_cases(base: Path, work: Path) -> list[Case]:
+    """Requests a hostile page or client makes of a capture's studio, then Ctrl-C during a
+    fit and SIGTERM during a run: each a row of the same table (exit: the HTTP status)."""
+    folder = work / "studio"
+    shutil.rmtree(folder, ignore_errors=True)
+    capture = Path(shutil.copytree(base, folder / "capture", symlinks=True))
+    rows = []
+    process, url, _ = start_studio([str(capture)])
+    try:
+        for name, kind, path, body, headers, token, expected in STUDIO_REQUESTS:
+            started = time.time()
+            status, text = studio_request(url, path, body, headers, token)
+            case = Case(name, kind, "round four", nothing, [], expected, "")
+            echoed = len(text) > 2000
+            case.result = {
+                "code": status,
+                "seconds": round(time.time() - started, 1),
+                "message": text[:160],
+                "dumped": "Traceback" in text or echoed,
+                "hung": False,
+                "survived": "yes",
+                "passed": status == expected and "Traceback" not in text and not echoed,
+            }
+            rows.append(case)
+        described = json.loads(studio_request(url, "api/session", None, {}, True)[1])
+        looked = next(case for case in rows if case.name == "studio-get-changes-nothing")
+        looked.result["passed"] &= described["preset"] == "standard"  # the GET of draft's table changed nothing
+    finally:
+        process.terminate()
+        process.wait(120)
+    rows.append(_studio_signal_case(capture, "studio-sigterm-during-run", signal.SIGTERM))
+    scene = folder / "scene"
+    scene_folder(None)(scene)
+    rows.append(_studio_fit_ctrl_c(scene, folder / "fit_out"))
+    return rows
+
+
+def _studio_signal_case(capture: Path, name: str, signum: int) -> Case:
+    """A run started from the page, then ``signum`` to the studio: the run must end and
+    release the capture's lock."""
+    from pipeline.core.lock import holder
+
+    case = Case(name, "lost", "round four", nothing, [], 0, "")
+    process, url, lines = start_studio([str(capture)])
+    started = time.time()
+    studio_request(url, "api/capture/run", {"preset": "standard", "set": ["masks.max_hole_fraction=0.4"]}, {}, True)
+    while holder(capture) is None and time.time() - started < 60:
+        time.sleep(0.1)
+    process.send_signal(signum)
+    try:
+        code = process.wait(WATCHDOG_S)
+        hung = False
+    except subprocess.TimeoutExpired:
+        process.kill()
+        code, hung = process.wait(), True
+    lines += process.stderr.readlines()
+    left = holder(capture)
+    case.result = {
+        "code": code,
+        "seconds": round(time.time() - started, 1),
+        "message": (lines[-1].strip() if lines else "")[:160],
+        "dumped": any("Traceback" in line for line in lines),
+        "hung": hung,
+        "survived": "yes" if left is None else f"lock held by {left}",
+        "passed": code == 0 and not hung and left is None,
+    }
+    return case
+
+
+def _studio_fit_ctrl_c(scene_capture: Path, out: Path) -> Case:
+    """A fit started from the page, then one Ctrl-C: the fit's best state must be written."""
+    case = Case("studio-ctrl-c-during-fit", "lost", "round four", nothing, [], 0, "")
+    args = [str(scene_capture / "fit" / "scene.xml"), "--references", str(scene_capture / "fit" / "refs")]
+    process, url, lines = start_studio([*args, "--out", str(out)])
+    started = time.time()
+    session = json.loads(studio_request(url, "api/session", None, {}, True)[1])
+    first = next(row["key"] for row in session["parameters"] if row["fittable"])
+    form = {"params": [first], "settings": {"iterations": 1_000_000, "still_threshold": 0}}
+    studio_request(url, "api/fit/start", form, {}, True)
+    time.sleep(8)
+    process.send_signal(signal.SIGINT)
+    try:
+        code, hung = process.wait(WATCHDOG_S), False
+    except subprocess.TimeoutExpired:
+        process.kill()
+        code, hung = process.wait(), True
+    lines += process.stderr.readlines()
+    params = out / "params.json"
+    written = params.is_file() and json.loads(params.read_text())["stopped"].startswith("stopped by the user")
+    case.result = {
+        "code": code,
+        "seconds": round(time.time() - started, 1),
+        "message": (lines[-1].strip() if lines else "")[:160],
+        "dumped": any("Traceback" in line or "interrupted twice" in line for line in lines),
+        "hung": hung,
+        "survived": "yes" if written else "no params.json",
+        "passed": code == 0 and not hung and written,
+    }
+    return case
 
 
 # --- running ------------------------------------------------------------------------------
@@ -806,6 +1194,10 @@ def run_case(case: Case, base: Path, work: Path) -> dict:
     seconds = time.time() - started
     if holder is not None:
         holder.kill()
+    for background in BACKGROUND:
+        background.kill()
+        background.wait()
+    BACKGROUND.clear()
     err = "".join(early) + err
     (work / f"{case.name}.stderr.txt").write_text(err)  # for a case that fails
     text = out + err
@@ -871,6 +1263,10 @@ def main() -> int:
     for case in chosen:
         case.result = run_case(case, base, work)
         print(case.name, json.dumps(case.result), flush=True)
+    if not args.only or "studio" in args.only:
+        for case in studio_cases(base, work):
+            chosen.append(case)
+            print(case.name, json.dumps(case.result), flush=True)
     if args.write:
         write_table(chosen, "bench/hostile_inputs.py " + " ".join(sys.argv[1:]).replace(" --write", ""))
     return 0 if all(c.result.get("passed", True) for c in chosen) else 1

@@ -80,7 +80,8 @@ def board(options: BoardOptions) -> int:
     folder = Path(options.out).parent
     existing = [str(path) for suffix in (".png", ".pdf") if (path := Path(options.out + suffix)).exists()]
     if existing and not options.force:
-        raise ConfigError(f"{' and '.join(existing)} exist: name another --out, or add --force to replace them")
+        verb = "exist" if len(existing) > 1 else "exists"
+        raise ConfigError(f"{' and '.join(existing)} {verb}: name another --out, or add --force to replace them")
     try:
         tempfile.TemporaryFile(dir=folder).close()
     except OSError as error:
