@@ -936,7 +936,7 @@ def round_four_cases(until_masks: list[str]) -> list[Case]:
             nothing,
             republish,
             0,
-            "published",
+            "stage(s) ran",
             check=readable_outputs,
         ),
         Case(
@@ -963,8 +963,8 @@ STUDIO_REQUESTS = [
     ("studio-no-token-stop", "security", "api/capture/stop", {}, {}, False, 403),
     ("studio-no-token-session", "security", "api/session", None, {}, False, 403),
     ("studio-no-token-photo", "security", "api/capture/photos", None, {}, False, 403),
-    ("studio-body-2mb", "security", "api/capture/run", b"x" * (2 << 20), {}, True, 413),
-    ("studio-chunked-body", "security", "api/capture/run", b"{}", {"Transfer-Encoding": "chunked"}, True, 411),
+    ("studio-body-2mb", "security", "api/capture/run", b"x" * (2 << 20), {}, True, (413, 0)),
+    ("studio-chunked-body", "security", "api/capture/run", b"{}", {"Transfer-Encoding": "chunked"}, True, (411, 0)),
     (
         "studio-page-file-outside",
         "security",
@@ -980,7 +980,7 @@ STUDIO_REQUESTS = [
     ("studio-run-preset-number", "crash", "api/capture/run", {"preset": 5}, {}, True, 400),
     ("studio-run-extra-key", "crash", "api/capture/run", {"nonsense": 1}, {}, True, 400),
     ("studio-since-negative", "crash", "api/capture/run?since=-1", None, {}, True, 400),
-    ("studio-photo-outside", "crash", "api/capture/photo/..%2F..%2Fcapture.toml", None, {}, True, 400),
+    ("studio-photo-outside", "crash", "api/capture/photo/..%2F..%2Fcapture.toml", None, {}, True, (400, 404)),
     ("studio-output-outside", "crash", "output/..%2Fcapture.toml", None, {}, True, 400),
     ("studio-preview-no-view", "crash", "api/capture/fit-preview/render", None, {}, True, 400),
     ("studio-unknown-route", "crash", "api/capture/nothing", None, {}, True, 404),
@@ -988,21 +988,35 @@ STUDIO_REQUESTS = [
 
 
 def studio_request(url: str, path: str, body, headers: dict, token: bool) -> tuple[int, str]:
-    """(status, the answer's text) of one request to the studio at ``url`` (printed, with its token)."""
-    import urllib.error
-    import urllib.request
+    """(status, the answer's text) of one request to the studio at ``url`` (printed, with
+    its token); status 0 where the studio closed the connection before answering (a
+    body it would not read). A "Transfer-Encoding: chunked" header sends the body so."""
+    import http.client
+    from urllib.parse import urlsplit
 
     base, _, query = url.partition("?")
+    address = urlsplit(base)
     sent = {"X-Studio-Token": query.removeprefix("token=")} if token else {}
     data = None if body is None else body if isinstance(body, bytes) else json.dumps(body).encode()
     if data is not None:
         sent["Content-Type"] = "application/json"
-    call = urllib.request.Request(base + path, data=data, headers=sent | headers)
+    chunked = headers.get("Transfer-Encoding") == "chunked"
+    sent |= {name: value for name, value in headers.items() if name != "Transfer-Encoding"}
+    connection = http.client.HTTPConnection(address.hostname, address.port, timeout=60)
     try:
-        with urllib.request.urlopen(call, timeout=60) as answer:
-            return answer.status, answer.read().decode(errors="replace")
-    except urllib.error.HTTPError as error:
-        return error.code, error.read().decode(errors="replace")
+        connection.request(
+            "GET" if data is None else "POST",
+            "/" + path,
+            body=iter([data]) if chunked else data,
+            headers=sent,
+            encode_chunked=chunked,
+        )
+        answer = connection.getresponse()
+        return answer.status, answer.read().decode(errors="replace")
+    except (ConnectionResetError, BrokenPipeError):
+        return 0, "the studio closed the connection"
+    finally:
+        connection.close()
 
 
 def start_studio(args: list[str]) -> tuple[subprocess.Popen, str, list[str]]:
@@ -1030,7 +1044,8 @@ def studio_cases(base: Path, work: Path) -> list[Case]:
         for name, kind, path, body, headers, token, expected in STUDIO_REQUESTS:
             started = time.time()
             status, text = studio_request(url, path, body, headers, token)
-            case = Case(name, kind, "round four", nothing, [], expected, "")
+            accepted = expected if isinstance(expected, tuple) else (expected,)
+            case = Case(name, kind, "round four", nothing, [], accepted[0], "")
             echoed = len(text) > 2000
             case.result = {
                 "code": status,
@@ -1039,7 +1054,7 @@ def studio_cases(base: Path, work: Path) -> list[Case]:
                 "dumped": "Traceback" in text or echoed,
                 "hung": False,
                 "survived": "yes",
-                "passed": status == expected and "Traceback" not in text and not echoed,
+                "passed": status in accepted and "Traceback" not in text and not echoed,
             }
             rows.append(case)
         described = json.loads(studio_request(url, "api/session", None, {}, True)[1])
@@ -1050,6 +1065,7 @@ def studio_cases(base: Path, work: Path) -> list[Case]:
         process.wait(120)
     rows.append(_studio_signal_case(capture, "studio-sigterm-during-run", signal.SIGTERM))
     scene = folder / "scene"
+    scene.mkdir()
     scene_folder(None)(scene)
     rows.append(_studio_fit_ctrl_c(scene, folder / "fit_out"))
     return rows
@@ -1095,9 +1111,15 @@ def _studio_fit_ctrl_c(scene_capture: Path, out: Path) -> Case:
     started = time.time()
     session = json.loads(studio_request(url, "api/session", None, {}, True)[1])
     first = next(row["key"] for row in session["parameters"] if row["fittable"])
-    form = {"params": [first], "settings": {"iterations": 1_000_000, "still_threshold": 0}}
+    form = {
+        "params": [first],
+        "bounds": {first: [0, 1]},
+        "settings": {"iterations": 1_000_000, "still_threshold": 0},
+    }
     studio_request(url, "api/fit/start", form, {}, True)
-    time.sleep(8)
+    while studio_request(url, "api/fit/state", None, {}, True)[1].count('"iteration"') < 5:
+        assert time.time() - started < WATCHDOG_S and process.poll() is None
+        time.sleep(0.2)
     process.send_signal(signal.SIGINT)
     try:
         code, hung = process.wait(WATCHDOG_S), False
