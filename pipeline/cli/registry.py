@@ -72,4 +72,13 @@ def capture_dir(text: str) -> Path:
             else ""
         )
         raise ConfigError(f"capture folder {text} does not exist{hint}")
+    if not (path / "images").exists():
+        from pipeline.imaging.photo_io import list_photos
+
+        photos = list_photos(path)
+        if photos:
+            raise ConfigError(
+                f"{text} holds {len(photos)} photos but no images/ folder: it is a folder of photos, not a capture. "
+                f"Make a capture around them: `pipeline new CAPTURE`, then move the photos into CAPTURE/images/"
+            )
     return path

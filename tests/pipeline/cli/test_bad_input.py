@@ -262,3 +262,19 @@ def lock_is_held(capture):
             return False
     except CaptureBusy:
         return True
+
+
+def test_a_plain_folder_of_photos_is_named_as_such_and_left_untouched(tmp_path, capsys):
+    import cv2
+    import numpy as np
+
+    from pipeline.cli import main
+
+    for index in range(3):
+        cv2.imwrite(str(tmp_path / f"IMG_{index:04d}.jpg"), np.full((8, 8, 3), 100 * index, np.uint8))
+    before = sorted(p.name for p in tmp_path.iterdir())
+    for command in (["run"], ["check"], ["status"]):
+        assert main([*command, str(tmp_path)]) == 2
+        err = capsys.readouterr().err
+        assert "holds 3 photos but no images/ folder" in err and "pipeline new CAPTURE" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == before  # no .pipeline/ left in the user's folder
