@@ -10,6 +10,7 @@ reported and the others go on; the exit code is 0 only when all succeeded.
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import time
 import traceback
@@ -51,29 +52,54 @@ class BatchOptions:
     """Also print the summary as JSON."""
 
 
+STAGE_TOPIC = "pipeline-stage"
+"""The Dask event topic a worker reports each finished stage on (the client logs it)."""
+
+
 def run_capture(capture: str, preset: str, overrides: tuple[str, ...], until: str | None, wait: bool) -> dict:
     """One capture's run, on a worker: a summary record; a user-caused failure is a
-    record too (a bug raises, and the batch reports its traceback)."""
+    record too (a bug raises, and the batch reports its traceback). Each stage that
+    finishes is reported to the client as it happens."""
     from pipeline.cli.stages import make_runner
 
     started = time.time()
     record: dict[str, Any] = {"capture": capture}
     try:
-        plan = make_runner(capture, ConfigLayers(preset, overrides), wait).run(Selection(until=until))
+        runner = make_runner(capture, ConfigLayers(preset, overrides), wait)
+        plan = runner.run(Selection(until=until), on_stage_done=lambda item: _report_stage(capture, item))
     except PipelineError as error:
         return record | {"status": "failed", "exit_code": error.exit_code, "error": str(error), "seconds": 0.0}
     record["seconds"] = time.time() - started
     record["stages"] = [summary(item) for item in plan]
-    ran = [item for item in plan if item.entry is not None]
-    record["figures"] = ran[-1].metrics if ran else {}
+    record["figures"] = heldout_figures(plan)
     return record | {"status": "ok", "exit_code": 0}
+
+
+def heldout_figures(plan) -> dict[str, Any]:
+    """The capture's held-out error: that of the last fit stage that measured one (its
+    photos never fitted to), with the stage's name; {} when no fit stage ran."""
+    measured = [item for item in plan if isinstance(item.metrics.get("validation_mse"), (int, float))]
+    if not measured:
+        return {}
+    last = measured[-1]
+    return {"heldout_mse": last.metrics["validation_mse"], "heldout_stage": last.stage.name}
+
+
+def _report_stage(capture: str, item) -> None:
+    """On a worker: one finished stage, as an event the client logs (nothing outside Dask)."""
+    from distributed import get_worker
+
+    message = {"capture": capture, "stage": item.stage.name, "action": item.action, "seconds": item.seconds}
+    get_worker().log_event(STAGE_TOPIC, message)
 
 
 def _figures(record: dict) -> str:
     if record["status"] != "ok":
         return record["error"].splitlines()[0][:100]
-    shown = [f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in record["figures"].items()]
-    return ", ".join(shown[:3])
+    figures = record["figures"]
+    if not figures:
+        return "no fit stage ran: no held-out error"
+    return f"{figures['heldout_mse']:.3g} ({figures['heldout_stage']})"
 
 
 def _client(options: BatchOptions):
@@ -83,6 +109,11 @@ def _client(options: BatchOptions):
         return Client(options.scheduler)
     cluster = LocalCluster(n_workers=options.workers, threads_per_worker=1, processes=True, dashboard_address=":0")
     return Client(cluster)
+
+
+def _log_stage(message: dict) -> None:
+    took = f" in {message['seconds']:.1f} s" if message.get("seconds") is not None else ""
+    logger.info("%s: %s %s%s", Path(message["capture"]).name, message["stage"], message["action"], took)
 
 
 @command("batch", BatchOptions, "run many captures on a Dask cluster (local by default)")
@@ -107,6 +138,11 @@ def batch(options: BatchOptions) -> int:
             for index, capture in enumerate(captures)
         }
         logger.info("%d capture(s) on %s", len(captures), client.scheduler.address)
+        if importlib.util.find_spec("bokeh") is None:
+            logger.info("no dashboard: Dask's needs bokeh (pip install 'bokeh>=3.1'); each stage is logged here")
+        else:
+            logger.info("dashboard at %s", client.dashboard_link)
+        client.subscribe_topic(STAGE_TOPIC, lambda event: _log_stage(event[1]))
         for future in as_completed(futures):
             if future.status == "error":
                 error = future.exception()
@@ -118,7 +154,7 @@ def batch(options: BatchOptions) -> int:
             log = logger.info if record["status"] == "ok" else logger.error
             log("[%d/%d] %s: %s %s", len(records), len(captures), record["capture"], record["status"], _figures(record))
     records.sort(key=lambda r: captures.index(r["capture"]))
-    table = Table("capture", "status", "seconds", "key figures")
+    table = Table("capture", "status", "seconds", "held-out error (MSE)")
     for record in records:
         table.add_row(Path(record["capture"]).name, record["status"], f"{record['seconds']:.1f}", _figures(record))
     progress.console.print(table)
