@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 from pipeline import logger
+from pipeline.core.errors import PipelineError
 from pipeline.core.fsutil import atomic_write_text, sha256_of
 
 RACY_NS = 2_000_000_000
@@ -76,7 +77,18 @@ class FileHasher:
 
 
 def glob_capture_files(capture_dir: Path, patterns: tuple[str, ...]) -> list[Path]:
-    """Files under ``capture_dir`` matching any pattern, sorted, without duplicates."""
+    """Files under ``capture_dir`` matching any pattern, sorted, without duplicates. A
+    folder a pattern reaches into that cannot be listed is a user error naming it (a
+    glob would silently find nothing there)."""
+    for pattern in patterns:
+        folder = capture_dir / Path(pattern).parent
+        try:
+            if folder.is_dir():
+                os.listdir(folder)
+        except PermissionError as error:
+            raise PipelineError(
+                f"{folder} cannot be read ({error.strerror}): give yourself permission to list it (chmod u+rx)"
+            ) from None
     found = {
         p
         for pattern in patterns

@@ -63,6 +63,8 @@ TOKEN_HEADER = "x-studio-token"
 PUBLIC_PATHS = ("/static/", "/three_bundle.js")
 """What is served without the token: the page's own code, nothing of the user's."""
 LOOPBACK_NAMES = ("127.0.0.1", "localhost", "[::1]")
+SHUTDOWN_GRACE_S = 5
+"""Seconds the server waits for requests in flight when it quits."""
 
 
 @dataclass(frozen=True)
@@ -359,7 +361,10 @@ def serve(app: StudioGuard, sock: socket.socket) -> int | None:
                 for stop, handler in previous.items():
                     signal.signal(stop, handler)
 
-    config = uvicorn.Config(app, log_level="warning", access_log=False, lifespan="off")
+    # a request stuck in a native call must not keep the studio from quitting on one Ctrl-C
+    config = uvicorn.Config(
+        app, log_level="warning", access_log=False, lifespan="off", timeout_graceful_shutdown=SHUTDOWN_GRACE_S
+    )
     server = Server(config)
     server.run(sockets=[sock])
     if server.received is not None:

@@ -6,7 +6,6 @@ import os
 import shutil
 import tempfile
 import time
-import traceback
 from pathlib import Path
 
 import pytest
@@ -17,6 +16,7 @@ from pipeline.core.cache import STATUS_FILE
 from pipeline.core.errors import ConfigError, DiskFull
 from pipeline.core.lock import CaptureBusy, CaptureLock
 from pipeline.core.runner import Selection
+from tests.support.as_user import as_user
 from tests.support.toy_stages import RUNS, hold_lock, make_capture, run_python, run_toy, toy_runner
 
 
@@ -393,26 +393,6 @@ def test_a_read_only_output_folder_is_replaced_and_leaves_nothing_behind(request
         os.lchown(path, nobody.pw_uid, nobody.pw_gid)
     os.chmod(capture / "output", 0o555)
     for _ in range(2):  # the second run finds nothing the first left
-        assert _as_user(nobody, lambda: run_toy(capture, presets_dir, "double.factor=3")) == 0
+        assert as_user(nobody, lambda: run_toy(capture, presets_dir, "double.factor=3")) == 0
     assert published(capture)[0] == "result 18.0\n"
     assert not list(capture.glob(".output.tmp-*"))
-
-
-def _as_user(user, work) -> int:
-    """``work()`` in a forked child that has become ``user`` (this interpreter cannot be
-    started as another user: its files are root's); the child's exit code, 1 on any
-    exception, whose traceback it prints."""
-    pid = os.fork()
-    if pid == 0:  # the child: never returns into pytest
-        code = 1
-        try:
-            os.setgid(user.pw_gid)
-            os.setuid(user.pw_uid)
-            work()
-            code = 0
-        except BaseException:
-            traceback.print_exc()  # the child ends below without unwinding into pytest
-            raise
-        finally:
-            os._exit(code)
-    return os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1])

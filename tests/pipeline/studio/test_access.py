@@ -157,3 +157,15 @@ def test_the_pages_settings_name_only_files_inside_the_capture(tiny_capture, tmp
     # the same override given on the studio's own command line is the user's choice
     trusted = CaptureSession(str(capture), overrides=(given,))
     assert trusted.stages("standard", [given])["stages"]
+
+
+def test_a_poll_of_the_fit_copies_only_the_new_log_entries(mi, tmp_path):
+    from pipeline.studio.fit_session import FitSession
+
+    scene, references = write_kit(tmp_path / "kit")
+    session = FitSession(scene, references, tmp_path / "out")
+    session.state.log = [{"iteration": i, "loss": 1.0 / i} for i in range(1, 13_501)]
+    state = session.snapshot(since=13_498)
+    assert [entry["iteration"] for entry in state["log"]] == [13_499, 13_500]
+    assert len(session.state.log) == 13_500  # the session's own log is kept whole
+    assert state["log"][0] is session.state.log[13_498]  # handed over, not copied

@@ -181,6 +181,11 @@ def test_a_capture_shows_the_stage_table_of_status_json_its_photos_and_cameras_a
                 "document.querySelector('#stages tr[data-stage=\"mesh\"] .state').textContent === 'cached'"
             )
             page.wait_for_selector("#view3d-note >> text=the current mesh")
+            # each line of the run's log once, however the polls overlapped, and long lines
+            # wrapped inside the page rather than widening it
+            finished = [line for line in page.inner_text("#run-log").splitlines() if " done in " in line]
+            assert finished and len(finished) == len(set(finished))
+            assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth")
             _screenshot(page, tmp_path / "studio-capture.png")
 
 

@@ -1,0 +1,196 @@
+"""Every numeric setting at the ends of the range `pipeline config` accepts, run by the
+real CLI: each value must run, or be refused before anything runs with its reason
+(issue 101, point 9), never crash, hang or print a traceback.
+
+    .venv/bin/python -m bench.setting_extremes [--work /tmp/extremes] [--only SECTION ...] [--write]
+
+A tiny synthetic capture (6 views of 96x72 px) with its cameras and mesh given as
+another tool's (tests/support/byo_capture.py: no SfM on 96 px) is run once to the end on
+the draft preset; each probe copies it with its cache, sets one setting with ``-s`` and
+runs ``--until`` the last stage that reads it, so only that stage and what it feeds
+run. A bound that is open is probed at a hundred times the default (at least 100). A
+probe passes when it ends 0, or ends 2 (refused before anything ran) with one message
+and no traceback, within the watchdog; a stage failing with exit 1 is shown for
+review with its message.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import shutil
+import subprocess
+import sys
+import time
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated
+
+from bench.common import ROOT as REPOSITORY
+from bench.common import write_section
+
+WATCHDOG_S = 240
+SECTION = "## Settings at the ends of their ranges (issue 101)"
+CLI = "import sys; from pipeline.cli import main; sys.exit(main(sys.argv[1:]))"
+GIVEN = ["-s", "cameras.source='external'", "-s", "mesh.source='ground_truth/mesh.ply'", "--preset", "draft"]
+"""The capture's cameras and mesh from "another tool", on the fast end of the trade."""
+
+
+@dataclass
+class Probe:
+    section: str
+    key: str
+    value: float | int
+    until: str
+    result: dict = field(default_factory=dict)
+
+    @property
+    def override(self) -> str:
+        return f"{self.section}.{self.key}={self.value!r}"
+
+
+def probes(only: list[str]) -> list[Probe]:
+    """Each numeric setting with a Range at its ends, run until the last stage reading it."""
+    from pipeline.cli.registry import registered_stages
+    from pipeline.core.config import Range
+    from pipeline.core.sections import schema
+
+    stages = registered_stages()
+    order = [stage.name for stage in stages]
+    found = []
+    for section, cls in schema(stages).items():
+        if only and section not in only:
+            continue
+        readers = [s.name for s in stages if s.name == section or any(n.split(".")[0] == section for n in s.shared)]
+        if not readers:
+            continue
+        until = max(readers, key=order.index)
+        hints = typing.get_type_hints(cls, include_extras=True)
+        for item in dataclasses.fields(cls):
+            hint = hints[item.name]
+            if typing.get_origin(hint) is not Annotated:
+                continue
+            base, *extras = typing.get_args(hint)
+            bounds = next((e for e in extras if isinstance(e, Range)), None)
+            if bounds is None or base not in (int, float):
+                continue
+            default = item.default if item.default is not dataclasses.MISSING else item.default_factory()
+            for value in _ends(bounds, base, default):
+                if value != default:
+                    found.append(Probe(section, item.name, value, until))
+    return found
+
+
+def _ends(bounds, kind: type, default) -> list[float | int]:
+    lo = bounds.lo
+    if lo is not None and bounds.exclusive_lo:
+        lo = lo + 1 if kind is int else lo + 1e-6
+    hi = bounds.hi if bounds.hi is not None else max(abs(default) * 100, 100)
+    return [kind(v) for v in (lo, hi) if v is not None]
+
+
+def base_capture(work: Path) -> Path:
+    base = work / "base"
+    if (base / "output" / "manifest.json").is_file():
+        return base
+    shutil.rmtree(base, ignore_errors=True)
+    sys.path.insert(0, str(REPOSITORY))
+    from tests.support.byo_capture import byo_capture
+
+    photos = work / "photos"
+    shutil.rmtree(photos, ignore_errors=True)
+    synth = [sys.executable, "-c", CLI, "-q", "synth", str(photos), "--views", "6", "--width", "96", "--height", "72"]
+    subprocess.run([*synth, "--spp", "4", "--calibration-shots", "3", "--seed", "3"], check=True, cwd=REPOSITORY)
+    byo_capture(photos, base)
+    subprocess.run([sys.executable, "-c", CLI, "-q", "run", str(base), *GIVEN], check=True, cwd=REPOSITORY)
+    return base
+
+
+def run_probe(probe: Probe, base: Path, work: Path) -> dict:
+    capture = work / "probe"
+    shutil.rmtree(capture, ignore_errors=True)
+    shutil.copytree(base, capture, symlinks=True)
+    argv = ["run", str(capture), *GIVEN, "--until", probe.until, "-s", probe.override]
+    started = time.time()
+    process = subprocess.Popen(
+        [sys.executable, "-c", CLI, *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPOSITORY
+    )
+    try:
+        out, err = process.communicate(timeout=WATCHDOG_S)
+        hung = False
+    except subprocess.TimeoutExpired:
+        process.kill()
+        out, err = process.communicate()
+        hung = True
+    code = process.returncode
+    lines = [line for line in (out + err).splitlines() if line.strip()]
+    errors = [line for line in lines if line.startswith("E ")]
+    dumped = any(word in out + err for word in ("Traceback", "stack trace", "Aborted", "Segmentation"))
+    message = (errors[-1] if errors else lines[-1] if lines else "").replace(str(capture), "CAPTURE")
+    verdict = (
+        "hang"
+        if hung
+        else "crash"
+        if code is None or code < 0 or code >= 128 or dumped
+        else "runs"
+        if code == 0
+        else "refused"
+        if code == 2 and errors
+        else "stage failed"
+        if code == 1 and errors
+        else "crash"
+    )
+    return {"code": code, "seconds": round(time.time() - started, 1), "verdict": verdict, "message": message[:200]}
+
+
+def write_table(rows: list[Probe], command: str) -> None:
+    lines = [
+        SECTION,
+        "",
+        f"Machine: the 2-core development VM (no GPU). Command: `.venv/bin/python {command}`. Each numeric",
+        "setting at each end of its range (an open end at 100 times its default), `-s` on a copy of a 6-view",
+        "96x72 px synthetic capture with given cameras and mesh, draft preset, run `--until` the last stage",
+        f"reading it under a {WATCHDOG_S} s watchdog. runs: exit 0; refused: exit 2 before anything ran;",
+        "stage failed: exit 1 with one message; crash: a signal, a traceback or another exit.",
+        "",
+    ]
+    counts: dict[str, int] = {}
+    for probe in rows:
+        counts[probe.result["verdict"]] = counts.get(probe.result["verdict"], 0) + 1
+    lines.append(", ".join(f"{n} {verdict}" for verdict, n in sorted(counts.items())) + f" of {len(rows)} probes.")
+    lines += ["", "| setting | value | until | exit | s | verdict | message |", "|---|---|---|---|---|---|---|"]
+    for probe in rows:
+        r = probe.result
+        if r["verdict"] == "runs":
+            continue
+        message = r["message"].replace("|", "\\|")
+        lines.append(
+            f"| {probe.section}.{probe.key} | {probe.value} | {probe.until} | {r['code']} | {r['seconds']} | "
+            f"{r['verdict']} | {message} |"
+        )
+    lines += ["", "Probes that ran (exit 0) are counted above and not listed.", ""]
+    write_section("setting-extremes", lines)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--work", default="/tmp/extremes")
+    parser.add_argument("--only", nargs="*", default=[], help="sections to probe (default: all)")
+    parser.add_argument("--write", action="store_true", help="rewrite docs/benchmarks.md's section")
+    args = parser.parse_args()
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+    base = base_capture(work)
+    chosen = probes(args.only)
+    for probe in chosen:
+        probe.result = run_probe(probe, base, work)
+        print(probe.override, probe.until, json.dumps(probe.result), flush=True)
+    if args.write:
+        write_table(chosen, "-m bench.setting_extremes " + " ".join(sys.argv[1:]).replace(" --write", ""))
+    return 0 if all(p.result["verdict"] in ("runs", "refused") for p in chosen) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
