@@ -153,7 +153,8 @@ def write_table(rows: list[Probe], command: str) -> None:
         "setting at each end of its range (an open end at 100 times its default), `-s` on a copy of a 6-view",
         "96x72 px synthetic capture with given cameras and mesh, draft preset, run `--until` the last stage",
         f"reading it under a {WATCHDOG_S} s watchdog. runs: exit 0; refused: exit 2 before anything ran;",
-        "stage failed: exit 1 with one message; crash: a signal, a traceback or another exit.",
+        "stage failed: exit 1 with one message; crash: a signal, a traceback or another exit; over the",
+        "watchdog: still running when it fired (a long fit at a large count, or a hang: listed for review).",
         "",
     ]
     counts: dict[str, int] = {}
