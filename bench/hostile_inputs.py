@@ -35,7 +35,7 @@ from bench.common import ROOT as REPOSITORY
 from bench.common import write_section
 
 WATCHDOG_S = 120
-SECTION = "## Hostile inputs, faults and signals (issue 53)"
+SECTION = "## Hostile inputs, faults and signals (issues 53 and 101)"
 CLI = "import sys; from pipeline.cli import main; sys.exit(main(sys.argv[1:]))"
 HOLD_LOCK = textwrap.dedent(
     """
@@ -1250,7 +1250,9 @@ def write_table(rows: list[Case], command: str) -> None:
         "",
         f"Machine: the 2-core development VM (no GPU). Command: `.venv/bin/python {command}`. Each case runs the",
         "real CLI in its own process under a 120 s watchdog on a copy of a 6-view 96x72 px synthetic",
-        "capture run to masks; disk-full cases on a tmpfs a little larger than the capture.",
+        "capture run to masks; disk-full cases on a tmpfs a little larger than the capture. The studio's",
+        "rows are requests to `pipeline studio` on that capture (exit: the HTTP status), then SIGTERM during a",
+        "run from the page and Ctrl-C during a fit from the page (exit: the studio's).",
         "\"output kept\" is whether the good run's output/ still matches its manifest (or the case's own check).",
         "",
         "| case | kind | from | exit | s | message | dump | output kept | pass |",
@@ -1268,8 +1270,9 @@ def write_table(rows: list[Case], command: str) -> None:
         )
     ran = [c for c in rows if "passed" in c.result]
     passed = sum(c.result["passed"] for c in ran)
-    new = sum(c.origin == "new" for c in ran)
-    lines += ["", f"{passed} of {len(ran)} cases pass ({new} of them beyond the issue's).", ""]
+    origins = {origin: sum(c.origin == origin for c in ran) for origin in dict.fromkeys(c.origin for c in ran)}
+    counted = ", ".join(f"{n} {origin}" for origin, n in origins.items())
+    lines += ["", f"{passed} of {len(ran)} cases pass ({counted}: issue 53's, further ones, issue 101's).", ""]
     write_section("hostile-inputs", lines)
 
 

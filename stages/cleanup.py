@@ -41,7 +41,7 @@ class Config:
 
     min_component_fraction: Annotated[float, Range(0.0, 1.0)] = 0.1
     """Components whose bounding-box diagonal is below this fraction of the whole mesh's
-    are removed (floating blobs from a bad mask)."""
+    are removed (floating blobs from a bad mask); the largest is always kept."""
     max_hole_edges: Annotated[int, Range(3, None)] = 100
     """Largest hole closed, in boundary edges."""
     remesh_edge_fraction: Annotated[float, Range(0.0, 0.2)] = 0.01

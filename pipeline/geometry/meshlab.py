@@ -42,9 +42,7 @@ def _clean(meshset, pymeshlab, settings: dict) -> dict:
     meshset.meshing_remove_duplicate_vertices()
     meshset.meshing_remove_unreferenced_vertices()
     meshset.meshing_repair_non_manifold_edges()
-    meshset.meshing_remove_connected_component_by_diameter(
-        mincomponentdiag=pymeshlab.PercentageValue(100 * settings["min_component_fraction"])
-    )
+    _remove_small_components(meshset, pymeshlab, settings["min_component_fraction"])
     meshset.meshing_close_holes(maxholesize=settings["max_hole_edges"])
     if settings["remesh_edge_fraction"] > 0:
         meshset.meshing_isotropic_explicit_remeshing(
@@ -59,6 +57,27 @@ def _clean(meshset, pymeshlab, settings: dict) -> dict:
         meshset.apply_coord_taubin_smoothing(stepsmoothnum=settings["smoothing_steps"])
     meshset.meshing_remove_unreferenced_vertices()
     return {"before": before, "after": _measure(meshset)}
+
+
+def _remove_small_components(meshset, pymeshlab, fraction: float) -> None:
+    """Remove the components whose bounding-box diagonal is below ``fraction`` of the
+    whole mesh's, always keeping the largest (by faces): at a fraction near 1 the
+    filter alone removes every component whose box is smaller than the whole's, which
+    leaves no mesh when none spans it."""
+    whole = meshset.current_mesh_id()
+    meshset.generate_copy_of_current_mesh()
+    meshset.meshing_remove_connected_component_by_diameter(mincomponentdiag=pymeshlab.PercentageValue(100 * fraction))
+    if meshset.current_mesh().face_number() > 0:
+        return
+    emptied = meshset.current_mesh_id()
+    meshset.set_current_mesh(whole)
+    meshset.generate_splitting_by_connected_components()
+    numbers, number = [], 0
+    while len(numbers) < meshset.number_meshes():  # the ids in use (pymeshlab lists no ids)
+        numbers += [number] if meshset.mesh_id_exists(number) else []
+        number += 1
+    parts = [n for n in numbers if n not in (whole, emptied)]
+    meshset.set_current_mesh(max(parts, key=lambda n: meshset.mesh(n).face_number()))
 
 
 def _decimate(meshset, pymeshlab, settings: dict) -> dict:

@@ -38,6 +38,19 @@ def test_a_holed_sphere_with_a_speck_comes_out_closed_in_one_piece(tmp_path):
     np.testing.assert_allclose(mesh.volume, sphere.volume, rtol=0.05)
 
 
+@pytest.mark.parametrize("fraction", [1.0, 0.9])
+def test_the_largest_component_is_kept_whatever_the_fraction(tmp_path, fraction):
+    """Two spheres apart: neither's box spans the whole mesh's, so the filter alone would
+    remove both and leave nothing to clean."""
+    big = trimesh.creation.icosphere(subdivisions=3, radius=0.05)
+    small = trimesh.creation.icosphere(subdivisions=3, radius=0.03)
+    small.apply_translation([0.2, 0, 0])
+    conf = Config(min_component_fraction=fraction, remesh_edge_fraction=0.0, smoothing_steps=0)
+    mesh, report = _run(trimesh.util.concatenate([big, small]), tmp_path, conf)
+    assert report["after"]["components"] == 1 and mesh.bounds[1][0] < 0.06
+    np.testing.assert_allclose(mesh.volume, big.volume, rtol=0.02)
+
+
 def test_a_hole_larger_than_allowed_stays_open_and_is_reported(tmp_path, caplog):
     sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.05)
     keep = sphere.triangles_center[:, 2] < 0.03  # the whole cap cut off
