@@ -8,7 +8,8 @@ A tiny synthetic capture (6 views of 96x72 px) with its cameras and mesh given a
 another tool's (tests/support/byo_capture.py: no SfM on 96 px) is run once to the end on
 the draft preset; each probe copies it with its cache, sets one setting with ``-s`` and
 runs ``--until`` the last stage that reads it, so only that stage and what it feeds
-run. A bound that is open is probed at a hundred times the default (at least 100). A
+run (fit_geometry, which the draft preset leaves off, is turned on for its own
+probes). A bound that is open is probed at a hundred times the default (at least 100). A
 probe passes when it ends 0, or ends 2 (refused before anything ran) with one message
 and no traceback, within the watchdog; a stage failing with exit 1 is shown for
 review with its message.
@@ -36,6 +37,8 @@ SECTION = "## Settings at the ends of their ranges (issue 101)"
 CLI = "import sys; from pipeline.cli import main; sys.exit(main(sys.argv[1:]))"
 GIVEN = ["-s", "cameras.source='external'", "-s", "mesh.source='ground_truth/mesh.ply'", "--preset", "draft"]
 """The capture's cameras and mesh from "another tool", on the fast end of the trade."""
+ENABLED = {"fit_geometry": ["-s", "fit_geometry.enabled=true"]}
+"""What a section's stage needs to run at all on the draft preset, which leaves it off."""
 
 
 @dataclass
@@ -112,7 +115,7 @@ def run_probe(probe: Probe, base: Path, work: Path) -> dict:
     capture = work / "probe"
     shutil.rmtree(capture, ignore_errors=True)
     shutil.copytree(base, capture, symlinks=True)
-    argv = ["run", str(capture), *GIVEN, "--until", probe.until, "-s", probe.override]
+    argv = ["run", str(capture), *GIVEN, *ENABLED.get(probe.section, []), "--until", probe.until, "-s", probe.override]
     started = time.time()
     process = subprocess.Popen(
         [sys.executable, "-c", CLI, *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPOSITORY

@@ -80,13 +80,17 @@ STRAY_RATIO = 0.3
 FEATURE_SIZE = (256, 640)
 """Photos are resized for SIFT so that the longer side falls in this range."""
 MASK_WORKING_SIZE = 256
+MASK_CHECK_PHOTOS = 300
+"""Photos whose masks are segmented to check them, evenly spread over a larger set (a
+segmentation takes about a quarter of a second: 10,000 would take 45 minutes, and
+`pipeline run --until masks` segments every one anyway)."""
 MIN_MASK_COVERAGE = 0.005
 """A mask covering less of the photo has not found the specimen."""
 
 
 @dataclass
 class Problem:
-    severity: Literal["error", "warning"]
+    severity: Literal["error", "warning", "note"]
     check: str
     file: str
     """Photo or folder the problem is about, relative to the capture."""
@@ -380,7 +384,19 @@ def check_masks(
         lambda: found_in_any(config["board"], (cv2.cvtColor(p.srgb, cv2.COLOR_RGB2GRAY) for p in photos)),
     )
     fixed_sets = _fixed_sets(photos, config) if segmenter == "set_colours" and not user_masks else {}
-    for photo in progress.track(photos, "checking masks"):
+    checked = photos
+    if not user_masks and len(photos) > MASK_CHECK_PHOTOS:
+        checked = [photos[i] for i in np.linspace(0, len(photos) - 1, MASK_CHECK_PHOTOS).round().astype(int)]
+        problems.append(
+            Problem(
+                "note",
+                "masks",
+                "images/",
+                f"masks segmented for {len(checked)} of {len(photos)} photos, evenly spread",
+                "`pipeline run CAPTURE --until masks` segments every photo",
+            )
+        )
+    for photo in progress.track(checked, "checking masks"):
         if user_masks:
             if Path(photo.name).stem not in user_masks:
                 problems.append(

@@ -110,5 +110,6 @@ def check(options: CheckOptions) -> int:
     else:
         for problem in problems:
             print(problem.line())
-        print(f"{errors} error(s), {len(problems) - errors} warning(s) in {capture}")
+        warnings = sum(p.severity == "warning" for p in problems)
+        print(f"{errors} error(s), {warnings} warning(s) in {capture}")
     return 1 if errors else 0

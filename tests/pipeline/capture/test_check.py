@@ -126,6 +126,26 @@ def test_files_that_are_not_photos_are_listed_as_warnings(orbit_capture, tmp_pat
     assert _flagged(problems, "readable") == {"IMG_0001.HEIC": "error", "IMG_0003.DNG": "error"}
 
 
+def test_a_large_set_is_checked_on_evenly_spread_masks_and_its_unread_files_counted(
+    orbit_capture, tmp_path, monkeypatch
+):
+    from pipeline.capture import check
+
+    capture = Path(shutil.copytree(orbit_capture, tmp_path / "orbit"))
+    for index in range(12):
+        (capture / "images" / f"notes_{index:02d}.txt").write_text("x")
+    segmented = []
+    monkeypatch.setattr(check, "MASK_CHECK_PHOTOS", 4)
+    real_segment = check.segment
+    monkeypatch.setattr(check, "segment", lambda srgb, *args: segmented.append(1) or real_segment(srgb, *args))
+    problems = check_capture(capture, _config(capture), features=False)
+    photos = len(check.list_photos(capture / "images"))
+    assert len(segmented) == 4
+    assert any(p.severity == "note" and f"masks segmented for 4 of {photos} photos" in p.message for p in problems)
+    unsupported = [p for p in problems if p.check == "unsupported"]
+    assert len(unsupported) == check.UNREAD_NAMED + 1 and "7 more files are not photos" in unsupported[-1].message
+
+
 def test_duplicates_and_match_pairs_scale_with_the_photo_count():
     """3,000 thumbnails: the planted near-duplicate is found by block products, and the
     stray check's pairs grow with the count (neighbours and look-alikes), not its square."""
