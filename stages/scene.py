@@ -90,6 +90,7 @@ from pipeline.render.capture_scene import (
     write_scene_file,
     write_specimen_file,
 )
+from pipeline.render.samples import check_samples
 
 
 @dataclass(frozen=True)
@@ -255,6 +256,10 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     light: LightSection = inputs.shared["light"]
     cameras_json = inputs.upstream["sfm"]["cameras"]
     frame, views = read_frame(cameras_json), read_views(cameras_json)
+    largest = max((intrinsics for intrinsics, _ in views.values()), key=lambda k: k.width * k.height)
+    for setting, spp in (("scene.spp", conf.spp), ("scene.preview_spp", conf.preview_spp)):
+        # the view files render the photos' size: a scene Mitsuba cannot render is refused
+        check_samples(largest.width * largest.height, spp, setting, f"photos of {largest.width}x{largest.height} px")
     choice = model_choice(conf, inputs.shared["capture.material"])
     model = materials.OPEN_SCENE_MODEL if len(choice) > 1 else choice[0]
     integrators = {m: materials.model_integrator(m, conf.max_depth) for m in choice}

@@ -64,6 +64,7 @@ from pipeline.fit.loop import INTERRUPTED
 from pipeline.fit.outputs import write_fit_log
 from pipeline.imaging.photo_io import list_photos, read_photo
 from pipeline.render import materials, mitsuba_variant, scene_xml, user_scene
+from pipeline.render.samples import check_samples
 
 EXR_SUFFIXES = (".exr",)
 LOCK_FILE = ".fit.lock"
@@ -246,6 +247,20 @@ def _views(
     return views
 
 
+def _check_samples(views: list[engine.FitView], settings: engine.FitSettings) -> None:
+    """Each render of the level within Mitsuba's samples per render (a film of a
+    sensor at its level's size times the options' samples per pixel)."""
+    largest = max(views, key=lambda view: int(np.prod(view.sensor.film().crop_size())))
+    width, height = (int(v) for v in largest.sensor.film().crop_size())
+    for option, spp in (
+        ("--spp", settings.spp),
+        ("--spp-grad", settings.spp_grad),
+        ("--validation-spp", settings.validation_spp),
+    ):
+        if spp:
+            check_samples(width * height, spp, option, f"{largest.name}'s film of {width}x{height} px")
+
+
 def check_out_dir(out_dir: Path, scene_path: Path, references: Path) -> None:
     """Make ``out_dir`` and prove it writable before the fit, which may take long."""
     if out_dir.exists() and not out_dir.is_dir():
@@ -397,6 +412,7 @@ def _fit_levels(request: SceneFit, tree, watcher: FitWatcher | None) -> _Fitted:
             else:
                 set_values(scene_values, result.values)
             views = _views(scene, scene_path, references, integrator, full_sizes)
+            _check_samples(views, settings)
             training, heldout = _split_heldout(views, request.heldout, references)
             if len(levels) > 1:
                 logger.info("level %d of %d: films of %s px", level + 1, len(levels), max_size or "their own")
