@@ -6,7 +6,8 @@ real CLI: each value must run, or be refused before anything runs with its reaso
 
 A tiny synthetic capture (6 views of 96x72 px) with its cameras and mesh given as
 another tool's (tests/support/byo_capture.py: no SfM on 96 px) is run once to the end on
-the draft preset; each probe copies it with its cache, sets one setting with ``-s`` and
+the draft preset (the sfm and mesh sections on 12 views of 320x240 px, whose cameras and
+mesh the pipeline makes); each probe copies it with its cache, sets one setting with ``-s`` and
 runs ``--until`` the last stage that reads it, so only that stage and what it feeds
 run (fit_geometry, which the draft preset leaves off, is turned on for its own
 probes). A bound that is open is probed at a hundred times the default (at least 100). A
@@ -37,6 +38,9 @@ SECTION = "## Settings at the ends of their ranges (issue 101)"
 CLI = "import sys; from pipeline.cli import main; sys.exit(main(sys.argv[1:]))"
 GIVEN = ["-s", "cameras.source='external'", "-s", "mesh.source='ground_truth/mesh.ply'", "--preset", "draft"]
 """The capture's cameras and mesh from "another tool", on the fast end of the trade."""
+SOLVED = ("sfm", "mesh")
+"""Sections probed on a capture whose cameras and mesh the pipeline makes itself: 12
+views of 320x240 px, large enough for SfM, run on the draft preset."""
 ENABLED = {"fit_geometry": ["-s", "fit_geometry.enabled=true"]}
 """What a section's stage needs to run at all on the draft preset, which leaves it off."""
 
@@ -94,6 +98,24 @@ def _ends(bounds, kind: type, default) -> list[float | int]:
     return [kind(v) for v in (lo, hi) if v is not None]
 
 
+def arguments(section: str) -> list[str]:
+    """The run's options for probes of ``section``, besides the probe's own."""
+    return ["--preset", "draft"] if section in SOLVED else [*GIVEN, *ENABLED.get(section, [])]
+
+
+def solved_capture(work: Path) -> Path:
+    """The capture for SOLVED sections, run to the mesh."""
+    base = work / "solved"
+    if (base / "output" / "manifest.json").is_file():
+        return base
+    shutil.rmtree(base, ignore_errors=True)
+    synth = [sys.executable, "-c", CLI, "-q", "synth", str(base), "--views", "12", "--width", "320", "--height", "240"]
+    subprocess.run([*synth, "--spp", "8", "--calibration-shots", "0", "--seed", "3"], check=True, cwd=REPOSITORY)
+    run = [sys.executable, "-c", CLI, "-q", "run", str(base), "--preset", "draft", "--until", "mesh"]
+    subprocess.run(run, check=True, cwd=REPOSITORY)
+    return base
+
+
 def base_capture(work: Path) -> Path:
     base = work / "base"
     if (base / "output" / "manifest.json").is_file():
@@ -115,7 +137,7 @@ def run_probe(probe: Probe, base: Path, work: Path) -> dict:
     capture = work / "probe"
     shutil.rmtree(capture, ignore_errors=True)
     shutil.copytree(base, capture, symlinks=True)
-    argv = ["run", str(capture), *GIVEN, *ENABLED.get(probe.section, []), "--until", probe.until, "-s", probe.override]
+    argv = ["run", str(capture), *arguments(probe.section), "--until", probe.until, "-s", probe.override]
     started = time.time()
     process = subprocess.Popen(
         [sys.executable, "-c", CLI, *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPOSITORY
@@ -182,18 +204,34 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--work", default="/tmp/extremes")
     parser.add_argument("--only", nargs="*", default=[], help="sections to probe (default: all)")
+    parser.add_argument(
+        "--results", default="/tmp/extremes-results.jsonl", help="where each probe's result is appended"
+    )
     parser.add_argument("--write", action="store_true", help="rewrite docs/benchmarks.md's section")
+    parser.add_argument("--write-only", action="store_true", help="write the section from --results, probing nothing")
     args = parser.parse_args()
-    work = Path(args.work)
-    work.mkdir(parents=True, exist_ok=True)
-    base = base_capture(work)
+    results = Path(args.results)
     chosen = probes(args.only)
-    for probe in chosen:
-        probe.result = run_probe(probe, base, work)
-        print(probe.override, probe.until, json.dumps(probe.result), flush=True)
-    if args.write:
-        write_table(chosen, "-m bench.setting_extremes " + " ".join(sys.argv[1:]).replace(" --write", ""))
-    return 0 if all(p.result["verdict"] in ("runs", "refused") for p in chosen) else 1
+    if not args.write_only:
+        work = Path(args.work)
+        work.mkdir(parents=True, exist_ok=True)
+        given = base_capture(work)
+        solved = solved_capture(work) if any(probe.section in SOLVED for probe in chosen) else None
+        for probe in chosen:
+            probe.result = run_probe(probe, solved if probe.section in SOLVED else given, work)
+            print(probe.override, probe.until, json.dumps(probe.result), flush=True)
+            with results.open("a") as log:  # one line a probe: batches run apart add to one table
+                log.write(json.dumps({"override": probe.override, "result": probe.result}) + "\n")
+    if args.write or args.write_only:
+        stored = {}
+        for line in results.read_text().splitlines():
+            record = json.loads(line)
+            stored[record["override"]] = record["result"]
+        every = [probe for probe in probes([]) if probe.override in stored]
+        for probe in every:
+            probe.result = stored[probe.override]
+        write_table(every, "-m bench.setting_extremes [--only SECTION ...] (then --write-only)")
+    return 0 if all(p.result["verdict"] in ("runs", "refused") for p in chosen if p.result) else 1
 
 
 if __name__ == "__main__":
