@@ -7,6 +7,7 @@ import hashlib
 import os
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -76,6 +77,36 @@ def truth_in_reconstruction(capture: Path, outputs: dict):
     bare = trimesh.Trimesh(truth.vertices, truth.faces, process=False)
     bare.apply_transform(np.linalg.inv(similarity.matrix()))
     return similarity, bare
+
+
+CLI = "import sys; from pipeline.cli import main; sys.exit(main(sys.argv[1:]))"
+"""The real CLI in a process of its own: ``[sys.executable, "-c", CLI, *argv]``."""
+
+
+def synthetic_capture(folder: Path, views: int, size: tuple[int, int], spp: int, shots: int, *run: str) -> Path:
+    """``pipeline synth`` into ``folder`` (seed 3), then ``pipeline run`` with ``run``'s
+    options when given; a folder that already holds a published run is kept as it is."""
+    if (folder / "output" / "manifest.json").is_file():
+        return folder
+    shutil.rmtree(folder, ignore_errors=True)
+    synth = ["synth", str(folder), "--views", str(views), "--width", str(size[0]), "--height", str(size[1])]
+    synth += ["--spp", str(spp), "--calibration-shots", str(shots), "--seed", "3"]
+    subprocess.run([sys.executable, "-c", CLI, "-q", *synth], check=True, cwd=ROOT)
+    if run:
+        subprocess.run([sys.executable, "-c", CLI, "-q", "run", str(folder), *run], check=True, cwd=ROOT)
+    return folder
+
+
+def finish(process: subprocess.Popen, timeout: float) -> tuple[str, str, bool]:
+    """``process``'s standard output and error, and whether it outlived ``timeout``
+    seconds (then it is killed: a watchdog, so that no case hangs the benchmark)."""
+    try:
+        out, err = process.communicate(timeout=timeout)
+        return out, err, False
+    except subprocess.TimeoutExpired:
+        process.kill()
+        out, err = process.communicate()
+        return out, err, True
 
 
 def write_section(name: str, lines: list[str]) -> str:

@@ -31,12 +31,11 @@ from typing import Callable
 
 import numpy as np
 
+from bench.common import CLI, finish, synthetic_capture, write_section
 from bench.common import ROOT as REPOSITORY
-from bench.common import write_section
 
 WATCHDOG_S = 120
 SECTION = "## Hostile inputs, faults and signals (issues 53 and 101)"
-CLI = "import sys; from pipeline.cli import main; sys.exit(main(sys.argv[1:]))"
 HOLD_LOCK = textwrap.dedent(
     """
     import sys, time
@@ -355,20 +354,7 @@ def cases() -> list[Case]:
     until_undistort = ["run", "CAPTURE", "--until", "undistort"]
     until_masks = ["run", "CAPTURE", "--until", "masks"]
     byo_mesh = ["run", "CAPTURE", "--until", "mesh", "-s", "cameras.source='external'", "-s", "mesh.source='bad.ply'"]
-    fit = [
-        "fit",
-        "CAPTURE/fit/scene.xml",
-        "--references",
-        "CAPTURE/fit/refs",
-        "--params",
-        "reflectance",
-        "--bound",
-        "reflectance=0:1",
-        "--iterations",
-        "3",
-        "--spp",
-        "2",
-    ]
+    fit = fit_argv()
     return [
         # issue 53's cases
         Case("mesh-non-finite", "hang", "issue", byo("nan"), byo_mesh, 1, "vertices are NaN or infinite"),
@@ -1146,14 +1132,7 @@ def _studio_fit_ctrl_c(scene_capture: Path, out: Path) -> Case:
 
 
 def base_capture(work: Path) -> Path:
-    base = work / "base"
-    if (base / "output" / "manifest.json").is_file():
-        return base
-    shutil.rmtree(base, ignore_errors=True)
-    synth = [sys.executable, "-c", CLI, "-q", "synth", str(base), "--views", "6", "--width", "96", "--height", "72"]
-    subprocess.run([*synth, "--spp", "4", "--calibration-shots", "3", "--seed", "3"], check=True, cwd=REPOSITORY)
-    subprocess.run([sys.executable, "-c", CLI, "-q", "run", str(base), "--until", "masks"], check=True, cwd=REPOSITORY)
-    return base
+    return synthetic_capture(work / "base", 6, (96, 72), 4, 3, "--until", "masks")
 
 
 def _mount_tmpfs(folder: Path, kilobytes: int) -> bool:
@@ -1207,13 +1186,7 @@ def run_case(case: Case, base: Path, work: Path) -> dict:
         else:
             time.sleep(float(when))
         process.send_signal(signum)
-    try:
-        out, err = process.communicate(timeout=WATCHDOG_S)
-        hung = False
-    except subprocess.TimeoutExpired:
-        process.kill()
-        out, err = process.communicate()
-        hung = True
+    out, err, hung = finish(process, WATCHDOG_S)
     seconds = time.time() - started
     if holder is not None:
         holder.kill()

@@ -30,12 +30,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated
 
+from bench.common import CLI, finish, synthetic_capture, write_section
 from bench.common import ROOT as REPOSITORY
-from bench.common import write_section
 
 WATCHDOG_S = 240
 SECTION = "## Settings at the ends of their ranges (issue 101)"
-CLI = "import sys; from pipeline.cli import main; sys.exit(main(sys.argv[1:]))"
 GIVEN = ["-s", "cameras.source='external'", "-s", "mesh.source='ground_truth/mesh.ply'", "--preset", "draft"]
 """The capture's cameras and mesh from "another tool", on the fast end of the trade."""
 SOLVED = ("sfm", "mesh")
@@ -105,29 +104,19 @@ def arguments(section: str) -> list[str]:
 
 def solved_capture(work: Path) -> Path:
     """The capture for SOLVED sections, run to the mesh."""
-    base = work / "solved"
-    if (base / "output" / "manifest.json").is_file():
-        return base
-    shutil.rmtree(base, ignore_errors=True)
-    synth = [sys.executable, "-c", CLI, "-q", "synth", str(base), "--views", "12", "--width", "320", "--height", "240"]
-    subprocess.run([*synth, "--spp", "8", "--calibration-shots", "0", "--seed", "3"], check=True, cwd=REPOSITORY)
-    run = [sys.executable, "-c", CLI, "-q", "run", str(base), "--preset", "draft", "--until", "mesh"]
-    subprocess.run(run, check=True, cwd=REPOSITORY)
-    return base
+    return synthetic_capture(work / "solved", 12, (320, 240), 8, 0, "--preset", "draft", "--until", "mesh")
 
 
 def base_capture(work: Path) -> Path:
+    """The capture for every other section: its cameras and mesh given, run to the end."""
     base = work / "base"
     if (base / "output" / "manifest.json").is_file():
         return base
-    shutil.rmtree(base, ignore_errors=True)
     sys.path.insert(0, str(REPOSITORY))
     from tests.support.byo_capture import byo_capture
 
-    photos = work / "photos"
-    shutil.rmtree(photos, ignore_errors=True)
-    synth = [sys.executable, "-c", CLI, "-q", "synth", str(photos), "--views", "6", "--width", "96", "--height", "72"]
-    subprocess.run([*synth, "--spp", "4", "--calibration-shots", "3", "--seed", "3"], check=True, cwd=REPOSITORY)
+    photos = synthetic_capture(work / "photos", 6, (96, 72), 4, 3)
+    shutil.rmtree(base, ignore_errors=True)
     byo_capture(photos, base)
     subprocess.run([sys.executable, "-c", CLI, "-q", "run", str(base), *GIVEN], check=True, cwd=REPOSITORY)
     return base
@@ -142,13 +131,7 @@ def run_probe(probe: Probe, base: Path, work: Path) -> dict:
     process = subprocess.Popen(
         [sys.executable, "-c", CLI, *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPOSITORY
     )
-    try:
-        out, err = process.communicate(timeout=WATCHDOG_S)
-        hung = False
-    except subprocess.TimeoutExpired:
-        process.kill()
-        out, err = process.communicate()
-        hung = True
+    out, err, hung = finish(process, WATCHDOG_S)
     code = process.returncode
     lines = [line for line in (out + err).splitlines() if line.strip()]
     errors = [line for line in lines if line.startswith("E ")]
@@ -176,7 +159,8 @@ def write_table(rows: list[Probe], command: str) -> None:
         "",
         f"Machine: the 2-core development VM (no GPU). Command: `.venv/bin/python {command}`. Each numeric",
         "setting at each end of its range (an open end at 100 times its default), `-s` on a copy of a 6-view",
-        "96x72 px synthetic capture with given cameras and mesh, draft preset, run `--until` the last stage",
+        "96x72 px synthetic capture with given cameras and mesh (the sfm and mesh sections: 12 views of 320x240",
+        "px whose cameras and mesh the pipeline makes), draft preset, run `--until` the last stage",
         f"reading it under a {WATCHDOG_S} s watchdog. runs: exit 0; refused: exit 2 before anything ran;",
         "stage failed: exit 1 with one message; crash: a signal, a traceback or another exit; over the",
         "watchdog: still running when it fired (a long fit at a large count, or a hang: listed for review).",

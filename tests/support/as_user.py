@@ -2,7 +2,35 @@
 of what a user meets with a read-only or unreadable folder runs it as ``nobody``."""
 
 import os
+import pwd
+import shutil
+import tempfile
 import traceback
+from pathlib import Path
+
+import pytest
+
+
+def nobody():
+    """The unprivileged user; the test is skipped where it cannot become one (not root)."""
+    if os.geteuid() != 0:
+        pytest.skip("needs root to run the work as another user")
+    return pwd.getpwnam("nobody")
+
+
+def reachable_folder(request, prefix: str) -> Path:
+    """A fresh folder any user can reach (pytest's are root's alone, 0700), removed after
+    the test."""
+    folder = Path(tempfile.mkdtemp(prefix=prefix))
+    request.addfinalizer(lambda: shutil.rmtree(folder, ignore_errors=True))
+    os.chmod(folder, 0o755)
+    return folder
+
+
+def give(folder: Path, user) -> None:
+    """``folder`` and everything in it owned by ``user``."""
+    for path in [folder, *folder.rglob("*")]:
+        os.lchown(path, user.pw_uid, user.pw_gid)
 
 
 def as_user(user, work) -> int:

@@ -283,22 +283,13 @@ def test_a_plain_folder_of_photos_is_named_as_such_and_left_untouched(tmp_path, 
 
 def test_an_unreadable_images_folder_is_named_not_reported_empty(tiny_capture, request, capfd):
     """As nobody, whom a chmod 000 stops (root is not stopped by it)."""
-    import os
-    import pwd
-    import tempfile
-
     from pipeline.cli import main
-    from tests.support.as_user import as_user
+    from tests.support.as_user import as_user, give, nobody, reachable_folder
 
-    if os.geteuid() != 0:
-        pytest.skip("needs root to run the command as another user")
-    nobody = pwd.getpwnam("nobody")
-    shared = Path(tempfile.mkdtemp(prefix="unreadable-images-"))
-    request.addfinalizer(lambda: shutil.rmtree(shared, ignore_errors=True))
-    os.chmod(shared, 0o755)
+    user = nobody()
+    shared = reachable_folder(request, "unreadable-images-")
     capture = Path(shutil.copytree(tiny_capture, shared / "capture", ignore=shutil.ignore_patterns(".pipeline")))
-    for path in [capture, *capture.rglob("*")]:
-        os.lchown(path, nobody.pw_uid, nobody.pw_gid)
+    give(capture, user)
     os.chmod(capture / "images", 0)
     # the child cannot read root's Python installation: what the command imports, imported here
     from pipeline.cli import build_parser
@@ -306,7 +297,7 @@ def test_an_unreadable_images_folder_is_named_not_reported_empty(tiny_capture, r
 
     build_parser(), registered_stages()
     capfd.readouterr()
-    assert as_user(nobody, lambda: os._exit(main(["run", str(capture), "--until", "calibrate"]))) == 1
+    assert as_user(user, lambda: os._exit(main(["run", str(capture), "--until", "calibrate"]))) == 1
     err = capfd.readouterr().err
     assert f"{capture / 'images'} cannot be read (Permission denied)" in err and "no photos" not in err
     assert "Traceback" not in err

@@ -4,7 +4,6 @@ import errno
 import json
 import os
 import shutil
-import tempfile
 import time
 from pathlib import Path
 
@@ -16,7 +15,7 @@ from pipeline.core.cache import STATUS_FILE
 from pipeline.core.errors import ConfigError, DiskFull
 from pipeline.core.lock import CaptureBusy, CaptureLock
 from pipeline.core.runner import Selection
-from tests.support.as_user import as_user
+from tests.support.as_user import as_user, give, nobody, reachable_folder
 from tests.support.toy_stages import RUNS, hold_lock, make_capture, run_python, run_toy, toy_runner
 
 
@@ -377,22 +376,14 @@ def test_published_files_are_as_readable_as_any_the_user_makes(tmp_path, presets
 
 def test_a_read_only_output_folder_is_replaced_and_leaves_nothing_behind(request, presets_dir):
     """As a user who is not root, whose chmod 0555 the permission checks honour."""
-    import pwd
-
-    if os.geteuid() != 0:
-        pytest.skip("needs root to run the publish as another user")
-    nobody = pwd.getpwnam("nobody")
-    # pytest's folders are root's alone (0700): a world-readable one the user can reach
-    shared = Path(tempfile.mkdtemp(prefix="read-only-output-"))
-    request.addfinalizer(lambda: shutil.rmtree(shared, ignore_errors=True))
-    os.chmod(shared, 0o755)
+    user = nobody()
+    shared = reachable_folder(request, "read-only-output-")
     presets_dir = Path(shutil.copytree(presets_dir, shared / "presets"))
     capture = make_capture(shared)
     run_toy(capture, presets_dir)
-    for path in [capture, *capture.rglob("*")]:
-        os.lchown(path, nobody.pw_uid, nobody.pw_gid)
+    give(capture, user)
     os.chmod(capture / "output", 0o555)
     for _ in range(2):  # the second run finds nothing the first left
-        assert as_user(nobody, lambda: run_toy(capture, presets_dir, "double.factor=3")) == 0
+        assert as_user(user, lambda: run_toy(capture, presets_dir, "double.factor=3")) == 0
     assert published(capture)[0] == "result 18.0\n"
     assert not list(capture.glob(".output.tmp-*"))
