@@ -1267,7 +1267,7 @@ def main() -> int:
             chosen.append(case)
             print(case.name, json.dumps(case.result), flush=True)
     if args.write:
-        write_table(chosen, "bench/hostile_inputs.py " + " ".join(sys.argv[1:]).replace(" --write", ""))
+        write_table(chosen, "-m bench.hostile_inputs " + " ".join(sys.argv[1:]).replace(" --write", ""))
     return 0 if all(c.result.get("passed", True) for c in chosen) else 1
 
 
