@@ -8,13 +8,17 @@ checklist for the session.
 
 from __future__ import annotations
 
+import os
+import shutil
 from pathlib import Path
 
+from pipeline.core import progress
 from pipeline.core.config import load_config, toml_section
 from pipeline.core.errors import ConfigError
 from pipeline.core.fsutil import atomic_write_text
 from pipeline.core.sections import SHARED_SECTIONS, CaptureSection, schema
 from pipeline.core.stage import Stage
+from pipeline.imaging.photo_io import list_photos
 
 FOLDERS = {
     "images": "the specimen photos (JPEG, PNG, TIFF or EXR), any names, sorted order = turntable order",
@@ -108,3 +112,15 @@ def create_capture(path: Path, description: str, rig: str, stages: tuple[Stage, 
     )
     load_config(schema(stages), path)  # the template must load as it is
     return path
+
+
+def take_photos(folder: Path, images: Path) -> int:
+    """The photos directly in ``folder`` into ``images``: hard links (no space taken, the
+    originals untouched) where both lie on one file system, else copies. Their count."""
+    photos = list_photos(folder)
+    for photo in progress.track(photos, "taking the photos"):
+        try:
+            os.link(photo, images / photo.name)
+        except OSError:
+            shutil.copy2(photo, images / photo.name)
+    return len(photos)

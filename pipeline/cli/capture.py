@@ -26,6 +26,10 @@ class NewOptions:
     """What the specimen is."""
     rig: Literal["handheld", "turntable", "ring"] = "handheld"
     """Capture rig (capture.rig in capture.toml)."""
+    photos: Annotated[str | None, Arg(metavar="FOLDER")] = None
+    """A folder of photos (as COLMAP or Meshroom take them) to put into the new capture's
+    images/: hard links where the file system allows, else copies; the folder is left as
+    it is."""
 
 
 @dataclass(frozen=True)
@@ -62,10 +66,18 @@ class CheckOptions:
 
 @command("new", NewOptions, "create a capture folder with a documented capture.toml and a checklist")
 def new(options: NewOptions) -> int:
-    from pipeline.capture.scaffold import create_capture
+    from pipeline.capture.scaffold import create_capture, take_photos
+    from pipeline.imaging.photo_io import PHOTO_SUFFIXES, list_photos
 
+    photos = Path(options.photos) if options.photos else None
+    if photos is not None and not list_photos(photos):
+        raise ConfigError(f"--photos {photos} holds no photos ({', '.join(PHOTO_SUFFIXES)}): name the folder of photos")
     path = create_capture(Path(options.capture), options.description, options.rig, registry.registered_stages())
-    print(f"created {path}: read {path / 'README.md'} before the photo session")
+    if photos is None:
+        print(f"created {path}: read {path / 'README.md'} before the photo session")
+        return 0
+    taken = take_photos(photos, path / "images")
+    print(f"created {path} with the {taken} photos of {photos} in images/: `pipeline run {path}` runs them")
     return 0
 
 

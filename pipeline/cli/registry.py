@@ -79,6 +79,6 @@ def capture_dir(text: str) -> Path:
         if photos:
             raise ConfigError(
                 f"{text} holds {len(photos)} photos but no images/ folder: it is a folder of photos, not a capture. "
-                f"Make a capture around them: `pipeline new CAPTURE`, then move the photos into CAPTURE/images/"
+                f"Make a capture of them, leaving this folder as it is: `pipeline new CAPTURE --photos {text}`"
             )
     return path

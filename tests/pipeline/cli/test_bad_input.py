@@ -265,20 +265,30 @@ def lock_is_held(capture):
         return True
 
 
-def test_a_plain_folder_of_photos_is_named_as_such_and_left_untouched(tmp_path, capsys):
+def test_a_plain_folder_of_photos_is_named_as_such_and_made_a_capture_in_one_command(tmp_path, capsys):
     import cv2
     import numpy as np
 
     from pipeline.cli import main
 
+    folder = tmp_path / "photos"
+    folder.mkdir()
     for index in range(3):
-        cv2.imwrite(str(tmp_path / f"IMG_{index:04d}.jpg"), np.full((8, 8, 3), 100 * index, np.uint8))
-    before = sorted(p.name for p in tmp_path.iterdir())
+        cv2.imwrite(str(folder / f"IMG_{index:04d}.jpg"), np.full((8, 8, 3), 100 * index, np.uint8))
+    before = sorted(p.name for p in folder.iterdir())
     for command in (["run"], ["check"], ["status"]):
-        assert main([*command, str(tmp_path)]) == 2
+        assert main([*command, str(folder)]) == 2
         err = capsys.readouterr().err
-        assert "holds 3 photos but no images/ folder" in err and "pipeline new CAPTURE" in err
-    assert sorted(p.name for p in tmp_path.iterdir()) == before  # no .pipeline/ left in the user's folder
+        assert "holds 3 photos but no images/ folder" in err and f"pipeline new CAPTURE --photos {folder}" in err
+    assert sorted(p.name for p in folder.iterdir()) == before  # no .pipeline/ left in the user's folder
+    capture = tmp_path / "capture"
+    assert main(["new", str(capture), "--photos", str(folder)]) == 0
+    assert "with the 3 photos of" in capsys.readouterr().out
+    assert sorted(p.name for p in (capture / "images").iterdir()) == before
+    assert (capture / "images" / before[0]).read_bytes() == (folder / before[0]).read_bytes()
+    assert sorted(p.name for p in folder.iterdir()) == before
+    assert main(["new", str(tmp_path / "other"), "--photos", str(tmp_path / "capture" / "masks")]) == 2
+    assert "holds no photos" in capsys.readouterr().err and not (tmp_path / "other").exists()
 
 
 def test_an_unreadable_images_folder_is_named_not_reported_empty(tiny_capture, request, capfd):
