@@ -104,7 +104,13 @@ def fit(
     (FitSettings.resolved). ``on_iteration`` sees each step's log entry and may return
     a reason to stop; ``finish_on_interrupt``: Ctrl-C ends the fit in its best state
     (loop.run)."""
+    given = len(training)
     training, validation = _with_pixels(training), _with_pixels(validation)
+    if given and not training:
+        raise PipelineError(
+            f"none of the {given} views to fit has a pixel of its mask left to compare (the masks empty, or "
+            "eroded away: lower the stage's erode_px)"
+        )
     if not training:
         raise PipelineError("no views to fit: every view is held out")
     traversed = _traversed(training + validation)

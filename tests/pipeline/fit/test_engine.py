@@ -1001,3 +1001,12 @@ def test_a_recording_dr_jit_refuses_to_replay_is_traced_instead(mi, references, 
     assert "could not replay a recording" in caplog.text
     for name in unfrozen.values:
         np.testing.assert_allclose(result.values[name], unfrozen.values[name], rtol=1e-4)
+
+
+def test_views_whose_masks_were_eroded_away_are_named_as_such_not_as_held_out():
+    from pipeline.core.errors import PipelineError
+    from pipeline.fit.engine import FitSettings, FitView, fit
+
+    empty = [FitView(f"v{i}", None, None, np.zeros((4, 4, 3)), weight=np.zeros((4, 4, 1))) for i in range(3)]
+    with pytest.raises(PipelineError, match="none of the 3 views to fit has a pixel of its mask left .* erode_px"):
+        fit([], empty, [], FitSettings())
