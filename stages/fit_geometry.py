@@ -79,7 +79,6 @@ from pipeline.formats.fit_results import FittedValues, GeometryFit, TexturedFit,
 from pipeline.formats.scene_description import SceneDescription
 from pipeline.formats.scene_folder import HELDOUT, MESH_PLY, PARAMS_JSON, copy_scene
 from pipeline.render import materials, mitsuba_variant
-from pipeline.render.samples import check_window_samples
 
 
 @dataclass(frozen=True)
@@ -129,14 +128,6 @@ class Config:
     """Mask erosion at full resolution of the pixels heldout/ scores (as fit_material's)."""
     seed: int = 0
     """Seed of the batch order and the renders."""
-
-    def validate(self, name: str) -> None:
-        """Each render within Mitsuba's samples per render, at the largest window."""
-        check_window_samples(
-            name,
-            self,
-            (("spp", "max_size"), ("material_spp", "material_max_size"), ("validation_spp", "material_max_size")),
-        )
 
 
 def _shape_settings(conf: Config, diagonal: float, seed: int) -> engine.ShapeSettings:

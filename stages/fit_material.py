@@ -87,7 +87,6 @@ from pipeline.formats.scene_description import SceneDescription
 from pipeline.formats.scene_folder import HELDOUT, PARAMS_JSON, SCENE_XML
 from pipeline.render import materials, mitsuba_variant
 from pipeline.render.capture_scene import rewrite_integrator
-from pipeline.render.samples import check_window_samples
 
 
 @dataclass(frozen=True)
@@ -123,12 +122,6 @@ class Config(FitSettings):
     kept: principled's translucency must earn its place over opaque. 2 % lies above the
     run-to-run variation of the held-out error and below what translucency gains on a
     translucent specimen (docs/benchmarks.md, "The material model chosen by evidence")."""
-
-    def validate(self, name: str) -> None:
-        """Each render within Mitsuba's samples per render, at the largest window."""
-        check_window_samples(
-            name, self, (("spp", "max_size"), ("spp_grad", "max_size"), ("validation_spp", "max_size"))
-        )
 
 
 def fit_parameters(model: str, bounds: tuple[str, ...], models: list[str]) -> list[engine.FitParameter]:

@@ -92,7 +92,6 @@ from pipeline.formats.scene_folder import HELDOUT, MESH_PLY, PARAMS_JSON, SPECIM
 from pipeline.render import light as estimated_light
 from pipeline.render import materials, mitsuba_variant, scene_xml
 from pipeline.render.materials import SPECIMEN
-from pipeline.render.samples import check_window_samples
 
 
 @dataclass(frozen=True)
@@ -139,19 +138,6 @@ class Config(LoopSettings):
     bake_rounds: Annotated[int, Range(1, None)] = 3
     """Rounds of the bake: each after the first moves the colours by what renders with them
     still miss (the specimen's light on itself, pipeline.fit.bake)."""
-
-    def validate(self, name: str) -> None:
-        """Each render within Mitsuba's samples per render, at the largest window."""
-        check_window_samples(
-            name,
-            self,
-            (
-                ("spp", "max_size"),
-                ("spp_grad", "max_size"),
-                ("validation_spp", "max_size"),
-                ("bake_spp", "bake_max_size"),
-            ),
-        )
 
 
 def _keep_texture(conf: Config, constant_error: float | None, texture_error: float) -> tuple[bool, str]:

@@ -68,6 +68,7 @@ from pipeline.core.interrupts import Interrupted, interruption, signal_name
 from pipeline.fit.checkpoint import next_checkpoint
 from pipeline.fit.settings import LoopSettings
 from pipeline.fit.stopping import still
+from pipeline.render.samples import check_samples
 
 INTERRUPTED = "interrupted"
 """How the reason begins when Ctrl-C or SIGTERM ended a loop that finishes on them."""
@@ -704,6 +705,7 @@ def run(
     whose checkpoint keeps the steps."""
     if not training:
         raise PipelineError("no views to fit: every view is held out")
+    _check_samples(training, validation, settings, label)
     loop = _Loop(variables, training, validation, settings, integrator, label)
     checkpoint = next_checkpoint()
     state, best = _start(loop, checkpoint)
@@ -778,6 +780,20 @@ def run(
         loop.skipped,
         best.averaged,
     )
+
+
+def _check_samples(training: list[FitView], validation: list[FitView], settings: LoopSettings, label: str) -> None:
+    """Each render the loop will make within Mitsuba's samples per render, named by the
+    setting that asks for it (the views' windows are known only now)."""
+    for views, asked in ((training, ("spp", "spp_grad")), (validation, ("validation_spp",))):
+        if not views:
+            continue
+        largest = max(views, key=lambda view: int(np.prod(view.sensor.film().crop_size())))
+        width, height = (int(v) for v in largest.sensor.film().crop_size())
+        for name in asked:
+            if getattr(settings, name):
+                film = f"{largest.name}'s window of {width}x{height} px ({label})"
+                check_samples(width * height, getattr(settings, name), name, film)
 
 
 def _start(loop: _Loop, checkpoint) -> tuple[LoopState, BestState]:

@@ -1,13 +1,13 @@
-"""Settings whose renders would pass Mitsuba's 2^32 samples are refused by name before
-anything runs, instead of failing deep in a fit with Mitsuba's traceback."""
+"""Renders past Mitsuba's 2^32 samples are refused by the setting that asks for them,
+before they run, instead of failing deep in a fit with Mitsuba's traceback."""
 
+import numpy as np
 import pytest
 
-from pipeline.cli.registry import registered_stages
-from pipeline.core.config import load_config
+from pipeline.cli import main
 from pipeline.core.errors import ConfigError
-from pipeline.core.sections import schema
 from pipeline.render.samples import MAX_SAMPLES, check_samples
+from tests.support.studio_kit import write_kit
 
 
 def test_a_render_of_more_than_two_to_the_32_samples_is_refused_with_the_most_that_fits():
@@ -17,14 +17,33 @@ def test_a_render_of_more_than_two_to_the_32_samples_is_refused_with_the_most_th
     assert 4295 * 1000 * 1000 >= MAX_SAMPLES > 4294 * 1000 * 1000
 
 
-@pytest.mark.parametrize(
-    "override, message",
-    [
-        ("fit_material.spp=100000000", "fit_material.spp = 100000000 on films of up to fit_material.max_size"),
-        ("fit_texture.bake_spp=20000", "fit_texture.bake_spp = 20000 on films of up to fit_texture.bake_max_size"),
-        ("fit_geometry.material_spp=300000", "fit_geometry.material_spp = 300000 on films of up to"),
-    ],
-)
-def test_a_fit_stages_samples_beyond_its_windows_are_a_config_error(tmp_path, override, message):
-    with pytest.raises(ConfigError, match=message):
-        load_config(schema(registered_stages()), tmp_path, "standard", [override])
+def test_a_fits_samples_per_pixel_beyond_its_windows_are_refused_by_name_before_a_step(mi, tmp_path, capsys):
+    from pipeline.fit import engine
+    from pipeline.fit.engine import FitParameter, FitSettings, FitView
+
+    scene_path, references = write_kit(tmp_path / "kit")
+    assert (
+        main(
+            [
+                "fit",
+                str(scene_path),
+                "--references",
+                str(references),
+                "--params",
+                "roughness",
+                "--validation-spp",
+                "10000000",
+                "--heldout",
+                "1_side",
+                "--out",
+                str(tmp_path / "out"),
+            ]
+        )
+        == 2
+    )
+    assert "--validation-spp = 10000000 on 0_front's film of 32x32 px" in capsys.readouterr().err
+    scene = mi.load_file(str(scene_path))
+    views = [FitView(f"v{i}", scene, sensor, np.zeros((32, 32, 3))) for i, sensor in enumerate(scene.sensors())]
+    roughness = FitParameter("mat.roughness.value", "mat.roughness.value", 0.01, 1.0, False, 0.02)
+    with pytest.raises(ConfigError, match=r"^spp = 5000000 on v0's window of 32x32 px \(fit\)"):
+        engine.fit([roughness], views, [], FitSettings(spp=5_000_000, iterations=1))
