@@ -68,6 +68,7 @@ the prior sets. Held-out photos are fit_material's.
 
 from __future__ import annotations
 
+import os
 import shutil
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -78,6 +79,7 @@ import trimesh
 
 from pipeline import logger
 from pipeline.core.config import Range
+from pipeline.core.errors import ConfigError
 from pipeline.core.stage import Stage, StageInputs, StageResult
 from pipeline.fit import engine
 from pipeline.fit.bake import bake_bitmap
@@ -92,6 +94,14 @@ from pipeline.formats.scene_folder import HELDOUT, MESH_PLY, PARAMS_JSON, SPECIM
 from pipeline.render import light as estimated_light
 from pipeline.render import materials, mitsuba_variant, scene_xml
 from pipeline.render.materials import SPECIMEN
+
+TEXEL_BYTES = 400
+"""Memory one texel (or voxel) of the finest texture takes in its fit: measured on 2 cores
+at about 350 bytes beyond the rest (0.75 GB of the stage at 1024 x 1024 texels, 1.85 GB
+at 2048 x 2048), rounded up."""
+MEMORY_SHARE = 0.8
+"""Of the machine's memory, what a texture's fit may take: the rest is the system's and
+the rendering's."""
 
 
 @dataclass(frozen=True)
@@ -138,6 +148,21 @@ class Config(LoopSettings):
     bake_rounds: Annotated[int, Range(1, None)] = 3
     """Rounds of the bake: each after the first moves the colours by what renders with them
     still miss (the specimen's light on itself, pipeline.fit.bake)."""
+
+    def validate(self, name: str) -> None:
+        """The finest texture's fit within this machine's memory: refused before anything
+        runs (a 12800-texel bitmap was killed for memory after two minutes)."""
+        memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+        for setting, cells in (
+            ("max_resolution", self.max_resolution**2),
+            ("max_grid_resolution", self.max_grid_resolution**3),
+        ):
+            needed = cells * TEXEL_BYTES
+            if needed > MEMORY_SHARE * memory:
+                raise ConfigError(
+                    f"{name}.{setting} = {getattr(self, setting)} needs about {needed / 2**30:.0f} GiB for the "
+                    f"texture's fit, more than {MEMORY_SHARE:.0%} of this machine's {memory / 2**30:.0f} GiB: lower it"
+                )
 
 
 def _keep_texture(conf: Config, constant_error: float | None, texture_error: float) -> tuple[bool, str]:

@@ -6,6 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from pipeline.core.errors import ConfigError
 from pipeline.synthetic.score import score_heldout
 from tests.support.tiny_fits import TINY_FIT, TINY_TEXTURE
 
@@ -96,3 +97,14 @@ def test_a_guessed_light_too_dim_for_the_texture_is_raised_in_every_scene_file(r
         )
     colours = scene["specimen.bsdf.base_color.data"]
     assert np.max(colours) <= 0.3 and np.mean(np.max(colours, axis=-1) >= 0.2999) < 0.1
+
+
+def test_a_texture_too_large_for_the_machines_memory_is_refused_before_anything_runs(tmp_path):
+    from pipeline.cli.registry import registered_stages
+    from pipeline.core.config import load_config
+    from pipeline.core.sections import schema
+
+    load_config(schema(registered_stages()), tmp_path, "standard", ["fit_texture.max_resolution=1024"])
+    for override in ("fit_texture.max_resolution=100000", "fit_texture.max_grid_resolution=5000"):
+        with pytest.raises(ConfigError, match=r"needs about \d+ GiB for the texture's fit, more than 80% of this"):
+            load_config(schema(registered_stages()), tmp_path, "standard", [override])
