@@ -188,6 +188,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--work", default="/tmp/extremes")
     parser.add_argument("--only", nargs="*", default=[], help="sections to probe (default: all)")
+    parser.add_argument("--settings", nargs="*", default=[], help="of those, only these SECTION.KEY")
     parser.add_argument(
         "--results", default="/tmp/extremes-results.jsonl", help="where each probe's result is appended"
     )
@@ -195,7 +196,7 @@ def main() -> int:
     parser.add_argument("--write-only", action="store_true", help="write the section from --results, probing nothing")
     args = parser.parse_args()
     results = Path(args.results)
-    chosen = probes(args.only)
+    chosen = [p for p in probes(args.only) if not args.settings or f"{p.section}.{p.key}" in args.settings]
     if not args.write_only:
         work = Path(args.work)
         work.mkdir(parents=True, exist_ok=True)
