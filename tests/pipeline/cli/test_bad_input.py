@@ -291,7 +291,7 @@ def test_a_plain_folder_of_photos_is_named_as_such_and_made_a_capture_in_one_com
     assert "holds no photos" in capsys.readouterr().err and not (tmp_path / "other").exists()
 
 
-def test_an_unreadable_images_folder_is_named_not_reported_empty(tiny_capture, request, capfd):
+def test_an_unreadable_images_folder_is_named_not_reported_empty(tiny_capture, request, capfd, monkeypatch):
     """As nobody, whom a chmod 000 stops (root is not stopped by it)."""
     from pipeline.cli import main
     from tests.support.as_user import as_user, give, nobody, reachable_folder
@@ -301,11 +301,15 @@ def test_an_unreadable_images_folder_is_named_not_reported_empty(tiny_capture, r
     capture = Path(shutil.copytree(tiny_capture, shared / "capture", ignore=shutil.ignore_patterns(".pipeline")))
     give(capture, user)
     os.chmod(capture / "images", 0)
-    # the child cannot read root's Python installation: what the command imports, imported here
-    from pipeline.cli import build_parser
-    from pipeline.cli.registry import registered_stages
+    # the child may not read root's Python installation or the package's metadata (a clone
+    # in a folder of root's alone): what the command imports and the stages, loaded here
+    from pipeline.cli import build_parser, registry
+    from pipeline.core import config
 
-    build_parser(), registered_stages()
+    build_parser()
+    stages = registry.registered_stages()
+    monkeypatch.setattr(registry, "registered_stages", lambda: stages)
+    monkeypatch.setattr(config, "PRESETS_DIR", Path(shutil.copytree(config.PRESETS_DIR, shared / "configs")))
     capfd.readouterr()
     assert as_user(user, lambda: os._exit(main(["run", str(capture), "--until", "calibrate"]))) == 1
     err = capfd.readouterr().err
