@@ -96,7 +96,14 @@ def activate(requested: str = "auto") -> str:
     """Choose the variant and set it in this process; returns its name."""
     variant = choose(requested)
     ensure_llvm_path()
+    import drjit as dr
     import mitsuba as mi
 
+    # Mitsuba 3.9 writes EXR files through OpenEXR's threads, sized from Dr.Jit's pool:
+    # with a pool of one (a one-core machine or container: Dr.Jit sizes it by the cores
+    # this process may use), Bitmap.write of an EXR waits forever. Two threads on one
+    # core write it.
+    if dr.thread_count() < 2:
+        dr.set_thread_count(2)
     mi.set_variant(variant)
     return variant

@@ -1,3 +1,6 @@
+import subprocess
+import sys
+
 import pytest
 
 from pipeline.core.errors import PipelineError
@@ -53,3 +56,24 @@ def test_probe_detects_the_llvm_15_abort(monkeypatch):
     monkeypatch.setenv("DRJIT_LIBLLVM_PATH", llvm15[0])
     works, why = mitsuba_variant.probe("llvm_ad_rgb")
     assert not works and "apt-get install -y libllvm19" in why
+
+
+ONE_CORE_EXR = """
+import os, sys
+os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
+import numpy as np
+from pipeline.render.mitsuba_variant import activate
+activate("llvm_ad_rgb")
+import mitsuba as mi
+mi.Bitmap(np.zeros((64, 64, 3), np.float32)).write(sys.argv[1])
+"""
+
+
+@pytest.mark.slow
+def test_a_process_on_one_core_writes_exr_files(tmp_path):
+    """On one core Dr.Jit's pool has one thread, and Mitsuba's EXR writer then waited
+    forever (a one-core container ran the pipeline until it was killed)."""
+    target = tmp_path / "written.exr"
+    done = subprocess.run([sys.executable, "-c", ONE_CORE_EXR, str(target)], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert target.stat().st_size > 0
