@@ -123,11 +123,14 @@ def test_a_fit_killed_midway_resumes_where_it_was(run_stages, small_bird, caplog
     assert not list((small_bird / ".pipeline" / "checkpoints").glob("fit_material-*"))  # removed once committed
 
 
-def test_an_estimated_light_is_chosen_by_held_out_error_and_written_into_the_scene(run_stages, bird_capture, mi):
+def test_an_estimated_light_is_chosen_by_held_out_error_and_written_into_the_scene(run_stages, small_bird, mi):
     """light.model = auto: each light model fitted with the material, the simplest within
     the margin of the best kept, and every candidate's error and time reported."""
+    from pipeline.formats.scene_description import SceneDescription
+
     overrides = (*TINY_FIT, "light.model=auto")
-    outputs = run_stages(bird_capture, "fit_material", *overrides)["fit_material"]
+    stages = run_stages(small_bird, "fit_material", *overrides)
+    outputs = stages["fit_material"]
     params = json.loads(outputs["params"].read_text())
     report = params["light"]
     assert [c["model"] for c in report["candidates"]] == ["constant", "envmap", "envmap+area"]
@@ -137,7 +140,9 @@ def test_an_estimated_light_is_chosen_by_held_out_error_and_written_into_the_sce
     assert errors[chosen] <= min(errors.values()) * 1.05
     simpler = list(errors)[: list(errors).index(chosen)]
     assert all(errors[m] > min(errors.values()) * 1.05 for m in simpler)
-    assert report["level_from"] == "board" and params["validation_mse"] == errors[chosen]
+    # The level stays where the scene stage measured it (no board here: the specimen).
+    assert report["level_from"] == SceneDescription.read(stages["scene"]["description"]).light.level_from
+    assert params["validation_mse"] == errors[chosen]
     # The material's parameters only in "params"; the scene renders with the chosen light.
     assert set(params["params"]) == {"base_color", "roughness", "spec_trans", "eta"}
     keys = set(mi.traverse(mi.load_file(str(outputs["scene"]))).keys())
