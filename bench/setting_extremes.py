@@ -1,6 +1,6 @@
-"""Every numeric setting at the ends of the range `pipeline config` accepts, run by the
-real CLI: each value must run, or be refused before anything runs with its reason
-(issue 101, point 9), never crash, hang or print a traceback.
+"""Every setting at the ends of what `pipeline config` accepts, run by the real CLI:
+each value must run, or be refused before anything runs with its reason (issue 101,
+point 9), never crash, hang or print a traceback.
 
     .venv/bin/python -m bench.setting_extremes [--work /tmp/extremes] [--only SECTION ...] [--write]
 
@@ -10,7 +10,11 @@ the draft preset (the sfm and mesh sections on 12 views of 320x240 px, whose cam
 mesh the pipeline makes); each probe copies it with its cache, sets one setting with ``-s`` and
 runs ``--until`` the last stage that reads it, so only that stage and what it feeds
 run (fit_geometry, which the draft preset leaves off, is turned on for its own
-probes). A bound that is open is probed at a hundred times the default (at least 100). A
+probes). The values: a number at each end of its range (an open end at a hundred times
+the default, at least 100), every choice of a choice, a switch flipped, a triple at
+each end of its elements' range (unbounded: all zero and all 1e30), a list of names
+given a name that is none, and a file setting given a folder and a file of another
+kind (the capture's images/ and capture.toml). A
 probe passes when it ends 0, or ends 2 (refused before anything ran) with one message
 and no traceback, within the watchdog; a stage failing with exit 1 is shown for
 review with its message.
@@ -28,10 +32,11 @@ import time
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any, Literal
 
 from bench.common import CLI, finish, synthetic_capture, write_section
 from bench.common import ROOT as REPOSITORY
+from pipeline.core.config import InputFile, Range
 
 WATCHDOG_S = 240
 SECTION = "## Settings at the ends of their ranges (issue 101)"
@@ -48,19 +53,29 @@ ENABLED = {"fit_geometry": ["-s", "fit_geometry.enabled=true"]}
 class Probe:
     section: str
     key: str
-    value: float | int
+    value: Any
     until: str
     result: dict = field(default_factory=dict)
 
     @property
     def override(self) -> str:
-        return f"{self.section}.{self.key}={self.value!r}"
+        return f"{self.section}.{self.key}={_toml(self.value)}"
+
+
+def _toml(value: Any) -> str:
+    """``value`` as the right side of ``-s SECTION.KEY=VALUE`` (TOML)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return json.dumps(value)  # a TOML basic string: JSON's escapes
+    if isinstance(value, tuple):
+        return "[" + ", ".join(_toml(item) for item in value) + "]"
+    return repr(value)
 
 
 def probes(only: list[str]) -> list[Probe]:
-    """Each numeric setting with a Range at its ends, run until the last stage reading it."""
+    """Each setting at its ends (``_values``), run until the last stage reading it."""
     from pipeline.cli.registry import registered_stages
-    from pipeline.core.config import Range
     from pipeline.core.sections import schema
 
     stages = registered_stages()
@@ -75,21 +90,42 @@ def probes(only: list[str]) -> list[Probe]:
         until = max(readers, key=order.index)
         hints = typing.get_type_hints(cls, include_extras=True)
         for item in dataclasses.fields(cls):
-            hint = hints[item.name]
-            if typing.get_origin(hint) is not Annotated:
-                continue
-            base, *extras = typing.get_args(hint)
-            bounds = next((e for e in extras if isinstance(e, Range)), None)
-            if bounds is None or base not in (int, float):
-                continue
             default = item.default if item.default is not dataclasses.MISSING else item.default_factory()
-            for value in _ends(bounds, base, default):
+            for value in _values(hints[item.name], default):
                 if value != default:
                     found.append(Probe(section, item.name, value, until))
     return found
 
 
-def _ends(bounds, kind: type, default) -> list[float | int]:
+def _values(hint: Any, default: Any) -> list[Any]:
+    """The values of a setting of type ``hint`` that probe it (the module's docstring)."""
+    base, extras = (
+        (typing.get_args(hint)[0], typing.get_args(hint)[1:]) if typing.get_origin(hint) is Annotated else (hint, ())
+    )
+    bounds = next((e for e in extras if isinstance(e, Range)), None)
+    if base in (int, float):
+        return _ends(bounds, base, default) if bounds else []
+    if base is bool:
+        return [not default]
+    if typing.get_origin(base) is Literal:
+        return list(typing.get_args(base))
+    if base is str:
+        return ["images", "capture.toml"] if any(isinstance(e, InputFile) for e in extras) else []
+    if typing.get_origin(base) is tuple:
+        items = typing.get_args(base)
+        if items[-1] is Ellipsis:
+            return [("none_such",)] if items[0] is str else []
+        element = items[0]
+        if typing.get_origin(element) is Annotated:
+            ranged = next((e for e in typing.get_args(element)[1:] if isinstance(e, Range)), None)
+            if ranged is not None:
+                kind = typing.get_args(element)[0]
+                return [tuple([end] * len(items)) for end in _ends(ranged, kind, max(default))]
+        return [tuple([0.0] * len(items)), tuple([1e30] * len(items))]
+    return []
+
+
+def _ends(bounds: Range, kind: type, default: float) -> list[float | int]:
     lo = bounds.lo
     if lo is not None and bounds.exclusive_lo:
         lo = lo + 1 if kind is int else lo + 1e-6
@@ -157,8 +193,10 @@ def write_table(rows: list[Probe], command: str) -> None:
     lines = [
         SECTION,
         "",
-        f"Machine: the 2-core development VM (no GPU). Command: `.venv/bin/python {command}`. Each numeric",
-        "setting at each end of its range (an open end at 100 times its default), `-s` on a copy of a 6-view",
+        f"Machine: the 2-core development VM (no GPU). Command: `.venv/bin/python {command}`. Each number",
+        "at each end of its range (an open end at 100 times its default), each choice, each switch flipped,",
+        "each triple at its ends (unbounded: 0 and 1e30), a name that is none in a list of names, a folder",
+        "and a file of another kind in a file setting, `-s` on a copy of a 6-view",
         "96x72 px synthetic capture with given cameras and mesh (the sfm and mesh sections: 12 views of 320x240",
         "px whose cameras and mesh the pipeline makes), draft preset, run `--until` the last stage",
         f"reading it under a {WATCHDOG_S} s watchdog. runs: exit 0; refused: exit 2 before anything ran;",
@@ -177,7 +215,7 @@ def write_table(rows: list[Probe], command: str) -> None:
             continue
         message = r["message"].replace("|", "\\|")
         lines.append(
-            f"| {probe.section}.{probe.key} | {probe.value} | {probe.until} | {r['code']} | {r['seconds']} | "
+            f"| {probe.section}.{probe.key} | {_toml(probe.value)} | {probe.until} | {r['code']} | {r['seconds']} | "
             f"{r['verdict']} | {message} |"
         )
     lines += ["", "Probes that ran (exit 0) are counted above and not listed.", ""]
