@@ -230,11 +230,15 @@ def main() -> int:
     parser.add_argument(
         "--results", default="/tmp/extremes-results.jsonl", help="where each probe's result is appended"
     )
+    parser.add_argument("--again", action="store_true", help="probe again what --results already holds")
     parser.add_argument("--write", action="store_true", help="rewrite docs/benchmarks.md's section")
     parser.add_argument("--write-only", action="store_true", help="write the section from --results, probing nothing")
     args = parser.parse_args()
     results = Path(args.results)
     chosen = [p for p in probes(args.only) if not args.settings or f"{p.section}.{p.key}" in args.settings]
+    done = {json.loads(line)["override"] for line in results.read_text().splitlines()} if results.is_file() else set()
+    if not args.again:
+        chosen = [probe for probe in chosen if probe.override not in done]
     if not args.write_only:
         work = Path(args.work)
         work.mkdir(parents=True, exist_ok=True)
