@@ -82,7 +82,7 @@ class Config:
     sensor_width_mm: Annotated[float, Range(0.0, None)] = 0.0
     """Long side of the sensor in mm, for the EXIF fallback when the photos carry a focal
     length in mm but no focal-plane resolution; 0 when unknown."""
-    known_intrinsics: Annotated[str, InputFile()] = ""
+    known_intrinsics: Annotated[str, InputFile(suffixes=(".json", ".yml", ".yaml", ".xml"))] = ""
     """A calibration made elsewhere (a lab's, or another capture's intrinsics.json) for
     every photo in images/, relative to the capture folder: JSON or OpenCV YAML/XML
     (pipeline/formats/known_intrinsics.py). It replaces board shots and EXIF, is scaled

@@ -109,7 +109,7 @@ class Config:
     """Normalised cross-correlation below which a depth is not trusted."""
     stereo_min_votes: Annotated[int, Range(1, None)] = 2
     """Photos that must see past a voxel before it is carved."""
-    source: Annotated[str, InputFile()] = ""
+    source: Annotated[str, InputFile(suffixes=(".ply", ".obj"))] = ""
     """A PLY or OBJ of the specimen made by another tool, used instead of the visual
     hull (the settings above then do nothing), relative to the capture folder. It is
     in the frame of `[cameras] source` when that is set, else in the world frame of

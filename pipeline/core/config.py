@@ -68,18 +68,44 @@ class Range:
 
 @dataclass(frozen=True)
 class InputFile:
-    """Marks a string setting as the path of an input file or folder (empty: none)."""
+    """Marks a string setting as the path of an input file or folder (empty: none),
+    checked before anything runs: a file must end in one of ``suffixes`` (any, when
+    empty); a folder is accepted only where ``folder_with`` names what it must hold
+    (one of them)."""
+
+    suffixes: tuple[str, ...] = ()
+    folder_with: tuple[str, ...] = ()
+
+    def problem(self, path: Path) -> str:
+        """Why ``path`` (which exists) is not what the setting reads ('' when it is)."""
+        if path.is_dir():
+            if not self.folder_with:
+                return f"is a folder: name a file{self._kinds()}"
+            if not any((path / name).exists() for name in self.folder_with):
+                return f"is a folder without {' or '.join(self.folder_with)}: name the folder that holds them"
+            return ""
+        if self.suffixes and path.suffix.lower() not in self.suffixes:
+            return f"is not a file this setting reads: name a file{self._kinds()}"
+        return ""
+
+    def _kinds(self) -> str:
+        return f" ({', '.join(self.suffixes)})" if self.suffixes else ""
 
 
 def input_file_settings(section: Any) -> dict[str, str]:
     """The non-empty ``InputFile`` settings of a section instance: field -> value."""
-    hints = typing.get_type_hints(type(section), include_extras=True)
+    return {name: value for name in _input_file_markers(type(section)) if (value := getattr(section, name))}
+
+
+def _input_file_markers(cls: type) -> dict[str, InputFile]:
+    """The ``InputFile`` settings of a section class: field -> its marker."""
+    hints = typing.get_type_hints(cls, include_extras=True)
     return {
-        name: value
+        name: marker
         for name, hint in hints.items()
         if typing.get_origin(hint) is Annotated
-        and any(isinstance(a, InputFile) for a in typing.get_args(hint)[1:])
-        and (value := getattr(section, name))
+        for marker in typing.get_args(hint)[1:]
+        if isinstance(marker, InputFile)
     }
 
 
@@ -104,6 +130,9 @@ def _check_input_files(name: str, section: Any, capture_dir: Path, origins: Mapp
         special = special_kind(path)
         if special:
             raise ConfigError(f"{name}.{key} = {value!r} is {special}, not a file: name a regular file")
+        problem = _input_file_markers(type(section))[key].problem(path)
+        if problem:
+            raise ConfigError(f"{name}.{key} = {value!r} {problem}")
 
 
 def confine_input_files(

@@ -17,11 +17,17 @@ from pipeline.core.config import InputFile, Range
 from pipeline.core.stage import Stage
 
 Vec3 = tuple[float, float, float]
-RadianceChannel = Annotated[float, Range(0.0, 3e38)]
+ENVIRONMENT_MAP_SUFFIXES = (".exr", ".tif", ".tiff", ".png", ".jpg", ".jpeg")
+"""What an environment map may be: the photo formats that hold an image, RAW and HEIF
+aside (pipeline.imaging.photo_io reads it)."""
+RadianceChannel = Annotated[float, Range(0.0, 1e9)]
 Radiance = tuple[RadianceChannel, RadianceChannel, RadianceChannel]
 """Linear RGB radiance: no channel below zero (a negative one has no physical meaning,
-and the fits would bend the material to make up for it) nor beyond float32, in which
-Mitsuba renders."""
+and the fits would bend the material to make up for it) nor above 1e9. Mitsuba renders
+in float32 (at most 3.4e38) and the fits square rendered values and sum them over a
+window's pixels: a radiance of 3e38 rendered NaN and ended fit_material on a
+non-finite result, while 1e9 squared and summed over a million pixels is 1e24. The
+photos are levelled near 1."""
 ArucoDictionary = Literal["DICT_4X4_50", "DICT_4X4_100", "DICT_5X5_100", "DICT_6X6_250"]
 
 
@@ -90,7 +96,7 @@ class LightSection:
     within ``margin`` of the best is kept."""
     environment_radiance: Radiance = (0.5, 0.5, 0.5)
     """Constant environment radiance (linear RGB), used when environment_map is empty."""
-    environment_map: Annotated[str, InputFile()] = ""
+    environment_map: Annotated[str, InputFile(suffixes=ENVIRONMENT_MAP_SUFFIXES)] = ""
     """Path of an equirectangular EXR, relative to the capture folder (a file outside
     it only from the command line); empty for none."""
     area_light: bool = True
@@ -135,7 +141,9 @@ class LightSection:
 class CamerasSection:
     """Cameras from another tool, instead of calibration and structure-from-motion."""
 
-    source: Annotated[str, InputFile()] = ""
+    source: Annotated[str, InputFile(suffixes=(".bin", ".txt", ".xml"), folder_with=("cameras.bin", "cameras.txt"))] = (
+        ""
+    )
     """A COLMAP sparse model (its folder, .bin or .txt) or an Agisoft Metashape cameras
     XML export, relative to the capture folder; empty: the pipeline computes the
     cameras. Its intrinsics replace calibrate's and its poses sfm's (moved into the

@@ -35,7 +35,9 @@ SCHEMA = schema(make_stages())
         (["ingest.scale=nan"], "ingest.scale = nan is not a finite number"),
         (["light.environment_radiance=[1, nan, inf]"], "light.environment_radiance[1] = nan is not a finite number"),
         # a negative radiance has no physical meaning; the fits would bend the material to it
-        (["light.area_radiance=[6, -1, 6]"], "light.area_radiance[1] = -1.0 is out of range: allowed [0, 3e+38]"),
+        (["light.area_radiance=[6, -1, 6]"], "light.area_radiance[1] = -1.0 is out of range: allowed [0, 1e+09]"),
+        # 3e38 rendered NaN in float32 and ended fit_material on a non-finite result
+        (["light.environment_radiance=[3e38, 1, 1]"], "light.environment_radiance[0] = 3e+38 is out of range"),
     ],
 )
 def test_bad_overrides_name_key_value_and_allowed(presets_dir, overrides, message):
@@ -74,6 +76,29 @@ def test_override_values_are_toml_with_bare_string_fallback():
 def test_int_is_accepted_where_a_float_is_expected(presets_dir):
     config = load_config(SCHEMA, None, "standard", ["ingest.scale=2"], presets_dir)
     assert config["ingest"].scale == 2.0 and isinstance(config["ingest"].scale, float)
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("light.environment_map='images'", "is a folder: name a file (.exr,"),
+        ("light.environment_map='capture.toml'", "is not a file this setting reads: name a file (.exr,"),
+        ("cameras.source='images'", "is a folder without cameras.bin or cameras.txt"),
+        ("cameras.source='capture.toml'", "is not a file this setting reads: name a file (.bin, .txt, .xml)"),
+        ("mesh.source='images'", "is a folder: name a file (.ply, .obj)"),
+        ("calibrate.known_intrinsics='capture.toml'", "name a file (.json, .yml, .yaml, .xml)"),
+    ],
+)
+def test_a_file_setting_naming_a_folder_or_another_kind_of_file_is_refused(tmp_path, override, message):
+    """Refused before anything runs, not by the stage that reads it after the others ran."""
+    capture = tmp_path / "cap"
+    (capture / "images").mkdir(parents=True)
+    (capture / "capture.toml").write_text("")
+    with pytest.raises(ConfigError, match=re.escape(override.split("=")[0] + " = ") + ".*" + re.escape(message)):
+        load_config(schema(STAGES), capture, "standard", [override])
+    (capture / "model").mkdir()
+    (capture / "model" / "cameras.bin").write_bytes(b"")
+    load_config(schema(STAGES), capture, "standard", ["cameras.source='model'"])  # a COLMAP model's folder
 
 
 def test_real_presets_load_with_the_real_stages():
