@@ -59,7 +59,7 @@ from pipeline.camera.board import found_in_any
 from pipeline.camera.model import Intrinsics, undistort
 from pipeline.core import progress
 from pipeline.core.config import Range
-from pipeline.core.errors import PipelineError
+from pipeline.core.errors import ConfigError, PipelineError
 from pipeline.core.sections import BoardSection
 from pipeline.core.stage import Stage, StageInputs, StageResult
 from pipeline.formats.masks import write_masks
@@ -111,6 +111,15 @@ class Config:
     """Holes in the silhouette smaller than this fraction of its area (holes included)
     are filled; larger ones are kept open (the backdrop seen through the specimen: a
     handle, a colonnade, 0.01 keeps those). 0 keeps every hole, 1 fills every one."""
+
+    def check_capture(self, name: str, capture_dir: Path) -> None:
+        """A forced source whose folder holds no file is refused before anything runs."""
+        folder = {"user": "masks", "background": "background"}.get(self.source)
+        if folder and not any(p.is_file() and not p.name.startswith(".") for p in (capture_dir / folder).glob("*")):
+            raise ConfigError(
+                f"{name}.source = {self.source!r} but the capture's {folder}/ folder is empty or missing: put "
+                f"the {'masks' if folder == 'masks' else 'background plates'} there, or set {name}.source = 'auto'"
+            )
 
 
 def _user_masks(capture_dir: Path, files: tuple[Path, ...], photos: dict[str, dict]) -> dict[str, Path]:

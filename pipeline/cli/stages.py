@@ -18,11 +18,13 @@ from pipeline.cli.registry import ConfigLayers, capture_dir, command
 from pipeline.core import jsonio, progress
 from pipeline.core.cache import StageCache
 from pipeline.core.config import describe_schema, load_config
+from pipeline.core.errors import ConfigError, PipelineError
 from pipeline.core.hashing import tree_size
 from pipeline.core.lock import CaptureLock
 from pipeline.core.publish import STAGES, current_manifest
 from pipeline.core.runner import PlannedStage, Runner, Selection, summary
 from pipeline.core.sections import schema
+from pipeline.render import mitsuba_variant
 
 Capture = Annotated[str, Arg(positional=True)]
 
@@ -111,6 +113,23 @@ def _describe(item: PlannedStage) -> str:
     return f"  {item.action:8s} {item.stage.name:14s} {took}  {item.key[:10]}  {item.reason}"
 
 
+def _check_variant(runner: Runner, selection: Selection) -> None:
+    """A Mitsuba variant the settings name (not auto) that cannot render here is
+    refused before any stage runs, rather than by the first stage that renders."""
+    variant = runner.config["mitsuba"].variant
+    if variant == "auto":
+        return
+    rendering = [p for p in runner.plan(selection) if p.action == "run" and "mitsuba" in p.stage.shared]
+    if not rendering:
+        return
+    try:
+        mitsuba_variant.choose(variant)
+    except PipelineError as error:
+        raise ConfigError(
+            f"{error}; stage {rendering[0].stage.name} renders with it: set mitsuba.variant = 'auto'"
+        ) from None
+
+
 @command("run", RunOptions, "run the stage DAG on a capture, reusing cached results")
 def run(options: RunOptions) -> int:
     runner = make_runner(options.capture, options.config, wait=not options.no_wait)
@@ -136,6 +155,7 @@ def run(options: RunOptions) -> int:
             runner.capture_dir, html_report.records(runner.plan(), ran), _settings(runner, options.config)
         )
 
+    _check_variant(runner, selection)
     plan = runner.run(selection, on_stage_done=report, on_published=write_report)
     logger.info(
         "%d stage(s) ran, %d cached, in %.1f s; results in %s",

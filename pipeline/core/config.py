@@ -365,6 +365,9 @@ def load_config(
             sections[name] = build_section(name, cls, merged[name])
             if capture_dir is not None:
                 _check_input_files(name, sections[name], capture_dir, origins[name])
+                check_capture = getattr(sections[name], "check_capture", None)
+                if check_capture is not None:  # what the settings need of the capture folder
+                    check_capture(name, capture_dir)
         except ConfigError as e:
             origin = [s for s, layer in layers if name in layer]
             raise ConfigError(f"{e} (set in {', '.join(origin) or 'defaults'})") from None

@@ -117,3 +117,24 @@ def test_config_lists_every_key_with_its_doc(toy_cli, capsys):
     out = capsys.readouterr().out
     assert "factor = 9    (int in [1, 100])" in out and "Integer factor." in out
     assert "[board]" in out and "square_mm" in out
+
+
+def test_a_mitsuba_variant_that_cannot_render_here_is_refused_before_any_stage(
+    tiny_capture, tmp_path, monkeypatch, capsys
+):
+    """The first stage that renders would have found out after the others ran."""
+    import shutil
+
+    from pipeline.cli import main as cli_main
+    from pipeline.render import mitsuba_variant
+
+    capture = shutil.copytree(tiny_capture, tmp_path / "capture")
+    monkeypatch.setattr(mitsuba_variant, "probe", lambda variant: (False, "no CUDA driver (libcuda) on this machine"))
+    mitsuba_variant.choose.cache_clear()
+    try:
+        assert cli_main(["run", str(capture), "--until", "scene", "-s", "mitsuba.variant='cuda_ad_rgb'"]) == 2
+    finally:
+        mitsuba_variant.choose.cache_clear()
+    err = capsys.readouterr().err
+    assert "mitsuba.variant = 'cuda_ad_rgb'" in err and "no CUDA driver" in err and "stage uv renders" in err
+    assert not (capture / ".pipeline" / "cache").exists()

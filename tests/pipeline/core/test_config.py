@@ -101,6 +101,18 @@ def test_a_file_setting_naming_a_folder_or_another_kind_of_file_is_refused(tmp_p
     load_config(schema(STAGES), capture, "standard", ["cameras.source='model'"])  # a COLMAP model's folder
 
 
+@pytest.mark.parametrize("source, folder", [("user", "masks"), ("background", "background")])
+def test_a_forced_mask_source_without_its_files_is_refused(tmp_path, source, folder):
+    capture = tmp_path / "cap"
+    capture.mkdir()
+    (capture / "capture.toml").write_text("")
+    with pytest.raises(ConfigError, match=re.escape(f"masks.source = '{source}' but the capture's {folder}/ folder")):
+        load_config(schema(STAGES), capture, "standard", [f"masks.source='{source}'"])
+    (capture / folder).mkdir()
+    (capture / folder / "view_000.png").write_bytes(b"")
+    load_config(schema(STAGES), capture, "standard", [f"masks.source='{source}'"])
+
+
 def test_real_presets_load_with_the_real_stages():
     for preset in ("draft", "standard", "final"):
         load_config(schema(STAGES), None, preset)
