@@ -97,8 +97,9 @@ class LightSection:
     environment_radiance: Radiance = (0.5, 0.5, 0.5)
     """Constant environment radiance (linear RGB), used when environment_map is empty."""
     environment_map: Annotated[str, InputFile(suffixes=ENVIRONMENT_MAP_SUFFIXES)] = ""
-    """Path of an equirectangular EXR, relative to the capture folder (a file outside
-    it only from the command line); empty for none."""
+    """Path of an equirectangular image (.exr, or .tif, .png, .jpg as pipeline.imaging
+    reads photos), relative to the capture folder (a file outside it only from the
+    command line); empty for none."""
     area_light: bool = True
     """Whether a rectangular area light (a softbox) is part of the rig."""
     area_position: Vec3 = (0.6, 0.8, 0.6)
