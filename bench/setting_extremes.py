@@ -179,7 +179,7 @@ def run_probe(probe: Probe, base: Path, work: Path) -> dict:
     dumped = any(word in out + err for word in ("Traceback", "stack trace", "Aborted", "Segmentation"))
     message = (errors[-1] if errors else lines[-1] if lines else "").replace(str(capture), "CAPTURE")
     verdict = (
-        "hang"
+        "over the watchdog"
         if hung
         else "crash"
         if code is None or code < 0 or code >= 128 or dumped
