@@ -125,8 +125,9 @@ def _check_variant(runner: Runner, selection: Selection) -> None:
     try:
         mitsuba_variant.choose(variant)
     except PipelineError as error:
+        why = " ".join(str(error).split())  # one line: the candidates' reasons after the variant's name
         raise ConfigError(
-            f"{error}; stage {rendering[0].stage.name} renders with it: set mitsuba.variant = 'auto'"
+            f"{why}; stage {rendering[0].stage.name} renders with it: set mitsuba.variant = 'auto'"
         ) from None
 
 
