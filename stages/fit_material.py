@@ -71,7 +71,7 @@ from pathlib import Path
 from typing import Annotated
 
 from pipeline.core.config import Range
-from pipeline.core.errors import PipelineError
+from pipeline.core.errors import ConfigError, PipelineError
 from pipeline.core.sections import LightSection
 from pipeline.core.stage import Stage, StageInputs, StageResult
 from pipeline.fit import engine
@@ -122,6 +122,19 @@ class Config(FitSettings):
     kept: principled's translucency must earn its place over opaque. 2 % lies above the
     run-to-run variation of the held-out error and below what translucency gains on a
     translucent specimen (docs/benchmarks.md, "The material model chosen by evidence")."""
+
+    def validate(self, name: str) -> None:
+        """``bounds`` refused before anything runs: each entry name=lower:upper, finite,
+        lower below upper (engine.parse_bounds), naming a parameter of some material model."""
+        try:
+            spans = engine.parse_bounds(self.bounds, f"{name}.bounds")
+        except PipelineError as error:
+            raise ConfigError(str(error)) from None
+        known = {n for parameters in materials.MODEL_PARAMETERS.values() for n in parameters}
+        for parameter in set(spans) - known:
+            raise ConfigError(
+                f"{name}.bounds names {parameter!r}, no material parameter: use one of {', '.join(sorted(known))}"
+            )
 
 
 def fit_parameters(model: str, bounds: tuple[str, ...], models: list[str]) -> list[engine.FitParameter]:

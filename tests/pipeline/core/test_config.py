@@ -113,6 +113,21 @@ def test_a_forced_mask_source_without_its_files_is_refused(tmp_path, source, fol
     load_config(schema(STAGES), capture, "standard", [f"masks.source='{source}'"])
 
 
+@pytest.mark.parametrize(
+    "bounds, message",
+    [
+        ('["none_such"]', "fit_material.bounds: 'none_such' is not name=lower:upper"),
+        ('["eta=2:1.5"]', "fit_material.bounds: 'eta=2:1.5' has lower >= upper"),
+        ('["colour=0:1"]', "fit_material.bounds names 'colour', no material parameter"),
+    ],
+)
+def test_the_fits_bounds_are_refused_as_the_settings_load(bounds, message):
+    """Not when fit_material starts, after every stage before it ran."""
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        load_config(schema(STAGES), None, "standard", [f"fit_material.bounds={bounds}"])
+    load_config(schema(STAGES), None, "standard", ['fit_material.bounds=["eta=1.3:1.6"]'])
+
+
 def test_real_presets_load_with_the_real_stages():
     for preset in ("draft", "standard", "final"):
         load_config(schema(STAGES), None, preset)
