@@ -45,7 +45,7 @@ from pipeline.core.errors import PipelineError
 from pipeline.core.sections import BoardSection, CamerasSection
 from pipeline.core.stage import Stage, StageInputs, StageResult
 from pipeline.formats.external_cameras import read_external_cameras
-from pipeline.formats.known_intrinsics import fitted_to, read_known_intrinsics
+from pipeline.formats.known_intrinsics import OPENCV_SUFFIXES, fitted_to, read_known_intrinsics
 from pipeline.imaging.photo_io import (
     PHOTO_SUFFIXES,
     camera_setting,
@@ -82,7 +82,7 @@ class Config:
     sensor_width_mm: Annotated[float, Range(0.0, None)] = 0.0
     """Long side of the sensor in mm, for the EXIF fallback when the photos carry a focal
     length in mm but no focal-plane resolution; 0 when unknown."""
-    known_intrinsics: Annotated[str, InputFile(suffixes=(".json", ".yml", ".yaml", ".xml"))] = ""
+    known_intrinsics: Annotated[str, InputFile(suffixes=(".json", *OPENCV_SUFFIXES))] = ""
     """A calibration made elsewhere (a lab's, or another capture's intrinsics.json) for
     every photo in images/, relative to the capture folder: JSON or OpenCV YAML/XML
     (pipeline/formats/known_intrinsics.py). It replaces board shots and EXIF, is scaled

@@ -131,9 +131,10 @@ class Config(FitSettings):
         except PipelineError as error:
             raise ConfigError(str(error)) from None
         known = {n for parameters in materials.MODEL_PARAMETERS.values() for n in parameters}
-        for parameter in set(spans) - known:
+        unknown = sorted(set(spans) - known)
+        if unknown:
             raise ConfigError(
-                f"{name}.bounds names {parameter!r}, no material parameter: use one of {', '.join(sorted(known))}"
+                f"{name}.bounds names {unknown[0]!r}, no material parameter: use one of {', '.join(sorted(known))}"
             )
 
 

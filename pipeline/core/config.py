@@ -115,6 +115,7 @@ def input_file_path(capture_dir: Path, value: str) -> Path:
 
 
 def _check_input_files(name: str, section: Any, capture_dir: Path, origins: Mapping[str, str]) -> None:
+    markers = _input_file_markers(type(section))
     for key, value in input_file_settings(section).items():
         path = input_file_path(capture_dir, value)
         origin = origins.get(key, "defaults")
@@ -130,7 +131,7 @@ def _check_input_files(name: str, section: Any, capture_dir: Path, origins: Mapp
         special = special_kind(path)
         if special:
             raise ConfigError(f"{name}.{key} = {value!r} is {special}, not a file: name a regular file")
-        problem = _input_file_markers(type(section))[key].problem(path)
+        problem = markers[key].problem(path)
         if problem:
             raise ConfigError(f"{name}.{key} = {value!r} {problem}")
 
