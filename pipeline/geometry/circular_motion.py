@@ -1180,8 +1180,21 @@ def _outline_offset(solver: _Solver, members: np.ndarray) -> silhouette_tangency
     return silhouette_tangency.place(group, solver.pose_at, partners, candidates, solver.g[FOCAL])
 
 
+def matched_pairs(
+    matches: dict[tuple[str, str], dict[int, int]], first: set[str], second: set[str], min_matches: int
+) -> int:
+    """How many pairs of a photo of ``first`` and one of ``second`` share ``min_matches``
+    verified matches."""
+    return sum(1 for (a, b), found in matches.items() if a in first and b in second and len(found) >= min_matches)
+
+
 def _join_groups(
-    solver: _Solver, tracks, free: np.ndarray, unplaced: dict[str, str], observations: Observations
+    solver: _Solver,
+    tracks,
+    free: np.ndarray,
+    unplaced: dict[str, str],
+    observations: Observations,
+    matches: dict[tuple[str, str], dict[int, int]],
 ) -> tuple[list[dict], Observations]:
     """Step 4 for the groups, where outlines are fitted: each group (largest first) is put
     at the offset where its outlines agree best with the ring's and the ring is solved
@@ -1193,7 +1206,12 @@ def _join_groups(
     ``silhouette_ambiguity`` times as well (the slope of the best offset's own valley
     is no rival), or where the joined ring's tangency noise is more than
     ``misfit_ratio`` times the ring's alone, as a wrong offset or a wrong mask makes
-    it. Returns a report per group and the inlier observations of the ring as it stands."""
+    it. A group that strong pairs of matches tie to the ring's photos, pairs one circle
+    does not explain (step 3 set them aside), is another set: the camera moved or the
+    specimen was re-placed between them, and no one offset on this circle is right.
+    It is left for pipeline.geometry.turntable_sets to join by those matches, never
+    by outlines. Returns a report per group and the inlier observations of the ring
+    as it stands."""
     reports: list[dict] = []
     if solver.outlines is None:
         return reports, observations
@@ -1204,6 +1222,15 @@ def _join_groups(
         before = solver.coherence.get("tangency_sigma_px")
         report: dict = {"photos": [solver.order[i] for i in members]}
         reports.append(report)
+        ring_names = {solver.order[i] for i in np.flatnonzero(_in_ring(solver))}
+        crossing = matched_pairs(matches, ring_names, set(report["photos"]), solver.settings.min_observations)
+        if crossing:
+            report["joined"] = False
+            report["decision"] = (
+                f"another set: {crossing} pairs of matches with the ring that one circle does not explain; "
+                "joined by its features or left out"
+            )
+            continue
         placement = _outline_offset(solver, members) if before is not None else None
         if placement is None:
             why = (
@@ -1290,7 +1317,7 @@ def solve(
         if weak_pairs["kept"]:
             ring = extended
     solver, tracks, observations, unplaced, free = ring
-    joined_groups, observations = _join_groups(solver, tracks, free, unplaced, observations)
+    joined_groups, observations = _join_groups(solver, tracks, free, unplaced, observations, matches)
     free, calibration = _self_calibration(solver, tracks, free, observations)
     result, problem, points, observations, counts, std = _solve_placing(solver, tracks, free, unplaced)
     # Tracks from the inlier observations (outliers were dropped from tracks, not from

@@ -1,0 +1,293 @@
+"""Sets of a turntable capture joined by their features: a user shoots a turn, moves the
+tripod up or down for a second ring, or turns the specimen over and shoots another
+turn. Each set is its own circular motion (the camera's height, tilt and distance
+from the axis are its own; a re-placed specimen stands on the table in a new pose),
+and its place relative to the first set is known only where features prove it.
+
+1. **Which groups are sets** (pipeline.geometry.circular_motion, ``_join_groups``): a
+   group of photos the circular-motion solver left apart from the ring, whose
+   photos share strong pairs of verified matches with the ring's that one circle
+   does not explain, is another set. (A group no such pair ties to the ring is an
+   arc of the ring that matching left apart: its outlines place it, marked uncertain.)
+2. **Each set alone**: its photos' circular motion solved at the ring's intrinsics
+   (held: one camera), its own axis, camera offset, angles and points.
+3. **The join**: the similarity (rotation, translation, scale: each set's unit is its
+   own camera's distance from the axis) taking the set's points into the ring's
+   frame. Drawn by RANSAC from triples of points that matches across the sets tie
+   together, then refined on the reprojection errors of every such match's
+   observations (a set's point in the ring's photo, a ring's point in the set's
+   photo). Its inliers lie within ``join_noise_factor`` times the larger median
+   reprojection error of the two sets' own features: a noise level measured on the
+   photos, not a number of pixels. The set is joined when at least
+   ``min_observations`` inlier observations from at least two photo pairs fit (one
+   false pair cannot join a set); else it is left out, with the reason.
+4. **The report**: per set its photos, the pairs and inliers, the residual, the
+   uncertainty of its turn about the ring's axis (from the refinement's covariance),
+   and how the camera moved: the change of its elevation over the table, its distance
+   from the axis, and how far the specimen's axis turned (a specimen turned over).
+
+Limitations: the sets' circles are solved apart and joined after, not adjusted
+together: a set's own axis and angles are what its own features give, and the
+matches across sets fix only where it lies. Outlines never join a set.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from pipeline.camera.model import Intrinsics, Pose, similarity_umeyama
+from pipeline.geometry.circular_motion import CircularMotion
+
+JOIN_TRIALS = 500
+"""RANSAC draws of three tied points: with half of them right, the chance that none of
+500 draws is all right is 1e-29."""
+
+
+@dataclass
+class Join:
+    """A set joined to the ring: ring-frame points are ``scale * R @ set points + t``."""
+
+    scale: float
+    R: np.ndarray
+    t: np.ndarray
+    report: dict
+
+    def pose(self, own: Pose) -> Pose:
+        """A set photo's pose (in the set's frame) in the ring's frame."""
+        R = own.R @ self.R.T
+        return Pose(R, self.scale * own.t - R @ self.t)
+
+    def points(self, own: np.ndarray) -> np.ndarray:
+        return self.scale * own @ self.R.T + self.t
+
+
+@dataclass
+class _Tied:
+    """What matches across the sets tie: pairs of points (ring's, set's), and the
+    observations of each side's points in the other side's photos."""
+
+    ring_points: np.ndarray
+    set_points: np.ndarray
+    in_ring_photos: list[tuple[str, np.ndarray, int, tuple[str, str]]]
+    """(ring photo, pixel, set point index, the pair of photos whose match it is)."""
+    in_set_photos: list[tuple[str, np.ndarray, int, tuple[str, str]]]
+    """(set photo, pixel, ring point index, the pair of photos whose match it is)."""
+
+
+def _track_index(solution: CircularMotion) -> dict[tuple[str, int], int]:
+    """(photo, keypoint) -> point index of the solution's tracks."""
+    return {(name, k): point for point, track in enumerate(solution.tracks) for name, k in track.items()}
+
+
+def _tie(
+    ring: CircularMotion,
+    ring_poses: dict[str, Pose],
+    own: CircularMotion,
+    own_poses: dict[str, Pose],
+    keypoints: dict[str, np.ndarray],
+    matches: dict[tuple[str, str], dict[int, int]],
+) -> _Tied:
+    ring_index, own_index = _track_index(ring), _track_index(own)
+    ring_points, set_points, in_ring, in_set = [], [], [], []
+    seen: set[tuple[int, int]] = set()
+    for (a, b), found in sorted(matches.items()):
+        if a not in ring_poses or b not in own_poses:
+            continue
+        for ka, kb in found.items():
+            ring_point, set_point = ring_index.get((a, ka)), own_index.get((b, kb))
+            if set_point is not None:
+                in_ring.append((a, keypoints[a][ka], set_point, (a, b)))
+            if ring_point is not None:
+                in_set.append((b, keypoints[b][kb], ring_point, (a, b)))
+            if ring_point is not None and set_point is not None and (ring_point, set_point) not in seen:
+                seen.add((ring_point, set_point))
+                ring_points.append(ring.points[ring_point])
+                set_points.append(own.points[set_point])
+    return _Tied(np.array(ring_points).reshape(-1, 3), np.array(set_points).reshape(-1, 3), in_ring, in_set)
+
+
+def project(intrinsics: Intrinsics, pose: Pose, points: np.ndarray) -> np.ndarray:
+    """Pixels of ``points`` (n, 3) in a photo at ``pose``, with the radial term k1 the
+    circular-motion solver fits (the photos' pixels carry what undistort left)."""
+    camera = points @ pose.R.T + pose.t
+    z = np.maximum(camera[:, 2], 1e-9)
+    x, y = camera[:, 0] / z, camera[:, 1] / z
+    radial = 1 + intrinsics.dist[0] * (x * x + y * y)
+    return np.column_stack([intrinsics.fx * x * radial + intrinsics.cx, intrinsics.fy * y * radial + intrinsics.cy])
+
+
+class _Residuals:
+    """Reprojection errors of the tied observations under a similarity (rotation vector,
+    translation, log scale): a set point in a ring photo, a ring point in a set photo."""
+
+    def __init__(self, tied: _Tied, ring: CircularMotion, ring_poses, own: CircularMotion, own_poses):
+        self.intrinsics = ring.intrinsics
+        self.ring_side = _Side(tied.in_ring_photos, ring_poses, own.points)
+        self.set_side = _Side(tied.in_set_photos, own_poses, ring.points)
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        return np.concatenate([self.errors(x, self.ring_side), self.errors(x, self.set_side)]).ravel()
+
+    def errors(self, x: np.ndarray, side: "_Side") -> np.ndarray:
+        if not len(side.pixels):
+            return np.zeros((0, 2))
+        R, t, scale = Rotation.from_rotvec(x[:3]).as_matrix(), x[3:6], np.exp(x[6])
+        if side is self.ring_side:  # set points into the ring's frame
+            moved = scale * side.points @ R.T + t
+        else:  # ring points into the set's frame
+            moved = (side.points - t) @ R / scale
+        out = np.zeros_like(side.pixels)
+        for name, rows in side.rows.items():
+            out[rows] = project(self.intrinsics, side.poses[name], moved[rows]) - side.pixels[rows]
+        return out
+
+    def inliers(self, x: np.ndarray, limit_px: float) -> tuple[np.ndarray, np.ndarray]:
+        """Which observations of each side reproject within ``limit_px``."""
+        return tuple(
+            np.linalg.norm(self.errors(x, side), axis=1) < limit_px for side in (self.ring_side, self.set_side)
+        )
+
+
+class _Side:
+    """Observations of one side's photos of the other side's points."""
+
+    def __init__(self, observed: list[tuple], poses: dict[str, Pose], points: np.ndarray):
+        self.poses = poses
+        self.names = [name for name, *_ in observed]
+        self.pairs = [pair for *_, pair in observed]
+        self.pixels = np.array([pixel for _, pixel, *_ in observed]).reshape(-1, 2)
+        self.points = points[[point for _, _, point, _ in observed]].reshape(-1, 3)
+        self.rows: dict[str, np.ndarray] = {}
+        for row, name in enumerate(self.names):
+            self.rows.setdefault(name, []).append(row)
+        self.rows = {name: np.array(rows) for name, rows in self.rows.items()}
+
+
+def _parameters(scale: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    return np.concatenate([Rotation.from_matrix(R).as_rotvec(), t, [np.log(scale)]])
+
+
+def join(
+    ring: CircularMotion,
+    ring_poses: dict[str, Pose],
+    own: CircularMotion,
+    own_poses: dict[str, Pose],
+    keypoints: dict[str, np.ndarray],
+    matches: dict[tuple[str, str], dict[int, int]],
+    min_observations: int,
+    noise_factor: float,
+    axis: np.ndarray,
+) -> tuple[Join | None, dict]:
+    """Steps 3-4 for one set: its join to the ring (None when features do not prove
+    one) and its report. ``axis``: the turntable's axis in the ring's frame."""
+    tied = _tie(ring, ring_poses, own, own_poses, keypoints, matches)
+    noise_px = max(ring.reprojection_px, own.reprojection_px, 0.1)
+    limit_px = noise_factor * noise_px
+    report: dict = {
+        "tied_points": len(tied.ring_points),
+        "observations_across": len(tied.in_ring_photos) + len(tied.in_set_photos),
+        "noise_px": round(noise_px, 3),
+        "inlier_limit_px": round(limit_px, 3),
+    }
+    if len(tied.ring_points) < 3:
+        report["decision"] = f"only {len(tied.ring_points)} points tied across the sets by matches: no join"
+        return None, report
+    residuals = _Residuals(tied, ring, ring_poses, own, own_poses)
+    # RANSAC over triples of tied points, scored by the observations it explains.
+    rng = np.random.default_rng(0)
+    best, best_count = None, -1
+    for _ in range(JOIN_TRIALS):
+        sample = rng.choice(len(tied.ring_points), 3, replace=False)
+        source, target = tied.set_points[sample], tied.ring_points[sample]
+        if np.linalg.matrix_rank(source - source.mean(0), tol=1e-9) < 2:
+            continue
+        scale, R, t = similarity_umeyama(source, target)
+        if not np.isfinite(scale) or scale <= 0:
+            continue
+        x = _parameters(scale, R, t)
+        count = sum(int(inside.sum()) for inside in residuals.inliers(x, limit_px))
+        if count > best_count:
+            best, best_count = x, count
+    if best is None:
+        report["decision"] = "the tied points are degenerate (on one line): no join"
+        return None, report
+    # Refined on the inliers of the best draw, then counted again.
+    x = best
+    for _ in range(2):
+        ring_in, set_in = residuals.inliers(x, limit_px)
+
+        def inlier_residuals(v: np.ndarray, ring_in=ring_in, set_in=set_in) -> np.ndarray:
+            return np.concatenate(
+                [residuals.errors(v, residuals.ring_side)[ring_in], residuals.errors(v, residuals.set_side)[set_in]]
+            ).ravel()
+
+        if not (ring_in.sum() + set_in.sum()):
+            break
+        fit = least_squares(inlier_residuals, x, loss="soft_l1", f_scale=noise_px)
+        x = fit.x
+    ring_in, set_in = residuals.inliers(x, limit_px)
+    inliers = int(ring_in.sum() + set_in.sum())
+    photo_pairs = len(
+        {pair for pair, inside in zip(residuals.ring_side.pairs, ring_in) if inside}
+        | {pair for pair, inside in zip(residuals.set_side.pairs, set_in) if inside}
+    )
+    errors = np.concatenate(
+        [residuals.errors(x, residuals.ring_side)[ring_in], residuals.errors(x, residuals.set_side)[set_in]]
+    )
+    report["inliers"] = inliers
+    report["photo_pairs"] = photo_pairs
+    report["residual_px_median"] = round(float(np.median(np.linalg.norm(errors, axis=1))), 3) if inliers else None
+    if inliers < min_observations or photo_pairs < 2:
+        report["decision"] = (
+            f"{inliers} observations across the sets fit one join within {limit_px:.2f} px, from {photo_pairs} "
+            f"pairs of photos; a join needs {min_observations} from at least two pairs"
+        )
+        return None, report
+    R, t, scale = Rotation.from_rotvec(x[:3]).as_matrix(), x[3:6], float(np.exp(x[6]))
+    joined = Join(scale, R, t, report)
+    report["angle_std_deg"] = _turn_std_deg(x, inlier_residuals, axis, errors)
+    report.update(_camera_moves(ring, ring_poses, own, own_poses, joined, axis))
+    report["decision"] = f"joined by {inliers} observations of {photo_pairs} pairs of photos within {limit_px:.2f} px"
+    return joined, report
+
+
+def _turn_std_deg(x: np.ndarray, residual, axis: np.ndarray, errors: np.ndarray) -> float:
+    """One standard deviation of the join's turn about the table's axis (degrees), from
+    the refinement's covariance at the inliers' own noise."""
+    step = 1e-6
+    base = residual(x)
+    J = np.column_stack([(residual(x + step * e) - base) / step for e in np.eye(len(x))])
+    sigma = float(np.sqrt(np.mean(errors**2))) if len(errors) else 1.0
+    covariance = np.linalg.pinv(J.T @ J) * sigma**2
+    return float(np.degrees(np.sqrt(max(axis @ covariance[:3, :3] @ axis, 0.0))))
+
+
+def _camera_moves(ring, ring_poses, own, own_poses, joined: Join, axis: np.ndarray) -> dict:
+    """How the set's camera stands to the table against the ring's: its elevation over
+    the table and its distance from the axis (medians over the photos), and how far the
+    set's own axis lies from the ring's (a specimen re-placed or turned over)."""
+
+    def elevation_and_distance(poses: list[Pose]) -> tuple[float, float]:
+        elevations, distances = [], []
+        for pose in poses:
+            along = float((pose.center - ring.point) @ axis)
+            radial = np.linalg.norm(pose.center - ring.point - along * axis)
+            forward = pose.R[2]
+            elevations.append(np.degrees(np.arcsin(np.clip(-forward @ axis, -1, 1))))
+            distances.append(radial)
+        return float(np.median(elevations)), float(np.median(distances))
+
+    ring_elevation, ring_distance = elevation_and_distance(list(ring_poses.values()))
+    set_elevation, set_distance = elevation_and_distance([joined.pose(p) for p in own_poses.values()])
+    own_axis = joined.R @ own.axis
+    tilt = float(np.degrees(np.arccos(np.clip(abs(own_axis @ axis), -1, 1))))
+    return {
+        # The axis' sign follows the turning sense, not up: the change's size is reported.
+        "elevation_change_deg": round(abs(set_elevation - ring_elevation), 2),
+        "distance_ratio": round(set_distance / ring_distance, 4) if ring_distance else None,
+        "specimen_axis_turned_deg": round(tilt, 2),
+    }
