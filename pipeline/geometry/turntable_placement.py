@@ -62,6 +62,12 @@ class RigSettings:
     tangency of pairs of photos, each cue weighted by its own measured noise): features on
     a plain or glossy specimen are shading that stays with the light, and the outlines
     decide what they leave loose. Off: the features alone."""
+    set_separation: Annotated[float, Range(2.0, None)] = 6.0
+    """Turntable or ring: the photos are taken as several sets (the camera moved up or
+    down, nearer or farther between turns) where, each posed freely on the circle's
+    points, they fall into groups whose elevations (or distances from the axis) lie
+    this many robust standard deviations apart; one set's photos scatter about one
+    height, and the best split of such a scatter lies about three apart."""
     join_noise_factor: Annotated[float, Range(1.0, None)] = 4.0
     """Turntable or ring with several sets (the camera moved or the specimen re-placed
     between turns): an observation across two sets fits their join when it reprojects
@@ -86,6 +92,8 @@ class PlacementSettings:
     """The outlines are fitted with the features."""
     join_noise_factor: float = 4.0
     """An observation across two sets fits their join within this many times their features' noise."""
+    set_separation: float = 6.0
+    """Groups of free cameras this many robust standard deviations apart are sets."""
     max_partners: int = 16
     """Placed photos a silhouette is compared with, spread round the circle."""
 
@@ -117,6 +125,7 @@ class PlacementSettings:
             rig.silhouette_ambiguity,
             rig.silhouette_coherence,
             rig.join_noise_factor,
+            rig.set_separation,
         )
 
 
@@ -141,24 +150,35 @@ def circular_poses(
             "calibration.json): shoot it with one camera, zoom and image size"
         )
     hulls = _hulls(masks)
-    try:
-        first = intrinsics[order[0]]
-        solution = circular_motion.solve(
-            settings.circular,
-            order,
-            first,
-            keypoints,
-            matches,
-            board_poses,
-            outlines=hulls if settings.silhouette_coherence else None,
-            unverified=unverified,
+    solution = _solve(settings, order, intrinsics[order[0]], keypoints, matches, board_poses, hulls, unverified)
+    # Sets shot from different heights or distances: one circle puts them all between;
+    # posed freely on its points, each set's photos stand at their own (turntable_sets).
+    table = Turntable(solution.axis, solution.point, np.eye(3), np.zeros(3), dict(solution.angles))
+    cameras = turntable_sets.free_cameras(
+        solution, {n: table.pose(a) for n, a in table.angles.items()}, keypoints, matches
+    )
+    found_sets = turntable_sets.split_by_camera(cameras, settings.set_separation, max(3, len(order) // 10))
+    other_sets: list[list[str]] = []
+    if len(found_sets) > 1:
+        found_sets.sort(key=len, reverse=True)
+        other_sets = [[n for n in order if n in found] for found in found_sets[1:]]
+        apart = {n for found in other_sets for n in found}
+        first_set = [n for n in order if n not in apart]
+        logger.info(
+            "circular motion: %d sets by where their cameras stand (%s): the first solved alone, the others joined",
+            len(found_sets),
+            ", ".join(str(len(found)) for found in found_sets),
         )
-    except ValueError as error:
-        raise PipelineError(
-            f"the photos' features do not determine the turning: {error}. Check the photos with "
-            "`pipeline check`; give the table texture (a printed board or a patterned mat) or shoot more "
-            "photos per turn"
-        ) from error
+        solution = _solve(
+            settings,
+            first_set,
+            intrinsics[order[0]],
+            keypoints,
+            {pair: m for pair, m in matches.items() if pair[0] not in apart and pair[1] not in apart},
+            {n: p for n, p in board_poses.items() if n not in apart},
+            hulls,
+            {pair: m for pair, m in (unverified or {}).items() if pair[0] not in apart and pair[1] not in apart},
+        )
     table = Turntable(solution.axis, solution.point, np.eye(3), np.zeros(3), dict(solution.angles))
     unplaced = dict(solution.unplaced)
     if any(solution.partners.get(n, 0) < 2 for n in solution.angles):
@@ -171,7 +191,7 @@ def circular_poses(
             if name in source:
                 source[name] = "joined_by_outline"
     details: dict[str, dict] = {}
-    sets = _join_sets(settings, order, solution, table, keypoints, matches, hulls)
+    sets = _join_sets(settings, order, solution, table, keypoints, matches, hulls, other_sets)
     for name, pose in sets.poses.items():
         source[name] = "features_across_sets"
     for name, angle in _by_board(table, solution, board_poses, unplaced).items():
@@ -236,6 +256,35 @@ def circular_poses(
     return table, poses, solution, report
 
 
+def _solve(
+    settings: PlacementSettings,
+    order: list[str],
+    start: Intrinsics,
+    keypoints: dict[str, np.ndarray],
+    matches: dict[tuple[str, str], dict[int, int]],
+    board_poses: dict[str, Pose],
+    hulls: dict[str, np.ndarray],
+    unverified: dict[tuple[str, str], dict[int, int]] | None,
+) -> CircularMotion:
+    try:
+        return circular_motion.solve(
+            settings.circular,
+            order,
+            start,
+            keypoints,
+            matches,
+            board_poses,
+            outlines={n: hulls[n] for n in order if n in hulls} if settings.silhouette_coherence else None,
+            unverified=unverified,
+        )
+    except ValueError as error:
+        raise PipelineError(
+            f"the photos' features do not determine the turning: {error}. Check the photos with "
+            "`pipeline check`; give the table texture (a printed board or a patterned mat) or shoot more "
+            "photos per turn"
+        ) from error
+
+
 @dataclass
 class _Sets:
     """The capture's other sets: the group numbers that were sets, the joined sets'
@@ -261,20 +310,26 @@ def _join_sets(
     keypoints: dict[str, np.ndarray],
     matches: dict[tuple[str, str], dict[int, int]],
     hulls: dict[str, np.ndarray],
+    other_sets: list[list[str]],
 ) -> _Sets:
-    """Each group that strong pairs of matches tie to the ring is another set: solved
-    alone at the ring's intrinsics and joined by those matches
-    (pipeline.geometry.turntable_sets), or left out with one warning naming its photos."""
+    """Each of ``other_sets`` (found where their cameras stand), and each group that
+    strong pairs of matches tie to the ring, is another set: solved alone at the ring's
+    intrinsics and joined by its matches with the ring (pipeline.geometry.turntable_sets),
+    or left out with one warning naming its photos."""
     sets = _Sets()
     ring_names = set(table.angles)
     ring_poses = {name: table.pose(angle) for name, angle in table.angles.items()}
     held = replace(settings.circular, refine_focal=False, self_calibrate=False, even_steps_deg=0.0)
-    for number, group in enumerate(solution.groups, start=1):
-        names = [name for name in order if name in group]
-        crossing = matched_pairs(matches, ring_names, set(names), settings.circular.min_observations)
-        if not crossing:
-            continue
-        sets.numbers.add(number)
+    candidates = [(None, names) for names in other_sets] + [
+        (number, [name for name in order if name in group]) for number, group in enumerate(solution.groups, start=1)
+    ]
+    for number, names in candidates:
+        group = set(names)
+        crossing = matched_pairs(matches, ring_names, group, settings.circular.min_observations)
+        if number is not None and not crossing:
+            continue  # an arc of the ring that matching left apart: its outlines place it
+        if number is not None:
+            sets.numbers.add(number)
         report: dict = {"set": len(sets.reports) + 2, "photos": names, "pairs_across": crossing}
         sets.reports.append(report)
         own_matches = {pair: found for pair, found in matches.items() if pair[0] in group and pair[1] in group}

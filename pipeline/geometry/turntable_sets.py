@@ -291,3 +291,80 @@ def _camera_moves(ring, ring_poses, own, own_poses, joined: Join, axis: np.ndarr
         "distance_ratio": round(set_distance / ring_distance, 4) if ring_distance else None,
         "specimen_axis_turned_deg": round(tilt, 2),
     }
+
+
+def free_cameras(
+    solution: CircularMotion, poses: dict[str, Pose], keypoints: dict[str, np.ndarray], matches
+) -> dict[str, tuple[float, float]]:
+    """Each placed photo's camera posed freely on the solution's points (PnP with RANSAC
+    through its matches to photos whose keypoints the tracks hold, started at its
+    circle pose): its elevation over the circle's plane (degrees) and its distance from
+    the axis (in the circle's unit). One circle fitted to two sets shot from different
+    heights puts both between them; posed freely, each set's photos sit at their own."""
+    import cv2
+
+    K = solution.intrinsics
+    camera = np.array([[K.fx, 0, K.cx], [0, K.fy, K.cy], [0, 0, 1.0]])
+    distortion = np.array([K.dist[0], 0, 0, 0, 0], float)
+    tracked = _track_index(solution)
+    found = {}
+    for name, pose in poses.items():
+        objects, pixels = [], []
+        for (a, b), pairs in matches.items():
+            if a != name:
+                continue
+            for mine, theirs in pairs.items():
+                point = tracked.get((b, theirs))
+                if point is not None:
+                    objects.append(solution.points[point])
+                    pixels.append(keypoints[name][mine])
+        if len(objects) < 6:
+            continue
+        rvec = cv2.Rodrigues(pose.R)[0]
+        ok, rvec, tvec, inliers = cv2.solvePnPRansac(
+            np.array(objects, float), np.array(pixels, float), camera, distortion, rvec, pose.t.reshape(3, 1).copy(),
+            useExtrinsicGuess=True, reprojectionError=max(2.0, 4 * solution.reprojection_px), iterationsCount=200,
+        )  # fmt: skip
+        if not ok or inliers is None or len(inliers) < 6:
+            continue
+        centre = -cv2.Rodrigues(rvec)[0].T @ tvec.ravel() - solution.point
+        along = float(centre @ solution.axis)
+        radial = float(np.linalg.norm(centre - along * solution.axis))
+        found[name] = (float(np.degrees(np.arctan2(along, radial))), radial)
+    return found
+
+
+def split_by_camera(cameras: dict[str, tuple[float, float]], separation: float, min_photos: int) -> list[list[str]]:
+    """The photos in groups whose free cameras stand at different elevations:
+    recursively, the split of the sorted elevations into two groups with the least
+    squares within them (Otsu's) is kept where their medians lie ``separation`` robust
+    standard deviations apart (each group's median absolute deviation, pooled by size,
+    at least ``MIN_ELEVATION_SPREAD_DEG``) and each holds ``min_photos``. One set's
+    photos scatter about one elevation: the best split of one unimodal scatter lies
+    about three deviations apart. (A camera moved only nearer or farther changes its
+    elevation too; the distances from the axis split a single set's photos where they
+    cluster by chance, and are not used.)"""
+    names = sorted(cameras, key=lambda n: cameras[n][0])
+    elevations = np.array([cameras[n][0] for n in names])
+    cuts = range(min_photos, len(names) - min_photos + 1)
+    if not cuts:
+        return [names]
+    # The cut is Otsu's (the least squares within the two groups); the test is robust.
+    cut = min(cuts, key=lambda c: float(np.var(elevations[:c]) * c + np.var(elevations[c:]) * (len(names) - c)))
+    low, high = elevations[:cut], elevations[cut:]
+    spread = np.sqrt((len(low) * _robust_std(low) ** 2 + len(high) * _robust_std(high) ** 2) / len(names))
+    if (np.median(high) - np.median(low)) / max(spread, MIN_ELEVATION_SPREAD_DEG) < separation:
+        return [names]
+    return [
+        *split_by_camera({n: cameras[n] for n in names[:cut]}, separation, min_photos),
+        *split_by_camera({n: cameras[n] for n in names[cut:]}, separation, min_photos),
+    ]
+
+
+MIN_ELEVATION_SPREAD_DEG = 0.05
+"""The least scatter of one set's free elevations: a few photos that agree by chance
+must not make a tiny gap look wide."""
+
+
+def _robust_std(values: np.ndarray) -> float:
+    return float(1.4826 * np.median(np.abs(values - np.median(values))))
