@@ -20,7 +20,10 @@ and its place relative to the first set is known only where features prove it.
    reprojection error of the two sets' own features: a noise level measured on the
    photos, not a number of pixels. The set is joined when at least
    ``min_observations`` inlier observations from at least two photo pairs fit (one
-   false pair cannot join a set); else it is left out, with the reason.
+   false pair cannot join a set), and ``CHANCE_FACTOR`` times as many as the same
+   estimation finds with the matches across the sets shuffled (a similarity chosen
+   from hundreds of draws and refined explains a few dozen of thousands of random
+   observations); else it is left out, with the reason.
 4. **The report**: per set its photos, the pairs and inliers, the residual, the
    uncertainty of its turn about the ring's axis (from the refinement's covariance),
    and how the camera moved: the change of its elevation over the table, its distance
@@ -42,6 +45,10 @@ from scipy.spatial.transform import Rotation
 from pipeline.camera.model import Intrinsics, Pose, similarity_umeyama
 from pipeline.geometry.circular_motion import CircularMotion
 
+CHANCE_FACTOR = 3
+"""A join must explain this many times the observations the same estimation explains
+with the matches across the sets shuffled (random matches were joined by 26 of 4,000
+observations, at least 15 and from 20 pairs of photos)."""
 JOIN_TRIALS = 500
 """RANSAC draws of three tied points: with half of them right, the chance that none of
 500 draws is all right is 1e-29."""
@@ -171,6 +178,74 @@ def _parameters(scale: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return np.concatenate([Rotation.from_matrix(R).as_rotvec(), t, [np.log(scale)]])
 
 
+@dataclass
+class _Estimate:
+    """A join drawn and refined on one set of tied observations."""
+
+    x: np.ndarray
+    """Rotation vector, translation, log scale."""
+    inliers: int
+    photo_pairs: int
+    errors: np.ndarray
+    """(inliers, 2) reprojection errors of the inlier observations."""
+    residual: object
+    """The inliers' residual function of ``x`` (for the covariance)."""
+
+
+def _estimate(residuals: "_Residuals", tied: _Tied, limit_px: float, noise_px: float) -> _Estimate | None:
+    """RANSAC over triples of tied points, scored by the observations each draw explains,
+    then least squares on the best draw's inliers (twice, recounting them)."""
+    rng = np.random.default_rng(0)
+    best, best_count = None, -1
+    for _ in range(JOIN_TRIALS):
+        sample = rng.choice(len(tied.ring_points), 3, replace=False)
+        source, target = tied.set_points[sample], tied.ring_points[sample]
+        if np.linalg.matrix_rank(source - source.mean(0), tol=1e-9) < 2:
+            continue
+        scale, R, t = similarity_umeyama(source, target)
+        if not np.isfinite(scale) or scale <= 0:
+            continue
+        x = _parameters(scale, R, t)
+        count = sum(int(inside.sum()) for inside in residuals.inliers(x, limit_px))
+        if count > best_count:
+            best, best_count = x, count
+    if best is None:
+        return None
+    x = best
+    for _ in range(2):
+        ring_in, set_in = residuals.inliers(x, limit_px)
+        if not (ring_in.sum() + set_in.sum()):
+            break
+        x = least_squares(_InlierResiduals(residuals, ring_in, set_in), x, loss="soft_l1", f_scale=noise_px).x
+    ring_in, set_in = residuals.inliers(x, limit_px)
+    pairs = {pair for pair, inside in zip(residuals.ring_side.pairs, ring_in) if inside}
+    pairs |= {pair for pair, inside in zip(residuals.set_side.pairs, set_in) if inside}
+    inlier_residuals = _InlierResiduals(residuals, ring_in, set_in)
+    return _Estimate(
+        x, int(ring_in.sum() + set_in.sum()), len(pairs), inlier_residuals(x).reshape(-1, 2), inlier_residuals
+    )
+
+
+class _InlierResiduals:
+    def __init__(self, residuals: "_Residuals", ring_in: np.ndarray, set_in: np.ndarray):
+        self.residuals, self.ring_in, self.set_in = residuals, ring_in, set_in
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        r = self.residuals
+        return np.concatenate([r.errors(x, r.ring_side)[self.ring_in], r.errors(x, r.set_side)[self.set_in]]).ravel()
+
+
+def _shuffled(matches: dict[tuple[str, str], dict[int, int]], ring: set[str], rng) -> dict:
+    """The matches across the sets with each pair's partners shuffled: what the same
+    photos, points and geometry give by chance."""
+    shuffled = {}
+    for (a, b), found in matches.items():
+        if a in ring and b not in ring and found:
+            keys, values = list(found), rng.permutation(list(found.values()))
+            shuffled[a, b] = dict(zip(keys, (int(v) for v in values)))
+    return shuffled
+
+
 def join(
     ring: CircularMotion,
     ring_poses: dict[str, Pose],
@@ -193,65 +268,44 @@ def join(
         "noise_px": round(noise_px, 3),
         "inlier_limit_px": round(limit_px, 3),
     }
-    if len(tied.ring_points) < 3:
-        report["decision"] = f"only {len(tied.ring_points)} points tied across the sets by matches: no join"
+    found = _estimate(_Residuals(tied, ring, ring_poses, own, own_poses), tied, limit_px, noise_px)
+    if len(tied.ring_points) < 3 or found is None:
+        report["decision"] = f"{len(tied.ring_points)} points tied across the sets by matches, none in general place"
         return None, report
-    residuals = _Residuals(tied, ring, ring_poses, own, own_poses)
-    # RANSAC over triples of tied points, scored by the observations it explains.
-    rng = np.random.default_rng(0)
-    best, best_count = None, -1
-    for _ in range(JOIN_TRIALS):
-        sample = rng.choice(len(tied.ring_points), 3, replace=False)
-        source, target = tied.set_points[sample], tied.ring_points[sample]
-        if np.linalg.matrix_rank(source - source.mean(0), tol=1e-9) < 2:
-            continue
-        scale, R, t = similarity_umeyama(source, target)
-        if not np.isfinite(scale) or scale <= 0:
-            continue
-        x = _parameters(scale, R, t)
-        count = sum(int(inside.sum()) for inside in residuals.inliers(x, limit_px))
-        if count > best_count:
-            best, best_count = x, count
-    if best is None:
-        report["decision"] = "the tied points are degenerate (on one line): no join"
-        return None, report
-    # Refined on the inliers of the best draw, then counted again.
-    x = best
-    for _ in range(2):
-        ring_in, set_in = residuals.inliers(x, limit_px)
-
-        def inlier_residuals(v: np.ndarray, ring_in=ring_in, set_in=set_in) -> np.ndarray:
-            return np.concatenate(
-                [residuals.errors(v, residuals.ring_side)[ring_in], residuals.errors(v, residuals.set_side)[set_in]]
-            ).ravel()
-
-        if not (ring_in.sum() + set_in.sum()):
-            break
-        fit = least_squares(inlier_residuals, x, loss="soft_l1", f_scale=noise_px)
-        x = fit.x
-    ring_in, set_in = residuals.inliers(x, limit_px)
-    inliers = int(ring_in.sum() + set_in.sum())
-    photo_pairs = len(
-        {pair for pair, inside in zip(residuals.ring_side.pairs, ring_in) if inside}
-        | {pair for pair, inside in zip(residuals.set_side.pairs, set_in) if inside}
+    # The same estimation on the matches shuffled within each pair: how many
+    # observations a join explains by chance, selected as it was from many draws.
+    null = _tie(
+        ring, ring_poses, own, own_poses, keypoints, _shuffled(matches, set(ring_poses), np.random.default_rng(1))
     )
-    errors = np.concatenate(
-        [residuals.errors(x, residuals.ring_side)[ring_in], residuals.errors(x, residuals.set_side)[set_in]]
+    chance = (
+        _estimate(_Residuals(null, ring, ring_poses, own, own_poses), null, limit_px, noise_px)
+        if len(null.ring_points) >= 3
+        else None
     )
-    report["inliers"] = inliers
-    report["photo_pairs"] = photo_pairs
-    report["residual_px_median"] = round(float(np.median(np.linalg.norm(errors, axis=1))), 3) if inliers else None
-    if inliers < min_observations or photo_pairs < 2:
+    by_chance = chance.inliers if chance is not None else 0
+    report["inliers"] = found.inliers
+    report["inliers_by_chance"] = by_chance
+    report["photo_pairs"] = found.photo_pairs
+    report["residual_px_median"] = (
+        round(float(np.median(np.linalg.norm(found.errors, axis=1))), 3) if found.inliers else None
+    )
+    needed = max(min_observations, CHANCE_FACTOR * by_chance)
+    if found.inliers < needed or found.photo_pairs < 2:
         report["decision"] = (
-            f"{inliers} observations across the sets fit one join within {limit_px:.2f} px, from {photo_pairs} "
-            f"pairs of photos; a join needs {min_observations} from at least two pairs"
+            f"{found.inliers} observations across the sets fit one join within {limit_px:.2f} px, from "
+            f"{found.photo_pairs} pairs of photos ({by_chance} with the matches shuffled); a join needs {needed} "
+            "from at least two pairs"
         )
         return None, report
+    x = found.x
     R, t, scale = Rotation.from_rotvec(x[:3]).as_matrix(), x[3:6], float(np.exp(x[6]))
     joined = Join(scale, R, t, report)
-    report["angle_std_deg"] = _turn_std_deg(x, inlier_residuals, axis, errors)
+    report["angle_std_deg"] = _turn_std_deg(x, found.residual, axis, found.errors)
     report.update(_camera_moves(ring, ring_poses, own, own_poses, joined, axis))
-    report["decision"] = f"joined by {inliers} observations of {photo_pairs} pairs of photos within {limit_px:.2f} px"
+    report["decision"] = (
+        f"joined by {found.inliers} observations of {found.photo_pairs} pairs of photos within {limit_px:.2f} px "
+        f"({by_chance} with the matches shuffled)"
+    )
     return joined, report
 
 
@@ -284,7 +338,8 @@ def _camera_moves(ring, ring_poses, own, own_poses, joined: Join, axis: np.ndarr
     ring_elevation, ring_distance = elevation_and_distance(list(ring_poses.values()))
     set_elevation, set_distance = elevation_and_distance([joined.pose(p) for p in own_poses.values()])
     own_axis = joined.R @ own.axis
-    tilt = float(np.degrees(np.arccos(np.clip(abs(own_axis @ axis), -1, 1))))
+    # Each set's axis points the way its table turned: a specimen turned over turns it by 180.
+    tilt = float(np.degrees(np.arccos(np.clip(own_axis @ axis, -1, 1))))
     return {
         # The axis' sign follows the turning sense, not up: the change's size is reported.
         "elevation_change_deg": round(abs(set_elevation - ring_elevation), 2),
