@@ -202,6 +202,8 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     metrics = {"registered": registered, "photos": report.photos}
     metrics |= {"mean_reprojection_error_px": report.mean_reprojection_error_px}
     metrics |= {"mean_track_length": report.mean_track_length, "frame": frame["source"]}
+    if "circular" in posed.details:  # the one line the log gave: sets, joins, outlines, left out
+        metrics["placed"] = posed.details["circular"]["summary"]
     return StageResult({"cameras": cameras_json, "sparse": sparse, "report": sfm_json}, metrics)
 
 
