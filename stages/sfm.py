@@ -19,9 +19,14 @@
    (sfm.json ``weak_pairs``); an arc of the ring that matching left apart
    is joined to it where its outlines fix its offset and the ring solved with both
    agrees with them (sfm.json ``joined_groups``), else placed by its silhouettes at
-   once; a photo the features cannot place by its
+   once (marked uncertain: outlines alone); a photo the features cannot place by its
    board pose, by even steps (a timed table) or by its silhouette, else left out
-   with a warning naming it (pipeline.geometry.turntable_placement). Fewer than
+   with a warning naming it (pipeline.geometry.turntable_placement). A capture shot
+   in sets (the camera moved up or down, or the specimen turned over, between turns)
+   is found from where its photos' cameras stand posed freely, each set solved alone
+   and joined to the first by its matches, or left out with one warning naming its
+   photos (pipeline.geometry.turntable_sets; sfm.json ``circular.sets``, and per
+   photo its set, what placed it and its angle's uncertainty in ``circular.photos``). Fewer than
    ``min_registered_fraction`` posed photos is an error naming the others and the
    likely cause for each. A rerun gives the same model: photos are numbered in
    sorted order, RANSAC and the mapper are seeded, and bundle adjustment runs on one
