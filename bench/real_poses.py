@@ -93,7 +93,7 @@ class Case:
     name: str
     source: str
     """'shared:NAME' (a folder of ``--captures``), 'suite:SEED' (a drawn synthetic turntable),
-    'twin:NAME' (one of ``TWINS``) or 'sample:NAME'."""
+    'twin:NAME' (one of ``TWINS``), 'synth:NAME' (rendered from ``synth``) or 'sample:NAME'."""
     rig: str = "handheld"
     overrides: tuple[str, ...] = field(default_factory=tuple)
     true_masks: bool = False
@@ -104,6 +104,10 @@ class Case:
     capture's reference calibration, as a user with a calibrated rig would give it;
     ``start``, the intrinsics calibrate starts from without it (EXIF or COLMAP's prior),
     what self-calibration is judged against."""
+    synth: tuple[str, ...] = ()
+    """A 'synth:' case's `pipeline synth` arguments."""
+    description: str = ""
+    """A 'synth:' case's "what" cell."""
 
 
 REAL = [
@@ -364,7 +368,7 @@ def prepare(case: Case, captures: Path, work: Path) -> Path:
     rendered = work / f"rendered-{name}"
     if not (rendered / "capture.toml").is_file():
         shutil.rmtree(rendered, ignore_errors=True)
-        arguments = suite_options(int(name))[0] if kind == "suite" else TWINS[name][0]
+        arguments = suite_options(int(name))[0] if kind == "suite" else case.synth or TWINS[name][0]
         subprocess.run(_pipeline("synth", str(rendered), *arguments), check=True)
     shutil.copytree(rendered, capture, ignore=shutil.ignore_patterns(".pipeline", "output"))
     if case.true_masks:
@@ -446,6 +450,7 @@ def run_case(case: Case, captures: Path, work: Path) -> dict:
         "calibration": f"f {intrinsics.fx:.4g}, given (held)" if case.given_intrinsics else calibration_summary(report),
         "angle_std": list(circular.get("angle_std_deg", {}).values()),
         "coherence": circular.get("silhouette_coherence") or {},
+        "circular": circular,
     }
     row["masks"] = mask_summary(capture)
     circle_truth, direction_truth = references(case, captures, capture)
@@ -551,7 +556,12 @@ def describe(case: Case) -> str:
     """The table's "what" cell: the rig, or the synthetic capture's description, and what
     the case adds."""
     kind, _, name = case.source.partition(":")
-    description = suite_options(int(name))[1] if kind == "suite" else TWINS[name][1] if kind == "twin" else case.rig
+    if kind == "suite":
+        description = suite_options(int(name))[1]
+    elif kind == "twin":
+        description = TWINS[name][1]
+    else:
+        description = case.description or case.rig
     given = {"": "", "reference": ", reference intrinsics given", "start": ", start focal held"}
     return description + (", true masks" if case.true_masks else "") + given[case.given_intrinsics]
 

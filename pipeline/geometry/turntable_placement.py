@@ -36,6 +36,7 @@ from pipeline.geometry import circular_motion, silhouette_tangency, turntable_se
 from pipeline.geometry.circular_motion import GROUP_OUTLINES, CircularMotion, CircularSettings, matched_pairs
 from pipeline.geometry.turntable import Turntable
 from pipeline.geometry.world_frame import robust_similarity
+from pipeline.imaging.segmentation import on_mask
 
 
 @dataclass(frozen=True)
@@ -157,7 +158,23 @@ def circular_poses(
     cameras = turntable_sets.free_cameras(
         solution, {n: table.pose(a) for n, a in table.angles.items()}, keypoints, matches
     )
-    found_sets = turntable_sets.split_by_camera(cameras, settings.set_separation, max(3, len(order) // 10))
+    min_photos = max(3, len(order) // 10)
+    found_sets = turntable_sets.split_by_camera(cameras, settings.set_separation, min_photos)
+    found_by = "where their cameras stand"
+    on_specimen = {name: on_mask(masks[name], keypoints[name]) for name in order if name in masks}
+    if len(found_sets) == 1:
+        limit_px = settings.join_noise_factor * max(solution.reprojection_px, 0.1)
+        found_sets = turntable_sets.split_by_specimen(
+            solution,
+            {n: table.pose(a) for n, a in table.angles.items()},
+            keypoints,
+            matches,
+            on_specimen,
+            limit_px,
+            settings.circular.weak_min_observations,
+            min_photos,
+        )
+        found_by = "the matches on the specimen the circle does not explain"
     other_sets: list[list[str]] = []
     if len(found_sets) > 1:
         found_sets.sort(key=len, reverse=True)
@@ -165,8 +182,9 @@ def circular_poses(
         apart = {n for found in other_sets for n in found}
         first_set = [n for n in order if n not in apart]
         logger.info(
-            "circular motion: %d sets by where their cameras stand (%s): the first solved alone, the others joined",
+            "circular motion: %d sets by %s (%s): the first solved alone, the others joined",
             len(found_sets),
+            found_by,
             ", ".join(str(len(found)) for found in found_sets),
         )
         solution = _solve(
@@ -191,7 +209,7 @@ def circular_poses(
             if name in source:
                 source[name] = "joined_by_outline"
     details: dict[str, dict] = {}
-    sets = _join_sets(settings, order, solution, table, keypoints, matches, hulls, other_sets)
+    sets = _join_sets(settings, order, solution, table, keypoints, matches, on_specimen, hulls, other_sets)
     for name, pose in sets.poses.items():
         source[name] = "features_across_sets"
     for name, angle in _by_board(table, solution, board_poses, unplaced).items():
@@ -309,13 +327,17 @@ def _join_sets(
     table: Turntable,
     keypoints: dict[str, np.ndarray],
     matches: dict[tuple[str, str], dict[int, int]],
+    on_specimen: dict[str, np.ndarray],
     hulls: dict[str, np.ndarray],
     other_sets: list[list[str]],
 ) -> _Sets:
     """Each of ``other_sets`` (found where their cameras stand), and each group that
     strong pairs of matches tie to the ring, is another set: solved alone at the ring's
-    intrinsics and joined by its matches with the ring (pipeline.geometry.turntable_sets),
-    or left out with one warning naming its photos."""
+    intrinsics and joined by its matches with the ring on the specimen (``on_specimen``:
+    per photo, which keypoints lie on its mask) (pipeline.geometry.turntable_sets), or
+    left out with one warning naming its photos. On the specimen: one turned over
+    between sets no longer turns with the table, and matches of the table would join
+    the table, not the specimen."""
     sets = _Sets()
     ring_names = set(table.angles)
     ring_poses = {name: table.pose(angle) for name, angle in table.angles.items()}
@@ -353,7 +375,7 @@ def _join_sets(
                 own,
                 own_poses,
                 keypoints,
-                matches,
+                _across_on_specimen(matches, ring_names, group, on_specimen),
                 settings.circular.min_observations,
                 settings.join_noise_factor,
                 solution.axis,
@@ -386,6 +408,18 @@ def _join_sets(
         sets.tracks += [track for track, keep in zip(own.tracks, kept) if keep]
         logger.info("set %d of %d photos %s", report["set"], len(names), why)
     return sets
+
+
+def _across_on_specimen(
+    matches: dict[tuple[str, str], dict[int, int]], ring: set[str], group: set[str], on_specimen: dict[str, np.ndarray]
+) -> dict[tuple[str, str], dict[int, int]]:
+    """The matches from the ring's photos to the group's whose keypoints both lie on the
+    specimen's masks."""
+    return {
+        (a, b): {ka: kb for ka, kb in found.items() if on_specimen[a][ka] and on_specimen[b][kb]}
+        for (a, b), found in matches.items()
+        if a in ring and b in group and a in on_specimen and b in on_specimen
+    }
 
 
 _PLACED_BY = {

@@ -38,12 +38,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from pipeline.camera.model import Intrinsics, Pose, similarity_umeyama
-from pipeline.geometry.circular_motion import CircularMotion
+from pipeline.geometry.circular_motion import CircularMotion, sampson_sq
+from pipeline.geometry.silhouette_tangency import cross_matrices
 
 CHANCE_FACTOR = 3
 """A join must explain this many times the observations the same estimation explains
@@ -268,8 +270,12 @@ def join(
         "noise_px": round(noise_px, 3),
         "inlier_limit_px": round(limit_px, 3),
     }
-    found = _estimate(_Residuals(tied, ring, ring_poses, own, own_poses), tied, limit_px, noise_px)
-    if len(tied.ring_points) < 3 or found is None:
+    found = (
+        _estimate(_Residuals(tied, ring, ring_poses, own, own_poses), tied, limit_px, noise_px)
+        if len(tied.ring_points) >= 3
+        else None
+    )
+    if found is None:
         report["decision"] = f"{len(tied.ring_points)} points tied across the sets by matches, none in general place"
         return None, report
     # The same estimation on the matches shuffled within each pair: how many
@@ -356,8 +362,6 @@ def free_cameras(
     circle pose): its elevation over the circle's plane (degrees) and its distance from
     the axis (in the circle's unit). One circle fitted to two sets shot from different
     heights puts both between them; posed freely, each set's photos sit at their own."""
-    import cv2
-
     K = solution.intrinsics
     camera = np.array([[K.fx, 0, K.cx], [0, K.fy, K.cy], [0, 0, 1.0]])
     distortion = np.array([K.dist[0], 0, 0, 0, 0], float)
@@ -414,6 +418,76 @@ def split_by_camera(cameras: dict[str, tuple[float, float]], separation: float, 
         *split_by_camera({n: cameras[n] for n in names[:cut]}, separation, min_photos),
         *split_by_camera({n: cameras[n] for n in names[cut:]}, separation, min_photos),
     ]
+
+
+def split_by_specimen(
+    solution: CircularMotion,
+    poses: dict[str, Pose],
+    keypoints: dict[str, np.ndarray],
+    matches: dict[tuple[str, str], dict[int, int]],
+    on_specimen: dict[str, np.ndarray],
+    limit_px: float,
+    min_matches: int,
+    min_photos: int,
+) -> list[list[str]]:
+    """The placed photos in two groups where the matches on the specimen say the circle
+    joined two sets: the specimen turned over or re-placed between them, and a
+    patterned table, which turns with it no longer, put them on one circle.
+
+    A pair of photos with ``min_matches`` matches on the specimen's masks in both agrees
+    where their median Sampson distance under the circle's relative pose is within
+    ``limit_px``, and disagrees otherwise. The split is the sign of the signed graph's
+    Laplacian eigenvector of least eigenvalue (agreeing pairs pull photos together,
+    disagreeing ones apart; weighted by the matches), each photo then moved to the side
+    its own pairs pull it to. It is kept where each group holds
+    ``min_photos``, at least two pairs across it disagree and most across it do, and
+    most within each group agree; else one group."""
+    names = list(poses)
+    index = {name: i for i, name in enumerate(names)}
+    K = solution.intrinsics
+    camera = np.array([[K.fx, 0, K.cx], [0, K.fy, K.cy], [0, 0, 1.0]])
+    distortion = np.array([K.dist[0], 0, 0, 0], float)
+    edges = []
+    for (a, b), found in matches.items():
+        if a >= b or a not in index or b not in index or a not in on_specimen or b not in on_specimen:
+            continue
+        pairs = np.array([(ka, kb) for ka, kb in found.items() if on_specimen[a][ka] and on_specimen[b][kb]])
+        if len(pairs) < min_matches:
+            continue
+        rays = [
+            np.column_stack([cv2.undistortPoints(keypoints[n][k].reshape(-1, 1, 2), camera, distortion).reshape(-1, 2),
+                             np.ones(len(k))])
+            for n, k in ((a, pairs[:, 0]), (b, pairs[:, 1]))
+        ]  # fmt: skip
+        R = poses[b].R @ poses[a].R.T
+        E = cross_matrices((poses[b].t - R @ poses[a].t)[None]) @ R
+        distances = np.sqrt(sampson_sq(E, rays[0], rays[1])[0]) * K.fx
+        edges.append((index[a], index[b], np.median(distances) <= limit_px, len(pairs)))
+    if len(names) < 2 * min_photos or not any(not agrees for *_, agrees, _ in edges):
+        return [names]
+    signed = np.zeros((len(names), len(names)))
+    for i, j, agrees, count in edges:
+        signed[i, j] = signed[j, i] = count if agrees else -count
+    laplacian = np.diag(np.abs(signed).sum(axis=1)) - signed
+    side = np.linalg.eigh(laplacian)[1][:, 0] >= 0
+    # The eigenvector's sign is a relaxation: each photo then moves to the side its own
+    # pairs pull it to, until none moves.
+    for _ in range(len(names)):
+        pull = signed @ np.where(side, 1.0, -1.0)
+        moved = np.where(pull > 0, True, np.where(pull < 0, False, side))
+        if np.array_equal(moved, side):
+            break
+        side = moved
+    across = [agrees for i, j, agrees, _ in edges if side[i] != side[j]]
+    within = [agrees for i, j, agrees, _ in edges if side[i] == side[j]]
+    if (
+        min(side.sum(), (~side).sum()) < min_photos
+        or len(across) - sum(across) < 2
+        or np.mean(across) >= 0.5
+        or (within and np.mean(within) < 0.5)
+    ):
+        return [names]
+    return [[n for n in names if side[index[n]]], [n for n in names if not side[index[n]]]]
 
 
 MIN_ELEVATION_SPREAD_DEG = 0.05

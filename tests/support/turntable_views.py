@@ -173,6 +173,7 @@ def two_set_views(
     distance_ratio: float = 1.1,
     restart_deg: float = 10.0,
     turned_over: bool = False,
+    patterned_table: bool = False,
     across: int = 2,
     points: int = 600,
     seed: int = 0,
@@ -181,22 +182,18 @@ def two_set_views(
     view_000...), the second (set_000...) from a camera moved up by
     ``elevation_change_deg`` and ``distance_ratio`` times as far, starting
     ``restart_deg`` back from where the first began; ``turned_over``: the specimen
-    turned upside down between the sets (a plain plate then: the plate's features
-    would follow the table, not the specimen). Each photo of the second set is matched
-    with its ``across`` photos of the first that share the most points (0: none), a
-    tenth of those matches wrong. Poses are in the frame of the specimen as the first
+    turned upside down between the sets, on a plain plate, or with ``patterned_table``
+    on the same plate of features, which turn with the table, not with the specimen
+    (the matches of the plate then tie the sets where the specimen does not lie). Each
+    photo of the second set is matched with its ``across`` photos of the first that
+    share the most points (0: none), a tenth of those matches wrong. Poses are in the frame of the specimen as the first
     set stands it."""
     rng = np.random.default_rng(seed)
-    xyz = np.vstack(
-        [
-            rng.uniform([-0.04, -0.03, 0.0], [0.04, 0.03, 0.09], (points // 2, 3)),
-            *(
-                []
-                if turned_over
-                else [np.column_stack([rng.uniform(-0.18, 0.18, (points - points // 2, 2)), np.zeros(points // 2)])]
-            ),
-        ]
-    )
+    xyz = rng.uniform([-0.04, -0.03, 0.0], [0.04, 0.03, 0.09], (points // 2, 3))
+    if patterned_table or not turned_over:
+        plate = np.column_stack([rng.uniform(-0.18, 0.18, (points - points // 2, 2)), np.zeros(points // 2)])
+        xyz = np.vstack([xyz, plate])
+    on_plate = np.arange(len(xyz)) >= points // 2
     outward = np.column_stack([xyz[:, :2], np.zeros(len(xyz))])
     normals = np.where((xyz[:, 2] == 0)[:, None], [0.0, 0.0, 1.0], outward)
     elevation = np.radians(25 + elevation_change_deg)
@@ -217,12 +214,14 @@ def two_set_views(
             placed_R, placed_t = (flip, lift) if number else (np.eye(3), np.zeros(3))
             R = camera.R @ turn @ placed_R
             pose = poses[name] = Pose(R, camera.R @ turn @ placed_t + camera.t)
-            camera_points = xyz @ pose.R.T + pose.t
+            table = Pose(camera.R @ turn, camera.t)  # the plate's points turn with the table
+            camera_points = np.where(on_plate[:, None], xyz @ table.R.T + table.t, xyz @ pose.R.T + pose.t)
             x, y = camera_points[:, 0] / camera_points[:, 2], camera_points[:, 1] / camera_points[:, 2]
             radial = 1 + K.dist[0] * (x * x + y * y)
             pixels = np.column_stack([K.fx * x * radial + K.cx, K.fy * y * radial + K.cy])
             pixels += rng.normal(0, 0.3, pixels.shape)
-            facing = np.einsum("ij,ij->i", normals, pose.center - xyz) > 0
+            seen_from = np.where(on_plate[:, None], table.center, pose.center)
+            facing = np.einsum("ij,ij->i", normals, seen_from - xyz) > 0
             inside = (pixels[:, 0] > 0) & (pixels[:, 0] < K.width - 1) & (pixels[:, 1] > 0)
             inside &= pixels[:, 1] < K.height - 1
             seen = np.flatnonzero(facing & inside & (rng.uniform(size=len(xyz)) < 0.6))
