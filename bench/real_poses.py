@@ -11,7 +11,9 @@ Cases (``--only`` picks some by name):
 - Real captures from ``--captures`` (each skipped when absent), every one scored against
   its own reference: ``oxford-dino`` (turntable; Oxford's projective turntable
   reconstruction: turntable angles and centres against reference/cameras.txt, viewing
-  directions against reference/cameras_upgraded.txt, see its README), ``dino-sparse-ring``
+  directions against reference/cameras_upgraded.txt, see its README; ``oxford-dino-k1-held``
+  the same with ``sfm.self_calibrate=false``, distortion held at zero, compared photo by
+  photo: whether self-calibration's k1 helps), ``dino-sparse-ring``
   (ring; Middlebury's calibrated cameras), ``dino-sparse-ring-known-intrinsics`` (the
   same with Middlebury's K given as ``calibrate.known_intrinsics``, held fixed, as a user
   with a calibrated rig would run it), ``temple-ring`` (handheld) and
@@ -112,6 +114,7 @@ class Case:
 
 REAL = [
     Case("oxford-dino", "shared:oxford-dino", "turntable", ("board.kind=none",)),
+    Case("oxford-dino-k1-held", "shared:oxford-dino", "turntable", ("board.kind=none", "sfm.self_calibrate=false")),
     Case("dino-sparse-ring", "shared:dino-sparse-ring", "ring", ("board.kind=none",)),
     Case(
         "dino-sparse-ring-known-intrinsics",
@@ -585,6 +588,28 @@ def paired_difference(calibrated: dict[str, float], held: dict[str, float]) -> s
     )
 
 
+def held_summary(rows: dict[str, dict]) -> str:
+    """Each case run again as NAME-k1-held (``sfm.self_calibrate=false``: distortion held
+    at zero): its median direction error self-calibrated against held, and their
+    photo-by-photo difference (``paired_difference``)."""
+    pairs = []
+    for name, held in rows.items():
+        calibrated = rows.get(name.removesuffix("-k1-held"))
+        if not name.endswith("-k1-held") or calibrated is None:
+            continue
+        if calibrated.get("direction_errors") and held.get("direction_errors"):
+            difference = paired_difference(calibrated["direction_errors"], held["direction_errors"])
+            pairs.append(
+                f"{calibrated['case']} {calibrated['direction'][0]:.2f} against {held['direction'][0]:.2f} "
+                f"({calibrated['calibration']}; {difference})"
+            )
+    return (
+        "Self-calibration against distortion held at zero, median direction error (degrees), and self-calibrated "
+        "minus held photo by photo (median, its 95 % bootstrap interval, Wilcoxon signed-rank p, photos where "
+        f"self-calibration is better): {'; '.join(pairs) or 'no pair run'}."
+    )
+
+
 def twin_summary(rows: dict[str, dict]) -> str:
     """Each twin's median direction error with self-calibration against the start focal
     held, and their photo-by-photo difference (``paired_difference``)."""
@@ -614,7 +639,11 @@ def write_from_log(log: Path) -> None:
     printed = log.read_text().splitlines()
     command = printed[0].removeprefix("command: ")
     rows = [line for line in printed if line.startswith("| ") and not line.startswith(("| capture |", "|---"))]
-    summary = [line for line in printed if line.startswith(("Randomised suite", "The same with", "Small specimens"))]
+    summary = [
+        line
+        for line in printed
+        if line.startswith(("Randomised suite", "The same with", "Small specimens", "Self-calibration against"))
+    ]
     write_real_poses(rows, summary, command)
 
 
@@ -646,7 +675,7 @@ def main() -> None:
     options = " ".join(o for o in sys.argv[1:] if o != "--write")
     print(f"command: .venv/bin/python -m bench.real_poses {options} --write", flush=True)
     print(HEADER, flush=True)
-    lines, suite_rows, true_mask_rows, twin_rows = [], [], [], {}
+    lines, suite_rows, true_mask_rows, twin_rows, real_rows = [], [], [], {}, {}
     for case in cases:
         if case.source.startswith("shared:") and not (args.captures / case.source.split(":")[1]).is_dir():
             continue
@@ -658,6 +687,8 @@ def main() -> None:
             (true_mask_rows if case.true_masks else suite_rows).append(row)
         if kind == "twin":
             twin_rows[case.name] = row
+        if kind == "shared":
+            real_rows[case.name] = row
     summary = []
     for rows, title in ((suite_rows, "Randomised suite"), (true_mask_rows, "The same with the true masks")):
         if rows:
@@ -665,6 +696,9 @@ def main() -> None:
             print(summary[-1])
     if twin_rows:
         summary.append(twin_summary(twin_rows))
+        print(summary[-1])
+    if any(name.endswith("-k1-held") for name in real_rows):
+        summary.append(held_summary(real_rows))
         print(summary[-1])
     if args.write:
         write_real_poses(lines, summary, f".venv/bin/python -m bench.real_poses {options} --write")

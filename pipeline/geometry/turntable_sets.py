@@ -490,6 +490,23 @@ def split_by_specimen(
     return [[n for n in names if side[index[n]]], [n for n in names if not side[index[n]]]]
 
 
+def with_the_rest(found_sets: list[list[str]], names: list[str], matches) -> list[list[str]]:
+    """``found_sets`` with each of ``names`` in none of them (a photo not posed freely)
+    added to the set it shares the most matches with (the first where it shares none):
+    a photo of a moved camera's set must not be solved on the first set's circle."""
+    member = {name: k for k, found in enumerate(found_sets) for name in found}
+    grown = [list(found) for found in found_sets]
+    for name in names:
+        if name in member:
+            continue
+        shared = np.zeros(len(found_sets))
+        for (a, b), found in matches.items():
+            if a == name and b in member:
+                shared[member[b]] += len(found)
+        grown[int(np.argmax(shared))].append(name)
+    return grown
+
+
 MIN_ELEVATION_SPREAD_DEG = 0.05
 """The least scatter of one set's free elevations: a few photos that agree by chance
 must not make a tiny gap look wide."""
