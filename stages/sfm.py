@@ -3,8 +3,9 @@
 1. **Features and matches** (pipeline.colmap.features): SIFT on
    undistort's 8-bit photos, upsampled and DSP-SIFT on small photos; for a
    turntable only from what changes between photos (the still room masked out) and
-   matched with ring neighbours and with the photos whose outlines look alike (a
-   second turn), else exhaustively (sequentially past 150 photos).
+   matched with ring neighbours, with the photos whose outlines look alike (a
+   second turn) and with those that share the most descriptors on the specimen
+   (another set), else exhaustively (sequentially past 150 photos).
 2. **Poses.** Handheld: COLMAP's incremental mapping; a calibrated camera (board,
    ``calibrate.known_intrinsics``) stays fixed, a guessed one (EXIF, prior) has its
    focal length refined, and principal point and radial distortion when the photos
@@ -24,7 +25,7 @@
    with a warning naming it (pipeline.geometry.turntable_placement). A capture shot
    in sets (the camera moved up or down, or the specimen turned over, between turns)
    is found from where its photos' cameras stand posed freely, each set solved alone
-   and joined to the first by its matches, or left out with one warning naming its
+   and joined to the first by its matches on the specimen, or left out with one warning naming its
    photos (pipeline.geometry.turntable_sets; sfm.json ``circular.sets``, and per
    photo its set, what placed it and its angle's uncertainty in ``circular.photos``). Fewer than
    ``min_registered_fraction`` posed photos is an error naming the others and the

@@ -153,7 +153,7 @@ def circular_poses(
     hulls = _hulls(masks)
     solution = _solve(settings, order, intrinsics[order[0]], keypoints, matches, board_poses, hulls, unverified)
     on_specimen = {name: on_mask(masks[name], keypoints[name]) for name in order if name in masks}
-    other_sets = _other_sets(settings, order, solution, keypoints, matches, on_specimen)
+    other_sets = _other_sets(settings, order, solution, keypoints, matches)
     if other_sets:
         apart = {n for found in other_sets for n in found}
         solution = _solve(
@@ -249,33 +249,22 @@ def _other_sets(
     solution: CircularMotion,
     keypoints: dict[str, np.ndarray],
     matches: dict[tuple[str, str], dict[int, int]],
-    on_specimen: dict[str, np.ndarray],
 ) -> list[list[str]]:
     """The sets after the first (the largest), in file order; none for one set. Sets
     shot from different heights or distances: one circle puts them all between, and
-    posed freely on its points each set's photos stand at their own. A specimen turned
-    over on a patterned table: the table puts both sets on one circle, and the matches
-    on the specimen disagree with it (pipeline.geometry.turntable_sets)."""
+    posed freely on its points each set's photos stand at their own
+    (pipeline.geometry.turntable_sets)."""
     table = Turntable(solution.axis, solution.point, np.eye(3), np.zeros(3), dict(solution.angles))
     poses = {n: table.pose(a) for n, a in table.angles.items()}
     min_photos = max(3, len(order) // 10)
     cameras = turntable_sets.free_cameras(solution, poses, keypoints, matches)
     found_sets = turntable_sets.split_by_camera(cameras, settings.set_separation, min_photos)
-    found_by = "where their cameras stand"
-    if len(found_sets) == 1:
-        limit_px = settings.join_noise_factor * max(solution.reprojection_px, 0.1)
-        fewest = settings.circular.weak_min_observations
-        found_sets = turntable_sets.split_by_specimen(
-            solution, poses, keypoints, matches, on_specimen, limit_px, fewest, min_photos
-        )
-        found_by = "the matches on the specimen the circle does not explain"
     if len(found_sets) == 1:
         return []
     found_sets = sorted(turntable_sets.with_the_rest(found_sets, order, matches), key=len, reverse=True)
     logger.info(
-        "circular motion: %d sets by %s (%s): the first solved alone, the others joined",
+        "circular motion: %d sets by where their cameras stand (%s): the first solved alone, the others joined",
         len(found_sets),
-        found_by,
         ", ".join(str(len(found)) for found in found_sets),
     )
     return [[n for n in order if n in found] for found in found_sets[1:]]

@@ -4,17 +4,26 @@ turn. Each set is its own circular motion (the camera's height, tilt and distanc
 from the axis are its own; a re-placed specimen stands on the table in a new pose),
 and its place relative to the first set is known only where features prove it.
 
-1. **Which groups are sets** (pipeline.geometry.circular_motion, ``_join_groups``): a
-   group of photos the circular-motion solver left apart from the ring, whose
-   photos share strong pairs of verified matches with the ring's that one circle
-   does not explain, is another set. (A group no such pair ties to the ring is an
-   arc of the ring that matching left apart: its outlines place it, marked uncertain.)
+1. **Which photos are sets.** Where the camera moved: each photo posed freely (PnP)
+   on the points of the one circle fitted to all (``free_cameras``), its elevation
+   over the circle's plane; the photos split where those elevations form groups
+   (``split_by_camera``), a photo not posed freely going with the group it shares
+   the most matches with (``with_the_rest``). And a group of photos the
+   circular-motion solver left apart from the ring (pipeline.geometry.circular_motion,
+   ``_join_groups``), whose photos share strong pairs of verified matches with the
+   ring's that one circle does not explain, is another set. (A group no such pair
+   ties to the ring is an arc of the ring that matching left apart: its outlines
+   place it, marked uncertain.) Ring matching retrieves the pairs across sets by
+   their descriptors on the specimen (pipeline.colmap.features,
+   ``descriptor_neighbours``): their outlines differ.
 2. **Each set alone**: its photos' circular motion solved at the ring's intrinsics
    (held: one camera), its own axis, camera offset, angles and points.
 3. **The join**: the similarity (rotation, translation, scale: each set's unit is its
    own camera's distance from the axis) taking the set's points into the ring's
    frame. Drawn by RANSAC from triples of points that matches across the sets tie
-   together, then refined on the reprojection errors of every such match's
+   together, only matches whose keypoints lie on the specimen's masks in both photos
+   (a specimen turned over on a patterned table no longer turns with the table, whose
+   matches would join the table, not the specimen), then refined on the reprojection errors of every such match's
    observations (a set's point in the ring's photo, a ring's point in the set's
    photo). Its inliers lie within ``join_noise_factor`` times the larger median
    reprojection error of the two sets' own features: a noise level measured on the
@@ -31,7 +40,12 @@ and its place relative to the first set is known only where features prove it.
 
 Limitations: the sets' circles are solved apart and joined after, not adjusted
 together: a set's own axis and angles are what its own features give, and the
-matches across sets fix only where it lies. Outlines never join a set.
+matches across sets fix only where it lies. Outlines never join a set. A specimen
+turned over on a patterned table with the camera where it stood is not found: the
+table's features put both sets on one circle and the specimen's matches across them,
+which disagree with it, are set aside as pairs one turn does not explain (a split by
+those pairs' epipolar agreement was tried: on a synthetic 384 px capture the one
+circle's own neighbouring pairs disagreed as often, and it split a set in two).
 """
 
 from __future__ import annotations
@@ -44,8 +58,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from pipeline.camera.model import Intrinsics, Pose, similarity_umeyama
-from pipeline.geometry.circular_motion import CircularMotion, sampson_sq
-from pipeline.geometry.silhouette_tangency import cross_matrices
+from pipeline.geometry.circular_motion import CircularMotion
 
 CHANCE_FACTOR = 3
 """A join must explain this many times the observations the same estimation explains
@@ -418,76 +431,6 @@ def split_by_camera(cameras: dict[str, tuple[float, float]], separation: float, 
         *split_by_camera({n: cameras[n] for n in names[:cut]}, separation, min_photos),
         *split_by_camera({n: cameras[n] for n in names[cut:]}, separation, min_photos),
     ]
-
-
-def split_by_specimen(
-    solution: CircularMotion,
-    poses: dict[str, Pose],
-    keypoints: dict[str, np.ndarray],
-    matches: dict[tuple[str, str], dict[int, int]],
-    on_specimen: dict[str, np.ndarray],
-    limit_px: float,
-    min_matches: int,
-    min_photos: int,
-) -> list[list[str]]:
-    """The placed photos in two groups where the matches on the specimen say the circle
-    joined two sets: the specimen turned over or re-placed between them, and a
-    patterned table, which turns with it no longer, put them on one circle.
-
-    A pair of photos with ``min_matches`` matches on the specimen's masks in both agrees
-    where their median Sampson distance under the circle's relative pose is within
-    ``limit_px``, and disagrees otherwise. The split is the sign of the signed graph's
-    Laplacian eigenvector of least eigenvalue (agreeing pairs pull photos together,
-    disagreeing ones apart; weighted by the matches), each photo then moved to the side
-    its own pairs pull it to. It is kept where each group holds
-    ``min_photos``, at least two pairs across it disagree and most across it do, and
-    most within each group agree; else one group."""
-    names = list(poses)
-    index = {name: i for i, name in enumerate(names)}
-    K = solution.intrinsics
-    camera = np.array([[K.fx, 0, K.cx], [0, K.fy, K.cy], [0, 0, 1.0]])
-    distortion = np.array([K.dist[0], 0, 0, 0], float)
-    edges = []
-    for (a, b), found in matches.items():
-        if a >= b or a not in index or b not in index or a not in on_specimen or b not in on_specimen:
-            continue
-        pairs = np.array([(ka, kb) for ka, kb in found.items() if on_specimen[a][ka] and on_specimen[b][kb]])
-        if len(pairs) < min_matches:
-            continue
-        rays = [
-            np.column_stack([cv2.undistortPoints(keypoints[n][k].reshape(-1, 1, 2), camera, distortion).reshape(-1, 2),
-                             np.ones(len(k))])
-            for n, k in ((a, pairs[:, 0]), (b, pairs[:, 1]))
-        ]  # fmt: skip
-        R = poses[b].R @ poses[a].R.T
-        E = cross_matrices((poses[b].t - R @ poses[a].t)[None]) @ R
-        distances = np.sqrt(sampson_sq(E, rays[0], rays[1])[0]) * K.fx
-        edges.append((index[a], index[b], np.median(distances) <= limit_px, len(pairs)))
-    if len(names) < 2 * min_photos or not any(not agrees for *_, agrees, _ in edges):
-        return [names]
-    signed = np.zeros((len(names), len(names)))
-    for i, j, agrees, count in edges:
-        signed[i, j] = signed[j, i] = count if agrees else -count
-    laplacian = np.diag(np.abs(signed).sum(axis=1)) - signed
-    side = np.linalg.eigh(laplacian)[1][:, 0] >= 0
-    # The eigenvector's sign is a relaxation: each photo then moves to the side its own
-    # pairs pull it to, until none moves.
-    for _ in range(len(names)):
-        pull = signed @ np.where(side, 1.0, -1.0)
-        moved = np.where(pull > 0, True, np.where(pull < 0, False, side))
-        if np.array_equal(moved, side):
-            break
-        side = moved
-    across = [agrees for i, j, agrees, _ in edges if side[i] != side[j]]
-    within = [agrees for i, j, agrees, _ in edges if side[i] == side[j]]
-    if (
-        min(side.sum(), (~side).sum()) < min_photos
-        or len(across) - sum(across) < 2
-        or np.mean(across) >= 0.5
-        or (within and np.mean(within) < 0.5)
-    ):
-        return [names]
-    return [[n for n in names if side[index[n]]], [n for n in names if not side[index[n]]]]
 
 
 def with_the_rest(found_sets: list[list[str]], names: list[str], matches) -> list[list[str]]:

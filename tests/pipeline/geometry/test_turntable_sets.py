@@ -64,18 +64,15 @@ def test_a_specimen_turned_over_between_the_sets_is_joined_by_its_features(tmp_p
 
 
 def test_a_specimen_turned_over_on_a_patterned_table_is_joined_by_its_own_features(tmp_path):
-    """The plate's features turn with the table and put both sets on one circle, the
-    camera unmoved; the specimen, turned over, lies elsewhere. Its matches across the
-    sets disagree with that circle: the sets are split where they do, and joined by
-    the matches on the specimen. One photo of the second set (set_009), whose few
-    matches on the specimen agree with the first set's epipolar lines by chance, stays
-    with the first set, placed by the table."""
-    views = two_set_views(turned_over=True, patterned_table=True, elevation_change_deg=0.0, distance_ratio=1.0)
+    """The plate's features turn with the table, the specimen lies turned over on it,
+    and the camera moved up: the matches of the plate across the sets tie them where
+    the table lies, those on the specimen's outlines where the specimen lies. The join
+    follows the specimen."""
+    views = two_set_views(turned_over=True, patterned_table=True, elevation_change_deg=4.0, distance_ratio=1.05)
     _, poses, _, report = _place(tmp_path, views)
     (second,) = report["sets"]
     assert second["joined"] and abs(second["specimen_axis_turned_deg"] - 180) < 2
-    errors = _rotation_errors_deg(poses, views, aligned_on="view")
-    assert sorted(name for name, error in errors.items() if error > 1.5) == ["set_009.jpg"]
+    assert max(_rotation_errors_deg(poses, views, aligned_on="view").values()) < 2.0  # the issue's join target
 
 
 def test_a_set_its_matches_do_not_tie_is_left_out_with_one_warning(tmp_path, caplog):
