@@ -154,7 +154,9 @@ def circular_poses(
     solution = _solve(settings, order, intrinsics[order[0]], keypoints, matches, board_poses, hulls, unverified)
     on_specimen = {name: on_mask(masks[name], keypoints[name]) for name in order if name in masks}
     other_sets = _other_sets(settings, order, solution, keypoints, matches)
-    if other_sets:
+    # The first set solved alone; a photo its own circle poses freely at another
+    # elevation belongs to another set (a few stood wrong on the one circle of all).
+    for _ in range(MAX_SET_ROUNDS if other_sets else 0):
         apart = {n for found in other_sets for n in found}
         solution = _solve(
             settings,
@@ -166,6 +168,24 @@ def circular_poses(
             hulls,
             {pair: m for pair, m in (unverified or {}).items() if pair[0] not in apart and pair[1] not in apart},
         )
+        first = Turntable(solution.axis, solution.point, np.eye(3), np.zeros(3), dict(solution.angles))
+        cameras = turntable_sets.free_cameras(
+            solution, {n: first.pose(a) for n, a in first.angles.items()}, keypoints, matches
+        )
+        strays = turntable_sets.strays(cameras, settings.set_separation)
+        if not strays:
+            break
+        logger.info(
+            "circular motion: %d photo(s) of the first set stand at another elevation: %s",
+            len(strays),
+            ", ".join(strays),
+        )
+        other_sets = [
+            [n for n in order if n in found]
+            for found in turntable_sets.with_the_rest(
+                other_sets, strays, {k: v for k, v in matches.items() if k[1] in apart}
+            )
+        ]
     table = Turntable(solution.axis, solution.point, np.eye(3), np.zeros(3), dict(solution.angles))
     unplaced = dict(solution.unplaced)
     if any(solution.partners.get(n, 0) < 2 for n in solution.angles):
@@ -416,6 +436,11 @@ def _across_on_specimen(
         for (a, b), found in matches.items()
         if a in ring and b in group and a in on_specimen and b in on_specimen
     }
+
+
+MAX_SET_ROUNDS = 3
+"""The first set is solved again at most this many times, each time without the photos
+its own circle poses at another elevation."""
 
 
 _PLACED_BY = {

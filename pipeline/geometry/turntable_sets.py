@@ -433,6 +433,18 @@ def split_by_camera(cameras: dict[str, tuple[float, float]], separation: float, 
     ]
 
 
+def strays(cameras: dict[str, tuple[float, float]], separation: float) -> list[str]:
+    """The photos whose free camera (``free_cameras``) stands more than ``separation``
+    robust standard deviations (at least MIN_ELEVATION_SPREAD_DEG) from the median
+    elevation of all: in a set solved alone, photos of another set."""
+    if len(cameras) < 3:
+        return []
+    elevations = np.array([elevation for elevation, _ in cameras.values()])
+    spread = max(_robust_std(elevations), MIN_ELEVATION_SPREAD_DEG)
+    far = np.abs(elevations - np.median(elevations)) > separation * spread
+    return [name for name, stray in zip(cameras, far) if stray]
+
+
 def with_the_rest(found_sets: list[list[str]], names: list[str], matches) -> list[list[str]]:
     """``found_sets`` with each of ``names`` in none of them (a photo not posed freely)
     added to the set it shares the most matches with (the first where it shares none):

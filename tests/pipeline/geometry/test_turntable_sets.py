@@ -9,6 +9,7 @@ import pytest
 
 from pipeline.camera.model import rotation_angle_deg, similarity_umeyama
 from pipeline.camera.self_calibration import SelfCalibrationSettings
+from pipeline.geometry import turntable_sets
 from pipeline.geometry.turntable_placement import PlacementSettings, RigSettings, circular_poses
 from tests.pipeline.geometry.test_circular_motion import START
 from tests.pipeline.geometry.test_turntable_placement import BALL, BIRDLIKE, _masks
@@ -103,3 +104,15 @@ def test_sets_of_a_ball_no_feature_ties_are_not_joined_by_their_outlines(tmp_pat
     _, poses, _, report = _place(tmp_path, views, shape=BALL)
     assert not any(name.startswith("set") and name in poses for name in views.names)
     assert all(record["placed_by"] != "outline" for record in report["photos"].values())
+
+
+def test_a_photo_of_another_set_is_a_stray_of_the_first_and_goes_where_its_matches_are():
+    """Free elevations scattered by a tenth of a degree about 20, one photo at 27: it
+    alone is a stray; it shares its matches with the second set's photos, and goes there."""
+    rng = np.random.default_rng(0)
+    cameras = {f"view_{i:03d}.jpg": (20 + 0.1 * rng.normal(), 1.0) for i in range(20)} | {"view_020.jpg": (27.0, 1.0)}
+    assert turntable_sets.strays(cameras, 6.0) == ["view_020.jpg"]
+    assert turntable_sets.strays({n: c for n, c in cameras.items() if n != "view_020.jpg"}, 6.0) == []
+    matches = {("view_020.jpg", "set_000.jpg"): {0: 1, 2: 3}, ("view_020.jpg", "set_001.jpg"): {4: 5}}
+    grown = turntable_sets.with_the_rest([["other_000.jpg"], ["set_000.jpg", "set_001.jpg"]], ["view_020.jpg"], matches)
+    assert grown == [["other_000.jpg"], ["set_000.jpg", "set_001.jpg", "view_020.jpg"]]
