@@ -168,11 +168,9 @@ def circular_poses(
             hulls,
             {pair: m for pair, m in (unverified or {}).items() if pair[0] not in apart and pair[1] not in apart},
         )
-        first = Turntable(solution.axis, solution.point, np.eye(3), np.zeros(3), dict(solution.angles))
-        cameras = turntable_sets.free_cameras(
-            solution, {n: first.pose(a) for n, a in first.angles.items()}, keypoints, matches
+        strays = turntable_sets.strays(
+            turntable_sets.free_cameras(solution, keypoints, matches), settings.set_separation
         )
-        strays = turntable_sets.strays(cameras, settings.set_separation)
         if not strays:
             break
         logger.info(
@@ -274,10 +272,8 @@ def _other_sets(
     shot from different heights or distances: one circle puts them all between, and
     posed freely on its points each set's photos stand at their own
     (pipeline.geometry.turntable_sets)."""
-    table = Turntable(solution.axis, solution.point, np.eye(3), np.zeros(3), dict(solution.angles))
-    poses = {n: table.pose(a) for n, a in table.angles.items()}
     min_photos = max(3, len(order) // 10)
-    cameras = turntable_sets.free_cameras(solution, poses, keypoints, matches)
+    cameras = turntable_sets.free_cameras(solution, keypoints, matches)
     found_sets = turntable_sets.split_by_camera(cameras, settings.set_separation, min_photos)
     if len(found_sets) == 1:
         return []
@@ -386,10 +382,8 @@ def _join_sets(
             own_table = Turntable(own.axis, own.point, np.eye(3), np.zeros(3), dict(own.angles))
             own_poses = {name: own_table.pose(angle) for name, angle in own.angles.items()}
             joined, found = turntable_sets.join(
-                solution,
-                ring_poses,
-                own,
-                own_poses,
+                turntable_sets.Solved(solution, ring_poses),
+                turntable_sets.Solved(own, own_poses),
                 keypoints,
                 _across_on_specimen(matches, ring_names, group, on_specimen),
                 settings.circular.min_observations,

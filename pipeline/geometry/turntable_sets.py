@@ -59,6 +59,7 @@ from scipy.spatial.transform import Rotation
 
 from pipeline.camera.model import Intrinsics, Pose, similarity_umeyama
 from pipeline.geometry.circular_motion import CircularMotion
+from pipeline.geometry.turntable import Turntable
 
 CHANCE_FACTOR = 3
 """A join must explain this many times the observations the same estimation explains
@@ -67,6 +68,14 @@ observations, at least 15 and from 20 pairs of photos)."""
 JOIN_TRIALS = 500
 """RANSAC draws of three tied points: with half of them right, the chance that none of
 500 draws is all right is 1e-29."""
+
+
+@dataclass(frozen=True)
+class Solved:
+    """A circular motion solved, and its placed photos' poses in its frame."""
+
+    solution: CircularMotion
+    poses: dict[str, Pose]
 
 
 @dataclass
@@ -106,18 +115,17 @@ def _track_index(solution: CircularMotion) -> dict[tuple[str, int], int]:
 
 
 def _tie(
-    ring: CircularMotion,
-    ring_poses: dict[str, Pose],
-    own: CircularMotion,
-    own_poses: dict[str, Pose],
+    ring_side: Solved,
+    set_side: Solved,
     keypoints: dict[str, np.ndarray],
     matches: dict[tuple[str, str], dict[int, int]],
 ) -> _Tied:
+    ring, own = ring_side.solution, set_side.solution
     ring_index, own_index = _track_index(ring), _track_index(own)
     ring_points, set_points, in_ring, in_set = [], [], [], []
     seen: set[tuple[int, int]] = set()
     for (a, b), found in sorted(matches.items()):
-        if a not in ring_poses or b not in own_poses:
+        if a not in ring_side.poses or b not in set_side.poses:
             continue
         for ka, kb in found.items():
             ring_point, set_point = ring_index.get((a, ka)), own_index.get((b, kb))
@@ -146,10 +154,10 @@ class _Residuals:
     """Reprojection errors of the tied observations under a similarity (rotation vector,
     translation, log scale): a set point in a ring photo, a ring point in a set photo."""
 
-    def __init__(self, tied: _Tied, ring: CircularMotion, ring_poses, own: CircularMotion, own_poses):
-        self.intrinsics = ring.intrinsics
-        self.ring_side = _Side(tied.in_ring_photos, ring_poses, own.points)
-        self.set_side = _Side(tied.in_set_photos, own_poses, ring.points)
+    def __init__(self, tied: _Tied, ring: Solved, own: Solved):
+        self.intrinsics = ring.solution.intrinsics
+        self.ring_side = _Side(tied.in_ring_photos, ring.poses, own.solution.points)
+        self.set_side = _Side(tied.in_set_photos, own.poses, ring.solution.points)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         return np.concatenate([self.errors(x, self.ring_side), self.errors(x, self.set_side)]).ravel()
@@ -262,10 +270,8 @@ def _shuffled(matches: dict[tuple[str, str], dict[int, int]], ring: set[str], rn
 
 
 def join(
-    ring: CircularMotion,
-    ring_poses: dict[str, Pose],
-    own: CircularMotion,
-    own_poses: dict[str, Pose],
+    ring: Solved,
+    own: Solved,
     keypoints: dict[str, np.ndarray],
     matches: dict[tuple[str, str], dict[int, int]],
     min_observations: int,
@@ -274,8 +280,8 @@ def join(
 ) -> tuple[Join | None, dict]:
     """Steps 3-4 for one set: its join to the ring (None when features do not prove
     one) and its report. ``axis``: the turntable's axis in the ring's frame."""
-    tied = _tie(ring, ring_poses, own, own_poses, keypoints, matches)
-    noise_px = max(ring.reprojection_px, own.reprojection_px, 0.1)
+    tied = _tie(ring, own, keypoints, matches)
+    noise_px = max(ring.solution.reprojection_px, own.solution.reprojection_px, 0.1)
     limit_px = noise_factor * noise_px
     report: dict = {
         "tied_points": len(tied.ring_points),
@@ -283,24 +289,14 @@ def join(
         "noise_px": round(noise_px, 3),
         "inlier_limit_px": round(limit_px, 3),
     }
-    found = (
-        _estimate(_Residuals(tied, ring, ring_poses, own, own_poses), tied, limit_px, noise_px)
-        if len(tied.ring_points) >= 3
-        else None
-    )
+    found = _estimate(_Residuals(tied, ring, own), tied, limit_px, noise_px) if len(tied.ring_points) >= 3 else None
     if found is None:
         report["decision"] = f"{len(tied.ring_points)} points tied across the sets by matches, none in general place"
         return None, report
     # The same estimation on the matches shuffled within each pair: how many
     # observations a join explains by chance, selected as it was from many draws.
-    null = _tie(
-        ring, ring_poses, own, own_poses, keypoints, _shuffled(matches, set(ring_poses), np.random.default_rng(1))
-    )
-    chance = (
-        _estimate(_Residuals(null, ring, ring_poses, own, own_poses), null, limit_px, noise_px)
-        if len(null.ring_points) >= 3
-        else None
-    )
+    null = _tie(ring, own, keypoints, _shuffled(matches, set(ring.poses), np.random.default_rng(1)))
+    chance = _estimate(_Residuals(null, ring, own), null, limit_px, noise_px) if len(null.ring_points) >= 3 else None
     by_chance = chance.inliers if chance is not None else 0
     report["inliers"] = found.inliers
     report["inliers_by_chance"] = by_chance
@@ -320,7 +316,7 @@ def join(
     R, t, scale = Rotation.from_rotvec(x[:3]).as_matrix(), x[3:6], float(np.exp(x[6]))
     joined = Join(scale, R, t, report)
     report["angle_std_deg"] = _turn_std_deg(x, found.residual, axis, found.errors)
-    report.update(_camera_moves(ring, ring_poses, own, own_poses, joined, axis))
+    report.update(_camera_moves(ring, own, joined, axis))
     report["decision"] = (
         f"joined by {found.inliers} observations of {found.photo_pairs} pairs of photos within {limit_px:.2f} px "
         f"({by_chance} with the matches shuffled)"
@@ -339,7 +335,7 @@ def _turn_std_deg(x: np.ndarray, residual, axis: np.ndarray, errors: np.ndarray)
     return float(np.degrees(np.sqrt(max(axis @ covariance[:3, :3] @ axis, 0.0))))
 
 
-def _camera_moves(ring, ring_poses, own, own_poses, joined: Join, axis: np.ndarray) -> dict:
+def _camera_moves(ring: Solved, own: Solved, joined: Join, axis: np.ndarray) -> dict:
     """How the set's camera stands to the table against the ring's: its elevation over
     the table and its distance from the axis (medians over the photos), and how far the
     set's own axis lies from the ring's (a specimen re-placed or turned over)."""
@@ -347,16 +343,16 @@ def _camera_moves(ring, ring_poses, own, own_poses, joined: Join, axis: np.ndarr
     def elevation_and_distance(poses: list[Pose]) -> tuple[float, float]:
         elevations, distances = [], []
         for pose in poses:
-            along = float((pose.center - ring.point) @ axis)
-            radial = np.linalg.norm(pose.center - ring.point - along * axis)
+            along = float((pose.center - ring.solution.point) @ axis)
+            radial = np.linalg.norm(pose.center - ring.solution.point - along * axis)
             forward = pose.R[2]
             elevations.append(np.degrees(np.arcsin(np.clip(-forward @ axis, -1, 1))))
             distances.append(radial)
         return float(np.median(elevations)), float(np.median(distances))
 
-    ring_elevation, ring_distance = elevation_and_distance(list(ring_poses.values()))
-    set_elevation, set_distance = elevation_and_distance([joined.pose(p) for p in own_poses.values()])
-    own_axis = joined.R @ own.axis
+    ring_elevation, ring_distance = elevation_and_distance(list(ring.poses.values()))
+    set_elevation, set_distance = elevation_and_distance([joined.pose(p) for p in own.poses.values()])
+    own_axis = joined.R @ own.solution.axis
     # Each set's axis points the way its table turned: a specimen turned over turns it by 180.
     tilt = float(np.degrees(np.arccos(np.clip(own_axis @ axis, -1, 1))))
     return {
@@ -367,9 +363,7 @@ def _camera_moves(ring, ring_poses, own, own_poses, joined: Join, axis: np.ndarr
     }
 
 
-def free_cameras(
-    solution: CircularMotion, poses: dict[str, Pose], keypoints: dict[str, np.ndarray], matches
-) -> dict[str, tuple[float, float]]:
+def free_cameras(solution: CircularMotion, keypoints: dict[str, np.ndarray], matches) -> dict[str, tuple[float, float]]:
     """Each placed photo's camera posed freely on the solution's points (PnP with RANSAC
     through its matches to photos whose keypoints the tracks hold, started at its
     circle pose): its elevation over the circle's plane (degrees) and its distance from
@@ -379,8 +373,9 @@ def free_cameras(
     camera = np.array([[K.fx, 0, K.cx], [0, K.fy, K.cy], [0, 0, 1.0]])
     distortion = np.array([K.dist[0], 0, 0, 0, 0], float)
     tracked = _track_index(solution)
+    table = Turntable(solution.axis, solution.point, np.eye(3), np.zeros(3), solution.angles)
     found = {}
-    for name, pose in poses.items():
+    for name, pose in ((n, table.pose(a)) for n, a in solution.angles.items()):
         objects, pixels = [], []
         for (a, b), pairs in matches.items():
             if a != name:
