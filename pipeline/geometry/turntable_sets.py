@@ -43,9 +43,9 @@ together: a set's own axis and angles are what its own features give, and the
 matches across sets fix only where it lies. Outlines never join a set. A specimen
 turned over on a patterned table with the camera where it stood is not found: the
 table's features put both sets on one circle and the specimen's matches across them,
-which disagree with it, are set aside as pairs one turn does not explain (a split by
-those pairs' epipolar agreement was tried: on a synthetic 384 px capture the one
-circle's own neighbouring pairs disagreed as often, and it split a set in two).
+which disagree with it, are set aside as pairs one turn does not explain (their
+epipolar agreement alone does not tell the sets apart: a circle's own neighbouring
+pairs disagree about as often).
 """
 
 from __future__ import annotations
