@@ -153,7 +153,7 @@ def circular_poses(
     hulls = _hulls(masks)
     solution = _solve(settings, order, intrinsics[order[0]], keypoints, matches, board_poses, hulls, unverified)
     on_specimen = {name: on_mask(masks[name], keypoints[name]) for name in order if name in masks}
-    other_sets = _other_sets(settings, order, solution, keypoints, matches)
+    other_sets = _other_sets(settings, order, solution, keypoints, matches, board_poses)
     # The first set solved alone; a photo its own circle poses freely at another
     # elevation belongs to another set (a few stood wrong on the one circle of all).
     for _ in range(MAX_SET_ROUNDS if other_sets else 0):
@@ -267,13 +267,18 @@ def _other_sets(
     solution: CircularMotion,
     keypoints: dict[str, np.ndarray],
     matches: dict[tuple[str, str], dict[int, int]],
+    board_poses: dict[str, Pose],
 ) -> list[list[str]]:
     """The sets after the first (the largest), in file order; none for one set. Sets
     shot from different heights or distances: one circle puts them all between, and
     posed freely on its points each set's photos stand at their own
-    (pipeline.geometry.turntable_sets)."""
+    (pipeline.geometry.turntable_sets). Where the board on the table is seen in most
+    photos, their cameras stand where its poses put them, over the board's plane."""
     min_photos = max(3, len(order) // 10)
-    cameras = turntable_sets.free_cameras(solution, keypoints, matches)
+    if len(board_poses) > len(order) / 2:
+        cameras = turntable_sets.over_the_board(board_poses)
+    else:
+        cameras = turntable_sets.free_cameras(solution, keypoints, matches)
     found_sets = turntable_sets.split_by_camera(cameras, settings.set_separation, min_photos)
     if len(found_sets) == 1:
         return []

@@ -401,6 +401,22 @@ def free_cameras(solution: CircularMotion, keypoints: dict[str, np.ndarray], mat
     return found
 
 
+def over_the_board(board_poses: dict[str, Pose]) -> dict[str, tuple[float, float]]:
+    """Each photo's camera over the board on the table, from its board pose: its
+    elevation over the board's plane (degrees) and its distance from the table's axis
+    (metres), as ``free_cameras`` gives them. The axis is the board's normal through the
+    centre of the circle fitted to the cameras' centres in the board's plane (Kasa's
+    algebraic fit: the board need not lie at the table's centre; the sets' circles about
+    one axis share that centre)."""
+    names = list(board_poses)
+    centres = np.array([board_poses[name].center for name in names])
+    x, y = centres[:, 0], centres[:, 1]
+    (d, e, _), *_ = np.linalg.lstsq(np.column_stack([x, y, np.ones(len(x))]), -(x * x + y * y), rcond=None)
+    radial = np.hypot(x + d / 2, y + e / 2)
+    elevation = np.degrees(np.arctan2(centres[:, 2], radial))
+    return {name: (float(a), float(r)) for name, a, r in zip(names, elevation, radial)}
+
+
 def split_by_camera(cameras: dict[str, tuple[float, float]], separation: float, min_photos: int) -> list[list[str]]:
     """The photos in groups whose free cameras stand at different elevations:
     recursively, the split of the sorted elevations into two groups with the least

@@ -7,7 +7,7 @@ import logging
 import numpy as np
 import pytest
 
-from pipeline.camera.model import rotation_angle_deg, similarity_umeyama
+from pipeline.camera.model import Pose, rotation_angle_deg, similarity_umeyama
 from pipeline.camera.self_calibration import SelfCalibrationSettings
 from pipeline.geometry import turntable_sets
 from pipeline.geometry.turntable_placement import PlacementSettings, RigSettings, circular_poses
@@ -116,3 +116,22 @@ def test_a_photo_of_another_set_is_a_stray_of_the_first_and_goes_where_its_match
     matches = {("view_020.jpg", "set_000.jpg"): {0: 1, 2: 3}, ("view_020.jpg", "set_001.jpg"): {4: 5}}
     grown = turntable_sets.with_the_rest([["other_000.jpg"], ["set_000.jpg", "set_001.jpg"]], ["view_020.jpg"], matches)
     assert grown == [["other_000.jpg"], ["set_000.jpg", "set_001.jpg", "view_020.jpg"]]
+
+
+def test_cameras_over_a_board_off_the_tables_centre_split_into_their_sets():
+    """Board poses of two sets, 25 and 33 degrees up, circling an axis 3 cm off the
+    board's centre: measured from the board's centre the elevations would wander with
+    the turn; about the fitted axis each set's are one value, and they split."""
+    poses = {}
+    for prefix, elevation, distance in (("view", 25.0, 0.4), ("set", 33.0, 0.35)):
+        for k, angle in enumerate(np.radians(np.arange(0, 360, 20))):
+            e = np.radians(elevation)
+            centre = np.array([0.03, -0.01, 0]) + distance * np.array(
+                [np.cos(angle) * np.cos(e), np.sin(angle) * np.cos(e), np.sin(e)]
+            )
+            poses[f"{prefix}_{k:03d}.jpg"] = Pose.look_at(centre, [0.03, -0.01, 0.04])
+    cameras = turntable_sets.over_the_board(poses)
+    elevations = {prefix: [cameras[n][0] for n in poses if n.startswith(prefix)] for prefix in ("view", "set")}
+    assert np.ptp(elevations["view"]) < 1e-6 and np.ptp(elevations["set"]) < 1e-6
+    found = turntable_sets.split_by_camera(cameras, 6.0, 3)
+    assert sorted(map(sorted, found)) == sorted([[n for n in poses if n.startswith(p)] for p in ("set", "view")])
