@@ -26,7 +26,8 @@
    in sets (the camera moved up or down, or the specimen turned over, between turns)
    is found from where its photos' cameras stand posed freely, each set solved alone
    and joined to the first by its matches on the specimen, or left out with one warning naming its
-   photos (pipeline.geometry.turntable_sets; sfm.json ``circular.sets``, and per
+   photos (pipeline.geometry.turntable_sets), then all adjusted together with the
+   matches across sets shared (pipeline.geometry.sets_adjustment; sfm.json ``circular.sets``, and per
    photo its set, what placed it and its angle's uncertainty in ``circular.photos``). Fewer than
    ``min_registered_fraction`` posed photos is an error naming the others and the
    likely cause for each. A rerun gives the same model: photos are numbered in

@@ -3,7 +3,8 @@ feature matches (pipeline.geometry.circular_motion); each other set of the captu
 (a group of photos whose matches with the ring one circle does not explain: the
 camera moved or the specimen was re-placed) solved alone and joined to the ring by
 those matches, or left out with a warning naming its photos
-(pipeline.geometry.turntable_sets); then the photos the features could not place put
+(pipeline.geometry.turntable_sets), the joined sets adjusted together with the ring
+(pipeline.geometry.sets_adjustment); then the photos the features could not place put
 on the circle by their board pose, each group of photos the features tie together
 but not to the ring (an arc matching left apart, no pair across) by the group's
 silhouettes at once, the rest by even steps (a timed turntable, when asked for) or
@@ -32,7 +33,7 @@ from pipeline.camera.model import Intrinsics, Pose
 from pipeline.camera.self_calibration import SelfCalibrationSettings
 from pipeline.core.config import Range
 from pipeline.core.errors import PipelineError
-from pipeline.geometry import circular_motion, silhouette_tangency, turntable_sets
+from pipeline.geometry import circular_motion, sets_adjustment, silhouette_tangency, turntable_sets
 from pipeline.geometry.circular_motion import GROUP_OUTLINES, CircularMotion, CircularSettings, matched_pairs
 from pipeline.geometry.turntable import Turntable
 from pipeline.geometry.world_frame import robust_similarity
@@ -197,6 +198,8 @@ def circular_poses(
                 source[name] = "joined_by_outline"
     details: dict[str, dict] = {}
     sets = _join_sets(settings, order, solution, table, keypoints, matches, on_specimen, hulls, other_sets)
+    solution, table, undetermined = _adjust_together(settings, solution, table, sets, keypoints, hulls)
+    unplaced |= undetermined
     for name, pose in sets.poses.items():
         source[name] = "features_across_sets"
     for name, angle in _by_board(table, solution, board_poses, unplaced).items():
@@ -208,7 +211,6 @@ def circular_poses(
     for name, found in grouped.items():
         table.angles[name], source[name], details[name] = found["angle"], "group_silhouette", found
     points, tracks = circular_motion.place_group(solution, offsets)
-    points, tracks = np.vstack([points, *sets.points]), tracks + sets.tracks
     # Tracks of the photos placed; a point its placed photos see fewer than twice is dropped.
     tracks = [{n: k for n, k in track.items() if n in table.angles or n in sets.poses} for track in tracks]
     seen = np.array([len(track) >= 2 for track in tracks], bool)
@@ -240,6 +242,7 @@ def circular_poses(
         "summary": summary,
         "photos": photos,
         "sets": sets.reports,
+        "sets_adjustment": sets.adjustment,
         "pose_source": {kind: sorted(n for n in placed if source[n] == kind) for kind in _SOURCES},
         "unplaced": unplaced,
         "reprojection_error_px_median": solution.reprojection_px,
@@ -323,18 +326,21 @@ def _solve(
 @dataclass
 class _Sets:
     """The capture's other sets: the group numbers that were sets, the joined sets'
-    photos' poses and angles (in their own set) in the ring's frame, their points and
-    tracks, the photos of sets left out (with the reason), and a report per set."""
+    photos' poses and angles (in their own set) in the ring's frame, the photos of sets
+    left out (with the reason), and a report per set."""
 
     numbers: set[int] = field(default_factory=set)
     poses: dict[str, Pose] = field(default_factory=dict)
     angles: dict[str, float] = field(default_factory=dict)
     angle_std_deg: dict[str, float] = field(default_factory=dict)
     set_of: dict[str, int] = field(default_factory=dict)
-    points: list[np.ndarray] = field(default_factory=list)
-    tracks: list[dict[str, int]] = field(default_factory=list)
     left_out: dict[str, str] = field(default_factory=dict)
     reports: list[dict] = field(default_factory=list)
+    joined: list[sets_adjustment.JoinedSet] = field(default_factory=list)
+    """Each joined set as solved alone, for the adjustment of all together."""
+    adjustment: dict = field(default_factory=dict)
+    """The adjustment of all together: observations, matches across shared, residual,
+    each set's turn uncertainty, the intrinsics."""
 
 
 def _join_sets(
@@ -386,11 +392,12 @@ def _join_sets(
         else:
             own_table = Turntable(own.axis, own.point, np.eye(3), np.zeros(3), dict(own.angles))
             own_poses = {name: own_table.pose(angle) for name, angle in own.angles.items()}
+            across = _across_on_specimen(matches, ring_names, group, on_specimen)
             joined, found = turntable_sets.join(
                 turntable_sets.Solved(solution, ring_poses),
                 turntable_sets.Solved(own, own_poses),
                 keypoints,
-                _across_on_specimen(matches, ring_names, group, on_specimen),
+                across,
                 settings.circular.min_observations,
                 settings.join_noise_factor,
                 solution.axis,
@@ -418,11 +425,77 @@ def _join_sets(
                 sets.angle_std_deg[name] = float(np.hypot(own.angle_std_deg.get(name, 0.0), found["angle_std_deg"]))
             else:
                 sets.left_out[name] = f"in set {report['set']}, not placed within it: {own.unplaced.get(name, '')}"
-        kept = own.point_groups == 0
-        sets.points.append(joined.points(own.points[kept]))
-        sets.tracks += [track for track, keep in zip(own.tracks, kept) if keep]
+        sets.joined.append(
+            sets_adjustment.JoinedSet(turntable_sets.Solved(own, own_poses), joined, across, found["inlier_limit_px"])
+        )
         logger.info("set %d of %d photos %s", report["set"], len(names), why)
     return sets
+
+
+def _adjust_together(
+    settings: PlacementSettings,
+    solution: CircularMotion,
+    table: Turntable,
+    sets: _Sets,
+    keypoints: dict[str, np.ndarray],
+    hulls: dict[str, np.ndarray],
+) -> tuple[CircularMotion, Turntable, dict[str, str]]:
+    """The ring and the joined sets adjusted together (pipeline.geometry.sets_adjustment):
+    the solution and table with the ring's adjusted circle, angles, intrinsics and the
+    points of all sets (the groups' kept as they were), and the ring's photos whose
+    angle it leaves undetermined, with the reason (their outlines may still place
+    them); the sets' poses, angle uncertainties and the join reports updated in
+    ``sets``, a set's photo left undetermined left out."""
+    if not sets.joined:
+        return solution, table, {}
+    ring_poses = {name: table.pose(angle) for name, angle in table.angles.items()}
+    values = solution.calibration.get("values", {})
+    adjusted = sets_adjustment.adjust_sets(
+        turntable_sets.Solved(solution, ring_poses),
+        sets.joined,
+        keypoints,
+        {name: bool(values.get(name, {}).get("adjusted")) for name in ("f", "k1")},
+        settings.circular.outlier_px,
+        hulls if settings.silhouette_coherence else None,
+    )
+    sets.adjustment = adjusted.report
+    joined_reports = [report for report in sets.reports if report["joined"]]
+    for report, turn_std in zip(joined_reports, adjusted.report["set_turn_std_deg"]):
+        report["angle_std_deg"] = turn_std
+    reason = "its features leave its angle undetermined when the sets are adjusted together (outliers there)"
+    unplaced = {name: reason for name in adjusted.undetermined if name in table.angles}
+    for name in list(sets.poses):
+        if name in adjusted.undetermined:
+            for record in (sets.poses, sets.angles, sets.angle_std_deg, sets.set_of):
+                del record[name]
+            sets.left_out[name] = reason
+            logger.warning("%s is left out: %s", name, reason)
+            continue
+        sets.poses[name], sets.angle_std_deg[name] = adjusted.poses[name], adjusted.angle_std_deg[name]
+        sets.angles[name] = adjusted.angles[name]
+    logger.info(
+        "circular motion: %d sets adjusted together, %d matches across them shared, %.2f px median residual",
+        1 + len(sets.joined),
+        adjusted.report["matches_across_shared"],
+        adjusted.report["reprojection_px_median"],
+    )
+    groups = solution.point_groups != 0
+    solution = replace(
+        solution,
+        axis=adjusted.axis,
+        point=adjusted.point,
+        intrinsics=adjusted.intrinsics,
+        angles=solution.angles | {name: adjusted.angles[name] for name in adjusted.poses if name in table.angles},
+        angle_std_deg={n: std for n, std in solution.angle_std_deg.items() if n not in unplaced}
+        | {name: adjusted.angle_std_deg[name] for name in adjusted.poses if name in table.angles},
+        points=np.vstack([adjusted.points, solution.points[groups]]),
+        tracks=adjusted.tracks + [track for track, group in zip(solution.tracks, groups) if group],
+        point_groups=np.concatenate([np.zeros(len(adjusted.points), int), solution.point_groups[groups]]),
+        reprojection_px=adjusted.report["reprojection_px_median"],
+        calibration=solution.calibration | {"values": adjusted.report["intrinsics"]},
+    )
+    angles = {name: adjusted.angles[name] for name in adjusted.poses if name in table.angles}
+    return solution, Turntable(solution.axis, solution.point, np.eye(3), np.zeros(3), angles), unplaced
 
 
 def _across_on_specimen(

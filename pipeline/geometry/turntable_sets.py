@@ -38,9 +38,11 @@ and its place relative to the first set is known only where features prove it.
    and how the camera moved: the change of its elevation over the table, its distance
    from the axis, and how far the specimen's axis turned (a specimen turned over).
 
-Limitations: the sets' circles are solved apart and joined after, not adjusted
-together: a set's own axis and angles are what its own features give, and the
-matches across sets fix only where it lies. Outlines never join a set. A specimen
+The joined sets are then adjusted together (pipeline.geometry.sets_adjustment).
+
+Limitations: a join is drawn on each set's circle as solved alone: a set whose own
+circle is too far off for its matches across to fit one similarity within the noise is
+left out, not solved together. Outlines never join a set. A specimen
 turned over on a patterned table with the camera where it stood is not found: the
 table's features put both sets on one circle and the specimen's matches across them,
 which disagree with it, are set aside as pairs one turn does not explain (their
