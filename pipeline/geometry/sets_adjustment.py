@@ -196,10 +196,20 @@ class _Tracks:
         """The points (one per merged track seen twice) and their observations."""
         view_of = {name: i for i, name in enumerate(names)}
         roots = [p for p in range(len(self.positions)) if self.root(p) == p and len(self.observed[p]) >= 2]
-        seen = [(view_of[n], number, key) for number, p in enumerate(roots) for n, key in self.observed[p].items()]
+        # A keypoint matched into two tracks (two matches across) is one point's: the first's.
+        used: set[tuple[str, int]] = set()
+        seen = []
+        for number, p in enumerate(roots):
+            for name, key in self.observed[p].items():
+                if (name, key) not in used:
+                    used.add((name, key))
+                    seen.append((view_of[name], number, key))
         views, points, keys = (np.array([row[column] for row in seen], int) for column in range(3))
         pixels = np.array([keypoints[names[view]][key] for view, _, key in seen], float).reshape(-1, 2)
-        return np.array([self.positions[p] for p in roots]).reshape(-1, 3), Observations(views, points, pixels, keys)
+        observations = Observations(views, points, pixels, keys)
+        positions = np.array([self.positions[p] for p in roots]).reshape(-1, 3)
+        observations, positions = keep_inliers(observations, positions, np.ones(len(views), bool))
+        return positions, observations  # the points still seen twice
 
 
 class _Projection:

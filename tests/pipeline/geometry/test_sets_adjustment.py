@@ -85,3 +85,17 @@ def test_a_set_no_match_across_ties_is_left_undetermined():
     assert adjusted.report["matches_across_shared"] == 0
     assert sorted(adjusted.undetermined) == sorted(own.poses)
     assert set(adjusted.poses) == set(ring.poses)
+
+
+def test_a_keypoint_matched_into_two_tracks_is_observed_once():
+    """A ring photo's untracked keypoint matched with two set photos' different points
+    joins one of them (COLMAP refuses a keypoint in two points)."""
+    ring, own, joined, across, keypoints, _ = _two_sets()
+    for track in ring.solution.tracks:
+        track.pop("ring_00", None)  # ring_00's keypoints are tracked by nothing
+    across[("ring_00", "set_00")] = {7: 7}
+    across[("ring_00", "set_01")] = {7: 8}
+    adjusted = adjust_sets(ring, [JoinedSet(own, joined, across, 1e9)], keypoints, {"f": True}, 3.0)
+    seen = [(name, key) for track in adjusted.tracks for name, key in track.items()]
+    assert len(seen) == len(set(seen))
+    assert sum(track.get("ring_00") == 7 for track in adjusted.tracks) == 1
