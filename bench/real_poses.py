@@ -11,7 +11,9 @@ Cases (``--only`` picks some by name):
 - Real captures from ``--captures`` (each skipped when absent), every one scored against
   its own reference: ``oxford-dino`` (turntable; Oxford's projective turntable
   reconstruction: turntable angles and centres against reference/cameras.txt, viewing
-  directions against reference/cameras_upgraded.txt, see its README), ``dino-sparse-ring``
+  directions against reference/cameras_upgraded.txt, see its README; ``oxford-dino-k1-held``
+  the same with ``sfm.self_calibrate=false``, distortion held at zero, compared photo by
+  photo: whether self-calibration's k1 helps), ``dino-sparse-ring``
   (ring; Middlebury's calibrated cameras), ``dino-sparse-ring-known-intrinsics`` (the
   same with Middlebury's K given as ``calibrate.known_intrinsics``, held fixed, as a user
   with a calibrated rig would run it), ``temple-ring`` (handheld) and
@@ -93,7 +95,7 @@ class Case:
     name: str
     source: str
     """'shared:NAME' (a folder of ``--captures``), 'suite:SEED' (a drawn synthetic turntable),
-    'twin:NAME' (one of ``TWINS``) or 'sample:NAME'."""
+    'twin:NAME' (one of ``TWINS``), 'synth:NAME' (rendered from ``synth``) or 'sample:NAME'."""
     rig: str = "handheld"
     overrides: tuple[str, ...] = field(default_factory=tuple)
     true_masks: bool = False
@@ -104,10 +106,15 @@ class Case:
     capture's reference calibration, as a user with a calibrated rig would give it;
     ``start``, the intrinsics calibrate starts from without it (EXIF or COLMAP's prior),
     what self-calibration is judged against."""
+    synth: tuple[str, ...] = ()
+    """A 'synth:' case's `pipeline synth` arguments."""
+    description: str = ""
+    """A 'synth:' case's "what" cell."""
 
 
 REAL = [
     Case("oxford-dino", "shared:oxford-dino", "turntable", ("board.kind=none",)),
+    Case("oxford-dino-k1-held", "shared:oxford-dino", "turntable", ("board.kind=none", "sfm.self_calibrate=false")),
     Case("dino-sparse-ring", "shared:dino-sparse-ring", "ring", ("board.kind=none",)),
     Case(
         "dino-sparse-ring-known-intrinsics",
@@ -364,7 +371,7 @@ def prepare(case: Case, captures: Path, work: Path) -> Path:
     rendered = work / f"rendered-{name}"
     if not (rendered / "capture.toml").is_file():
         shutil.rmtree(rendered, ignore_errors=True)
-        arguments = suite_options(int(name))[0] if kind == "suite" else TWINS[name][0]
+        arguments = suite_options(int(name))[0] if kind == "suite" else case.synth or TWINS[name][0]
         subprocess.run(_pipeline("synth", str(rendered), *arguments), check=True)
     shutil.copytree(rendered, capture, ignore=shutil.ignore_patterns(".pipeline", "output"))
     if case.true_masks:
@@ -446,6 +453,7 @@ def run_case(case: Case, captures: Path, work: Path) -> dict:
         "calibration": f"f {intrinsics.fx:.4g}, given (held)" if case.given_intrinsics else calibration_summary(report),
         "angle_std": list(circular.get("angle_std_deg", {}).values()),
         "coherence": circular.get("silhouette_coherence") or {},
+        "circular": circular,
     }
     row["masks"] = mask_summary(capture)
     circle_truth, direction_truth = references(case, captures, capture)
@@ -551,7 +559,12 @@ def describe(case: Case) -> str:
     """The table's "what" cell: the rig, or the synthetic capture's description, and what
     the case adds."""
     kind, _, name = case.source.partition(":")
-    description = suite_options(int(name))[1] if kind == "suite" else TWINS[name][1] if kind == "twin" else case.rig
+    if kind == "suite":
+        description = suite_options(int(name))[1]
+    elif kind == "twin":
+        description = TWINS[name][1]
+    else:
+        description = case.description or case.rig
     given = {"": "", "reference": ", reference intrinsics given", "start": ", start focal held"}
     return description + (", true masks" if case.true_masks else "") + given[case.given_intrinsics]
 
@@ -572,6 +585,28 @@ def paired_difference(calibrated: dict[str, float], held: dict[str, float]) -> s
     return (
         f"per photo {np.median(differences):+.2f} ({low:+.2f} to {high:+.2f}), "
         f"p {wilcoxon(differences).pvalue:.2g}, better in {int(np.sum(differences < 0))} of {len(differences)}"
+    )
+
+
+def held_summary(rows: dict[str, dict]) -> str:
+    """Each case run again as NAME-k1-held (``sfm.self_calibrate=false``: distortion held
+    at zero): its median direction error self-calibrated against held, and their
+    photo-by-photo difference (``paired_difference``)."""
+    pairs = []
+    for name, held in rows.items():
+        calibrated = rows.get(name.removesuffix("-k1-held"))
+        if not name.endswith("-k1-held") or calibrated is None:
+            continue
+        if calibrated.get("direction_errors") and held.get("direction_errors"):
+            difference = paired_difference(calibrated["direction_errors"], held["direction_errors"])
+            pairs.append(
+                f"{calibrated['case']} {calibrated['direction'][0]:.2f} against {held['direction'][0]:.2f} "
+                f"({calibrated['calibration']}; {difference})"
+            )
+    return (
+        "Self-calibration against distortion held at zero, median direction error (degrees), and self-calibrated "
+        "minus held photo by photo (median, its 95 % bootstrap interval, Wilcoxon signed-rank p, photos where "
+        f"self-calibration is better): {'; '.join(pairs) or 'no pair run'}."
     )
 
 
@@ -604,7 +639,11 @@ def write_from_log(log: Path) -> None:
     printed = log.read_text().splitlines()
     command = printed[0].removeprefix("command: ")
     rows = [line for line in printed if line.startswith("| ") and not line.startswith(("| capture |", "|---"))]
-    summary = [line for line in printed if line.startswith(("Randomised suite", "The same with", "Small specimens"))]
+    summary = [
+        line
+        for line in printed
+        if line.startswith(("Randomised suite", "The same with", "Small specimens", "Self-calibration against"))
+    ]
     write_real_poses(rows, summary, command)
 
 
@@ -636,7 +675,7 @@ def main() -> None:
     options = " ".join(o for o in sys.argv[1:] if o != "--write")
     print(f"command: .venv/bin/python -m bench.real_poses {options} --write", flush=True)
     print(HEADER, flush=True)
-    lines, suite_rows, true_mask_rows, twin_rows = [], [], [], {}
+    lines, suite_rows, true_mask_rows, twin_rows, real_rows = [], [], [], {}, {}
     for case in cases:
         if case.source.startswith("shared:") and not (args.captures / case.source.split(":")[1]).is_dir():
             continue
@@ -648,6 +687,8 @@ def main() -> None:
             (true_mask_rows if case.true_masks else suite_rows).append(row)
         if kind == "twin":
             twin_rows[case.name] = row
+        if kind == "shared":
+            real_rows[case.name] = row
     summary = []
     for rows, title in ((suite_rows, "Randomised suite"), (true_mask_rows, "The same with the true masks")):
         if rows:
@@ -655,6 +696,9 @@ def main() -> None:
             print(summary[-1])
     if twin_rows:
         summary.append(twin_summary(twin_rows))
+        print(summary[-1])
+    if any(name.endswith("-k1-held") for name in real_rows):
+        summary.append(held_summary(real_rows))
         print(summary[-1])
     if args.write:
         write_real_poses(lines, summary, f".venv/bin/python -m bench.real_poses {options} --write")

@@ -3,8 +3,9 @@
 1. **Features and matches** (pipeline.colmap.features): SIFT on
    undistort's 8-bit photos, upsampled and DSP-SIFT on small photos; for a
    turntable only from what changes between photos (the still room masked out) and
-   matched with ring neighbours and with the photos whose outlines look alike (a
-   second turn), else exhaustively (sequentially past 150 photos).
+   matched with ring neighbours, with the photos whose outlines look alike (a
+   second turn) and with those that share the most descriptors on the specimen
+   (another set), else exhaustively (sequentially past 150 photos).
 2. **Poses.** Handheld: COLMAP's incremental mapping; a calibrated camera (board,
    ``calibrate.known_intrinsics``) stays fixed, a guessed one (EXIF, prior) has its
    focal length refined, and principal point and radial distortion when the photos
@@ -19,9 +20,15 @@
    (sfm.json ``weak_pairs``); an arc of the ring that matching left apart
    is joined to it where its outlines fix its offset and the ring solved with both
    agrees with them (sfm.json ``joined_groups``), else placed by its silhouettes at
-   once; a photo the features cannot place by its
+   once (marked uncertain: outlines alone); a photo the features cannot place by its
    board pose, by even steps (a timed table) or by its silhouette, else left out
-   with a warning naming it (pipeline.geometry.turntable_placement). Fewer than
+   with a warning naming it (pipeline.geometry.turntable_placement). A capture shot
+   in sets (the camera moved up or down, or the specimen turned over, between turns)
+   is found from where its photos' cameras stand posed freely, each set solved alone
+   and joined to the first by its matches on the specimen, or left out with one warning naming its
+   photos (pipeline.geometry.turntable_sets), then all adjusted together with the
+   matches across sets shared (pipeline.geometry.sets_adjustment; sfm.json ``circular.sets``, and per
+   photo its set, what placed it and its angle's uncertainty in ``circular.photos``). Fewer than
    ``min_registered_fraction`` posed photos is an error naming the others and the
    likely cause for each. A rerun gives the same model: photos are numbered in
    sorted order, RANSAC and the mapper are seeded, and bundle adjustment runs on one
@@ -202,6 +209,8 @@ def main(conf: Config, inputs: StageInputs, out_dir: Path) -> StageResult:
     metrics = {"registered": registered, "photos": report.photos}
     metrics |= {"mean_reprojection_error_px": report.mean_reprojection_error_px}
     metrics |= {"mean_track_length": report.mean_track_length, "frame": frame["source"]}
+    if "circular" in posed.details:  # the one line the log gave: sets, joins, outlines, left out
+        metrics["placed"] = posed.details["circular"]["summary"]
     return StageResult({"cameras": cameras_json, "sparse": sparse, "report": sfm_json}, metrics)
 
 

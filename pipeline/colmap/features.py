@@ -15,7 +15,7 @@ from pipeline import logger
 from pipeline.camera.model import Intrinsics
 from pipeline.colmap import COLMAP_PIXEL_OFFSET
 from pipeline.core.config import Range
-from pipeline.imaging.segmentation import still_pixels
+from pipeline.imaging.segmentation import on_mask, still_pixels
 
 
 def feature_masks(
@@ -90,6 +90,11 @@ class FeatureSettings:
     (outline_neighbours), wherever they are in file order: a turntable's camera is
     fixed, so a second turn's photo shows the outline of the first turn's photo at
     nearly the same angle."""
+    descriptor_neighbours: Annotated[int, Range(0, None)] = 4
+    """Ring matching: each photo is also matched with up to this many others that share
+    the most SIFT descriptors with it (descriptor_neighbours), wherever they are in file
+    order: a capture shot in sets has photos of the same side in another set, where the
+    camera stood higher or the specimen lay turned over, whose outlines differ."""
 
 
 @dataclass(frozen=True)
@@ -111,6 +116,11 @@ class FeaturePlan:
     pairs: tuple[tuple[str, str], ...]
     """Ring matching: the pairs of photo file names to match (ring_pairs); empty for
     the other matchers."""
+    descriptor_neighbours: int
+    """Ring matching: partners per photo retrieved by their descriptors after extraction."""
+    specimen_masks: dict[str, Path]
+    """Ring matching: each photo's specimen mask by its file name, where descriptor_neighbours
+    compares features (the specimen, not the table it may have been turned over on)."""
     still_camera: bool
     """Matches that do not move are dropped (a turntable's room)."""
 
@@ -144,6 +154,8 @@ class FeaturePlan:
             pairs=ring_pairs(photos, masks, settings.ring_neighbours, settings.outline_neighbours)
             if matcher == "ring"
             else (),
+            descriptor_neighbours=settings.descriptor_neighbours,
+            specimen_masks={Path(photo["srgb"]).name: masks[name] for name, photo in photos.items() if name in masks},
             still_camera=rig == "turntable",
         )
 
@@ -223,13 +235,80 @@ def _match(plan: FeaturePlan, photos: dict[str, dict], database: Path) -> None:
             database, matching, pairing_options=pairing, verification_options=verification, device=device
         )
     else:
+        retrieved = descriptor_neighbours(database, plan.descriptor_neighbours, set(plan.pairs), plan.specimen_masks)
+        logger.info(
+            "%d pairs in file order or alike in outline, %d more alike in descriptors", len(plan.pairs), len(retrieved)
+        )
         pairs_file = database.with_name("pairs.txt")
-        pairs_file.write_text("".join(f"{a} {b}\n" for a, b in plan.pairs))
+        pairs_file.write_text("".join(f"{a} {b}\n" for a, b in sorted(set(plan.pairs) | retrieved)))
         pairing = pycolmap.ImportedPairingOptions()
         pairing.match_list_path = pairs_file
         pycolmap.match_image_pairs(
             database, matching, pairing_options=pairing, verification_options=verification, device=device
         )
+
+
+RETRIEVAL_FEATURES = 512
+"""Features per photo compared by descriptor_neighbours: its largest (the most repeatable
+across a change of viewpoint), which keeps the comparison of every pair to seconds."""
+RETRIEVAL_RATIO = 0.8
+"""Lowe's ratio: a feature counts as shared with a photo where its nearest descriptor
+there is this much nearer than the second nearest."""
+
+
+def descriptor_neighbours(
+    database: Path, count: int, excluded: set[tuple[str, str]], masks: dict[str, Path]
+) -> set[tuple[str, str]]:
+    """Pairs (sorted file names) of each photo with up to ``count`` others, not in
+    ``excluded``, that share the most of its RETRIEVAL_FEATURES largest features on the
+    specimen (within its mask, by file name; every feature where a photo has none)
+    (Lowe's ratio test against each other photo's, both ways): a retrieval by local
+    features, as a vocabulary tree gives, without one. On the specimen: turned over
+    between sets, it shows the same side in photos where the table does not."""
+    if count == 0:
+        return set()
+    with pycolmap.Database.open(database) as db:
+        images = sorted(db.read_all_images(), key=lambda image: image.name)
+        names = [image.name for image in images]
+        sampled = []
+        for image in images:
+            shapes = np.asarray(db.read_keypoints(image.image_id), np.float64)
+            descriptors = np.asarray(db.read_descriptors(image.image_id).data, np.float32)
+            scale = np.abs(shapes[:, 2] * shapes[:, 5] - shapes[:, 3] * shapes[:, 4]) if len(shapes) else np.zeros(0)
+            if image.name in masks and len(shapes):
+                scale = np.where(on_mask(masks[image.name], shapes[:, :2] - COLMAP_PIXEL_OFFSET), scale, -1.0)
+                descriptors = descriptors[scale >= 0]
+                scale = scale[scale >= 0]
+            kept = descriptors[np.argsort(-scale, kind="stable")[:RETRIEVAL_FEATURES]]
+            sampled.append(kept / np.maximum(np.linalg.norm(kept, axis=1, keepdims=True), 1e-9))
+    n = len(names)
+    if n < 3:
+        return set()
+    width = max(len(d) for d in sampled)
+    # Zero rows pad every photo to one width: their similarity 0 is never a nearest neighbour.
+    padded = np.zeros((n, width, 128), np.float32)
+    for i, d in enumerate(sampled):
+        padded[i, : len(d)] = d
+    stacked = padded.reshape(n * width, 128)
+    shared = np.zeros((n, n))
+    for i, d in enumerate(sampled):
+        if not len(d):
+            continue
+        similarity = (d @ stacked.T).reshape(len(d), n, width)
+        best = similarity.max(axis=2)
+        np.put_along_axis(similarity, similarity.argmax(axis=2)[..., None], -1.0, axis=2)
+        second = similarity.max(axis=2)
+        # Unit descriptors: distance^2 = 2 - 2 similarity.
+        passed = np.sqrt(np.maximum(2 - 2 * best, 0)) < RETRIEVAL_RATIO * np.sqrt(np.maximum(2 - 2 * second, 0))
+        shared[i] = passed.sum(axis=0)
+    shared += shared.T
+    np.fill_diagonal(shared, -1)
+    pairs: set[tuple[str, str]] = set()
+    for i in range(n):
+        partners = [j for j in np.argsort(-shared[i], kind="stable") if j != i]
+        fresh = [j for j in partners if tuple(sorted((names[i], names[j]))) not in excluded]
+        pairs |= {tuple(sorted((names[i], names[j]))) for j in fresh[:count] if shared[i, j] > 0}
+    return pairs
 
 
 STATIONARY_PX = 4.0

@@ -64,6 +64,20 @@ class Observations:
         return Observations(self.view[keep], self.point[keep], self.pixels[keep], keypoint)
 
 
+def keep_inliers(
+    observations: Observations,
+    points: np.ndarray,
+    inliers: np.ndarray,
+) -> tuple[Observations, np.ndarray]:
+    """The ``inliers`` of ``observations`` and the points they still see twice, renumbered."""
+    observations = observations.subset(inliers)
+    seen = np.bincount(observations.point, minlength=len(points)) >= 2
+    renumber = np.cumsum(seen) - 1
+    observations = observations.subset(seen[observations.point])
+    observations.point = renumber[observations.point]
+    return observations, points[seen]
+
+
 @dataclass
 class Problem:
     """A bundle adjustment problem: a camera model, its free parameters and the observations."""

@@ -73,7 +73,7 @@ only a rotation of the image).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -85,7 +85,7 @@ from pipeline import logger
 from pipeline.camera.model import Intrinsics, Pose
 from pipeline.camera.self_calibration import corner_radius, frame_coverage, radial_shift_px
 from pipeline.geometry import silhouette_coherence, silhouette_tangency
-from pipeline.geometry.bundle import Observations, Prior, Problem, adjust
+from pipeline.geometry.bundle import Observations, Prior, Problem, adjust, keep_inliers
 
 GLOBAL_NAMES = ("axis_a", "axis_b", "psi", "f", "cx", "cy", "k1")
 """The model's global parameters: two for the axis direction (a tangent-plane offset
@@ -777,27 +777,35 @@ def _tracks_to_problem(solver: _Solver, tracks: list[dict[str, int]]) -> tuple[n
     return np.array(points).reshape(-1, 3), observations
 
 
-class _Coherence:
-    """The silhouette coherence term of one solve: the ring's photos with an outline,
-    the pairs compared (chosen at the angles the solve starts from) and the tangency
-    errors' standard deviation there, against the features' ``feature_sigma``."""
+class Coherence:
+    """The silhouette coherence term of one solve: some photos' outlines, the pairs
+    compared (chosen at the angles the solve starts from) and the tangency errors'
+    standard deviation there, against the features' ``feature_sigma``. ``own`` maps
+    the problem's global parameters to this circle's (``Model``'s layout): the
+    identity for one circle, one set's for sets adjusted together
+    (pipeline.geometry.sets_adjustment)."""
 
-    def __init__(self, solver: _Solver, feature_sigma: float):
-        outlines = solver.outlines
-        ring = solver.placed & (solver.group == 0)
-        rows = np.flatnonzero(ring[outlines.views])
-        self.model = solver.model
-        self.views = outlines.views[rows]
-        self.pixels = outlines.pixels[rows]
-        self.pairs = silhouette_coherence.choose_pairs(solver.angles[self.views])
+    def __init__(
+        self,
+        model: Model,
+        outlines: silhouette_coherence.Outlines,
+        g: np.ndarray,
+        angles: np.ndarray,
+        feature_sigma: float,
+        own: Callable[[np.ndarray], np.ndarray] = lambda g: g,
+    ):
+        self.model, self.own = model, own
+        self.views, self.pixels = outlines.views, outlines.pixels
+        self.pairs = silhouette_coherence.choose_pairs(angles[self.views])
         self.feature_sigma = feature_sigma
         self._undistorted: tuple[tuple, np.ndarray | None] = ((), None)
         """The intrinsics the outlines were last undistorted with, and their rays."""
-        self.sigma = silhouette_coherence.robust_sigma(self.residuals(solver.g, solver.angles[:, None]))
+        self.sigma = silhouette_coherence.robust_sigma(self.residuals(g, angles[:, None]))
 
     def residuals(self, g: np.ndarray, views: np.ndarray, turn_step: float = 0.0) -> np.ndarray:
         """(P, 4) tangency errors (pixels) of the pairs at the global parameters and
         angles, every pair's turn increased by ``turn_step``."""
+        g = self.own(g)
         axis, p = self.model.axis_and_point(g)
         intrinsics = tuple(g[[FOCAL, CX, CY, K1]])
         if intrinsics != self._undistorted[0]:
@@ -834,7 +842,7 @@ class _Coherence:
 
 
 def _problem(
-    solver: _Solver, observations: Observations, free_global: np.ndarray, coherence: _Coherence | None = None
+    solver: _Solver, observations: Observations, free_global: np.ndarray, coherence: Coherence | None = None
 ) -> Problem:
     free_views = solver.placed[:, None].copy()
     for group in np.unique(solver.group[solver.placed]):
@@ -901,14 +909,7 @@ def _solve(solver: _Solver, tracks, free_global: np.ndarray):
         feature_sigma = result.sigma_px
         if inliers.all():
             continue
-        observations = observations.subset(inliers)
-        # Points seen fewer than twice are dropped and the rest renumbered.
-        counts = np.bincount(observations.point, minlength=len(points))
-        keep_points = counts >= 2
-        renumber = np.cumsum(keep_points) - 1
-        observations = observations.subset(keep_points[observations.point])
-        observations.point = renumber[observations.point]
-        points = points[keep_points]
+        observations, points = keep_inliers(observations, points, inliers)
     return result, problem, points, observations
 
 
@@ -920,15 +921,17 @@ def _feature_sigma(solver: _Solver, observations: Observations, points: np.ndarr
     return max(float(np.median(np.linalg.norm(predicted - observations.pixels, axis=1)) / 1.1774), 1e-3)
 
 
-def _coherence(solver: _Solver, feature_sigma: float) -> _Coherence | None:
+def _coherence(solver: _Solver, feature_sigma: float) -> Coherence | None:
     """The silhouette coherence term at the solver's state, None without outlines or pairs."""
     if solver.outlines is None:
         return None
-    coherence = _Coherence(solver, feature_sigma)
+    ring = np.flatnonzero((solver.placed & (solver.group == 0))[solver.outlines.views])
+    outlines = silhouette_coherence.Outlines(solver.outlines.pixels[ring], solver.outlines.views[ring])
+    coherence = Coherence(solver.model, outlines, solver.g, solver.angles, feature_sigma)
     return coherence if coherence.usable else None
 
 
-def _settled(solver: _Solver, coherence: _Coherence, feature_sigma: float) -> bool:
+def _settled(solver: _Solver, coherence: Coherence, feature_sigma: float) -> bool:
     """Whether both noises at the solution are within a fifth of those the solve weighted
     by, and records them (sfm.json)."""
     sigma = silhouette_coherence.robust_sigma(coherence.residuals(solver.g, solver.angles[:, None]))
@@ -1180,8 +1183,21 @@ def _outline_offset(solver: _Solver, members: np.ndarray) -> silhouette_tangency
     return silhouette_tangency.place(group, solver.pose_at, partners, candidates, solver.g[FOCAL])
 
 
+def matched_pairs(
+    matches: dict[tuple[str, str], dict[int, int]], first: set[str], second: set[str], min_matches: int
+) -> int:
+    """How many pairs of a photo of ``first`` and one of ``second`` share ``min_matches``
+    verified matches."""
+    return sum(1 for (a, b), found in matches.items() if a in first and b in second and len(found) >= min_matches)
+
+
 def _join_groups(
-    solver: _Solver, tracks, free: np.ndarray, unplaced: dict[str, str], observations: Observations
+    solver: _Solver,
+    tracks,
+    free: np.ndarray,
+    unplaced: dict[str, str],
+    observations: Observations,
+    matches: dict[tuple[str, str], dict[int, int]],
 ) -> tuple[list[dict], Observations]:
     """Step 4 for the groups, where outlines are fitted: each group (largest first) is put
     at the offset where its outlines agree best with the ring's and the ring is solved
@@ -1193,7 +1209,12 @@ def _join_groups(
     ``silhouette_ambiguity`` times as well (the slope of the best offset's own valley
     is no rival), or where the joined ring's tangency noise is more than
     ``misfit_ratio`` times the ring's alone, as a wrong offset or a wrong mask makes
-    it. Returns a report per group and the inlier observations of the ring as it stands."""
+    it. A group that strong pairs of matches tie to the ring's photos, pairs one circle
+    does not explain (step 3 set them aside), is another set: the camera moved or the
+    specimen was re-placed between them, and no one offset on this circle is right.
+    It is left for pipeline.geometry.turntable_sets to join by those matches, never
+    by outlines. Returns a report per group and the inlier observations of the ring
+    as it stands."""
     reports: list[dict] = []
     if solver.outlines is None:
         return reports, observations
@@ -1204,6 +1225,15 @@ def _join_groups(
         before = solver.coherence.get("tangency_sigma_px")
         report: dict = {"photos": [solver.order[i] for i in members]}
         reports.append(report)
+        ring_names = {solver.order[i] for i in np.flatnonzero(_in_ring(solver))}
+        crossing = matched_pairs(matches, ring_names, set(report["photos"]), solver.settings.min_observations)
+        if crossing:
+            report["joined"] = False
+            report["decision"] = (
+                f"another set: {crossing} pairs of matches with the ring that one circle does not explain; "
+                "joined by its features or left out"
+            )
+            continue
         placement = _outline_offset(solver, members) if before is not None else None
         if placement is None:
             why = (
@@ -1290,7 +1320,7 @@ def solve(
         if weak_pairs["kept"]:
             ring = extended
     solver, tracks, observations, unplaced, free = ring
-    joined_groups, observations = _join_groups(solver, tracks, free, unplaced, observations)
+    joined_groups, observations = _join_groups(solver, tracks, free, unplaced, observations, matches)
     free, calibration = _self_calibration(solver, tracks, free, observations)
     result, problem, points, observations, counts, std = _solve_placing(solver, tracks, free, unplaced)
     # Tracks from the inlier observations (outliers were dropped from tracks, not from

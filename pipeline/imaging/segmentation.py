@@ -443,6 +443,14 @@ def read_user_mask(path: Path) -> np.ndarray:
     return read_photo(path, "linear").pixels[..., 0] > 0.5 / 255
 
 
+def on_mask(mask_path: Path, pixels: np.ndarray) -> np.ndarray:
+    """Whether each pixel (x, y) lies on the mask's foreground (outside the photo: no)."""
+    mask = cv2.imread(str(mask_path), cv2.IMREAD_GRAYSCALE) > 127
+    x, y = np.round(pixels[:, 0]).astype(int), np.round(pixels[:, 1]).astype(int)
+    within = (x >= 0) & (y >= 0) & (x < mask.shape[1]) & (y < mask.shape[0])
+    return within & mask[np.clip(y, 0, mask.shape[0] - 1), np.clip(x, 0, mask.shape[1] - 1)]
+
+
 def learn_fixed_sets(
     settings: Iterable[tuple[list[str], Iterable[np.ndarray]]], working_size: int, camera_fixed: bool
 ) -> dict[str, tuple[FixedSet, int]]:

@@ -64,6 +64,28 @@ class SynthOptions:
     """Turntable only: the specimen shifts on the table half-way through the photos, so that
     the camera's height above it changes by this fraction of the camera's distance: the
     photos no longer lie on one circle."""
+    set_views: tuple[int, ...] = ()
+    """Turntable only: the photos shot in several sets (rings), this many in each, in file
+    order (they sum to ``views``); empty: one set. Set k's camera stands at elevation
+    ``rings[k]`` (the last ring where fewer are given); each set turns once (plus
+    ``extra_turn``) from where the one before ended, less its ``set_restarts_deg``."""
+    set_distances: tuple[float, ...] = ()
+    """Turntable sets only: each set's camera distance as a multiple of ``distance`` (1
+    where not given): a tripod moved nearer or farther."""
+    set_rolls_deg: tuple[float, ...] = ()
+    """Turntable sets only: each set's camera turned about its optical axis by this many
+    degrees (0 where not given): a tripod head re-levelled."""
+    set_restarts_deg: tuple[float, ...] = ()
+    """Turntable sets only: each set starts this many degrees back from where the set
+    before it ended (the first set's value is not used; 0 where not given)."""
+    sets_turned_over: tuple[int, ...] = ()
+    """Turntable sets only: the numbers (1 = the first) of the sets shot with the specimen
+    turned over on the table (turned 180 degrees about a horizontal axis through its
+    centre): its underside up."""
+    specimen: Literal["bird", "vase"] = "bird"
+    """bird: the procedural bird figurine; vase: a body of revolution about the table's
+    axis, its outline the same from every side of a turn (features alone can fix its
+    angle)."""
     calibration_shots: Annotated[int, Range(0, 100)] = 12
     """Number of ChArUco board photos written to calibration/."""
     background_plates: bool = False

@@ -3,7 +3,8 @@
 The bird is the smooth union of signed distance functions (body, head, eyes, beak,
 wings, tail, legs, feet) polygonised by marching cubes: one watertight, genus-0
 surface. Overlapping closed parts would do for an opaque object, but a
-translucent one would refract at every buried interface.
+translucent one would refract at every buried interface. The vase is a body of
+revolution: a specimen whose outline cannot tell a turntable's angle.
 
 Coordinates are metres in the world frame of the synthetic captures: z up, the
 turntable plate in the plane z = 0, the bird standing on it facing +x.
@@ -104,6 +105,18 @@ def bird_mesh(size: float = 0.09, resolution: int = 112, faces: int = 20000) -> 
             meshlab.run("decimate", full, reduced, {"faces": faces})
             reduced_mesh = trimesh.load(reduced, force="mesh", process=False)
         mesh = trimesh.Trimesh(reduced_mesh.vertices, reduced_mesh.faces, process=True)
+    trimesh.repair.fix_normals(mesh)
+    return mesh
+
+
+def vase_mesh(height: float = 0.09, sections: int = 128) -> trimesh.Trimesh:
+    """A vase as a watertight body of revolution about z, base at z = 0, as tall as the
+    bird: a bulge low down and a narrower neck, so that turned over it is not the same
+    shape, but its outline is the same from every side of a turn."""
+    z = np.linspace(0.0, height, 60)
+    radius = (0.024 + 0.008 * np.sin(1.3 * np.pi * z / height) - 0.006 * (z / height) ** 2) * height / 0.09
+    profile = np.column_stack([np.r_[0.0, radius, 0.0], np.r_[0.0, z, height]])
+    mesh = trimesh.creation.revolve(profile, sections=sections)
     trimesh.repair.fix_normals(mesh)
     return mesh
 

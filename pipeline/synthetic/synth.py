@@ -14,7 +14,11 @@ object turns: in the object's frame the camera circles one ring and the light
 travels with it. ``--turn-jitter`` makes the steps uneven like a hand-turned table,
 ``--turn-alternation`` alternates short and long steps, ``--turn-restart-deg`` turns the
 table back half-way, ``--extra-turn`` adds part of a second turn and ``--wobble`` shifts
-the specimen half-way, as real turntable captures do.
+the specimen half-way, as real turntable captures do. ``--set-views`` shoots the turn in
+several sets, each with its own camera (``--rings``, ``--set-distances``,
+``--set-rolls-deg``), restart (``--set-restarts-deg``) and, with ``--sets-turned-over``,
+the specimen turned over; ``--specimen vase`` is a body of revolution whose outline
+cannot tell the table's angle.
 ``--table`` and ``--backdrop`` build the hard cases of real captures: a plate with
 sparse dots instead of the board, a still textured room (an environment map, which
 also lights the scene: written to ``ground_truth/room.exr``), photos cut out on white,
@@ -35,7 +39,7 @@ import trimesh
 
 from pipeline import logger
 from pipeline.camera.board import board_image, board_to_world
-from pipeline.camera.model import Intrinsics, Pose, distortion_maps, pinhole_render_size
+from pipeline.camera.model import Intrinsics, Pose, Similarity, distortion_maps, pinhole_render_size
 from pipeline.core import progress
 from pipeline.core.config import toml_section
 from pipeline.core.errors import PipelineError
@@ -47,7 +51,7 @@ from pipeline.render import mitsuba_variant
 from pipeline.render.capture_scene import environment_to_world
 from pipeline.synthetic import set_pieces
 from pipeline.synthetic.options import SynthOptions
-from pipeline.synthetic.specimen import BLOTCH_SCALE, bird_mesh, blotch_colours
+from pipeline.synthetic.specimen import BLOTCH_SCALE, bird_mesh, blotch_colours, vase_mesh
 
 SENSOR_WIDTH_MM = 6.4
 """Sensor width written to EXIF, so that focal length in mm is meaningful."""
@@ -108,6 +112,8 @@ def specimen_poses(options: SynthOptions, rng: np.random.Generator) -> list[Pose
     """The cameras of ``options``' views: on its rings (jittered) or, for a turntable,
     one ring in the object's frame. ``synthesize`` draws them first from
     ``np.random.default_rng(options.seed)``."""
+    if options.rig == "turntable" and options.set_views:
+        return _set_poses(options, rng)
     if options.rig == "turntable":
         steps = 1.0 + options.turn_jitter * rng.uniform(-1, 1, options.views)
         steps[1::2] *= options.turn_alternation
@@ -119,8 +125,7 @@ def specimen_poses(options: SynthOptions, rng: np.random.Generator) -> list[Pose
         return [
             Pose.look_at(
                 BIRD_CENTRE
-                + options.distance
-                * np.array([math.cos(a) * math.cos(elevation), math.sin(a) * math.cos(elevation), math.sin(elevation)])
+                + options.distance * _direction(a, elevation)
                 + [0.0, 0.0, options.wobble * options.distance * shifted],
                 BIRD_CENTRE,
             )
@@ -135,12 +140,75 @@ def specimen_poses(options: SynthOptions, rng: np.random.Generator) -> list[Pose
         azimuth = 2 * np.pi * (index_on_ring + 0.5 * ring) / count_on_ring + rng.normal(0, 0.05)
         elevation = math.radians(rings[ring] + rng.normal(0, 2.0))
         distance = options.distance * rng.uniform(0.92, 1.08)
-        direction = np.array(
-            [math.cos(azimuth) * math.cos(elevation), math.sin(azimuth) * math.cos(elevation), math.sin(elevation)]
-        )
         target = BIRD_CENTRE + rng.normal(0, 0.006, 3)
-        poses.append(Pose.look_at(BIRD_CENTRE + distance * direction, target, roll_deg=rng.normal(0, 3.0)))
+        poses.append(
+            Pose.look_at(BIRD_CENTRE + distance * _direction(azimuth, elevation), target, roll_deg=rng.normal(0, 3.0))
+        )
     return poses
+
+
+def _direction(azimuth: float, elevation: float) -> np.ndarray:
+    """The unit vector from the specimen towards a camera at ``azimuth`` and ``elevation`` (radians)."""
+    return np.array(
+        [math.cos(azimuth) * math.cos(elevation), math.sin(azimuth) * math.cos(elevation), math.sin(elevation)]
+    )
+
+
+def _nth(values: tuple[float, ...], k: int, default: float) -> float:
+    return values[k] if k < len(values) else default
+
+
+def _set_poses(options: SynthOptions, rng: np.random.Generator) -> list[Pose]:
+    """A turntable's cameras in several sets (``options.set_views``), in the table's
+    frame: each set one turn of its own steps, from where the set before ended less its
+    restart, at its own elevation, distance and roll."""
+    poses: list[Pose] = []
+    start = 0.0
+    for k, count in enumerate(options.set_views):
+        steps = 1.0 + options.turn_jitter * rng.uniform(-1, 1, count)
+        steps[1::2] *= options.turn_alternation
+        steps *= 2 * np.pi * (1.0 + options.extra_turn) / steps.sum()
+        if k:
+            start -= math.radians(_nth(options.set_restarts_deg, k, 0.0))
+        azimuths = start + np.concatenate([[0.0], np.cumsum(steps[:-1])])
+        start = float(azimuths[-1])
+        elevation = math.radians(options.rings[min(k, len(options.rings) - 1)])
+        distance = options.distance * _nth(options.set_distances, k, 1.0)
+        poses += [
+            Pose.look_at(
+                BIRD_CENTRE + distance * _direction(a, elevation),
+                BIRD_CENTRE,
+                roll_deg=_nth(options.set_rolls_deg, k, 0.0),
+            )
+            for a in azimuths
+        ]
+    return poses
+
+
+def turned_over(options: SynthOptions) -> list[bool]:
+    """Per view, whether the specimen lies turned over in its set."""
+    counts = options.set_views or (options.views,)
+    return [k + 1 in options.sets_turned_over for k, count in enumerate(counts) for _ in range(count)]
+
+
+def _turn_over(mesh: trimesh.Trimesh) -> Similarity:
+    """The specimen turned over: 180 degrees about the x axis through its bounding box's
+    centre (its underside up, in the same box), from its own frame to the table's."""
+    R = np.diag([1.0, -1.0, -1.0])
+    centre = mesh.bounds.mean(axis=0)
+    return Similarity(1.0, R, centre - R @ centre)
+
+
+def _check_sets(options: SynthOptions) -> None:
+    if not options.set_views:
+        return
+    if options.rig != "turntable":
+        raise PipelineError("set_views: sets are shot on a turntable; give --rig turntable or leave --set-views out")
+    if sum(options.set_views) != options.views or min(options.set_views) < 2:
+        raise PipelineError(
+            f"set_views {list(options.set_views)}: each set needs 2 photos or more, and they must sum to "
+            f"views ({options.views}); give --views {sum(options.set_views)}"
+        )
 
 
 def _calibration_poses(count: int, board_size: tuple[float, float], rng) -> list[Pose]:
@@ -388,7 +456,7 @@ def default_light(options: SynthOptions) -> LightSection:
 
 def _capture_toml(options: SynthOptions, board: BoardSection, light: LightSection) -> str:
     capture = CaptureSection(
-        f"synthetic bird, {options.material} material, seed {options.seed}",
+        f"synthetic {options.specimen}, {options.material} material, seed {options.seed}",
         options.rig,
         TRUTHS[options.material]["model"],
     )
@@ -414,8 +482,9 @@ def synthesize(out_dir: Path, options: SynthOptions, board: BoardSection = Board
         light = replace(light, environment_map="ground_truth/room.exr")
     if options.backdrop == "dark":
         light = replace(light, environment_radiance=DARK_SURROUND)
+    _check_sets(options)
     rng = np.random.default_rng(options.seed)
-    mesh = bird_mesh()
+    mesh = bird_mesh() if options.specimen == "bird" else vase_mesh()
     material = dict(TRUTHS[options.material])
     textured = options.texture != "plain" and options.material != "volumetric"
     scale = BLOTCH_SCALE / 3 if options.texture == "speckles" else BLOTCH_SCALE
@@ -423,6 +492,8 @@ def synthesize(out_dir: Path, options: SynthOptions, board: BoardSection = Board
     if albedo is not None:
         material["base_color_mean"] = albedo.mean(axis=0).tolist()
     poses = specimen_poses(options, rng)
+    flips = turned_over(options)
+    flip = _turn_over(mesh)
     studio = _Studio(options, board, light)
 
     images, calibration, truth = out_dir / "images", out_dir / "calibration", out_dir / "ground_truth"
@@ -430,17 +501,24 @@ def synthesize(out_dir: Path, options: SynthOptions, board: BoardSection = Board
         folder.mkdir(parents=True)
 
     bsdf, medium, integrator = material_plugins(material, textured)
-    specimen = studio.specimen_shape(mesh, albedo, bsdf, medium)
-    silhouette = studio.specimen_shape(
-        mesh,
-        None,
-        {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.0}},
-        emitter={"type": "area", "radiance": {"type": "rgb", "value": 1.0}},
-    )
+    # Keyed by whether the specimen lies turned over: the mesh as it stands on the table.
+    placed = {False: mesh} | ({True: mesh.copy().apply_transform(flip.matrix())} if any(flips) else {})
+    specimens = {turned: studio.specimen_shape(shape, albedo, bsdf, medium) for turned, shape in placed.items()}
+    silhouettes = {
+        turned: studio.specimen_shape(
+            shape,
+            None,
+            {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.0}},
+            emitter={"type": "area", "radiance": {"type": "rgb", "value": 1.0}},
+        )
+        for turned, shape in placed.items()
+    }
     names = [f"view_{i:03d}.jpg" for i in range(len(poses))]
-    for name, pose in progress.track(list(zip(names, poses)), "rendering views"):
-        linear = studio.render(studio.scene(pose, options.spp, integrator, specimen))
-        coverage = studio.render(studio.scene(pose, 16, {"type": "path", "max_depth": 1}, silhouette, black_props=True))
+    for name, pose, turned in progress.track(list(zip(names, poses, flips)), "rendering views"):
+        linear = studio.render(studio.scene(pose, options.spp, integrator, specimens[turned]))
+        coverage = studio.render(
+            studio.scene(pose, 16, {"type": "path", "max_depth": 1}, silhouettes[turned], black_props=True)
+        )
         cut_out = np.clip(coverage[..., 0], 0, 1) if options.backdrop == "white" else None
         studio.write_jpeg(images / name, studio.photo(linear, cut_out))
         cv2.imwrite(
@@ -459,7 +537,11 @@ def synthesize(out_dir: Path, options: SynthOptions, board: BoardSection = Board
         scene["environment"] = {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}}
         studio.write_jpeg(calibration / f"board_{i:02d}.jpg", studio.photo(studio.render(scene)))
 
-    write_cameras(truth / "cameras.json", studio.intrinsics, dict(zip(names, poses)))
+    # The truth is in the specimen's frame: x_camera = R (R_flip x + t_flip) + t.
+    in_specimen_frame = [
+        Pose(pose.R @ flip.R, pose.R @ flip.t + pose.t) if turned else pose for pose, turned in zip(poses, flips)
+    ]
+    write_cameras(truth / "cameras.json", studio.intrinsics, dict(zip(names, in_specimen_frame)))
     exported = mesh.copy()
     if albedo is not None:
         srgb = to_uint8(albedo)

@@ -165,3 +165,84 @@ def shaded_turntable_views(
             matches[a, b] = {visible[a][p]: visible[b][p] for p in sorted(set(visible[a]) & set(visible[b]))}
             matches[b, a] = {v: u for u, v in matches[a, b].items()}
     return TurntableViews(intrinsics, names, angles, poses, keypoints, matches, visible)
+
+
+def two_set_views(
+    views: tuple[int, int] = (16, 14),
+    elevation_change_deg: float = 6.0,
+    distance_ratio: float = 1.1,
+    restart_deg: float = 10.0,
+    turned_over: bool = False,
+    patterned_table: bool = False,
+    across: int = 2,
+    points: int = 600,
+    seed: int = 0,
+) -> TurntableViews:
+    """A turntable capture shot in two sets: the first as ``turntable_views`` (file names
+    view_000...), the second (set_000...) from a camera moved up by
+    ``elevation_change_deg`` and ``distance_ratio`` times as far, starting
+    ``restart_deg`` back from where the first began; ``turned_over``: the specimen
+    turned upside down between the sets, on a plain plate, or with ``patterned_table``
+    on the same plate of features, which turn with the table, not with the specimen
+    (the matches of the plate then tie the sets where the specimen does not lie). Each
+    photo of the second set is matched with its ``across`` photos of the first that
+    share the most points (0: none), a tenth of those matches wrong. Poses are in the frame of the specimen as the first
+    set stands it."""
+    rng = np.random.default_rng(seed)
+    xyz = rng.uniform([-0.04, -0.03, 0.0], [0.04, 0.03, 0.09], (points // 2, 3))
+    if patterned_table or not turned_over:
+        plate = np.column_stack([rng.uniform(-0.18, 0.18, (points - points // 2, 2)), np.zeros(points // 2)])
+        xyz = np.vstack([xyz, plate])
+    on_plate = np.arange(len(xyz)) >= points // 2
+    outward = np.column_stack([xyz[:, :2], np.zeros(len(xyz))])
+    normals = np.where((xyz[:, 2] == 0)[:, None], [0.0, 0.0, 1.0], outward)
+    elevation = np.radians(25 + elevation_change_deg)
+    distance = 0.4 * distance_ratio
+    moved = Pose.look_at([distance * np.cos(elevation), 0.0, distance * np.sin(elevation) + 0.04], [0.0, 0.0, 0.04])
+    # Turned over: upside down about the x axis, standing on its former top.
+    flip = Rotation.from_rotvec([np.pi, 0, 0]).as_matrix() if turned_over else np.eye(3)
+    lift = np.array([0.0, 0.0, 0.09]) if turned_over else np.zeros(3)
+    names, angles, poses, keypoints, visible = [], [], {}, {}, {}
+    for number, (count, camera, prefix, start) in enumerate(
+        ((views[0], CAMERA, "view", 0.0), (views[1], moved, "set", -np.radians(restart_deg)))
+    ):
+        steps = 1 + 0.3 * rng.uniform(-1, 1, count)
+        turns = start + np.concatenate([[0.0], np.cumsum(steps[:-1])]) * 2 * np.pi / steps.sum()
+        for i, angle in enumerate(turns):
+            name = f"{prefix}_{i:03d}.jpg"
+            turn = Rotation.from_rotvec([0, 0, angle]).as_matrix()
+            placed_R, placed_t = (flip, lift) if number else (np.eye(3), np.zeros(3))
+            R = camera.R @ turn @ placed_R
+            pose = poses[name] = Pose(R, camera.R @ turn @ placed_t + camera.t)
+            table = Pose(camera.R @ turn, camera.t)  # the plate's points turn with the table
+            camera_points = np.where(on_plate[:, None], xyz @ table.R.T + table.t, xyz @ pose.R.T + pose.t)
+            x, y = camera_points[:, 0] / camera_points[:, 2], camera_points[:, 1] / camera_points[:, 2]
+            radial = 1 + K.dist[0] * (x * x + y * y)
+            pixels = np.column_stack([K.fx * x * radial + K.cx, K.fy * y * radial + K.cy])
+            pixels += rng.normal(0, 0.3, pixels.shape)
+            seen_from = np.where(on_plate[:, None], table.center, pose.center)
+            facing = np.einsum("ij,ij->i", normals, seen_from - xyz) > 0
+            inside = (pixels[:, 0] > 0) & (pixels[:, 0] < K.width - 1) & (pixels[:, 1] > 0)
+            inside &= pixels[:, 1] < K.height - 1
+            seen = np.flatnonzero(facing & inside & (rng.uniform(size=len(xyz)) < 0.6))
+            keypoints[name], visible[name] = pixels[seen], {int(p): k for k, p in enumerate(seen)}
+            names.append(name)
+            angles.append(angle)
+    matches: dict[tuple[str, str], dict[int, int]] = {}
+
+    def match(a: str, b: str, wrong: float) -> None:
+        pairs = {visible[a][p]: visible[b][p] for p in sorted(set(visible[a]) & set(visible[b]))}
+        for key in list(pairs)[: int(len(pairs) * wrong)]:
+            pairs[key] = int(rng.integers(len(keypoints[b])))
+        matches[a, b], matches[b, a] = pairs, {v: u for u, v in pairs.items()}
+
+    first, second = names[: views[0]], names[views[0] :]
+    for members in (first, second):
+        for i in range(len(members)):
+            for k in (1, 2, 3):
+                match(members[i], members[(i + k) % len(members)], 0.1)
+    for b in second:
+        shared = sorted(first, key=lambda a: -len(set(visible[a]) & set(visible[b])))
+        for a in shared[:across]:
+            match(a, b, 0.1)
+    return TurntableViews(K, names, np.array(angles), poses, keypoints, matches, visible)

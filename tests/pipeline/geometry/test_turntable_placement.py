@@ -91,7 +91,11 @@ def test_a_ring_broken_in_two_is_closed_by_the_arcs_silhouettes(tmp_path, cohere
     arc = views.names[6:13]
     assert set(poses) == set(views.names)
     if coherence:
-        assert report["joined_groups"][0]["joined"] and report["pose_source"]["features"] == sorted(views.names)
+        # The arc's offset is its outlines': uncertain, and said so photo by photo.
+        assert report["joined_groups"][0]["joined"] and report["pose_source"]["joined_by_outline"] == sorted(arc)
+        assert report["pose_source"]["features"] == sorted(set(views.names) - set(arc))
+        assert all(not report["photos"][name]["certain"] for name in arc)
+        assert "7 by outline alone (uncertain)" in report["summary"]
     else:
         assert not report["joined_groups"] and report["pose_source"]["group_silhouette"] == sorted(arc)
     assert max(_angle_error_deg(table, views, name) for name in views.names) < 0.5

@@ -179,3 +179,49 @@ def test_a_hand_turned_table_alternates_restarts_goes_round_again_and_wobbles():
     assert steps.sum() + 10.0 > 450.0  # one turn and most of half another
     heights = offsets[:, 2]
     np.testing.assert_allclose(heights[10:] - heights[:10], 0.01 * options.distance, atol=1e-12)
+
+
+def test_a_turntable_in_sets_moves_the_camera_restarts_and_turns_the_specimen_over(tmp_path):
+    """Two sets: the second from higher up and nearer, starting 15 degrees back from
+    where the first ended, the specimen turned over. The truth is in the specimen's
+    frame: its mesh seen from every true camera covers the true mask, the turned-over
+    set's included."""
+    options = SynthOptions(
+        rig="turntable", views=5, set_views=(3, 2), rings=(20.0, 35.0), set_distances=(1.0, 0.8),
+        set_restarts_deg=(0.0, 15.0), sets_turned_over=(2,), width=96, height=96, spp=2,
+        calibration_shots=0, table="grey", texture="plain", noise=0.0,
+    )  # fmt: skip
+    offsets = np.array([pose.center - BIRD_CENTRE for pose in specimen_poses(options, np.random.default_rng(0))])
+    distances = np.linalg.norm(offsets, axis=1)
+    np.testing.assert_allclose(np.degrees(np.arcsin(offsets[:, 2] / distances)), [20, 20, 20, 35, 35], atol=1e-9)
+    np.testing.assert_allclose(distances / options.distance, [1, 1, 1, 0.8, 0.8])
+    azimuths = np.degrees(np.arctan2(offsets[:, 1], offsets[:, 0]))
+    assert azimuths[3] == pytest.approx(azimuths[2] - 15.0)
+    capture = synthesize(tmp_path / "sets", options)
+    intrinsics, poses = read_cameras(capture / "ground_truth" / "cameras.json")
+    mesh = trimesh.load(capture / "ground_truth" / "mesh.ply", force="mesh")
+    for name, pose in poses.items():
+        mask = cv2.imread(str(capture / "ground_truth" / "masks" / name.replace(".jpg", ".png")), 0) > 0
+        silhouette = mesh_coverage(mesh.vertices, mesh.faces, intrinsics, pose) > 0.5
+        assert (mask & silhouette).sum() / (mask | silhouette).sum() > 0.9, name
+    # Seen from the turned-over set, the specimen's underside faces up: its cameras look
+    # at it from below its own horizon.
+    assert all(poses[f"view_{i:03d}.jpg"].center[2] < BIRD_CENTRE[2] for i in (3, 4))
+
+
+def test_sets_that_do_not_add_up_are_refused(tmp_path):
+    with pytest.raises(PipelineError, match="--views 7"):
+        synthesize(tmp_path / "x", SynthOptions(rig="turntable", views=6, set_views=(3, 4), width=32, height=32))
+
+
+def test_a_vase_shows_the_same_outline_from_every_side_of_a_turn():
+    from pipeline.synthetic.specimen import vase_mesh
+
+    vase = vase_mesh()
+    assert vase.is_watertight and vase.volume > 0
+    radius, height = np.hypot(*vase.vertices[:, :2].T), np.round(vase.vertices[:, 2], 9)
+    for level in np.unique(height):  # every ring of vertices off the axis lies at one radius
+        ring = radius[(height == level) & (radius > 1e-9)]
+        assert len(ring) == 0 or np.ptp(ring) < 1e-9
+    base, neck = radius[(height > 0) & (height < 0.01)].max(), radius[(height > 0.08) & (height < 0.09)].max()
+    assert base > neck + 0.005  # not the same shape upside down
