@@ -6,7 +6,7 @@ from scipy.spatial.transform import Rotation
 
 from pipeline.camera.model import Intrinsics, rotation_angle_deg
 from pipeline.geometry.circular_motion import CircularMotion
-from pipeline.geometry.sets_adjustment import JoinedSet, adjust_sets
+from pipeline.geometry.sets_adjustment import JoinedSet, _Tracks, adjust_sets
 from pipeline.geometry.turntable import Turntable
 from pipeline.geometry.turntable_sets import Join, Solved, project
 
@@ -90,12 +90,14 @@ def test_a_set_no_match_across_ties_is_left_undetermined():
 def test_a_keypoint_matched_into_two_tracks_is_observed_once():
     """A ring photo's untracked keypoint matched with two set photos' different points
     joins one of them (COLMAP refuses a keypoint in two points)."""
-    ring, own, joined, across, keypoints, _ = _two_sets()
+    ring, own, joined, _, keypoints, _ = _two_sets()
     for track in ring.solution.tracks:
         track.pop("ring_00", None)  # ring_00's keypoints are tracked by nothing
-    across[("ring_00", "set_00")] = {7: 7}
-    across[("ring_00", "set_01")] = {7: 8}
-    adjusted = adjust_sets(ring, [JoinedSet(own, joined, across, 1e9)], keypoints, {"f": True}, 3.0)
-    seen = [(name, key) for track in adjusted.tracks for name, key in track.items()]
+    tracks = _Tracks(ring, [JoinedSet(own, joined, {}, 1.0)])
+    tracks.share(1, ("ring_00", 7), ("set_00", 7))
+    tracks.share(1, ("ring_00", 7), ("set_01", 8))
+    names = [*ring.poses, *own.poses]
+    _, observations = tracks.problem(names, keypoints)
+    seen = list(zip(observations.view.tolist(), observations.keypoint.tolist()))
     assert len(seen) == len(set(seen))
-    assert sum(track.get("ring_00") == 7 for track in adjusted.tracks) == 1
+    assert seen.count((names.index("ring_00"), 7)) == 1
