@@ -78,6 +78,15 @@ def keep_inliers(
     return observations, points[seen]
 
 
+def noise_px(project: Projection, g: np.ndarray, views: np.ndarray, points: np.ndarray, obs: Observations) -> float:
+    """The reprojection noise at a state, as ``adjust`` measures it (``Result.sigma_px``);
+    1 px without observations, at least 1e-3 px (a weight divides by it)."""
+    if not len(obs.view):
+        return 1.0
+    errors = np.linalg.norm(project(g, views, points, obs) - obs.pixels, axis=1)
+    return max(float(np.median(errors)) / 1.1774, 1e-3)
+
+
 @dataclass
 class Problem:
     """A bundle adjustment problem: a camera model, its free parameters and the observations."""

@@ -85,7 +85,7 @@ from pipeline import logger
 from pipeline.camera.model import Intrinsics, Pose
 from pipeline.camera.self_calibration import corner_radius, frame_coverage, radial_shift_px
 from pipeline.geometry import silhouette_coherence, silhouette_tangency
-from pipeline.geometry.bundle import Observations, Prior, Problem, adjust, keep_inliers
+from pipeline.geometry.bundle import Observations, Prior, Problem, adjust, keep_inliers, noise_px
 
 GLOBAL_NAMES = ("axis_a", "axis_b", "psi", "f", "cx", "cy", "k1")
 """The model's global parameters: two for the axis direction (a tangent-plane offset
@@ -914,11 +914,8 @@ def _solve(solver: _Solver, tracks, free_global: np.ndarray):
 
 
 def _feature_sigma(solver: _Solver, observations: Observations, points: np.ndarray) -> float:
-    """The features' reprojection noise at the solver's state (as the bundle adjuster measures it)."""
-    if not len(observations.view):
-        return 1.0
-    predicted = solver.model.project(solver.g, solver.angles[:, None], points, observations)
-    return max(float(np.median(np.linalg.norm(predicted - observations.pixels, axis=1)) / 1.1774), 1e-3)
+    """The features' reprojection noise at the solver's state."""
+    return noise_px(solver.model.project, solver.g, solver.angles[:, None], points, observations)
 
 
 def _coherence(solver: _Solver, feature_sigma: float) -> Coherence | None:

@@ -41,7 +41,7 @@ from scipy.spatial.transform import Rotation
 
 from pipeline.camera.model import Intrinsics, Pose
 from pipeline.geometry import silhouette_coherence, silhouette_tangency
-from pipeline.geometry.bundle import Observations, Prior, Problem, adjust, keep_inliers
+from pipeline.geometry.bundle import Observations, Prior, Problem, adjust, keep_inliers, noise_px
 from pipeline.geometry.circular_motion import CX, CY, FOCAL, K1, Coherence, Model
 from pipeline.geometry.turntable_sets import Join, Solved, project
 
@@ -282,13 +282,6 @@ def _coherences(layout: _Layout, outlines: dict[str, np.ndarray], g, angles, fea
     return priors
 
 
-def _feature_sigma(problem: Problem, g, angles, points) -> float:
-    """The features' reprojection noise (as the bundle adjuster measures it)."""
-    obs = problem.observations
-    errors = np.linalg.norm(problem.project(g, angles, points, obs) - obs.pixels, axis=1)
-    return max(float(np.median(errors)) / 1.1774, 1e-3) if len(errors) else 1.0
-
-
 def adjust_sets(
     ring: Solved,
     sets: list[JoinedSet],
@@ -320,7 +313,8 @@ def adjust_sets(
     for _ in range(MAX_ROUNDS):
         problem = Problem(_Projection(layout), observations, free_global, free_views, steps, np.array([1e-7]), 1e-7)
         if outlines:
-            problem.priors = _coherences(layout, outlines, g, angles, _feature_sigma(problem, g, angles, points))
+            sigma = noise_px(problem.project, g, angles, points, observations)
+            problem.priors = _coherences(layout, outlines, g, angles, sigma)
         result = adjust(problem, g, angles, points)
         g, angles, points = result.global_params, result.view_params, result.points
         inliers = result.errors_px <= max(outlier_px, 4 * result.sigma_px)
